@@ -1,0 +1,175 @@
+"""All configuration in one typed place.
+
+Every option is a dataclass field. A config is built from defaults, then a JSON or TOML file
+(``--config FILE``), then ``--set section.key=value`` overrides from the command line, in that order.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, get_type_hints
+
+
+@dataclass
+class CameraConfig:
+    """One camera of the rig: RGB, depth and segmentation share this pose and these intrinsics."""
+
+    name: str = "front"
+    width: int = 640
+    height: int = 480
+    hfov_deg: float = 90.0
+    #: mount position in the body FLU frame, metres
+    position: tuple[float, float, float] = (0.12, 0.0, 0.0)
+    #: mount roll, pitch, yaw in degrees; positive pitch looks down
+    rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    near: float = 0.05
+    far: float = 200.0
+
+    def __post_init__(self) -> None:
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"camera {self.name!r}: width and height must be positive")
+        if not 1.0 <= self.hfov_deg <= 170.0:
+            raise ValueError(f"camera {self.name!r}: hfov_deg must lie in [1, 170]")
+        if not 0 < self.near < self.far:
+            raise ValueError(f"camera {self.name!r}: need 0 < near < far")
+
+    @property
+    def rpy(self) -> tuple[float, float, float]:
+        r, p, y = (math.radians(a) for a in self.rpy_deg)
+        return r, p, y
+
+
+@dataclass
+class RenderConfig:
+    shadows: bool = True
+    shadow_map_size: int = 2048
+    camera_hz: float = 30.0
+    cameras: list[CameraConfig] = field(default_factory=lambda: [CameraConfig()])
+
+
+@dataclass
+class VehicleConfig:
+    #: RotorPy parameter set: see ``droneulator.vehicles.params.PARAMETER_SETS``
+    params: str = "hummingbird"
+    aero: bool = True
+    #: wind model: "none", "constant", "sinusoid" or "dryden"
+    wind: str = "none"
+    wind_velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: turbulence intensity (dryden) or amplitude (sinusoid) per axis, m/s
+    wind_sigma: tuple[float, float, float] = (0.5, 0.5, 0.2)
+    #: sphere radius used for collision with the scene, metres
+    collision_radius: float = 0.25
+    control_hz: float = 100.0
+    #: fixed RK4 sub-steps per control period
+    substeps: int = 10
+
+
+@dataclass
+class FlightConfig:
+    takeoff_altitude: float = 2.0
+    default_speed: float = 1.0
+    max_speed: float = 5.0
+    #: velocity mode limits and filters
+    max_forward_accel: float = 3.0
+    max_yaw_accel: float = 4.0
+    filter_tau: float = 0.15
+    #: max horizontal distance between the virtual reference and the vehicle (anti wind-up)
+    leash: float = 1.0
+    arrive_tolerance: float = 0.05
+    arrive_speed: float = 0.05
+
+
+@dataclass
+class SimConfig:
+    scene: str = "default"
+    seed: int = 0
+    render: RenderConfig = field(default_factory=RenderConfig)
+    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
+    flight: FlightConfig = field(default_factory=FlightConfig)
+
+
+# --------------------------------------------------------------------------- loading & overrides
+def _coerce(value: Any, typ: Any) -> Any:
+    origin = getattr(typ, "__origin__", None)
+    if dataclasses.is_dataclass(typ):
+        if isinstance(value, typ):
+            return value
+        return from_dict(typ, value)
+    if origin is list:
+        (inner,) = typ.__args__
+        return [_coerce(v, inner) for v in value]
+    if origin is tuple:
+        return tuple(_coerce(v, t) for v, t in zip(value, typ.__args__, strict=True))
+    if typ is bool and isinstance(value, str):
+        if value.lower() in ("1", "true", "yes", "on"):
+            return True
+        if value.lower() in ("0", "false", "no", "off"):
+            return False
+        raise ValueError(f"not a boolean: {value!r}")
+    if typ in (int, float, str, bool):
+        return typ(value)
+    return value
+
+
+def from_dict(cls: type, data: dict[str, Any]) -> Any:
+    """Build dataclass ``cls`` from a (possibly partial) nested dict; unknown keys are errors."""
+    hints = get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(data) - names
+    if unknown:
+        raise ValueError(f"unknown {cls.__name__} option(s): {', '.join(sorted(unknown))}")
+    return cls(**{k: _coerce(v, hints[k]) for k, v in data.items()})
+
+
+def to_dict(cfg: Any) -> dict[str, Any]:
+    return dataclasses.asdict(cfg)
+
+
+def load_file(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    text = path.read_text()
+    if path.suffix == ".toml":
+        return tomllib.loads(text)
+    return json.loads(text)
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def apply_override(data: dict[str, Any], assignment: str) -> dict[str, Any]:
+    """Apply one ``a.b.c=value`` override (value parsed as JSON when possible) to a config dict."""
+    if "=" not in assignment:
+        raise ValueError(f"override must look like section.key=value, got {assignment!r}")
+    key, raw = assignment.split("=", 1)
+    try:
+        value = json.loads(raw)
+    except json.JSONDecodeError:
+        value = raw
+    node: dict[str, Any] = {}
+    leaf = node
+    parts = key.strip().split(".")
+    for p in parts[:-1]:
+        leaf[p] = {}
+        leaf = leaf[p]
+    leaf[parts[-1]] = value
+    return _merge(data, node)
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | None = None, **top: Any) -> SimConfig:
+    """Defaults, then ``path``, then ``overrides``, then keyword arguments for top-level fields."""
+    data = to_dict(SimConfig())
+    if path is not None:
+        data = _merge(data, load_file(path))
+    for o in overrides or []:
+        data = apply_override(data, o)
+    data.update({k: v for k, v in top.items() if v is not None})
+    return from_dict(SimConfig, data)

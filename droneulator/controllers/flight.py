@@ -1,0 +1,175 @@
+"""Flight modes (paper §II-C) on top of RotorPy's SE(3) controller.
+
+* ``goto``/``takeoff``/``land``: a minimum-snap reference from the current state to the target;
+* ``velocity``: the unicycle velocity mode of :mod:`droneulator.controllers.velocity`;
+* ``hold``: a constant reference at the current position and heading;
+* ``idle``: motors off (rests on the ground);
+* ``collided``: the vehicle stopped against the scene until the next command.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import Any
+
+import numpy as np
+
+from droneulator.config import FlightConfig
+from droneulator.controllers.se3 import FastSE3Control
+from droneulator.controllers.velocity import VelocityReference
+from droneulator.frames import yaw_of
+from droneulator.trajectories.minsnap import PolyTrajectory, goto_trajectory, hold_trajectory
+
+LAND_SPEED = 0.6
+TOUCHDOWN_ALTITUDE = 0.03
+
+
+class Mode(StrEnum):
+    IDLE = "idle"
+    TAKEOFF = "takeoff"
+    GOTO = "goto"
+    HOLD = "hold"
+    VELOCITY = "velocity"
+    LAND = "land"
+    COLLIDED = "collided"
+
+
+@dataclass
+class Event:
+    """Something that happened at sim time ``t`` (seconds): ``arrived``, ``landed`` or ``collision``."""
+
+    type: str
+    t: float
+    data: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"type": self.type, "t": self.t, **self.data}
+
+
+class FlightController:
+    """Turns high-level commands into rotor speed commands, one control tick at a time."""
+
+    def __init__(self, quad_params: dict[str, Any], cfg: FlightConfig) -> None:
+        self.cfg = cfg
+        self.se3 = FastSE3Control(quad_params)
+        self.mode = Mode.IDLE
+        self.trajectory: PolyTrajectory | None = None
+        self.velocity_ref: VelocityReference | None = None
+        self.target: np.ndarray | None = None
+        self.target_yaw = 0.0
+        self._zero = np.zeros(4)
+
+    @property
+    def airborne_modes(self) -> tuple[Mode, ...]:
+        return (Mode.TAKEOFF, Mode.GOTO, Mode.HOLD, Mode.VELOCITY, Mode.LAND, Mode.COLLIDED)
+
+    # ------------------------------------------------------------------ commands
+    def motors_off(self) -> None:
+        self.mode, self.trajectory, self.velocity_ref, self.target = Mode.IDLE, None, None, None
+
+    def goto(
+        self,
+        s: np.ndarray,
+        t: float,
+        position: np.ndarray,
+        yaw: float | None = None,
+        speed: float | None = None,
+        duration: float | None = None,
+        mode: Mode = Mode.GOTO,
+    ) -> float:
+        """Start a min-snap move to ``position`` (yaw kept if None); returns the planned duration."""
+        yaw0 = yaw_of(s[6:10])
+        yaw1 = yaw0 if yaw is None else float(yaw)
+        v0 = np.zeros(3) if self.mode in (Mode.IDLE, Mode.COLLIDED) else s[3:6].copy()
+        start = s[0:3].copy()
+        if self.mode in (Mode.GOTO, Mode.TAKEOFF, Mode.LAND, Mode.HOLD) and self.trajectory is not None:
+            ref = self.trajectory.flat(t)  # continue from the reference, not the measured state
+            start, v0, yaw0 = ref[0:3].copy(), ref[3:6].copy(), float(ref[9])
+        elif self.mode == Mode.VELOCITY and self.velocity_ref is not None:
+            start, yaw0 = self.velocity_ref.position.copy(), self.velocity_ref.yaw
+        self.trajectory = goto_trajectory(
+            start,
+            v0,
+            yaw0,
+            np.asarray(position, dtype=float),
+            yaw1,
+            speed=speed or self.cfg.default_speed,
+            duration=duration,
+            t0=t,
+        )
+        self.target = np.asarray(position, dtype=float).copy()
+        self.target_yaw = float(self.trajectory.flat(t + self.trajectory.duration)[9])
+        self.velocity_ref = None
+        self.mode = mode
+        return self.trajectory.duration
+
+    def takeoff(self, s: np.ndarray, t: float, altitude: float | None = None) -> float:
+        alt = self.cfg.takeoff_altitude if altitude is None else float(altitude)
+        return self.goto(s, t, np.array([s[0], s[1], alt]), speed=self.cfg.default_speed, mode=Mode.TAKEOFF)
+
+    def land(self, s: np.ndarray, t: float) -> float:
+        return self.goto(s, t, np.array([s[0], s[1], 0.0]), speed=LAND_SPEED, mode=Mode.LAND)
+
+    def hold(self, s: np.ndarray, t: float) -> None:
+        self.trajectory = hold_trajectory(s[0:3].copy(), yaw_of(s[6:10]), t)
+        self.target, self.target_yaw = s[0:3].copy(), yaw_of(s[6:10])
+        self.velocity_ref = None
+        self.mode = Mode.HOLD
+
+    def velocity(self, s: np.ndarray, t: float, forward: float, yaw_rate: float) -> None:
+        if self.mode != Mode.VELOCITY or self.velocity_ref is None:
+            if self.trajectory is not None and self.mode != Mode.COLLIDED:
+                ref = self.trajectory.flat(t)
+                pos, yaw = ref[0:3].copy(), float(ref[9])
+            else:
+                pos, yaw = s[0:3].copy(), yaw_of(s[6:10])
+            c, sn = math.cos(yaw), math.sin(yaw)
+            speed0 = float(s[3] * c + s[4] * sn) if self.mode != Mode.COLLIDED else 0.0
+            self.velocity_ref = VelocityReference(self.cfg, pos, yaw, speed=speed0)
+        self.velocity_ref.command(forward, yaw_rate)
+        self.trajectory, self.target = None, None
+        self.mode = Mode.VELOCITY
+
+    def collided(self) -> None:
+        self.mode, self.trajectory, self.velocity_ref, self.target = Mode.COLLIDED, None, None, None
+
+    # ------------------------------------------------------------------ control tick
+    def update(self, s: np.ndarray, t: float, dt: float) -> tuple[np.ndarray, np.ndarray | None, list[Event]]:
+        """Rotor speed command for the coming ``dt``, the packed reference used (or None), and events."""
+        events: list[Event] = []
+        if self.mode in (Mode.IDLE, Mode.COLLIDED):
+            return self._zero, None, events
+        if self.mode == Mode.VELOCITY:
+            assert self.velocity_ref is not None
+            flat = self.velocity_ref.update(dt, s[0:3])
+        else:
+            assert self.trajectory is not None
+            flat = self.trajectory.flat(t)
+            done = t >= self.trajectory.t0 + self.trajectory.duration
+            if done and self.mode == Mode.LAND and s[2] < TOUCHDOWN_ALTITUDE:
+                self.motors_off()
+                events.append(Event("landed", t, {"position": s[0:3].tolist()}))
+                return self._zero, None, events
+            if done and self.mode in (Mode.GOTO, Mode.TAKEOFF) and self._settled(s):
+                events.append(
+                    Event(
+                        "arrived",
+                        t,
+                        {
+                            "target": self.target.tolist(),
+                            "position": s[0:3].tolist(),
+                            "command": self.mode.value,
+                        },
+                    )
+                )
+                self.mode = Mode.HOLD
+        return self.se3.motor_speeds(s, flat), flat, events
+
+    def _settled(self, s: np.ndarray) -> bool:
+        assert self.target is not None
+        return (
+            float(np.linalg.norm(s[0:3] - self.target)) < self.cfg.arrive_tolerance
+            and float(np.linalg.norm(s[3:6])) < self.cfg.arrive_speed
+        )

@@ -1,0 +1,223 @@
+"""Every frame convention in Droneulator, and the only place that converts between them.
+
+Conventions
+-----------
+* **World (RotorPy / ROS ``map``, ENU)**: right-handed, Z up, metres. RotorPy integrates here.
+* **Body (FLU)**: x forward, y left, z up (REP 103). Quaternions are ``[x, y, z, w]`` (RotorPy and
+  SciPy order) and rotate body vectors into the world: ``v_world = R(q) @ v_body``.
+* **OpenGL world (Y up)**: ``(x, y, z)_zup -> (x, z, -y)_yup``; the renderer's world. OpenGL cameras
+  look down their own -Z with +Y up.
+* **Camera optical (ROS)**: z forward, x right, y down. ``camera link`` frames follow body FLU axes.
+* **PX4 NED / FRD**: world North-East-Down, body Forward-Right-Down.
+
+Transforms are 4x4 homogeneous matrices named ``T_a_b``: they map coordinates in frame ``b`` to
+frame ``a`` (``p_a = T_a_b @ p_b``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+# --------------------------------------------------------------------------- constant axis swaps
+#: Z-up world -> Y-up OpenGL world (rotation of -90 deg about x).
+R_GL_ZUP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+#: Camera link (FLU axes) -> optical frame (z forward, x right, y down), i.e. p_opt = R @ p_link.
+R_OPT_LINK = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+#: Optical frame -> OpenGL camera frame (x right, y up, looking down -z).
+R_GLCAM_OPT = np.diag([1.0, -1.0, -1.0])
+#: ENU world -> NED world (also FLU body -> FRD body is R_FRD_FLU).
+R_NED_ENU = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+R_FRD_FLU = np.diag([1.0, -1.0, -1.0])
+
+
+# --------------------------------------------------------------------------- quaternions [x,y,z,w]
+def quat_normalize(q: np.ndarray) -> np.ndarray:
+    q = np.asarray(q, dtype=float)
+    return q / np.linalg.norm(q)
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a (normalised here) ``[x, y, z, w]`` quaternion."""
+    x, y, z, w = quat_normalize(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def matrix_to_quat(R: np.ndarray) -> np.ndarray:
+    """``[x, y, z, w]`` quaternion (w >= 0) of a rotation matrix (Shepperd's method)."""
+    R = np.asarray(R, dtype=float)
+    tr = R[0, 0] + R[1, 1] + R[2, 2]
+    if tr > 0:
+        s = 2.0 * math.sqrt(tr + 1.0)
+        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q = [0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s]
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        q = [(R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s]
+    else:
+        s = 2.0 * math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s, (R[1, 0] - R[0, 1]) / s]
+    q = np.array(q)
+    return quat_normalize(-q if q[3] < 0 else q)
+
+
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product ``a * b`` (apply ``b`` first, then ``a``)."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return np.array(
+        [
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz,
+        ]
+    )
+
+
+def quat_conjugate(q: np.ndarray) -> np.ndarray:
+    return np.array([-q[0], -q[1], -q[2], q[3]], dtype=float)
+
+
+def quat_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """Quaternion of intrinsic Z-Y-X (yaw, then pitch, then roll) Euler angles in radians."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return np.array(
+        [
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+            cr * cp * cy + sr * sp * sy,
+        ]
+    )
+
+
+def quat_to_euler(q: np.ndarray) -> tuple[float, float, float]:
+    """(roll, pitch, yaw) in radians, Z-Y-X convention, inverse of :func:`quat_from_euler`."""
+    x, y, z, w = quat_normalize(q)
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return roll, pitch, yaw
+
+
+def quat_from_yaw(yaw: float) -> np.ndarray:
+    return np.array([0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)])
+
+
+def yaw_of(q: np.ndarray) -> float:
+    """Heading (rotation about world z) of a body quaternion, radians in (-pi, pi]."""
+    return quat_to_euler(q)[2]
+
+
+def wrap_angle(a: float) -> float:
+    """Angle wrapped to [-pi, pi)."""
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+# --------------------------------------------------------------------------- homogeneous transforms
+def make_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def invert_transform(T: np.ndarray) -> np.ndarray:
+    R, t = T[:3, :3], T[:3, 3]
+    return make_transform(R.T, -R.T @ t)
+
+
+def transform_from_pose(position: np.ndarray, quat: np.ndarray) -> np.ndarray:
+    """``T_parent_child`` from a child pose (position, ``[x,y,z,w]``) expressed in the parent."""
+    return make_transform(quat_to_matrix(quat), np.asarray(position, dtype=float))
+
+
+def pose_from_transform(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return T[:3, 3].copy(), matrix_to_quat(T[:3, :3])
+
+
+def transform_points(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Apply ``T`` to points of shape (..., 3)."""
+    p = np.asarray(p, dtype=float)
+    return p @ T[:3, :3].T + T[:3, 3]
+
+
+# --------------------------------------------------------------------------- named conversions
+def zup_to_gl(v: np.ndarray) -> np.ndarray:
+    """Points or directions (..., 3) from the Z-up world to the Y-up OpenGL world."""
+    return np.asarray(v, dtype=float) @ R_GL_ZUP.T
+
+
+def gl_to_zup(v: np.ndarray) -> np.ndarray:
+    return np.asarray(v, dtype=float) @ R_GL_ZUP
+
+
+def T_link_optical() -> np.ndarray:
+    """Optical frame expressed in its camera link frame (the REP 103 static optical transform)."""
+    return make_transform(R_OPT_LINK.T, np.zeros(3))
+
+
+def camera_mount(position: np.ndarray, rpy: tuple[float, float, float]) -> np.ndarray:
+    """``T_body_link`` of a camera link mounted at ``position`` (body FLU) with roll/pitch/yaw.
+
+    Positive pitch tilts the camera's forward axis down (rotation about the body's left axis).
+    """
+    return make_transform(quat_to_matrix(quat_from_euler(*rpy)), np.asarray(position, dtype=float))
+
+
+def T_world_optical(T_world_body: np.ndarray, T_body_link: np.ndarray) -> np.ndarray:
+    """Pose of a camera's optical frame in the Z-up world."""
+    return T_world_body @ T_body_link @ T_link_optical()
+
+
+def gl_view_matrix(T_world_optical_: np.ndarray) -> np.ndarray:
+    """OpenGL view matrix (Y-up GL world -> GL camera) for an optical frame posed in the Z-up world."""
+    T_gl_world = make_transform(R_GL_ZUP, np.zeros(3))
+    T_glworld_glcam = T_gl_world @ T_world_optical_ @ make_transform(R_GLCAM_OPT.T, np.zeros(3))
+    return invert_transform(T_glworld_glcam)
+
+
+def enu_to_ned(v: np.ndarray) -> np.ndarray:
+    """Positions, velocities or accelerations (..., 3) from ENU to NED (self-inverse)."""
+    return np.asarray(v, dtype=float) @ R_NED_ENU.T
+
+
+ned_to_enu = enu_to_ned
+
+
+def flu_to_frd(v: np.ndarray) -> np.ndarray:
+    """Body vectors (..., 3) from FLU to FRD (self-inverse)."""
+    return np.asarray(v, dtype=float) @ R_FRD_FLU.T
+
+
+frd_to_flu = flu_to_frd
+
+
+def quat_enu_flu_to_ned_frd(q: np.ndarray) -> np.ndarray:
+    """Attitude ``[x,y,z,w]`` (FLU body in ENU world) -> FRD body in NED world, same ``[x,y,z,w]`` order."""
+    return matrix_to_quat(R_NED_ENU @ quat_to_matrix(q) @ R_FRD_FLU.T)
+
+
+def quat_ned_frd_to_enu_flu(q: np.ndarray) -> np.ndarray:
+    return matrix_to_quat(R_NED_ENU.T @ quat_to_matrix(q) @ R_FRD_FLU)
+
+
+def xyzw_to_wxyz(q: np.ndarray) -> np.ndarray:
+    """Reorder for consumers that want the scalar first (MAVLink, some ROS tools)."""
+    return np.array([q[3], q[0], q[1], q[2]], dtype=float)
+
+
+def wxyz_to_xyzw(q: np.ndarray) -> np.ndarray:
+    return np.array([q[1], q[2], q[3], q[0]], dtype=float)

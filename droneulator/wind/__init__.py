@@ -1,0 +1,41 @@
+"""Wind models from RotorPy, chosen by name in ``VehicleConfig.wind``."""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+from rotorpy.wind.default_winds import ConstantWind, NoWind, SinusoidWind
+
+from droneulator.config import VehicleConfig
+
+WIND_MODELS = ("none", "constant", "sinusoid", "dryden")
+
+
+class WindModel(Protocol):
+    def update(self, t: float, position: np.ndarray) -> np.ndarray: ...
+
+
+def make_wind(cfg: VehicleConfig, seed: int, dt: float) -> WindModel:
+    """Build the configured RotorPy wind profile (world-frame wind velocity in m/s).
+
+    RotorPy's Dryden gust draws from NumPy's global generator, so it is seeded here for
+    reproducible runs; its module imports torch, so it needs the ``rl`` extra.
+    """
+    mean = np.asarray(cfg.wind_velocity, dtype=float)
+    if cfg.wind == "none":
+        return NoWind()
+    if cfg.wind == "constant":
+        return ConstantWind(*mean)
+    if cfg.wind == "sinusoid":
+        return SinusoidWind(
+            amplitudes=np.asarray(cfg.wind_sigma, dtype=float) + mean, frequencies=np.array([0.2, 0.13, 0.05])
+        )
+    if cfg.wind == "dryden":
+        try:
+            from rotorpy.wind.dryden_winds import DrydenGust
+        except ImportError as exc:
+            raise ValueError("the dryden wind model needs torch: pip install 'droneulator[rl]'") from exc
+        np.random.seed(seed)
+        return DrydenGust(dt=dt, avg_wind=mean, sig_wind=np.asarray(cfg.wind_sigma, dtype=float))
+    raise ValueError(f"unknown wind model {cfg.wind!r}; known: {', '.join(WIND_MODELS)}")

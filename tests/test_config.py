@@ -1,0 +1,63 @@
+"""Typed configuration: defaults, files, overrides and errors."""
+
+import json
+
+import pytest
+
+from droneulator.cli import main
+from droneulator.config import CameraConfig, SimConfig, load_config
+
+
+def test_defaults():
+    cfg = load_config()
+    assert isinstance(cfg, SimConfig)
+    assert cfg.scene == "default" and cfg.render.cameras[0].width == 640 and cfg.render.camera_hz == 30.0
+
+
+def test_file_then_overrides_then_keywords(tmp_path):
+    f = tmp_path / "c.json"
+    f.write_text(
+        json.dumps(
+            {
+                "scene": "orchard",
+                "render": {
+                    "shadows": False,
+                    "cameras": [{"name": "down", "rpy_deg": [0, 90, 0], "width": 320, "height": 240}],
+                },
+            }
+        )
+    )
+    cfg = load_config(f, ["vehicle.params=crazyflie", "render.camera_hz=15"], seed=7)
+    assert cfg.scene == "orchard" and cfg.seed == 7 and cfg.render.shadows is False
+    assert cfg.render.cameras[0] == CameraConfig(name="down", rpy_deg=(0.0, 90.0, 0.0), width=320, height=240)
+    assert cfg.vehicle.params == "crazyflie" and cfg.render.camera_hz == 15.0
+
+
+def test_toml_file(tmp_path):
+    f = tmp_path / "c.toml"
+    f.write_text('scene = "vineyard"\n[flight]\ntakeoff_altitude = 3.5\n')
+    cfg = load_config(f)
+    assert cfg.scene == "vineyard" and cfg.flight.takeoff_altitude == 3.5
+
+
+@pytest.mark.parametrize(
+    "override",
+    [
+        "render.nonsense=1",
+        "bogus=2",
+        "no_equals_sign",
+        "render.shadows=maybe",
+        'render.cameras=[{"width": -5}]',
+    ],
+)
+def test_bad_overrides_raise(override):
+    with pytest.raises(ValueError):
+        load_config(None, [override])
+
+
+def test_cli_config_prints_effective_json_and_reports_errors(capsys):
+    assert main(["config", "--scene", "orchard", "--set", "vehicle.aero=false"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["scene"] == "orchard" and out["vehicle"]["aero"] is False
+    assert main(["config", "--set", "render.bogus=1"]) == 2
+    assert "unknown RenderConfig option" in capsys.readouterr().err

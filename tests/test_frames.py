@@ -1,0 +1,104 @@
+"""Frame conventions: known vectors and round trips."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from droneulator import frames as F
+
+rng = np.random.default_rng(0)
+QUATS = [F.quat_normalize(q) for q in rng.normal(size=(20, 4))]
+
+
+@pytest.mark.parametrize("q", QUATS)
+def test_quaternion_matrix_round_trip_and_scipy_agreement(q):
+    R = F.quat_to_matrix(q)
+    np.testing.assert_allclose(R, Rotation.from_quat(q).as_matrix(), atol=1e-12)
+    q2 = F.matrix_to_quat(R)
+    assert np.allclose(q2, q) or np.allclose(q2, -q)
+
+
+@pytest.mark.parametrize("rpy", [(0.1, -0.2, 0.3), (0.0, 0.0, 3.0), (-1.0, 0.5, -2.0)])
+def test_euler_matches_scipy_zyx_and_round_trips(rpy):
+    q = F.quat_from_euler(*rpy)
+    ref = Rotation.from_euler("ZYX", [rpy[2], rpy[1], rpy[0]]).as_quat()
+    assert np.allclose(q, ref) or np.allclose(q, -ref)
+    np.testing.assert_allclose(F.quat_to_euler(q), rpy, atol=1e-12)
+
+
+def test_quat_multiply_composes_rotations():
+    a, b = QUATS[0], QUATS[1]
+    np.testing.assert_allclose(
+        F.quat_to_matrix(F.quat_multiply(a, b)), F.quat_to_matrix(a) @ F.quat_to_matrix(b), atol=1e-12
+    )
+    np.testing.assert_allclose(F.quat_multiply(a, F.quat_conjugate(a)), [0, 0, 0, 1], atol=1e-12)
+
+
+def test_zup_to_gl_known_vectors():
+    np.testing.assert_allclose(F.zup_to_gl([0, 0, 1]), [0, 1, 0])  # up is +Y in OpenGL
+    np.testing.assert_allclose(F.zup_to_gl([0, 1, 0]), [0, 0, -1])  # world north is -Z (Godot forward)
+    np.testing.assert_allclose(F.zup_to_gl([1, 0, 0]), [1, 0, 0])
+    p = rng.normal(size=(5, 3))
+    np.testing.assert_allclose(F.gl_to_zup(F.zup_to_gl(p)), p)
+    assert np.isclose(np.linalg.det(F.R_GL_ZUP), 1.0)
+
+
+def test_optical_frame_axes():
+    """A camera on the body's nose: optical z is body forward, x is body right, y is body down."""
+    T = F.T_world_optical(np.eye(4), F.camera_mount(np.zeros(3), (0.0, 0.0, 0.0)))
+    R = T[:3, :3]
+    np.testing.assert_allclose(R @ [0, 0, 1], [1, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(R @ [1, 0, 0], [0, -1, 0], atol=1e-12)
+    np.testing.assert_allclose(R @ [0, 1, 0], [0, 0, -1], atol=1e-12)
+
+
+def test_positive_camera_pitch_looks_down():
+    T = F.T_world_optical(np.eye(4), F.camera_mount(np.zeros(3), (0.0, math.radians(30), 0.0)))
+    forward = T[:3, :3] @ [0, 0, 1]
+    np.testing.assert_allclose(
+        forward, [math.cos(math.radians(30)), 0, -math.sin(math.radians(30))], atol=1e-12
+    )
+
+
+def test_gl_view_matrix_puts_points_in_front_on_negative_z():
+    T_wb = F.transform_from_pose(np.array([1.0, 2.0, 3.0]), F.quat_from_yaw(0.7))
+    T_wo = F.T_world_optical(T_wb, F.camera_mount(np.array([0.1, 0.0, 0.0]), (0.0, 0.0, 0.0)))
+    p_world = F.transform_points(T_wo, np.array([0.3, -0.2, 5.0]))  # 5 m ahead of the camera
+    V = F.gl_view_matrix(T_wo)
+    p_cam = F.transform_points(V, F.zup_to_gl(p_world))
+    np.testing.assert_allclose(p_cam, [0.3, 0.2, -5.0], atol=1e-12)
+
+
+def test_enu_ned_known_vectors_and_round_trip():
+    np.testing.assert_allclose(F.enu_to_ned([1, 2, 3]), [2, 1, -3])  # east, north, up -> north, east, down
+    np.testing.assert_allclose(F.flu_to_frd([1, 2, 3]), [1, -2, -3])
+    v = rng.normal(size=(4, 3))
+    np.testing.assert_allclose(F.ned_to_enu(F.enu_to_ned(v)), v)
+
+
+def test_attitude_enu_flu_to_ned_frd():
+    # level, nose pointing north (ENU yaw = +90 deg) -> NED yaw 0 (identity attitude)
+    q = F.quat_ned_frd_to_enu_flu(F.quat_enu_flu_to_ned_frd(QUATS[3]))
+    assert np.allclose(q, QUATS[3]) or np.allclose(q, -QUATS[3])
+    q_ned = F.quat_enu_flu_to_ned_frd(F.quat_from_yaw(math.pi / 2))
+    np.testing.assert_allclose(np.abs(q_ned), [0, 0, 0, 1], atol=1e-12)
+    # nose east in ENU (yaw 0) is yaw +90 deg in NED
+    _, _, yaw_ned = F.quat_to_euler(F.quat_enu_flu_to_ned_frd(F.quat_from_yaw(0.0)))
+    assert math.isclose(yaw_ned, math.pi / 2, abs_tol=1e-12)
+    # a body vector maps consistently through both representations
+    qe = QUATS[4]
+    v_flu = np.array([0.3, -1.0, 2.0])
+    lhs = F.enu_to_ned(F.quat_to_matrix(qe) @ v_flu)
+    rhs = F.quat_to_matrix(F.quat_enu_flu_to_ned_frd(qe)) @ F.flu_to_frd(v_flu)
+    np.testing.assert_allclose(lhs, rhs, atol=1e-12)
+
+
+def test_transform_inverse_and_wxyz():
+    T = F.transform_from_pose(np.array([1.0, -2.0, 0.5]), QUATS[5])
+    np.testing.assert_allclose(T @ F.invert_transform(T), np.eye(4), atol=1e-12)
+    p, q = F.pose_from_transform(T)
+    np.testing.assert_allclose(p, [1.0, -2.0, 0.5])
+    np.testing.assert_allclose(F.wxyz_to_xyzw(F.xyzw_to_wxyz(q)), q)
+    assert math.isclose(F.wrap_angle(3 * math.pi), -math.pi)
