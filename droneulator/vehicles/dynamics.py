@@ -19,6 +19,8 @@ from typing import Any
 import numba
 import numpy as np
 
+from droneulator.scenes.collision import sdf_lookup
+
 # Layout of the packed parameter vector.
 _MASS, _G, _KETA, _KM, _KD, _KZ, _KH, _KFLAP, _TAU, _WMIN, _WMAX, _AERO, _GROUND, _BETA = range(14)
 _CD = 14  # 3 drag coefficients
@@ -179,28 +181,6 @@ def _ground_contact(s: np.ndarray, p: np.ndarray) -> None:
 
 
 @numba.njit(cache=True)
-def sdf_value(sdf: np.ndarray, origin: np.ndarray, res: float, x: float, y: float, z: float) -> float:
-    """Trilinear signed distance at a point; +inf outside the grid."""
-    gx = (x - origin[0]) / res
-    gy = (y - origin[1]) / res
-    gz = (z - origin[2]) / res
-    nx, ny, nz = sdf.shape
-    if gx < 0 or gy < 0 or gz < 0 or gx > nx - 1 or gy > ny - 1 or gz > nz - 1:
-        return np.inf
-    i = min(int(gx), nx - 2)
-    j = min(int(gy), ny - 2)
-    k = min(int(gz), nz - 2)
-    fx, fy, fz = gx - i, gy - j, gz - k
-    c00 = sdf[i, j, k] * (1 - fx) + sdf[i + 1, j, k] * fx
-    c10 = sdf[i, j + 1, k] * (1 - fx) + sdf[i + 1, j + 1, k] * fx
-    c01 = sdf[i, j, k + 1] * (1 - fx) + sdf[i + 1, j, k + 1] * fx
-    c11 = sdf[i, j + 1, k + 1] * (1 - fx) + sdf[i + 1, j + 1, k + 1] * fx
-    c0 = c00 * (1 - fy) + c10 * fy
-    c1 = c01 * (1 - fy) + c11 * fy
-    return c0 * (1 - fz) + c1 * fz
-
-
-@numba.njit(cache=True)
 def integrate(
     s: np.ndarray,
     cmd_in: np.ndarray,
@@ -231,7 +211,7 @@ def integrate(
         k3 = state_derivative(s + 0.5 * h * k2, cmd, p, geom, dirs)
         k4 = state_derivative(s + h * k3, cmd, p, geom, dirs)
         s += (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-        if check and sdf_value(sdf, origin, res, s[0], s[1], s[2]) < radius:
+        if check and sdf_lookup(sdf, origin, res, s[0:3]) < radius:
             s[:] = prev
             return True
     n = math.sqrt(s[6] * s[6] + s[7] * s[7] + s[8] * s[8] + s[9] * s[9])

@@ -1,0 +1,579 @@
+"""Headless moderngl renderer: lit RGB, metric depth and segmentation for every camera of the rig.
+
+How it is built, and why (each choice measured on Mesa llvmpipe, see ``benchmarks/render.py``):
+
+* All scene geometry is uploaded once into one interleaved vertex buffer and one index buffer in the
+  Y-up OpenGL world, and every texture into one mipmapped texture array, so a frame needs two
+  programs and no texture switches.
+* Triangles are grouped into square ground tiles, opaque before alpha-tested. Each frame draws only
+  the tiles that intersect the camera frustum, nearest first, so the rasteriser rejects hidden
+  fragments early (llvmpipe shades vertices on one thread, so culling matters as much as fill).
+* One geometry pass per camera writes three render targets: lit colour, class id (R8UI) and the
+  optical-frame z in metres (R32F) taken from the eye-space position, exact to float precision.
+  A full-screen sky pass then fills only the pixels still at the far plane: gradient colour, class
+  SKY and depth NaN, so misses need no conversion after readback.
+* The projection is mirrored vertically so GL row 0 is the image's top row: readback needs no flip.
+* The sun's shadow map is rendered once at start (static scene, static sun) and sampled with PCF.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import moderngl
+import numpy as np
+from PIL import Image
+
+from droneulator import frames
+from droneulator.config import CameraConfig
+from droneulator.render.camera import gl_projection, intrinsics
+from droneulator.scenes.base import Scene
+
+#: Target number of ground tiles along the longer side of the scene.
+TILES_PER_SIDE = 12
+#: Textures are resized to one common square size in the array, at most this many texels a side.
+MAX_TEXTURE_SIZE = 2048
+#: Horizontal margin (m) around the scene's flyable bounds that the shadow map covers.
+SHADOW_MARGIN = 10.0
+#: Mirrors clip-space y so that framebuffer row 0 is the top image row (OpenCV convention).
+_FLIP_Y = np.diag([1.0, -1.0, 1.0, 1.0])
+_QUIET_NAN = 0x7FC00000
+#: Interleaved vertex layout: attribute name, moderngl format, padding that skips it when unused.
+_ATTRIBUTES = (
+    ("in_pos", "3f4", "12x"),
+    ("in_normal", "3f4", "12x"),
+    ("in_uv", "2f4", "8x"),
+    ("in_meta", "2u2", "4x"),
+)
+
+_GEOMETRY_VS = """
+in vec3 in_pos;
+in vec3 in_normal;
+in vec2 in_uv;
+in uvec2 in_meta;  // semantic class, texture layer
+uniform mat4 u_view;
+uniform mat4 u_proj;
+// Varyings are packed into few vec4 slots: llvmpipe's triangle setup cost grows with the slot count.
+flat out uvec2 v_meta;
+out vec4 v_depth_shadow;  // shadow map coordinates (xyz, with SHADOWS), optical depth in metres (w)
+#ifdef TEXCOORD
+out vec4 v_uv_light;  // uv (xy), sky weight of the hemisphere ambient (z), sun diffuse (w)
+#endif
+#ifdef COLOR
+uniform vec3 u_eye;
+uniform vec3 u_sun;
+#endif
+#ifdef SHADOWS
+uniform mat4 u_light;
+uniform float u_normal_offset;
+#endif
+
+void main() {
+    vec4 eye = u_view * vec4(in_pos, 1.0);
+    gl_Position = u_proj * eye;
+    v_meta = in_meta;
+    v_depth_shadow = vec4(0.0, 0.0, 0.0, -eye.z);
+#ifdef TEXCOORD
+    v_uv_light = vec4(in_uv, 0.0, 0.0);
+#endif
+#ifdef COLOR
+    vec3 n = in_normal;
+    if (dot(n, u_eye - in_pos) < 0.0) n = -n;  // two-sided: light the side the camera sees
+    v_uv_light.zw = vec2(0.5 + 0.5 * n.y, max(dot(n, u_sun), 0.0));
+#ifdef SHADOWS
+    v_depth_shadow.xyz = (u_light * vec4(in_pos + n * u_normal_offset, 1.0)).xyz;
+#endif
+#endif
+}
+"""
+
+_GEOMETRY_FS = """
+flat in uvec2 v_meta;
+in vec4 v_depth_shadow;
+#ifdef TEXCOORD
+in vec4 v_uv_light;
+uniform sampler2DArray u_texture;
+#endif
+#ifdef ALPHA_TEST
+uniform float u_texture_size;
+#endif
+#ifdef SHADOWS
+uniform sampler2DShadow u_shadow_map;
+#endif
+#ifdef COLOR
+layout(location = 0) out vec4 o_color;
+layout(location = 1) out uint o_class;
+layout(location = 2) out float o_depth;
+#else
+layout(location = 0) out uint o_class;
+layout(location = 1) out float o_depth;
+#endif
+
+void main() {
+#ifdef TEXCOORD
+    vec4 albedo = texture(u_texture, vec3(v_uv_light.xy, float(v_meta.y)));
+#endif
+#ifdef ALPHA_TEST
+    // Raise alpha with the mip level so that distant leaf cards keep their coverage.
+    vec2 texels = max(abs(dFdx(v_uv_light.xy)), abs(dFdy(v_uv_light.xy))) * u_texture_size;
+    float lod = max(log2(max(texels.x, texels.y)), 0.0);
+    if (albedo.a * (1.0 + 0.25 * lod) < 0.5) discard;
+#endif
+#ifdef COLOR
+#ifdef SHADOWS
+    // Only surfaces facing the sun need the (2x2 PCF) lookup; the map has no mips, so LOD 0.
+    float lit = 0.0;
+    if (v_uv_light.w > 0.0) {
+        vec2 st = v_depth_shadow.xy;
+        bool mapped = all(equal(clamp(st, 0.0, 1.0), st));
+        lit = mapped ? textureLod(u_shadow_map, v_depth_shadow.xyz, 0.0) : 1.0;
+    }
+#else
+    float lit = 1.0;
+#endif
+    vec3 ambient = mix(vec3(0.30, 0.28, 0.24), vec3(0.50, 0.55, 0.62), v_uv_light.z);
+    o_color = vec4(albedo.rgb * (ambient + vec3(0.78, 0.74, 0.66) * (v_uv_light.w * lit)), 1.0);
+#endif
+    o_class = v_meta.x;
+    o_depth = v_depth_shadow.w;
+}
+"""
+
+_SHADOW_VS = """
+in vec3 in_pos;
+in vec2 in_uv;
+in uvec2 in_meta;
+uniform mat4 u_light_clip;
+#ifdef ALPHA_TEST
+out vec3 v_uv;
+#endif
+void main() {
+    gl_Position = u_light_clip * vec4(in_pos, 1.0);
+#ifdef ALPHA_TEST
+    v_uv = vec3(in_uv, float(in_meta.y));
+#endif
+}
+"""
+
+_SHADOW_FS = """
+#ifdef ALPHA_TEST
+in vec3 v_uv;
+uniform sampler2DArray u_texture;
+uniform float u_texture_size;
+#endif
+void main() {
+#ifdef ALPHA_TEST
+    vec2 texels = max(abs(dFdx(v_uv.xy)), abs(dFdy(v_uv.xy))) * u_texture_size;
+    float lod = max(log2(max(texels.x, texels.y)), 0.0);
+    if (texture(u_texture, v_uv).a * (1.0 + 0.25 * lod) < 0.5) discard;
+#endif
+}
+"""
+
+_SKY_VS = """
+out vec2 v_ndc;
+void main() {
+    v_ndc = vec2(gl_VertexID == 1 ? 3.0 : -1.0, gl_VertexID == 2 ? 3.0 : -1.0);
+    gl_Position = vec4(v_ndc, 1.0, 1.0);  // on the far plane: drawn only where nothing was hit
+}
+"""
+
+_SKY_FS = """
+in vec2 v_ndc;
+uniform mat3 u_ray;  // NDC (x, y, 1) -> viewing ray in the GL world
+uniform vec3 u_zenith;
+uniform vec3 u_horizon;
+#ifdef COLOR
+layout(location = 0) out vec4 o_color;
+layout(location = 1) out uint o_class;
+layout(location = 2) out float o_depth;
+#else
+layout(location = 0) out uint o_class;
+layout(location = 1) out float o_depth;
+#endif
+void main() {
+#ifdef COLOR
+    float up = normalize(u_ray * vec3(v_ndc, 1.0)).y;
+    vec3 sky = up > 0.0 ? mix(u_horizon, u_zenith, sqrt(up)) : u_horizon * (1.0 + 0.3 * up);
+    o_color = vec4(sky, 1.0);
+#endif
+    o_class = 0u;
+    o_depth = uintBitsToFloat(QUIET_NAN);
+}
+"""
+
+
+@dataclass
+class CameraFrame:
+    """One camera's images at one instant.
+
+    The arrays are the renderer's own readback buffers: the next :meth:`Renderer.render` call
+    overwrites them, so copy whatever must outlive it.
+    """
+
+    name: str
+    rgb: np.ndarray | None  # (H, W, 3) uint8, row 0 at the top; None when rendered without colour
+    depth: np.ndarray  # (H, W) float32, optical-frame z in metres, NaN where nothing is hit
+    seg: np.ndarray  # (H, W) uint8 SemanticClass ids, SKY where nothing is hit
+    K: np.ndarray  # (3, 3) intrinsics
+    T_world_optical: np.ndarray  # (4, 4) optical frame in the Z-up world
+
+
+def _mat(M: np.ndarray) -> bytes:
+    """A matrix as GLSL expects it (column-major float32)."""
+    return np.ascontiguousarray(np.asarray(M, dtype=np.float32).T).tobytes()
+
+
+def _source(body: str, defines: tuple[str, ...]) -> str:
+    header = "#version 330\n" + "".join(f"#define {d}\n" for d in defines)
+    return header + f"#define QUIET_NAN {_QUIET_NAN}u\n" + body
+
+
+class _Target:
+    """Per-camera framebuffer and readback buffers."""
+
+    def __init__(self, ctx: moderngl.Context, cam: CameraConfig) -> None:
+        self.cam = cam
+        size = (cam.width, cam.height)
+        self.K = intrinsics(cam)
+        self.T_body_link = frames.camera_mount(np.asarray(cam.position, dtype=float), cam.rpy)
+        self.proj = _FLIP_Y @ gl_projection(cam)
+        self.color = ctx.renderbuffer(size, 4)
+        self.seg_rb = ctx.renderbuffer(size, 1, dtype="u1")
+        self.depth_rb = ctx.renderbuffer(size, 1, dtype="f4")
+        self.zbuffer = ctx.depth_renderbuffer(size)
+        self.fbo_color = ctx.framebuffer([self.color, self.seg_rb, self.depth_rb], self.zbuffer)
+        self.fbo_geometry = ctx.framebuffer([self.seg_rb, self.depth_rb], self.zbuffer)
+        self.rgb = np.empty((cam.height, cam.width, 3), dtype=np.uint8)
+        self.seg = np.empty((cam.height, cam.width), dtype=np.uint8)
+        self.depth = np.empty((cam.height, cam.width), dtype=np.float32)
+
+    def release(self) -> None:
+        for obj in (self.fbo_color, self.fbo_geometry, self.color, self.seg_rb, self.depth_rb, self.zbuffer):
+            obj.release()
+
+
+class Renderer:
+    """Renders RGB, depth and segmentation for a rig of body-mounted cameras in a static scene."""
+
+    def __init__(
+        self,
+        scene: Scene,
+        cameras: list[CameraConfig],
+        shadows: bool = True,
+        shadow_map_size: int = 2048,
+        ctx: moderngl.Context | None = None,
+    ) -> None:
+        """Upload ``scene`` and render its shadow map; ``ctx`` defaults to a new headless EGL context."""
+        names = [c.name for c in cameras]
+        if len(set(names)) != len(names):
+            raise ValueError(f"camera names must be unique, got {names}")
+        self._own_ctx = ctx is None
+        self.ctx = moderngl.create_context(standalone=True, backend="egl") if ctx is None else ctx
+        self.scene = scene
+        self.shadows = shadows
+        self._programs: dict[tuple[str, ...], moderngl.Program] = {}
+        self._vaos: dict[tuple[str, ...], moderngl.VertexArray] = {}
+        self._sun = frames.zup_to_gl(scene.sun_direction)
+        self._sun = self._sun / np.linalg.norm(self._sun)
+        zenith = np.asarray(scene.sky_color, dtype=float)
+        self._zenith = tuple(zenith)
+        self._horizon = tuple(zenith + (1.0 - zenith) * 0.45)
+        self._shadow_map: moderngl.Texture | None = None
+        self._light = np.eye(4)
+        self._normal_offset = 0.0
+        with self.ctx:  # current for this thread even when other renderers made their own contexts
+            self._upload_textures(scene)
+            self._upload_geometry(scene)
+            if shadows and self._n_triangles:
+                self._render_shadow_map(shadow_map_size)
+            self._sky_vao = self.ctx.vertex_array(self._program(_SKY_VS, _SKY_FS, ("COLOR",)), [])
+            self._sky_geometry_vao = self.ctx.vertex_array(self._program(_SKY_VS, _SKY_FS, ()), [])
+            self.targets = [_Target(self.ctx, cam) for cam in cameras]
+
+    # ------------------------------------------------------------------------------------ setup
+    def _program(self, vs: str, fs: str, defines: tuple[str, ...]) -> moderngl.Program:
+        key = (vs, fs, *defines)
+        if key not in self._programs:
+            self._programs[key] = self.ctx.program(
+                vertex_shader=_source(vs, defines), fragment_shader=_source(fs, defines)
+            )
+        return self._programs[key]
+
+    def _upload_textures(self, scene: Scene) -> None:
+        """All scene textures as layers of one mipmapped RGBA8 array (resized to a common square)."""
+        self._layers = {name: i for i, name in enumerate(scene.textures)}
+        images = list(scene.textures.values()) or [np.full((1, 1, 4), 255, dtype=np.uint8)]
+        size = min(MAX_TEXTURE_SIZE, max(max(img.shape[:2]) for img in images))
+        data = np.empty((len(images), size, size, 4), dtype=np.uint8)
+        for i, img in enumerate(images):
+            img = np.ascontiguousarray(img, dtype=np.uint8)
+            if img.shape[:2] != (size, size):
+                img = np.asarray(Image.fromarray(img, "RGBA").resize((size, size), Image.Resampling.BILINEAR))
+            data[i] = img
+        self._texture_size = float(size)
+        self._texture = self.ctx.texture_array((size, size, len(images)), 4, data.tobytes())
+        self._texture.build_mipmaps()
+        self._texture.filter = (moderngl.LINEAR_MIPMAP_LINEAR, moderngl.LINEAR)
+
+    def _upload_geometry(self, scene: Scene) -> None:
+        """One vertex and one index buffer for the whole scene, triangles sorted by (alpha, tile)."""
+        vertex = np.dtype([("pos", "3f4"), ("normal", "3f4"), ("uv", "2f4"), ("meta", "2u2")])
+        parts = [p for p in scene.parts if p.triangle_count]
+        n_vertices = sum(len(p.positions) for p in parts)
+        vertices = np.empty(n_vertices, dtype=vertex)
+        triangles, alpha, start = [], [], 0
+        for p in parts:
+            if p.texture not in self._layers:
+                raise KeyError(f"mesh part {p.name!r} uses unknown texture {p.texture!r}")
+            v = vertices[start : start + len(p.positions)]
+            v["pos"] = frames.zup_to_gl(p.positions)
+            v["normal"] = frames.zup_to_gl(p.normals)
+            v["uv"] = p.uvs
+            v["meta"][:, 0] = p.class_ids
+            v["meta"][:, 1] = self._layers[p.texture]
+            triangles.append(np.asarray(p.indices, dtype=np.int64) + start)
+            alpha.append(np.full(p.triangle_count, p.alpha_test))
+            start += len(p.positions)
+        self._n_triangles = sum(p.triangle_count for p in parts)
+        if not self._n_triangles:
+            self._bounds = np.zeros((2, 3))
+            self._tile_first = self._tile_count = np.zeros(0, dtype=np.int64)
+            self._tile_alpha = np.zeros(0, dtype=bool)
+            return
+        tris = np.concatenate(triangles)
+        tri_alpha = np.concatenate(alpha)
+        pos = vertices["pos"].astype(np.float64)
+        self._bounds = np.stack([pos.min(axis=0), pos.max(axis=0)])
+
+        # Tiles on the ground plane (GL x, z), keyed so that opaque tiles come before alpha-tested ones.
+        centroid = pos[tris].mean(axis=1)
+        extent = self._bounds[1] - self._bounds[0]
+        tile = max(extent[0], extent[2], 1e-6) / TILES_PER_SIDE
+        cells = np.floor((centroid[:, [0, 2]] - self._bounds[0, [0, 2]]) / tile).astype(np.int64)
+        cells = np.clip(cells, 0, TILES_PER_SIDE - 1)
+        key = (tri_alpha.astype(np.int64) * TILES_PER_SIDE + cells[:, 0]) * TILES_PER_SIDE + cells[:, 1]
+        order = np.argsort(key, kind="stable")
+        tris, key = tris[order], key[order]
+        keys, first_tri, counts = np.unique(key, return_index=True, return_counts=True)
+        tri_min = pos[tris].min(axis=1)
+        tri_max = pos[tris].max(axis=1)
+        lo = np.minimum.reduceat(tri_min, first_tri)
+        hi = np.maximum.reduceat(tri_max, first_tri)
+        corners = np.array([[i & 1, (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], dtype=float)
+        self._tile_corners = np.concatenate(
+            [lo[:, None] + corners[None] * (hi - lo)[:, None], np.ones((len(keys), 8, 1))], axis=2
+        )
+        self._tile_centre = 0.5 * (lo + hi)
+        self._tile_first = first_tri * 3
+        self._tile_count = counts * 3
+        self._tile_alpha = keys >= TILES_PER_SIDE * TILES_PER_SIDE
+
+        self._vbo = self.ctx.buffer(vertices.tobytes())
+        self._ibo = self.ctx.buffer(tris.astype(np.uint32).tobytes())
+
+    def _vao(self, vs: str, fs: str, defines: tuple[str, ...]) -> moderngl.VertexArray:
+        """Vertex array of the scene buffers bound to the program compiled with ``defines``."""
+        key = (vs, fs, *defines)
+        if key not in self._vaos:
+            prog = self._program(vs, fs, defines)
+            names = [n for n, _, _ in _ATTRIBUTES if n in prog]
+            fmt = " ".join(fmt if n in prog else pad for n, fmt, pad in _ATTRIBUTES)
+            self._vaos[key] = self.ctx.vertex_array(prog, [(self._vbo, fmt, *names)], self._ibo, 4)
+        return self._vaos[key]
+
+    def _render_shadow_map(self, size: int) -> None:
+        """Orthographic depth map of the scene seen from the sun, rendered once (alpha-tested cards cast
+        leaf-shaped shadows); slope-scaled polygon offset plus a normal offset at lookup avoid acne."""
+        toward_sun = self._sun
+        helper = np.array([0.0, 0.0, 1.0]) if abs(toward_sun[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+        right = np.cross(helper, toward_sun)
+        right /= np.linalg.norm(right)
+        up = np.cross(toward_sun, right)
+        rows = np.stack([right, up, toward_sun])  # light space: x, y across the map, z towards the sun
+
+        def light_box(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            box = np.array([[hi[i] if (k >> i) & 1 else lo[i] for i in range(3)] for k in range(8)]) @ rows.T
+            return box.min(axis=0) - 0.1, box.max(axis=0) + 0.1
+
+        # The map covers the geometry within the flyable bounds grown by SHADOW_MARGIN, so that a ground
+        # plane running to the horizon does not dilute its resolution; fragments outside it are lit.
+        lo, hi = self._bounds.copy()
+        flyable = frames.zup_to_gl(np.stack([self.scene.bounds_min, self.scene.bounds_max]))
+        for axis in (0, 2):  # GL ground axes
+            a = max(lo[axis], flyable[:, axis].min() - SHADOW_MARGIN)
+            b = min(hi[axis], flyable[:, axis].max() + SHADOW_MARGIN)
+            if a < b:
+                lo[axis], hi[axis] = a, b
+        bmin, bmax = light_box(lo, hi)
+        bmax[2] = light_box(*self._bounds)[1][2]  # every occluder on the sun's side still casts
+        # World (GL) -> [0, 1]^3 map coordinates; depth 0 is nearest the sun.
+        scale = np.diag(
+            [1.0 / (bmax[0] - bmin[0]), 1.0 / (bmax[1] - bmin[1]), -1.0 / (bmax[2] - bmin[2]), 1.0]
+        )
+        offset = frames.make_transform(np.eye(3), [-bmin[0], -bmin[1], -bmax[2]])
+        self._light = scale @ offset @ frames.make_transform(rows, np.zeros(3))
+        to_clip = np.array([[2.0, 0, 0, -1], [0, 2.0, 0, -1], [0, 0, 2.0, -1], [0, 0, 0, 1]])
+        texel = max(bmax[0] - bmin[0], bmax[1] - bmin[1]) / size
+        self._normal_offset = 1.5 * texel
+
+        self._shadow_map = self.ctx.depth_texture((size, size))
+        self._shadow_map.compare_func = "<="
+        self._shadow_map.filter = (moderngl.LINEAR, moderngl.LINEAR)
+        self._shadow_map.repeat_x = self._shadow_map.repeat_y = False
+        fbo = self.ctx.framebuffer(depth_attachment=self._shadow_map)
+        fbo.use()
+        fbo.clear(depth=1.0)
+        self.ctx.enable_only(moderngl.DEPTH_TEST)
+        self.ctx.depth_func = "<"
+        self.ctx.polygon_offset = (2.0, 2.0)
+        self._texture.use(0)
+        for alpha, defines in ((False, ()), (True, ("ALPHA_TEST",))):
+            vao = self._vao(_SHADOW_VS, _SHADOW_FS, defines)
+            vao.program["u_light_clip"].write(_mat(to_clip @ self._light))
+            if alpha:
+                vao.program["u_texture"].value = 0
+                vao.program["u_texture_size"].value = self._texture_size
+            for first, count in zip(
+                self._tile_first[self._tile_alpha == alpha],
+                self._tile_count[self._tile_alpha == alpha],
+                strict=True,
+            ):
+                vao.render(moderngl.TRIANGLES, vertices=int(count), first=int(first))
+        self.ctx.polygon_offset = (0.0, 0.0)
+        self.ctx.finish()
+        fbo.release()
+
+    # ------------------------------------------------------------------------------------ frames
+    def _visible_tiles(self, view_proj: np.ndarray, eye: np.ndarray) -> np.ndarray:
+        """Indices of the tiles intersecting the frustum, opaque first, each group nearest first."""
+        clip = self._tile_corners @ view_proj.T
+        w = clip[..., 3]
+        outside = np.zeros(len(clip), dtype=bool)
+        for axis in range(3):
+            outside |= (clip[..., axis] > w).all(axis=1) | (clip[..., axis] < -w).all(axis=1)
+        visible = np.flatnonzero(~outside)
+        dist = np.linalg.norm(self._tile_centre[visible] - eye, axis=1)
+        return visible[np.lexsort((dist, self._tile_alpha[visible]))]
+
+    def render(self, T_world_body: np.ndarray, rgb: bool = True) -> dict[str, CameraFrame]:
+        """Render every camera for the body pose ``T_world_body`` (4x4, Z-up world).
+
+        With ``rgb=False`` only depth and segmentation are drawn and read back (faster).
+        """
+        if self.ctx is None:
+            raise RuntimeError("renderer is closed")
+        out: dict[str, CameraFrame] = {}
+        with self.ctx:
+            # Draw every camera before reading any back, so one camera's rasterisation overlaps the
+            # next camera's vertex work (llvmpipe) or GPU execution (hardware drivers).
+            poses = [self._draw(t, T_world_body, rgb) for t in self.targets]
+            for t, T_wo in zip(self.targets, poses, strict=True):
+                self._read(t, rgb)
+                rgb_image = t.rgb if rgb else None
+                out[t.cam.name] = CameraFrame(t.cam.name, rgb_image, t.depth, t.seg, t.K.copy(), T_wo)
+        return out
+
+    def _draw(self, t: _Target, T_world_body: np.ndarray, rgb: bool) -> np.ndarray:
+        """Draw one camera's targets; returns its ``T_world_optical``."""
+        ctx = self.ctx
+        T_wo = frames.T_world_optical(np.asarray(T_world_body, dtype=float), t.T_body_link)
+        view = frames.gl_view_matrix(T_wo)
+        eye = frames.zup_to_gl(T_wo[:3, 3])
+        fbo = t.fbo_color if rgb else t.fbo_geometry
+        fbo.use()
+        fbo.clear(depth=1.0)
+        ctx.enable_only(moderngl.DEPTH_TEST)
+        ctx.depth_func = "<"
+        self._texture.use(0)
+        if self._shadow_map is not None:
+            self._shadow_map.use(1)
+        if self._n_triangles:
+            tiles = self._visible_tiles(t.proj @ view, eye)
+            for alpha in (False, True):  # opaque first: alpha-tested fragments then fail the depth test early
+                defines = ("COLOR", "TEXCOORD") if rgb else ()
+                if rgb and self._shadow_map is not None:
+                    defines += ("SHADOWS",)
+                if alpha:
+                    defines += ("ALPHA_TEST",) if rgb else ("TEXCOORD", "ALPHA_TEST")
+                vao = self._vao(_GEOMETRY_VS, _GEOMETRY_FS, defines)
+                self._set_uniforms(vao.program, view, t.proj, eye)
+                for i in tiles[self._tile_alpha[tiles] == alpha]:
+                    vao.render(
+                        moderngl.TRIANGLES, vertices=int(self._tile_count[i]), first=int(self._tile_first[i])
+                    )
+        ctx.depth_func = "<="
+        sky = self._sky_vao if rgb else self._sky_geometry_vao
+        if rgb:
+            P = t.proj
+            ray = np.array(
+                [[1 / P[0, 0], 0, P[0, 2] / P[0, 0]], [0, 1 / P[1, 1], P[1, 2] / P[1, 1]], [0, 0, -1]]
+            )
+            sky.program["u_ray"].write(_mat(view[:3, :3].T @ ray))
+            sky.program["u_zenith"].value = self._zenith
+            sky.program["u_horizon"].value = self._horizon
+        sky.render(moderngl.TRIANGLES, vertices=3)
+        return T_wo
+
+    def _read(self, t: _Target, rgb: bool) -> None:
+        """Read the camera's targets into its preallocated arrays (row 0 is already the top)."""
+        if rgb:
+            t.fbo_color.read_into(t.rgb, components=3, attachment=0)
+            t.fbo_color.read_into(t.seg, components=1, attachment=1, dtype="u1")
+            t.fbo_color.read_into(t.depth, components=1, attachment=2, dtype="f4")
+        else:
+            t.fbo_geometry.read_into(t.seg, components=1, attachment=0, dtype="u1")
+            t.fbo_geometry.read_into(t.depth, components=1, attachment=1, dtype="f4")
+
+    def _set_uniforms(
+        self, prog: moderngl.Program, view: np.ndarray, proj: np.ndarray, eye: np.ndarray
+    ) -> None:
+        prog["u_view"].write(_mat(view))
+        prog["u_proj"].write(_mat(proj))
+        values = {
+            "u_texture": 0,
+            "u_texture_size": self._texture_size,
+            "u_eye": tuple(eye),
+            "u_sun": tuple(self._sun),
+            "u_shadow_map": 1,
+            "u_normal_offset": self._normal_offset,
+        }
+        for name, value in values.items():
+            if name in prog:
+                prog[name].value = value
+        if "u_light" in prog:
+            prog["u_light"].write(_mat(self._light))
+
+    # ------------------------------------------------------------------------------------ lifetime
+    def close(self) -> None:
+        """Release every GL object (and the context when the renderer created it)."""
+        if self.ctx is None:
+            return
+        with self.ctx:
+            for t in self.targets:
+                t.release()
+            buffers = (
+                getattr(self, "_vbo", None),
+                getattr(self, "_ibo", None),
+                self._texture,
+                self._shadow_map,
+            )
+            for obj in (
+                *self._vaos.values(),
+                self._sky_vao,
+                self._sky_geometry_vao,
+                *self._programs.values(),
+            ):
+                obj.release()
+            for obj in buffers:
+                if obj is not None:
+                    obj.release()
+        if self._own_ctx:
+            self.ctx.release()
+        self.ctx = None
+
+    def __enter__(self) -> Renderer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

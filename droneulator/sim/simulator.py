@@ -1,0 +1,350 @@
+"""The in-process simulator: scene + RotorPy vehicle + flight controller + sensor rig, in lockstep.
+
+Simulation time is an integer count of nanoseconds. ``step()`` advances one control period; the
+physics is split at camera instants so every frame is rendered from the exact state at
+``k / camera_hz`` (no frame skipped, never paced by the wall clock). The servers are thin shells
+around this object.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from droneulator.config import SimConfig, load_config
+from droneulator.controllers.flight import Event, FlightController, Mode
+from droneulator.frames import camera_mount, quat_from_yaw, transform_from_pose, yaw_of
+from droneulator.scenes import get_scene
+from droneulator.scenes.base import Scene
+from droneulator.vehicles.dynamics import STATE_SIZE, FastMultirotor
+from droneulator.vehicles.params import get_params
+from droneulator.wind import make_wind
+
+NS = 1_000_000_000
+
+
+class CommandError(ValueError):
+    """A rejected command; ``code`` is machine readable, the message says what to fix."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+        self.message = message
+
+
+@dataclass
+class VehicleState:
+    """Ground-truth vehicle state in the Z-up world (body FLU, quaternion [x, y, z, w])."""
+
+    t_ns: int
+    position: np.ndarray
+    velocity: np.ndarray
+    quaternion: np.ndarray
+    angular_velocity: np.ndarray  # body frame, rad/s
+    rotor_speeds: np.ndarray
+    mode: str
+    reference: np.ndarray | None = None  # packed flat output being tracked
+
+    @property
+    def t(self) -> float:
+        return self.t_ns / NS
+
+    @property
+    def yaw(self) -> float:
+        return yaw_of(self.quaternion)
+
+    @property
+    def T_world_body(self) -> np.ndarray:
+        return transform_from_pose(self.position, self.quaternion)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "t": self.t,
+            "position": self.position.tolist(),
+            "velocity": self.velocity.tolist(),
+            "quaternion": self.quaternion.tolist(),
+            "angular_velocity": self.angular_velocity.tolist(),
+            "yaw": self.yaw,
+            "mode": self.mode,
+        }
+
+
+@dataclass
+class FrameSet:
+    """All cameras rendered at one instant, with the state they were rendered from."""
+
+    t_ns: int
+    state: VehicleState
+    cameras: dict[str, Any]  # name -> droneulator.render.CameraFrame
+
+
+@dataclass
+class StepResult:
+    frames: list[FrameSet] = field(default_factory=list)
+    events: list[Event] = field(default_factory=list)
+
+
+class Simulator:
+    """Compose scene, vehicle, controller and camera rig; step them in lockstep.
+
+    ``render=False`` skips the renderer entirely (physics-only use, e.g. benchmarks).
+    """
+
+    def __init__(
+        self,
+        scene: str | None = None,
+        seed: int | None = None,
+        config: SimConfig | None = None,
+        render: bool = True,
+    ) -> None:
+        self.config = config or load_config()
+        if scene is not None:
+            self.config.scene = scene
+        if seed is not None:
+            self.config.seed = seed
+        vcfg = self.config.vehicle
+        self.quad_params = get_params(vcfg.params)
+        self.vehicle = FastMultirotor(
+            self.quad_params,
+            aero=vcfg.aero,
+            enable_ground=True,
+            substep=1.0 / (vcfg.control_hz * vcfg.substeps),
+        )
+        self.flight = FlightController(self.quad_params, self.config.flight)
+        self.control_period_ns = round(NS / vcfg.control_hz)
+        self.camera_period_ns = round(NS / self.config.render.camera_hz)
+        self.render_enabled = render
+        self.renderer = None
+        self.mounts = {c.name: camera_mount(np.array(c.position), c.rpy) for c in self.config.render.cameras}
+        self.scene: Scene
+        self._load_scene(self.config.scene, self.config.seed)
+        self.reset()
+
+    # ------------------------------------------------------------------ setup
+    def _load_scene(self, name: str, seed: int) -> None:
+        self.scene = get_scene(name, seed)
+        col = self.scene.collision
+        self.vehicle.set_collision(col.sdf, col.origin, col.resolution, self.config.vehicle.collision_radius)
+        if self.renderer is not None:
+            self.renderer.close()
+            self.renderer = None
+        if self.render_enabled:
+            from droneulator.render import Renderer
+
+            rc = self.config.render
+            self.renderer = Renderer(
+                self.scene, rc.cameras, shadows=rc.shadows, shadow_map_size=rc.shadow_map_size
+            )
+
+    def reset(
+        self,
+        seed: int | None = None,
+        position: np.ndarray | None = None,
+        yaw: float | None = None,
+        scene: str | None = None,
+        airborne: bool | None = None,
+    ) -> VehicleState:
+        """Restart the flight at t = 0 from ``position`` (default: the scene's spawn on the ground).
+
+        A position above the ground starts hovering there (mode ``hold``) unless ``airborne=False``.
+        """
+        if scene is not None or (seed is not None and seed != self.config.seed):
+            self.config.scene = scene or self.config.scene
+            self.config.seed = self.config.seed if seed is None else seed
+            self._load_scene(self.config.scene, self.config.seed)
+        pos = np.array(self.scene.spawn_position if position is None else position, dtype=float)
+        if pos.shape != (3,) or not np.all(np.isfinite(pos)):
+            raise CommandError("invalid_argument", "reset position must be three finite numbers")
+        yaw_ = self.scene.spawn_yaw if yaw is None else float(yaw)
+        if not math.isfinite(yaw_):
+            raise CommandError("invalid_argument", "reset yaw must be finite")
+        self._check_position(pos, allow_ground=True)
+        self.rng = np.random.default_rng(self.config.seed)
+        self.wind = make_wind(self.config.vehicle, self.config.seed, 1.0 / self.config.vehicle.control_hz)
+        self.t_ns = 0
+        self._next_frame_ns = self.camera_period_ns
+        self.frame_count = 0
+        s = np.zeros(STATE_SIZE)
+        s[0:3] = pos
+        s[6:10] = quat_from_yaw(yaw_)
+        self.s = s
+        self.flight.motors_off()
+        self._reference: np.ndarray | None = None
+        self.collisions = 0
+        fly = pos[2] > 0.05 if airborne is None else airborne
+        if fly:
+            s[16:20] = self.vehicle.hover_speed
+            self.flight.hold(s, 0.0)
+        return self.state
+
+    # ------------------------------------------------------------------ state
+    @property
+    def t(self) -> float:
+        return self.t_ns / NS
+
+    @property
+    def mode(self) -> Mode:
+        return self.flight.mode
+
+    @property
+    def state(self) -> VehicleState:
+        s = self.s
+        return VehicleState(
+            self.t_ns,
+            s[0:3].copy(),
+            s[3:6].copy(),
+            s[6:10].copy(),
+            s[10:13].copy(),
+            s[16:20].copy(),
+            self.flight.mode.value,
+            None if self._reference is None else self._reference.copy(),
+        )
+
+    # ------------------------------------------------------------------ commands
+    def _finite(self, name: str, *values: float | None) -> None:
+        for v in values:
+            if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v)):
+                raise CommandError("invalid_argument", f"{name} must be finite numbers, got {v!r}")
+
+    def _check_position(self, p: np.ndarray, allow_ground: bool = False) -> None:
+        lo, hi = self.scene.bounds_min, self.scene.bounds_max
+        if p[2] < 0 or (p[2] == 0 and not allow_ground):
+            raise CommandError("below_ground", f"target altitude {p[2]:.3f} m is not above the ground")
+        if np.any(p[:2] < lo[:2]) or np.any(p[:2] > hi[:2]) or p[2] > hi[2]:
+            raise CommandError(
+                "out_of_bounds",
+                f"target {np.round(p, 3).tolist()} is outside the scene bounds "
+                f"{lo.tolist()} .. {hi.tolist()}",
+            )
+
+    def _require_airborne(self, op: str) -> None:
+        if self.flight.mode == Mode.IDLE:
+            raise CommandError("not_airborne", f"{op} needs the vehicle in the air: take off first")
+
+    def takeoff(self, altitude: float | None = None) -> float:
+        """Climb vertically to ``altitude`` (default from config); returns the planned duration."""
+        self._finite("altitude", altitude)
+        alt = self.config.flight.takeoff_altitude if altitude is None else float(altitude)
+        self._check_position(np.array([self.s[0], self.s[1], alt]))
+        return self.flight.takeoff(self.s, self.t, alt)
+
+    def goto(
+        self,
+        position: Any,
+        yaw: float | None = None,
+        speed: float | None = None,
+        duration: float | None = None,
+    ) -> float:
+        """Min-snap move to ``position`` with heading ``yaw`` (radians, kept if None)."""
+        try:
+            p = np.asarray(position, dtype=float)
+        except (TypeError, ValueError):
+            raise CommandError("invalid_argument", "position must be three numbers [x, y, z]") from None
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise CommandError("invalid_argument", "position must be three finite numbers [x, y, z]")
+        self._finite("yaw/speed/duration", yaw, speed, duration)
+        if speed is not None and not 0 < speed <= self.config.flight.max_speed:
+            raise CommandError("out_of_range", f"speed must lie in (0, {self.config.flight.max_speed}] m/s")
+        if duration is not None and not 0.2 <= duration <= 3600:
+            raise CommandError("out_of_range", "duration must lie in [0.2, 3600] s")
+        self._check_position(p)
+        return self.flight.goto(self.s, self.t, p, yaw, speed, duration)
+
+    def velocity(self, forward: float, yaw_rate: float) -> None:
+        """Velocity mode: forward speed (m/s, body x) and yaw rate (rad/s) at constant altitude."""
+        self._finite("forward/yaw_rate", forward, yaw_rate)
+        lim = self.config.flight.max_speed
+        if abs(forward) > lim or abs(yaw_rate) > math.pi:
+            raise CommandError("out_of_range", f"need |forward| <= {lim} m/s and |yaw_rate| <= pi rad/s")
+        self._require_airborne("velocity")
+        self.flight.velocity(self.s, self.t, float(forward), float(yaw_rate))
+
+    def hold(self) -> None:
+        self._require_airborne("hold")
+        self.flight.hold(self.s, self.t)
+
+    def land(self) -> float:
+        self._require_airborne("land")
+        return self.flight.land(self.s, self.t)
+
+    def motors_off(self) -> None:
+        self.flight.motors_off()
+
+    # ------------------------------------------------------------------ stepping
+    def step(self, n: int = 1) -> StepResult:
+        """Advance ``n`` control periods; returns the frames rendered and events raised meanwhile."""
+        out = StepResult()
+        dt = self.control_period_ns / NS
+        for _ in range(n):
+            cmd, ref, events = self.flight.update(self.s, self.t, dt)
+            self._reference = ref
+            out.events.extend(events)
+            self.s[13:16] = self.wind.update(self.t, self.s[0:3])
+            t_end = self.t_ns + self.control_period_ns
+            while self.t_ns < t_end:
+                t_next = min(t_end, self._next_frame_ns) if self.render_enabled else t_end
+                if self.flight.mode != Mode.COLLIDED and self.vehicle.step(
+                    self.s, cmd, (t_next - self.t_ns) / NS
+                ):
+                    out.events.append(self._on_collision())
+                self.t_ns = t_next
+                if self.render_enabled and self.t_ns == self._next_frame_ns:
+                    out.frames.append(self.render())
+                    self.frame_count += 1
+                    self._next_frame_ns += self.camera_period_ns
+        return out
+
+    def run(self, seconds: float) -> StepResult:
+        """Step for ``seconds`` of simulated time, collecting frames and events."""
+        return self.step(max(1, round(seconds * NS / self.control_period_ns)))
+
+    def run_until(self, predicate: Any, timeout: float, events: list[Event] | None = None) -> bool:
+        """Step until ``predicate(sim)`` holds or ``timeout`` sim seconds pass; events are appended."""
+        end = self.t_ns + round(timeout * NS)
+        while self.t_ns < end:
+            res = self.step()
+            if events is not None:
+                events.extend(res.events)
+            if predicate(self):
+                return True
+        return False
+
+    def _on_collision(self) -> Event:
+        s = self.s
+        s[3:6] = 0.0
+        s[10:13] = 0.0
+        s[6:10] = quat_from_yaw(yaw_of(s[6:10]))
+        self.flight.collided()
+        self.collisions += 1
+        return Event("collision", self.t, {"position": s[0:3].tolist()})
+
+    def render(self) -> FrameSet:
+        """Render every camera from the current state (also usable outside the camera schedule).
+
+        The images are copies the caller owns (the renderer reuses its readback buffers).
+        """
+        if self.renderer is None:
+            raise RuntimeError("this Simulator was created with render=False")
+        state = self.state
+        cams = {
+            name: dataclasses.replace(
+                f, rgb=None if f.rgb is None else f.rgb.copy(), depth=f.depth.copy(), seg=f.seg.copy()
+            )
+            for name, f in self.renderer.render(state.T_world_body).items()
+        }
+        return FrameSet(self.t_ns, state, cams)
+
+    def close(self) -> None:
+        if self.renderer is not None:
+            self.renderer.close()
+            self.renderer = None
+
+    def __enter__(self) -> Simulator:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

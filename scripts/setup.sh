@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# Set up Droneulator on a fresh Debian 12 / Ubuntu 24.04 machine:
+#   Debian packages (Python venv, EGL + Mesa for headless rendering), then .venv with the package.
+# Usage: bash scripts/setup.sh [--dev]     (--dev adds the test and lint tools)
+# Idempotent: packages already present are not reinstalled.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+extras="."
+[[ "${1:-}" == "--dev" ]] && extras=".[dev]"
+
+debs=(python3 python3-venv python3-dev libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri)
+missing=()
+for d in "${debs[@]}"; do
+    dpkg-query -W -f='${Status}' "$d" 2>/dev/null | grep -q "install ok installed" || missing+=("$d")
+done
+if ((${#missing[@]})); then
+    sudo=""
+    [[ $(id -u) -ne 0 ]] && sudo="sudo"
+    echo "setup: installing Debian packages: ${missing[*]}"
+    $sudo apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${missing[@]}"
+fi
+
+py=${PYTHON:-python3}
+"$py" -c 'import sys; assert sys.version_info >= (3, 11), "Python 3.11+ is required"'
+[[ -x .venv/bin/python ]] || "$py" -m venv .venv
+.venv/bin/python -m pip install -q --upgrade pip
+.venv/bin/python -m pip install -q -e "$extras"
+echo "setup: ready ($(.venv/bin/python --version), $(.venv/bin/droneulator --help >/dev/null && echo droneulator OK))"
