@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import threading
 from pathlib import Path
 
 from droneulator.config import SimConfig, load_config
@@ -53,6 +54,34 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_run(args: argparse.Namespace) -> int:
+    from droneulator.runtime.supervisor import Supervisor
+
+    cfg = _config(args)
+    if args.realtime:
+        cfg.runtime.mode = "realtime"
+    if args.api_port is not None:
+        cfg.runtime.api_port = args.api_port
+    sup = Supervisor(cfg)
+    sup.install_signal_handlers()
+    try:
+        sup.start()
+    except RuntimeError as exc:
+        sup.stop()
+        print(f"droneulator: error: {exc}", file=sys.stderr)
+        return 1
+    if args.demo:
+        from droneulator.runtime.demo_client import run_demo_client
+
+        threading.Thread(
+            target=run_demo_client, args=(cfg, Path(args.out), sup.stop_requested), daemon=True
+        ).start()
+    code = sup.wait(args.duration)
+    if sup.failure:
+        print(f"droneulator: {sup.failure}", file=sys.stderr)
+    return code
+
+
 def cmd_config(args: argparse.Namespace) -> int:
     from droneulator.config import to_dict
 
@@ -80,6 +109,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     p.add_argument("--save-every", type=float, default=1.0, help="save one frame set every N sim seconds")
     p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser(
+        "run",
+        help="start the dynamics server, render server and ROS 2/Zenoh bridge (API ws://127.0.0.1:8765)",
+    )
+    _add_config_args(p, "default")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--lockstep", action="store_true", help="sim time waits for every consumer (default)")
+    mode.add_argument("--realtime", action="store_true", help="pace sim time by the wall clock")
+    p.add_argument("--api-port", type=int, default=None, help="WebSocket API port (default 8765)")
+    p.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
+    p.add_argument(
+        "--demo",
+        action="store_true",
+        help="fly a short demo mission through the WebSocket API, print telemetry, save the frames "
+        "received over Zenoh to --out, then stop",
+    )
+    p.add_argument("--out", default="out/run", help="where --demo saves frames (default out/run)")
+    p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("config", help="print the effective configuration as JSON")
     _add_config_args(p)

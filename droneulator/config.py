@@ -85,12 +85,65 @@ class FlightConfig:
 
 
 @dataclass
+class RuntimeConfig:
+    """The multi-process runtime (``droneulator run``)."""
+
+    #: "lockstep": sim time waits for every consumer (as fast as they allow);
+    #: "realtime": wall-clock paced, the renderer draws the latest state when it is free
+    mode: str = "lockstep"
+    #: realtime mode only: simulated seconds per wall second
+    speed: float = 1.0
+    api_host: str = "127.0.0.1"
+    api_port: int = 8765
+    api_max_message_bytes: int = 65536
+    #: rate of the state stream to WebSocket subscribers and of odometry/TF/clock on the bridge (sim time)
+    state_hz: float = 100.0
+    #: frames in flight between dynamics, render server and bridge (shared-memory slots)
+    frame_slots: int = 3
+    #: restarts allowed per child process before the run stops
+    max_restarts: int = 5
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("lockstep", "realtime"):
+            raise ValueError(f"runtime.mode must be 'lockstep' or 'realtime', got {self.mode!r}")
+        if not self.speed > 0:
+            raise ValueError("runtime.speed must be positive")
+        if self.frame_slots < 2:
+            raise ValueError("runtime.frame_slots must be at least 2")
+
+
+@dataclass
+class BridgeConfig:
+    """ROS 2 over Zenoh publishing."""
+
+    namespace: str = "droneulator"
+    #: "ros2dds" (zenoh-bridge-ros2dds keys) or "rmw_zenoh"
+    key_mode: str = "ros2dds"
+    domain_id: int = 0
+    listen: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7448"])
+    connect: list[str] = field(default_factory=list)
+    #: optional Zenoh JSON5 configuration file (listen/connect above are applied on top)
+    zenoh_config: str = ""
+    jpeg_quality: int = 90
+    #: append "stream stamp_ns publish_wall_ns" per published message here (latency benchmark)
+    latency_log: str = ""
+
+    def __post_init__(self) -> None:
+        if self.key_mode not in ("ros2dds", "rmw_zenoh"):
+            raise ValueError(f"bridge.key_mode must be 'ros2dds' or 'rmw_zenoh', got {self.key_mode!r}")
+        if not 1 <= self.jpeg_quality <= 100:
+            raise ValueError("bridge.jpeg_quality must lie in [1, 100]")
+
+
+@dataclass
 class SimConfig:
     scene: str = "default"
     seed: int = 0
     render: RenderConfig = field(default_factory=RenderConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     flight: FlightConfig = field(default_factory=FlightConfig)
+    runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
+    bridge: BridgeConfig = field(default_factory=BridgeConfig)
 
 
 # --------------------------------------------------------------------------- loading & overrides

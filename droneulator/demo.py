@@ -1,7 +1,8 @@
-"""``droneulator demo``: a short in-process mission that prints telemetry and saves frames.
+"""The demo mission: take off, fly a small square around the spawn point (legs that would come
+within 1 m of an obstacle are skipped), turn a full circle in velocity mode, return and land.
 
-Take off, fly a small square around the spawn point (legs that would come within 1 m of an
-obstacle are skipped), turn a full circle in velocity mode to look around, return and land.
+:func:`plan_mission` is shared by ``droneulator demo`` (in process, :func:`run_demo`) and
+``droneulator run --demo`` (through the WebSocket API, :mod:`droneulator.runtime.demo_client`).
 """
 
 from __future__ import annotations
@@ -9,83 +10,94 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
 
 from droneulator.config import SimConfig
 from droneulator.controllers.flight import Event
-from droneulator.frames import quat_to_matrix
+from droneulator.frames import quat_from_yaw, quat_to_matrix
+from droneulator.scenes.base import Scene
 from droneulator.sim.simulator import Simulator
 from droneulator.snapshot import save_frames
 
+TURN_RATE = 0.8
 
-def _telemetry(sim: Simulator) -> str:
-    st = sim.state
-    x, y, z = st.position
+
+@dataclass
+class Leg:
+    """One API operation and what ends it: ``until`` is a mode to reach or a duration in seconds."""
+
+    op: str
+    args: dict[str, Any] = field(default_factory=dict)
+    until: str | float = "hold"
+
+    @property
+    def label(self) -> str:
+        args = ", ".join(
+            f"{k}={np.round(v, 2).tolist() if isinstance(v, list) else v}" for k, v in self.args.items()
+        )
+        return f"{self.op}({args})"
+
+
+def plan_mission(scene: Scene, cfg: SimConfig) -> list[Leg]:
+    home = scene.spawn_position.copy()
+    R = quat_to_matrix(quat_from_yaw(scene.spawn_yaw))
+    alt = cfg.flight.takeoff_altitude
+    corners = [
+        home + R @ np.array(p) for p in ([3.0, 0, alt], [3.0, 3.0, alt + 0.5], [0, 3.0, alt], [0, 0, alt])
+    ]
+    clear = 1.0 + cfg.vehicle.collision_radius
+    legs = [Leg("takeoff", {"altitude": alt})]
+    legs += [
+        Leg("goto", {"position": p.tolist(), "speed": 1.5})
+        for p in corners
+        if scene.collision.distance(p) > clear
+    ]
+    legs += [
+        Leg("velocity", {"forward": 0.0, "yaw_rate": TURN_RATE}, 2 * math.pi / TURN_RATE),
+        Leg("hold", {}, 0.5),
+        Leg("land", {}, "idle"),
+    ]
+    return legs
+
+
+def telemetry_line(st: dict[str, Any]) -> str:
+    x, y, z = st["position"]
     return (
-        f"t={st.t:6.2f}s  mode={st.mode:<8} pos=({x:6.2f},{y:6.2f},{z:5.2f})  "
-        f"speed={np.linalg.norm(st.velocity):4.2f} m/s  yaw={math.degrees(st.yaw):7.1f} deg"
+        f"t={st['t']:6.2f}s  mode={st['mode']:<8} pos=({x:6.2f},{y:6.2f},{z:5.2f})  "
+        f"speed={np.linalg.norm(st['velocity']):4.2f} m/s  yaw={math.degrees(st['yaw']):7.1f} deg"
     )
 
 
 def run_demo(
-    config: SimConfig, out: Path, save_every: float = 1.0, log: Callable[[str], None] = print
+    config: SimConfig, out: Path, save_every: float = 1.0, log: Callable[[str], None] = tqdm.write
 ) -> dict:
-    """Fly the demo mission; returns a summary (events, frames saved, real-time factor)."""
+    """Fly the demo mission in process; returns a summary (events, frames saved, real-time factor)."""
     out.mkdir(parents=True, exist_ok=True)
     events: list[Event] = []
-    saved = 0
-    next_save = 0.0
-    next_log = 0.0
+    saved, next_save, next_log = 0, 0.0, 0.0
     with Simulator(config=config) as sim:
-        home = sim.scene.spawn_position.copy()
-        R = quat_to_matrix(sim.state.quaternion)
-        alt = config.flight.takeoff_altitude
-        legs = [
-            home + R @ np.array(p) for p in ([3.0, 0, alt], [3.0, 3.0, alt + 0.5], [0, 3.0, alt], [0, 0, alt])
-        ]
-        legs = [p for p in legs if sim.scene.collision.distance(p) > 1.0 + config.vehicle.collision_radius]
-        plan: list[tuple[str, Callable[[], object], Callable[[Simulator], bool]]] = [
-            ("takeoff", lambda: sim.takeoff(alt), lambda s: s.mode.value == "hold"),
-            *[
-                (
-                    f"goto {np.round(p, 2).tolist()}",
-                    lambda p=p: sim.goto(p, speed=1.5),
-                    lambda s: s.mode.value == "hold",
-                )
-                for p in legs
-            ],
-            ("look around (velocity mode)", lambda: sim.velocity(0.0, 0.8), lambda s: s.t > t_turn_end),
-            ("hold", sim.hold, lambda s: True),
-            ("land", sim.land, lambda s: s.mode.value == "idle"),
-        ]
-        t_turn_end = math.inf
+        plan = plan_mission(sim.scene, config)
         wall0 = time.perf_counter()
-        bar = tqdm(total=len(plan), desc="demo mission", unit="step", leave=False, disable=None)
-        for label, command, done in plan:
-            command()
-            if label.startswith("look around"):
-                t_turn_end = sim.t + 2 * math.pi / 0.8
-            log(f"[{sim.t:6.2f}s] {label}")
-            deadline = sim.t + 60.0
-            while not done(sim) and sim.t < deadline:
+        for leg in tqdm(plan, desc="demo mission", unit="leg", leave=False, disable=None):
+            getattr(sim, leg.op)(**leg.args)
+            log(f"[{sim.t:6.2f}s] {leg.label}")
+            end = sim.t + (leg.until if isinstance(leg.until, float) else 60.0)
+            while sim.t < end and sim.mode.value != leg.until and sim.mode.value != "collided":
                 res = sim.step()
                 events.extend(res.events)
                 for e in res.events:
                     log(f"[{e.t:6.2f}s] event {e.type}")
-                if sim.mode.value == "collided":
-                    break
                 if res.frames and sim.t >= next_save:
                     save_frames(res.frames[-1], out, prefix=f"{saved:04d}_")
-                    saved += 1
-                    next_save += save_every
+                    saved, next_save = saved + 1, next_save + save_every
                 if sim.t >= next_log:
-                    log(_telemetry(sim))
+                    log(telemetry_line(sim.state.to_dict()))
                     next_log += 1.0
-            bar.update(1)
-        bar.close()
         wall = time.perf_counter() - wall0
         summary = {
             "sim_seconds": sim.t,
@@ -97,9 +109,8 @@ def run_demo(
             "out": str(out),
         }
     log(
-        f"demo finished: {summary['sim_seconds']:.1f} s simulated in {wall:.1f} s wall "
-        f"(real-time factor {summary['real_time_factor']:.2f}), "
-        f"{summary['frames_rendered']} frames rendered, "
+        f"demo finished: {sim.t:.1f} s simulated in {wall:.1f} s wall (real-time factor "
+        f"{summary['real_time_factor']:.2f}), {summary['frames_rendered']} frames rendered, "
         f"{saved} saved to {out}"
     )
     return summary

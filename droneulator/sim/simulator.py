@@ -86,12 +86,16 @@ class FrameSet:
 class StepResult:
     frames: list[FrameSet] = field(default_factory=list)
     events: list[Event] = field(default_factory=list)
+    #: states at camera instants, when an external renderer draws them (``external_cameras=True``)
+    camera_states: list[VehicleState] = field(default_factory=list)
 
 
 class Simulator:
     """Compose scene, vehicle, controller and camera rig; step them in lockstep.
 
-    ``render=False`` skips the renderer entirely (physics-only use, e.g. benchmarks).
+    ``render=False`` skips the renderer entirely (physics-only use, e.g. benchmarks);
+    ``external_cameras=True`` (with ``render=False``) still splits the physics at camera instants
+    and hands their states out in :attr:`StepResult.camera_states` for a render server to draw.
     """
 
     def __init__(
@@ -100,6 +104,7 @@ class Simulator:
         seed: int | None = None,
         config: SimConfig | None = None,
         render: bool = True,
+        external_cameras: bool = False,
     ) -> None:
         self.config = config or load_config()
         if scene is not None:
@@ -118,6 +123,7 @@ class Simulator:
         self.control_period_ns = round(NS / vcfg.control_hz)
         self.camera_period_ns = round(NS / self.config.render.camera_hz)
         self.render_enabled = render
+        self.camera_schedule = render or external_cameras
         self.renderer = None
         self.mounts = {c.name: camera_mount(np.array(c.position), c.rpy) for c in self.config.render.cameras}
         self.scene: Scene
@@ -286,14 +292,17 @@ class Simulator:
             self.s[13:16] = self.wind.update(self.t, self.s[0:3])
             t_end = self.t_ns + self.control_period_ns
             while self.t_ns < t_end:
-                t_next = min(t_end, self._next_frame_ns) if self.render_enabled else t_end
+                t_next = min(t_end, self._next_frame_ns) if self.camera_schedule else t_end
                 if self.flight.mode != Mode.COLLIDED and self.vehicle.step(
                     self.s, cmd, (t_next - self.t_ns) / NS
                 ):
                     out.events.append(self._on_collision())
                 self.t_ns = t_next
-                if self.render_enabled and self.t_ns == self._next_frame_ns:
-                    out.frames.append(self.render())
+                if self.camera_schedule and self.t_ns == self._next_frame_ns:
+                    if self.renderer is not None:
+                        out.frames.append(self.render())
+                    else:
+                        out.camera_states.append(self.state)
                     self.frame_count += 1
                     self._next_frame_ns += self.camera_period_ns
         return out

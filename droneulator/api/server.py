@@ -1,0 +1,478 @@
+"""WebSocket front end of the command protocol, on its own asyncio loop in a daemon thread.
+
+Threading: the dynamics server steps the :class:`~droneulator.sim.simulator.Simulator` in its main
+thread while holding ``lock``. Commands run one at a time in a worker thread of this server, holding
+the same lock, so they never interleave with a physics step and never stall the event loop; ``ping``
+and subscriptions are answered on the loop without the lock. The stepping loop pushes data with the
+thread-safe :meth:`ApiServer.publish_state` and :meth:`ApiServer.publish_event`.
+
+Message size has two tiers. A message up to ``max_message_bytes`` is processed. A longer one, up to
+:attr:`ApiServer.transport_limit` (16 x ``max_message_bytes``, at least 1 MiB), is read, discarded and
+answered with ``message_too_large``; the connection stays usable. Past the transport limit websockets
+stops reading and closes that connection with code 1009 (message too big): a protocol-level limit
+cannot skip the rest of a frame, and it bounds the memory a client can make the server hold. The
+server and the other connections carry on either way.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import functools
+import logging
+import queue
+import threading
+from collections import deque
+from collections.abc import Callable, Coroutine, Mapping
+from contextlib import AbstractContextManager
+from typing import TYPE_CHECKING, Any
+
+from websockets.asyncio.server import ServerConnection, serve
+from websockets.exceptions import ConnectionClosed
+from websockets.frames import CloseCode
+
+from droneulator.api.protocol import (
+    OPS,
+    STREAMS,
+    ExtraOp,
+    Request,
+    RequestError,
+    encode,
+    error_reply,
+    execute,
+    ok_reply,
+    parse_request,
+)
+
+if TYPE_CHECKING:
+    from droneulator.sim.simulator import Simulator
+
+log = logging.getLogger(__name__)
+
+#: smallest transport limit (bytes): below it a too-long message is still answered, not disconnected
+MIN_TRANSPORT_LIMIT = 1 << 20
+_SERVER_OPS = ("subscribe", "unsubscribe")
+_Job = tuple[asyncio.AbstractEventLoop, asyncio.Future[Any], Callable[[], Any]]
+
+
+class _Worker:
+    """A daemon thread running blocking jobs in submission order, resolving asyncio futures.
+
+    A daemon (unlike the default executor's threads) so that a job stuck waiting for the simulation
+    lock can never hold up interpreter exit.
+    """
+
+    def __init__(self, name: str) -> None:
+        self._jobs: queue.SimpleQueue[_Job | None] = queue.SimpleQueue()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def submit(self, loop: asyncio.AbstractEventLoop, fn: Callable[[], Any]) -> asyncio.Future[Any]:
+        fut = loop.create_future()
+        self._jobs.put((loop, fut, fn))
+        return fut
+
+    def close(self) -> None:
+        self._jobs.put(None)
+
+    def _run(self) -> None:
+        while (job := self._jobs.get()) is not None:
+            loop, fut, fn = job
+            try:
+                ok, value = True, fn()
+            except Exception as e:
+                ok, value = False, e
+            with contextlib.suppress(RuntimeError):  # the loop is closed: nobody waits any more
+                loop.call_soon_threadsafe(_settle, fut, ok, value)
+
+
+def _settle(fut: asyncio.Future[Any], ok: bool, value: Any) -> None:
+    if not fut.done():
+        if ok:
+            fut.set_result(value)
+        else:
+            fut.set_exception(value)
+
+
+class _Session:
+    """Per-connection subscription state; one stream task writes its pushed messages."""
+
+    def __init__(self, ws: ServerConnection) -> None:
+        self.ws = ws
+        addr = ws.remote_address
+        self.peer = f"{addr[0]}:{addr[1]}" if addr else "?"
+        self.state_period: float | None = None  # None: no state stream
+        self.events_on = False
+        self.events: deque[str] = deque()
+        self.wake = asyncio.Event()
+        self.send_lock = asyncio.Lock()  # a reply and a pushed message never interleave or overtake
+        self.task: asyncio.Task[None] | None = None
+        self.sent_seq = 0
+        self.next_state_at = 0.0
+
+    def streams(self) -> list[str]:
+        on = {"state": self.state_period is not None, "events": self.events_on}
+        return [s for s in STREAMS if on[s]]
+
+
+class ApiServer:
+    """The WebSocket command server: see the module docstring and docs/api.md.
+
+    ``extra_ops`` maps op names to ``callable(args) -> result`` for runtime-specific operations
+    (e.g. ``shutdown``); they run in the worker thread *without* the simulation lock, get the raw
+    request fields (minus ``id`` and ``op``, NaN/Infinity already rejected) and may raise
+    :class:`~droneulator.api.protocol.ApiError` or ``CommandError`` to answer with an error. They
+    must not call :meth:`stop` themselves (its reply could not be sent): signal the owner instead.
+    """
+
+    def __init__(
+        self,
+        sim: Simulator,
+        lock: AbstractContextManager[Any],
+        host: str = "127.0.0.1",
+        port: int = 8765,
+        max_message_bytes: int = 65536,
+        state_rate_hz: float = 30.0,
+        extra_ops: Mapping[str, ExtraOp] | None = None,
+        max_event_backlog: int = 10_000,
+        stop_timeout: float = 5.0,
+    ) -> None:
+        if max_message_bytes < 256:
+            raise ValueError("max_message_bytes must be at least 256")
+        lo, hi = OPS["subscribe"].args[1].bounds or (0.0, 0.0)
+        if not lo <= state_rate_hz <= hi:
+            raise ValueError(f"state_rate_hz must lie in [{lo:g}, {hi:g}]")
+        self.sim = sim
+        self.lock = lock
+        self.host = host
+        self.port = port
+        self.max_message_bytes = max_message_bytes
+        self.transport_limit = max(MIN_TRANSPORT_LIMIT, 16 * max_message_bytes)
+        self.state_rate_hz = state_rate_hz
+        self.max_event_backlog = max_event_backlog
+        self.stop_timeout = stop_timeout
+        self._extra_ops: dict[str, ExtraOp] = {}
+        for name, fn in (extra_ops or {}).items():
+            self.add_op(name, fn)
+        self._flight_locked: str | None = None
+        self._state_lock = threading.Lock()
+        self._state_seq = 0
+        self._state: dict[str, Any] | None = None
+        self._state_cache: tuple[int, str | None] = (0, None)
+        self._state_wake_pending = False
+        self._n_state_subscribers = 0
+        self._sessions: set[_Session] = set()
+        self._background: set[asyncio.Task[Any]] = set()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop_fut: asyncio.Future[None] | None = None
+        self._thread: threading.Thread | None = None
+        self._worker: _Worker | None = None
+        self._ready = threading.Event()
+        self._closing = threading.Event()
+        self._start_error: BaseException | None = None
+
+    # ------------------------------------------------------------------ configuration
+    @property
+    def url(self) -> str:
+        return f"ws://{self.host}:{self.port}"
+
+    @property
+    def client_count(self) -> int:
+        """Open connections (for monitoring and leak checks)."""
+        return len(self._sessions)
+
+    def add_op(self, name: str, fn: ExtraOp) -> None:
+        """Register (or replace) a runtime op; thread-safe, also while serving."""
+        if name in OPS:
+            raise ValueError(f"extra op {name!r} would shadow a built-in op")
+        self._extra_ops = {**self._extra_ops, name: fn}  # copy on write: readers never see a mutation
+
+    def refuse_flight(self, reason: str) -> None:
+        """Answer every flight command with ``flight_locked`` and ``reason`` until :meth:`allow_flight`."""
+        if not reason:
+            raise ValueError("refuse_flight needs a reason for the clients")
+        self._flight_locked = reason
+
+    def allow_flight(self) -> None:
+        self._flight_locked = None
+
+    @property
+    def flight_locked(self) -> str | None:
+        """The reason flight commands are refused, or None."""
+        return self._flight_locked
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> ApiServer:
+        """Start serving in a daemon thread; returns once listening (``port=0``: see :attr:`port`)."""
+        if self._thread is not None:
+            raise RuntimeError("ApiServer already started")
+        self._ready.clear()
+        self._closing.clear()
+        self._start_error = None
+        self._worker = _Worker("droneulator-api-worker")
+        self._thread = threading.Thread(target=self._thread_main, name="droneulator-api", daemon=True)
+        self._thread.start()
+        self._ready.wait()
+        if self._start_error is not None:
+            self._thread.join()
+            self._thread = None
+            self._worker.close()
+            raise self._start_error
+        return self
+
+    def stop(self) -> None:
+        """Close every connection (code 1001) and the listening socket, then end the thread."""
+        thread, loop, stop_fut = self._thread, self._loop, self._stop_fut
+        if thread is None:
+            return
+        self._closing.set()
+        if loop is not None and stop_fut is not None:
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(_settle, stop_fut, True, None)
+        if threading.current_thread() is not thread:
+            thread.join(self.stop_timeout + 5.0)
+            if thread.is_alive():
+                log.warning("API server thread did not stop within %.1f s", self.stop_timeout + 5.0)
+        if self._worker is not None:
+            self._worker.close()
+        self._thread = self._worker = None
+
+    def __enter__(self) -> ApiServer:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def _thread_main(self) -> None:
+        try:
+            asyncio.run(self._serve())
+        except BaseException as e:
+            log.exception("API server loop failed")
+            self._start_error = self._start_error or e
+        finally:
+            self._loop = None
+            self._ready.set()
+
+    async def _serve(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        self._stop_fut = self._loop.create_future()
+        try:
+            server = await serve(
+                self._handle,
+                self.host,
+                self.port,
+                max_size=self.transport_limit,
+                max_queue=8,
+                close_timeout=2.0,
+            )
+        except OSError as e:
+            self._start_error = e
+            return
+        self.port = server.sockets[0].getsockname()[1]
+        log.info("API listening on %s", self.url)
+        self._ready.set()
+        await self._stop_fut
+        server.close()
+        try:
+            await asyncio.wait_for(server.wait_closed(), self.stop_timeout)
+        except TimeoutError:
+            log.warning("API connections did not close within %.1f s", self.stop_timeout)
+        log.info("API server on %s stopped", self.url)
+
+    # ------------------------------------------------------------------ publishing (any thread)
+    def publish_state(self, state: dict[str, Any]) -> None:
+        """Offer the latest vehicle state; subscribers get it at their rate (older values are skipped).
+
+        Thread-safe and cheap. The dict is serialised later on the server thread: do not mutate it.
+        """
+        with self._state_lock:
+            self._state_seq += 1
+            self._state = state
+        loop = self._loop
+        if loop is None or self._state_wake_pending or not self._n_state_subscribers:
+            return
+        self._state_wake_pending = True
+        try:
+            loop.call_soon_threadsafe(self._wake_state_subscribers)
+        except RuntimeError:  # the loop just closed
+            self._state_wake_pending = False
+
+    def publish_event(self, event: dict[str, Any]) -> None:
+        """Queue an event for every events subscriber, in publication order. Thread-safe."""
+        loop = self._loop
+        if loop is None:
+            return
+        with contextlib.suppress(RuntimeError):
+            loop.call_soon_threadsafe(self._push_event, event)
+
+    def _wake_state_subscribers(self) -> None:
+        self._state_wake_pending = False
+        for s in self._sessions:
+            if s.state_period is not None:
+                s.wake.set()
+
+    def _push_event(self, event: dict[str, Any]) -> None:
+        try:
+            text = encode({"type": "event", "event": event})
+        except (TypeError, ValueError):
+            log.exception("event %r is not JSON serialisable; not sent", event)
+            return
+        for s in self._sessions:
+            if not s.events_on:
+                continue
+            if len(s.events) >= self.max_event_backlog:
+                self._disconnect_slow(s)
+                continue
+            s.events.append(text)
+            s.wake.set()
+
+    def _disconnect_slow(self, s: _Session) -> None:
+        """Events are never dropped, so a subscriber that cannot keep up is disconnected instead."""
+        log.warning("client %s: %d events unsent, closing its connection", s.peer, len(s.events))
+        self._set_streams(s, (), None)
+        self._spawn(s.ws.close(CloseCode.POLICY_VIOLATION, "event backlog exceeded: reading too slowly"))
+
+    def _spawn(self, coro: Coroutine[Any, Any, Any]) -> None:
+        task = asyncio.get_running_loop().create_task(coro)
+        self._background.add(task)
+        task.add_done_callback(self._background.discard)
+
+    def _state_text(self) -> tuple[int, str | None]:
+        """The latest state as a pushed message (serialised once per published state)."""
+        with self._state_lock:
+            seq, state = self._state_seq, self._state
+        if self._state_cache[0] != seq:
+            text = None
+            try:
+                text = encode({"type": "state", "state": state})
+            except (TypeError, ValueError):
+                log.exception("state is not JSON serialisable; not sent")
+            self._state_cache = (seq, text)
+        return self._state_cache
+
+    # ------------------------------------------------------------------ connections
+    async def _handle(self, ws: ServerConnection) -> None:
+        session = _Session(ws)
+        self._sessions.add(session)
+        log.info("client %s connected (%d open)", session.peer, len(self._sessions))
+        try:
+            while True:
+                raw = await ws.recv(decode=False)
+                reply, activate = await self._respond(session, raw)
+                if reply is None:  # stopping
+                    return
+                async with session.send_lock:  # streams start now, but push only after this reply
+                    if activate is not None:
+                        activate()
+                    await ws.send(self._encode_reply(reply))
+        except ConnectionClosed as e:
+            log.info("client %s disconnected (%s)", session.peer, e)
+        except Exception:
+            log.exception("client %s: connection handler failed", session.peer)
+        finally:
+            self._set_streams(session, (), None)
+            self._sessions.discard(session)
+            if session.task is not None:
+                session.task.cancel()
+                await asyncio.gather(session.task, return_exceptions=True)
+
+    def _encode_reply(self, reply: dict[str, Any]) -> str:
+        try:
+            return encode(reply)
+        except (TypeError, ValueError) as e:
+            log.exception("reply not serialisable")
+            return encode(error_reply(reply.get("id"), "internal_error", f"reply not serialisable: {e}"))
+
+    async def _respond(
+        self, session: _Session, raw: bytes
+    ) -> tuple[dict[str, Any] | None, Callable[[], None] | None]:
+        """The reply to one message, and a subscription to activate as it is sent."""
+        if len(raw) > self.max_message_bytes:
+            msg = f"message of {len(raw)} bytes exceeds the limit of {self.max_message_bytes} bytes"
+            return error_reply(None, "message_too_large", msg), None
+        extra = self._extra_ops
+        try:
+            req = parse_request(raw, extra)
+        except RequestError as e:
+            return error_reply(e.request_id, e.code, e.message), None
+        log.debug("client %s: %s %s", session.peer, req.op, req.args)
+        if req.op in _SERVER_OPS:
+            return self._subscription(session, req)
+        if req.op in OPS and not OPS[req.op].locked:
+            return execute(self.sim, req), None
+        assert self._worker is not None and self._stop_fut is not None
+        fut = self._worker.submit(
+            asyncio.get_running_loop(), functools.partial(self._run_command, req, extra)
+        )
+        await asyncio.wait((fut, self._stop_fut), return_when=asyncio.FIRST_COMPLETED)
+        if not fut.done():
+            fut.cancel()
+            return None, None
+        return fut.result(), None
+
+    def _run_command(self, req: Request, extra: Mapping[str, ExtraOp]) -> dict[str, Any]:
+        """Worker thread: extra ops without the lock, simulator ops under it (not once stopping)."""
+        if req.op in extra:
+            return execute(None, req, extra)
+        with self.lock:
+            if self._closing.is_set():
+                return error_reply(req.id, "internal_error", "the server is shutting down")
+            return execute(self.sim, req, flight_locked=self._flight_locked)
+
+    # ------------------------------------------------------------------ subscriptions
+    def _subscription(self, s: _Session, req: Request) -> tuple[dict[str, Any], Callable[[], None] | None]:
+        streams = req.args.get("streams", STREAMS)
+        if req.op == "unsubscribe":
+            keep = [x for x in s.streams() if x not in streams]
+            period = s.state_period if "state" in keep else None
+            self._set_streams(s, keep, period)
+            return ok_reply(req.id, {"streams": s.streams()}), None
+        rate = req.args.get("rate_hz", self.state_rate_hz)
+        result = {"streams": list(streams), "rate_hz": rate if "state" in streams else None}
+        return ok_reply(req.id, result), functools.partial(self._subscribe, s, streams, 1.0 / rate)
+
+    def _subscribe(self, s: _Session, streams: tuple[str, ...], period: float) -> None:
+        """Activate a subscription (called holding ``send_lock``, so the reply goes out first)."""
+        self._set_streams(s, streams, period if "state" in streams else None)
+        s.sent_seq, s.next_state_at = 0, 0.0  # send the current state right away
+        if s.task is None:
+            s.task = asyncio.get_running_loop().create_task(self._stream(s))
+        s.wake.set()
+
+    def _set_streams(self, s: _Session, streams: Any, period: float | None) -> None:
+        self._n_state_subscribers += (period is not None) - (s.state_period is not None)
+        s.state_period = period
+        s.events_on = "events" in streams
+        if not s.events_on:
+            s.events.clear()
+
+    async def _stream(self, s: _Session) -> None:
+        """Write pushed messages: queued events first, in order; then the latest state when due."""
+        loop = asyncio.get_running_loop()
+        try:
+            while True:
+                if s.events:
+                    text = s.events.popleft()
+                    async with s.send_lock:
+                        await s.ws.send(text)
+                    continue
+                timeout = None
+                if s.state_period is not None and self._state_seq != s.sent_seq:
+                    now = loop.time()
+                    if now >= s.next_state_at:
+                        seq, text = self._state_text()
+                        s.sent_seq = seq
+                        if text is not None:
+                            # a fixed grid keeps the average rate; restart it after a stall
+                            base = s.next_state_at if now - s.next_state_at < s.state_period else now
+                            s.next_state_at = base + s.state_period
+                            async with s.send_lock:
+                                await s.ws.send(text)
+                        continue
+                    timeout = s.next_state_at - now
+                s.wake.clear()
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(timeout):
+                        await s.wake.wait()
+        except ConnectionClosed:
+            pass

@@ -1,0 +1,542 @@
+"""A minimal ROS 2 node on a plain Zenoh session: publish CDR samples, subscribe to decoded messages.
+
+Two wire conventions, chosen with ``key_mode``:
+
+``"ros2dds"`` (default): what zenoh-bridge-ros2dds / zenoh-plugin-ros2dds routes.
+    Key = ROS name without its leading ``/``, prefixed by the bridge-style ``namespace`` if set
+    (``ros2_utils.rs::ros2_name_to_key_expr``): topic ``/a/b`` -> ``a/b`` (``ns/a/b`` with
+    ``namespace="/ns"``). Payload = the full CDR sample, encapsulation header included. No attachment.
+    The bridge forwards a key to DDS once it has a route for it: either a local DDS reader of that
+    topic, or a remote announcement. With ``announce=True`` this node announces its publishers and
+    subscribers exactly like a remote bridge does (``liveliness_mgt.rs``)::
+
+        @/<zid>/@ros2_lv/MP/<key with / -> §>/<ROS type with / -> §>/<qos>     (publisher)
+        @/<zid>/@ros2_lv/MS/<key with / -> §>/<ROS type with / -> §>/<qos>     (subscriber)
+        <qos> = "<keyless ''>:<reliability>:<durability>:<history>,<depth>:typehash=RIHS01_<hex>;"
+
+    with DDS enum values (reliability BEST_EFFORT 0 / RELIABLE 1, durability VOLATILE 0 /
+    TRANSIENT_LOCAL 1, history KEEP_LAST 0 / KEEP_ALL 1), so the bridge creates the DDS writer
+    (``routes_mgr.rs::on_ros_announcement_event``) and ``ros2 topic list`` shows the topic at once.
+
+``"rmw_zenoh"``: what ``rmw_zenoh_cpp`` itself speaks (Jazzy and later).
+    Key = ``<domain_id>/<topic without leading and trailing />/<pkg>::msg::dds_::<Name>_/RIHS01_<hex>``
+    (``liveliness_utils.cpp::TopicInfo``; type name from ``type_support_common.cpp::_create_type_name``;
+    hash from ``rosidl_stringify_type_hash``). Every sample carries the attachment of
+    ``attachment_helpers.cpp::AttachmentData::serialize_to_zbytes``: zenoh-ext serialisation of
+    ``int64 sequence_number`` (from 1, +1 per publish, ``rmw_publisher_data.cpp``), ``int64
+    source_timestamp`` (ns) and ``std::array<uint8_t, 16> source_gid``, i.e. 33 bytes::
+
+        <q sequence_number> <q source_timestamp> 0x10 <16 gid bytes>      (little endian, 0x10 = LEB128 16)
+
+    rmw_zenoh subscriptions drop samples without it. The node and every entity declare liveliness
+    tokens (``liveliness_utils.cpp::Entity``) so ``ros2 topic list`` / ``ros2 node list`` see them::
+
+        @ros2_lv/<domain>/<zid>/<nid>/<nid>/NN/<enclave>/<namespace>/<node>
+        @ros2_lv/<domain>/<zid>/<nid>/<id>/MP|MS/<enclave>/<namespace>/<node>/<topic>/<type>/<hash>/<qos>
+
+    names mangled by ``mangle_name`` (every ``/`` -> ``%``; the default enclave and namespace ``/``
+    become ``%``), ids decimal from one per-session counter (node 0, entities 1, 2, ...), and
+    ``<qos>`` from ``qos_to_keyexpr`` relative to rmw_zenoh's defaults (``qos.cpp``: RELIABLE,
+    VOLATILE, KEEP_LAST 42, infinite durations), e.g. reliable/volatile/keep-last 10 -> ``::,10:,:,:,,``.
+    rmw_zenoh derives the gid from an XXH3-128 hash of the token; here it is a random stable 16 bytes
+    per entity (only ever compared for equality by ROS). rmw_zenoh peers discover each other through a
+    router: connect this node to ``rmw_zenohd`` (``tcp/127.0.0.1:7447`` by default).
+
+Session defaults: peer mode, listening on ``tcp/127.0.0.1:7448`` and multicast scouting off, so a run
+never attaches to whatever else happens to be on the LAN and tests are deterministic; peers find the node
+through explicit ``connect``/``listen`` endpoints (gossip through a router still works). Zenoh's shared
+memory transport optimisation is left on (zenoh 1.x default: samples above 3 KiB to a peer on the same
+host go through a 16 MiB ``/dev/shm`` pool instead of the socket), which is what moves camera images
+between local processes cheaply; ``shared_memory=False`` turns it off.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+import os
+import re
+import struct
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Literal, Protocol
+
+import zenoh
+import zenoh.ext
+
+from droneulator.ros import messages
+
+__all__ = [
+    "STATIC_TF_QOS",
+    "KeyMode",
+    "QosProfile",
+    "RosPublisher",
+    "RosSubscription",
+    "RosZenohNode",
+    "ZenohNodeConfig",
+    "default_qos",
+]
+
+log = logging.getLogger("droneulator.ros")
+
+KeyMode = Literal["ros2dds", "rmw_zenoh"]
+
+#: zenoh-ext serialisation of (int64, int64, std::array<uint8_t, 16>); the length 16 is one LEB128 byte
+_ATTACHMENT = struct.Struct("<qqB16s")
+_GID_SIZE = 16
+
+#: types that carry camera frames: never block the simulation for them, drop instead
+_BULK_TYPES = frozenset(
+    {"sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage", "sensor_msgs/msg/PointCloud2"}
+)
+
+_NAME_TOKEN = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+@dataclass(frozen=True)
+class QosProfile:
+    """The ROS QoS announced for an entity (liveliness tokens) and mapped onto Zenoh.
+
+    Zenoh itself delivers to any matching subscriber whatever the QoS; this is what ROS tools and the
+    DDS side of a bridge see. RELIABLE is the default because a reliable writer matches both reliable
+    and best-effort readers in DDS.
+    """
+
+    reliable: bool = True
+    transient_local: bool = False
+    keep_all: bool = False
+    depth: int = 10
+
+    def __post_init__(self) -> None:
+        if self.depth < 0:
+            raise ValueError("QoS depth must be >= 0")
+
+
+#: tf2_ros ``StaticBroadcasterQoS``: reliable, transient local, depth 1
+STATIC_TF_QOS = QosProfile(transient_local=True, depth=1)
+
+
+def default_qos(topic: str) -> QosProfile:
+    """ROS defaults: ``/tf_static`` like tf2_ros' static broadcaster, everything else reliable/volatile/10.
+
+    ``/tf_static`` must be offered TRANSIENT_LOCAL: tf2 listens to it with TRANSIENT_LOCAL, which a
+    VOLATILE DDS writer (what a bridge would create from a volatile announcement) cannot match.
+    """
+    return STATIC_TF_QOS if topic == "/tf_static" else QosProfile()
+
+
+#: rmw_zenoh's defaults (``qos.cpp``): fields equal to these are left empty in the liveliness QoS string
+_RMW_ZENOH_DEFAULT_DEPTH = 42
+
+
+def rmw_zenoh_qos(qos: QosProfile) -> str:
+    """``liveliness_utils.cpp::qos_to_keyexpr``: rmw enum values, empty where equal to rmw_zenoh's default.
+
+    Layout ``<rel>:<dur>:<hist>,<depth>:<deadline s>,<ns>:<lifespan s>,<ns>:<liveliness>,<lease s>,<ns>``
+    with rmw enums RELIABLE 1 / BEST_EFFORT 2, TRANSIENT_LOCAL 1 / VOLATILE 2, KEEP_LAST 1 / KEEP_ALL 2;
+    deadline, lifespan and liveliness stay at their defaults (infinite, AUTOMATIC) here.
+    """
+    reliability = "" if qos.reliable else "2"
+    durability = "1" if qos.transient_local else ""
+    history = "2" if qos.keep_all else ""
+    depth = "" if qos.depth == _RMW_ZENOH_DEFAULT_DEPTH else str(qos.depth)
+    return f"{reliability}:{durability}:{history},{depth}:,:,:,,"
+
+
+def ros2dds_qos(qos: QosProfile, type_hash: str) -> str:
+    """``liveliness_mgt.rs::qos_to_key_expr`` for a keyless ROS topic, USER_DATA carrying the type hash."""
+    reliability = "1" if qos.reliable else "0"
+    durability = "1" if qos.transient_local else "0"
+    history = "1" if qos.keep_all else "0"
+    return f":{reliability}:{durability}:{history},{qos.depth}:typehash={type_hash};"
+
+
+def mangle(name: str) -> str:
+    """``liveliness_utils.cpp::mangle_name``: every ``/`` becomes ``%``."""
+    return name.replace("/", "%")
+
+
+def dds_type_name(typename: str) -> str:
+    """``pkg/msg/Name`` -> ``pkg::msg::dds_::Name_`` (``type_support_common.cpp::_create_type_name``)."""
+    parts = typename.split("/")
+    if len(parts) != 3 or not all(parts):
+        raise ValueError(f"ROS type must be 'pkg/msg/Name', got {typename!r}")
+    pkg, kind, name = parts
+    return f"{pkg}::{kind}::dds_::{name}_"
+
+
+def fully_qualified(name: str, node_namespace: str = "/") -> str:
+    """A ROS topic name made absolute: relative names resolve against ``node_namespace``.
+
+    Rejects what ROS topic names cannot contain (empty tokens, ``~`` substitution, Zenoh wildcards).
+    """
+    if not name or name.endswith("/"):
+        raise ValueError(f"invalid ROS topic name {name!r}")
+    if not name.startswith("/"):
+        name = node_namespace.rstrip("/") + "/" + name
+    tokens = name[1:].split("/")
+    if not all(_NAME_TOKEN.match(t) for t in tokens):
+        raise ValueError(f"invalid ROS topic name {name!r}: tokens must match [A-Za-z_][A-Za-z0-9_]*")
+    return name
+
+
+class _BridgeConfigLike(Protocol):
+    key_mode: str
+    domain_id: int
+    listen: list[str]
+    connect: list[str]
+    zenoh_config: str
+
+
+@dataclass(frozen=True)
+class ZenohNodeConfig:
+    """How to open the Zenoh session and which ROS wire convention to speak.
+
+    Without ``config_file`` every field applies. With one, the file is authoritative and only
+    non-empty ``listen`` / ``connect`` lists are applied on top (``insert_json5``).
+    """
+
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: tuple[str, ...] = ("tcp/127.0.0.1:7448",)
+    connect: tuple[str, ...] = ()
+    #: optional Zenoh JSON5 configuration file
+    config_file: str | None = None
+    multicast_scouting: bool = False
+    shared_memory: bool = True
+    key_mode: KeyMode = "ros2dds"
+    domain_id: int = 0
+    #: ros2dds: key prefix exactly like zenoh-bridge-ros2dds' ``namespace`` option ("/ns" -> "ns/...")
+    namespace: str = "/"
+    #: ros2dds: announce entities with bridge-style liveliness tokens so a bridge creates DDS endpoints
+    announce: bool = True
+    #: the ROS node these entities belong to (rmw_zenoh tokens); relative topics resolve in node_namespace
+    node_name: str = "droneulator"
+    node_namespace: str = "/"
+    enclave: str = "/"
+
+    def __post_init__(self) -> None:
+        if self.key_mode not in ("ros2dds", "rmw_zenoh"):
+            raise ValueError(f"key_mode must be 'ros2dds' or 'rmw_zenoh', got {self.key_mode!r}")
+        if self.mode not in ("peer", "client", "router"):
+            raise ValueError(f"mode must be 'peer', 'client' or 'router', got {self.mode!r}")
+        if not 0 <= self.domain_id <= 232:
+            raise ValueError("domain_id must lie in [0, 232]")
+        if self.namespace != "/":
+            fully_qualified(self.namespace)
+        if not _NAME_TOKEN.match(self.node_name):
+            raise ValueError(f"invalid ROS node name {self.node_name!r}")
+        if self.node_namespace != "/":
+            fully_qualified(self.node_namespace)
+        object.__setattr__(self, "listen", tuple(self.listen))
+        object.__setattr__(self, "connect", tuple(self.connect))
+
+    def zenoh_config(self) -> zenoh.Config:
+        """The ``zenoh.Config`` this describes."""
+        if self.config_file:
+            conf = zenoh.Config.from_file(self.config_file)
+            if self.listen:
+                conf.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
+            if self.connect:
+                conf.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+            return conf
+        conf = zenoh.Config()
+        conf.insert_json5("mode", json.dumps(self.mode))
+        conf.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
+        conf.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+        conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
+        conf.insert_json5("transport/shared_memory/enabled", json.dumps(self.shared_memory))
+        return conf
+
+
+class RosPublisher:
+    """One declared Zenoh publisher for one ROS topic; :meth:`publish` puts a CDR sample on it."""
+
+    def __init__(
+        self,
+        node: RosZenohNode,
+        topic: str,
+        typename: str,
+        key: str,
+        qos: QosProfile,
+        congestion_control: zenoh.CongestionControl,
+        priority: zenoh.Priority,
+        token_key: str | None,
+    ) -> None:
+        self.topic = topic
+        self.typename = typename
+        self.key = key
+        self.qos = qos
+        #: rmw_zenoh source gid: stable for the publisher's life, random across runs
+        self.gid = os.urandom(_GID_SIZE)
+        self.token_key = token_key
+        self._rmw = node.config.key_mode == "rmw_zenoh"
+        self._seq = itertools.count(1)
+        reliability = zenoh.Reliability.RELIABLE if qos.reliable else zenoh.Reliability.BEST_EFFORT
+        if self._rmw and qos.transient_local:
+            # rmw_publisher_data.cpp: TRANSIENT_LOCAL -> advanced publisher with a depth-sized cache,
+            # publisher detection, and sporadic-heartbeat miss detection when RELIABLE
+            self._pub: Any = zenoh.ext.declare_advanced_publisher(
+                node.session,
+                key,
+                congestion_control=congestion_control,
+                priority=priority,
+                reliability=reliability,
+                cache=zenoh.ext.CacheConfig(max(qos.depth, 1)),
+                sample_miss_detection=(
+                    zenoh.ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=0.5)
+                    if qos.reliable
+                    else None
+                ),
+                publisher_detection=True,
+            )
+        else:
+            self._pub = node.session.declare_publisher(
+                key, congestion_control=congestion_control, priority=priority, reliability=reliability
+            )
+        self._token = node.session.liveliness().declare_token(token_key) if token_key else None
+        self._closed = False
+
+    @property
+    def matching(self) -> bool:
+        """Whether a Zenoh subscriber currently matches this publisher's key."""
+        return bool(getattr(self._pub, "matching_status", False))
+
+    def publish(self, cdr: messages.CdrBytes, t_ns: int | None = None) -> None:
+        """Put one CDR sample (encapsulation header included, e.g. from :func:`messages.serialize`).
+
+        rmw_zenoh mode attaches ``(sequence_number, source_timestamp, gid)``; the source timestamp is
+        ``t_ns`` if given (the simulation passes the sample's stamp), else the wall clock like rmw_zenoh.
+        """
+        if self._closed:
+            raise RuntimeError(f"publisher for {self.topic} is closed")
+        if self._rmw:
+            ts = time.time_ns() if t_ns is None else int(t_ns)
+            self._pub.put(cdr, attachment=_ATTACHMENT.pack(next(self._seq), ts, _GID_SIZE, self.gid))
+        else:
+            self._pub.put(cdr)
+
+    def close(self) -> None:
+        """Undeclare the liveliness token, then the publisher (as ``PublisherData::shutdown`` does)."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._token is not None:
+            self._token.undeclare()
+        self._pub.undeclare()
+
+
+class RosSubscription:
+    """A Zenoh subscriber that decodes each sample with rosbags and hands the message to a callback.
+
+    A sample that does not decode, or a callback that raises, is logged (``droneulator.ros``) and
+    skipped; the subscription keeps running.
+    """
+
+    def __init__(
+        self,
+        node: RosZenohNode,
+        topic: str,
+        typename: str,
+        key: str,
+        callback: Callable[[Any], None],
+        token_key: str | None,
+    ) -> None:
+        self.topic = topic
+        self.typename = typename
+        self.key = key
+        self.token_key = token_key
+        self._callback = callback
+        self.received = 0
+        self.errors = 0
+        messages.TYPESTORE.get_msgdef(typename)
+        self._sub = node.session.declare_subscriber(key, self._on_sample)
+        self._token = node.session.liveliness().declare_token(token_key) if token_key else None
+        self._closed = False
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        payload = sample.payload.to_bytes()
+        try:
+            msg = messages.decode(self.typename, payload)
+        except messages.SerdeError as exc:
+            self.errors += 1
+            log.error(
+                "dropped a bad %s sample on %s (%d bytes): %s", self.typename, self.topic, len(payload), exc
+            )
+            return
+        self.received += 1
+        try:
+            self._callback(msg)
+        except Exception:
+            self.errors += 1
+            log.exception("callback for %s failed", self.topic)
+
+    def close(self) -> None:
+        """Undeclare the liveliness token, then the subscriber."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._token is not None:
+            self._token.undeclare()
+        self._sub.undeclare()
+
+
+class RosZenohNode:
+    """One Zenoh session acting as one ROS 2 node (see the module docstring for the wire formats)."""
+
+    def __init__(self, config: ZenohNodeConfig | None = None) -> None:
+        self.config = config or ZenohNodeConfig()
+        self.session = zenoh.open(self.config.zenoh_config())
+        self.zid = str(self.session.zid())
+        self._lock = threading.Lock()
+        self._publishers: dict[tuple[str, str], RosPublisher] = {}
+        self._subscriptions: list[RosSubscription] = []
+        # rmw_context_impl: one counter per context; the node takes the first id, its entities the next
+        self._ids = itertools.count(0)
+        self.node_id = next(self._ids)
+        self._node_token: Any = None
+        self.node_token_key: str | None = None
+        self._closed = False
+        if self.config.key_mode == "rmw_zenoh":
+            self.node_token_key = self._rmw_token("NN", self.node_id)
+            try:
+                self._node_token = self.session.liveliness().declare_token(self.node_token_key)
+            except Exception:
+                self.session.close()
+                raise
+        log.debug("zenoh session %s open (%s keys)", self.zid, self.config.key_mode)
+
+    @classmethod
+    def from_config(cls, bridge: _BridgeConfigLike, **overrides: Any) -> RosZenohNode:
+        """A node from a ``droneulator.config.BridgeConfig``.
+
+        Uses key_mode, domain_id, listen, connect and zenoh_config. ``BridgeConfig.namespace`` is not
+        used: the bridge already puts it into its topic names.
+        """
+        fields: dict[str, Any] = {
+            "key_mode": bridge.key_mode,
+            "domain_id": bridge.domain_id,
+            "listen": tuple(bridge.listen),
+            "connect": tuple(bridge.connect),
+            "config_file": bridge.zenoh_config or None,
+        }
+        fields.update(overrides)
+        return cls(ZenohNodeConfig(**fields))
+
+    # ------------------------------------------------------------------ keys and tokens
+    def key_for(self, topic: str, typename: str) -> str:
+        """The Zenoh key expression samples of ``topic`` (of ROS type ``typename``) travel on."""
+        cfg = self.config
+        if cfg.key_mode == "rmw_zenoh":
+            name = fully_qualified(topic, cfg.node_namespace)
+            thash = messages.type_hash(typename)
+            return f"{cfg.domain_id}/{name.strip('/')}/{dds_type_name(typename)}/{thash}"
+        dds_type_name(typename)
+        name = fully_qualified(topic, cfg.node_namespace)
+        prefix = cfg.namespace.strip("/")
+        return f"{prefix}/{name[1:]}" if prefix else name[1:]
+
+    def _rmw_token(self, kind: str, entity_id: int, topic_part: str = "") -> str:
+        cfg = self.config
+        return (
+            f"@ros2_lv/{cfg.domain_id}/{self.zid}/{self.node_id}/{entity_id}/{kind}/"
+            f"{mangle(cfg.enclave)}/{mangle(cfg.node_namespace)}/{cfg.node_name}{topic_part}"
+        )
+
+    def _token_key(self, kind: str, topic: str, typename: str, key: str, qos: QosProfile) -> str | None:
+        cfg = self.config
+        thash = messages.type_hash(typename)
+        if cfg.key_mode == "rmw_zenoh":
+            name = fully_qualified(topic, cfg.node_namespace)
+            topic_part = f"/{mangle(name)}/{dds_type_name(typename)}/{thash}/{rmw_zenoh_qos(qos)}"
+            return self._rmw_token(kind, next(self._ids), topic_part)
+        if not cfg.announce:
+            return None
+        return (
+            f"@/{self.zid}/@ros2_lv/{kind}/{key.replace('/', '§')}/{typename.replace('/', '§')}/"
+            f"{ros2dds_qos(qos, thash)}"
+        )
+
+    # ------------------------------------------------------------------ entities
+    def publisher(
+        self,
+        topic: str,
+        typename: str,
+        *,
+        qos: QosProfile | None = None,
+        congestion_control: zenoh.CongestionControl | None = None,
+        priority: zenoh.Priority | None = None,
+    ) -> RosPublisher:
+        """The publisher for ``topic``; declared once, the same object is returned on later calls.
+
+        QoS defaults to :func:`default_qos`. Camera frames (Image, CompressedImage, PointCloud2) use
+        ``CongestionControl.DROP`` at ``Priority.DATA`` so a slow consumer never stalls the simulation;
+        everything else (clock, odom, tf, camera_info) uses ``BLOCK`` at ``Priority.DATA_HIGH`` so it is
+        neither lost nor queued behind a multi-megabyte frame. Relative topic names resolve against
+        ``node_namespace``.
+        """
+        self._check_open()
+        with self._lock:
+            existing = self._publishers.get((topic, typename))
+            if existing is not None:
+                return existing
+            qos = qos or default_qos(fully_qualified(topic, self.config.node_namespace))
+            bulk = typename in _BULK_TYPES
+            if congestion_control is None:
+                congestion_control = zenoh.CongestionControl.DROP if bulk else zenoh.CongestionControl.BLOCK
+            if priority is None:
+                priority = zenoh.Priority.DATA if bulk else zenoh.Priority.DATA_HIGH
+            messages.TYPESTORE.get_msgdef(typename)
+            key = self.key_for(topic, typename)
+            token = self._token_key("MP", topic, typename, key, qos)
+            pub = RosPublisher(self, topic, typename, key, qos, congestion_control, priority, token)
+            self._publishers[(topic, typename)] = pub
+            return pub
+
+    def subscribe(
+        self,
+        topic: str,
+        typename: str,
+        callback: Callable[[Any], None],
+        *,
+        qos: QosProfile | None = None,
+    ) -> RosSubscription:
+        """Call ``callback(message)`` (a rosbags object) for every valid sample on ``topic``.
+
+        Callbacks run on a Zenoh thread; keep them short or hand work to another thread.
+        """
+        self._check_open()
+        with self._lock:
+            key = self.key_for(topic, typename)
+            qos = qos or default_qos(fully_qualified(topic, self.config.node_namespace))
+            token = self._token_key("MS", topic, typename, key, qos)
+            sub = RosSubscription(self, topic, typename, key, callback, token)
+            self._subscriptions.append(sub)
+            return sub
+
+    # ------------------------------------------------------------------ lifetime
+    def _check_open(self) -> None:
+        if self._closed:
+            raise RuntimeError("RosZenohNode is closed")
+
+    def close(self) -> None:
+        """Undeclare every entity and token (so ROS tools see them leave), then close the session."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            for pub in self._publishers.values():
+                pub.close()
+            for sub in self._subscriptions:
+                sub.close()
+            if self._node_token is not None:
+                self._node_token.undeclare()
+            self.session.close()
+
+    def __enter__(self) -> RosZenohNode:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()

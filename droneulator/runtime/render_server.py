@@ -1,0 +1,80 @@
+"""The render server: draws the camera rig for each state the dynamics server sends, into the
+shared-memory frame ring, and acknowledges each frame.
+
+States arrive in the Z-up world (RotorPy); the renderer converts them to its Y-up OpenGL world
+through :mod:`droneulator.frames` (``gl_view_matrix``), nowhere else.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+
+import numpy as np
+
+from droneulator.config import SimConfig, from_dict
+from droneulator.frames import transform_from_pose
+from droneulator.render import Renderer
+from droneulator.runtime.ipc import ENV_CONFIG, ENV_RING, FrameRing, hub_connect
+from droneulator.scenes import get_scene
+
+log = logging.getLogger("droneulator.render")
+
+
+def serve(cfg: SimConfig) -> None:
+    conn, welcome = hub_connect("renderer")
+    ring = FrameRing(os.environ[ENV_RING], cfg.render.cameras, cfg.runtime.frame_slots)
+    rc = cfg.render
+
+    def make(scene: str, seed: int) -> Renderer:
+        return Renderer(
+            get_scene(scene, seed), rc.cameras, shadows=rc.shadows, shadow_map_size=rc.shadow_map_size
+        )
+
+    renderer = make(welcome["scene"], welcome["seed"])
+    log.info(
+        "render server ready: %s, %s",
+        welcome["scene"],
+        ", ".join(f"{c.name} {c.width}x{c.height}" for c in rc.cameras),
+    )
+    try:
+        while True:
+            try:
+                msg = conn.recv()
+            except (EOFError, OSError):
+                return  # the dynamics server went away: the run is over
+            if msg[0] == "render":
+                _, seq, st = msg
+                frames = renderer.render(
+                    transform_from_pose(np.array(st["position"]), np.array(st["quaternion"]))
+                )
+                slot = ring.slot(seq)
+                for name, f in frames.items():
+                    np.copyto(slot[name].rgb, f.rgb)
+                    np.copyto(slot[name].depth, f.depth)
+                    np.copyto(slot[name].seg, f.seg)
+                try:
+                    conn.send(("rendered", seq))
+                except OSError:
+                    return
+            elif msg[0] == "scene":
+                renderer.close()
+                renderer = make(msg[1], msg[2])
+                log.info("scene changed to %s (seed %d)", msg[1], msg[2])
+    finally:
+        renderer.close()
+        ring.close()
+        conn.close()
+
+
+def main() -> None:
+    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
+    signal.signal(signal.SIGTERM, lambda *_: os._exit(0))
+    signal.signal(signal.SIGINT, lambda *_: os._exit(0))
+    serve(from_dict(SimConfig, json.loads(os.environ[ENV_CONFIG])))
+
+
+if __name__ == "__main__":
+    main()

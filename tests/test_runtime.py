@@ -1,0 +1,348 @@
+"""End to end: ``droneulator run`` as a subprocess, driven over WebSocket, observed over Zenoh.
+
+The subscriber here is independent of the bridge's code: a plain Zenoh session with the
+zenoh-bridge-ros2dds key convention and rosbags' own CDR deserialiser.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections import defaultdict
+
+import numpy as np
+import pytest
+import zenoh
+from PIL import Image as PILImage
+from rosbags.typesys import Stores, get_typestore
+from websockets.sync.client import connect
+
+from droneulator.api.client import ApiError, DroneulatorClient
+from droneulator.config import CameraConfig
+from droneulator.frames import camera_mount, quat_from_yaw, quat_to_matrix
+from droneulator.render.camera import intrinsics
+from droneulator.scenes import get_scene
+
+pytestmark = pytest.mark.slow
+TS = get_typestore(Stores.ROS2_JAZZY)
+CAM = CameraConfig(name="front", width=320, height=240)
+TOPICS = {
+    "droneulator/odom": "nav_msgs/msg/Odometry",
+    "tf": "tf2_msgs/msg/TFMessage",
+    "tf_static": "tf2_msgs/msg/TFMessage",
+    "clock": "rosgraph_msgs/msg/Clock",
+    "droneulator/front/color/camera_info": "sensor_msgs/msg/CameraInfo",
+    "droneulator/front/depth/camera_info": "sensor_msgs/msg/CameraInfo",
+    "droneulator/front/color/image_raw/compressed": "sensor_msgs/msg/CompressedImage",
+    "droneulator/front/depth/image_raw": "sensor_msgs/msg/Image",
+    "droneulator/front/segmentation/image_raw/compressed": "sensor_msgs/msg/CompressedImage",
+}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def stamp_ns(msg) -> int:
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+class Run:
+    """A ``droneulator run`` subprocess plus a Zenoh subscriber recording every topic."""
+
+    def __init__(self, scene: str) -> None:
+        self.api_port, self.zenoh_port = free_port(), free_port()
+        cmd = [
+            sys.executable,
+            "-m",
+            "droneulator.cli",
+            "run",
+            "--scene",
+            scene,
+            "--api-port",
+            str(self.api_port),
+            "--set",
+            f'bridge.listen=["tcp/127.0.0.1:{self.zenoh_port}"]',
+            "--set",
+            f'render.cameras=[{{"name": "front", "width": {CAM.width}, "height": {CAM.height}}}]',
+            "--set",
+            "render.shadow_map_size=1024",
+        ]
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        self.log: list[str] = []
+        threading.Thread(target=self._pump, daemon=True).start()
+        self.url = f"ws://127.0.0.1:{self.api_port}"
+        self.client = self._connect()
+        conf = zenoh.Config()
+        conf.insert_json5("mode", '"peer"')
+        conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{self.zenoh_port}"]')
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        self.session = zenoh.open(conf)
+        self.lock = threading.Lock()
+        self.msgs: dict[str, list] = defaultdict(list)
+        self.subs = [self.session.declare_subscriber(k, self._on_sample(k, t)) for k, t in TOPICS.items()]
+        self.wait_for(lambda: all(self.msgs[k] for k in TOPICS), 60, "every topic to arrive")
+
+    def _pump(self) -> None:
+        for line in self.proc.stdout:
+            self.log.append(line.rstrip())
+
+    def _connect(self) -> DroneulatorClient:
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                return DroneulatorClient(self.url, timeout=30)
+            except OSError:
+                if time.monotonic() > deadline or self.proc.poll() is not None:
+                    raise RuntimeError("runtime did not start:\n" + "\n".join(self.log)) from None
+                time.sleep(0.2)
+
+    def _on_sample(self, key: str, typename: str):
+        def cb(sample: zenoh.Sample) -> None:
+            raw = sample.payload.to_bytes()
+            msg = TS.deserialize_cdr(raw, typename)
+            with self.lock:
+                self.msgs[key].append((raw[:4], msg))
+
+        return cb
+
+    def wait_for(self, predicate, timeout: float, what: str) -> None:
+        deadline = time.monotonic() + timeout
+        while not predicate():
+            if time.monotonic() > deadline:
+                raise AssertionError(f"timed out waiting for {what}\n" + "\n".join(self.log[-30:]))
+            time.sleep(0.05)
+
+    def clear(self) -> None:
+        """Forget what was received, except /tf_static (latched: re-sent once per second)."""
+        with self.lock:
+            for k in list(self.msgs):
+                if k != "tf_static":
+                    del self.msgs[k]
+
+    def children(self) -> dict[str, int]:
+        out = subprocess.run(
+            ["ps", "-o", "pid=,args=", "--ppid", str(self.proc.pid)], capture_output=True, text=True
+        )
+        found = {}
+        for line in out.stdout.splitlines():
+            pid, args = line.strip().split(None, 1)
+            for name in ("dynamics_server", "render_server", "bridge"):
+                if name in args:
+                    found[name] = int(pid)
+        return found
+
+    def close(self) -> None:
+        for s in self.subs:
+            s.undeclare()
+        self.session.close()
+        self.client.close()
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            self.proc.wait(10)
+
+
+@pytest.fixture(scope="module")
+def run():
+    r = Run("tree_inspection")
+    yield r
+    r.close()
+
+
+def test_fly_and_decode_every_topic(run):
+    c = run.client
+    c.subscribe(["events", "state"])
+    c.takeoff(altitude=2.0)
+    c.wait_for_event("arrived", timeout=60)
+    start = np.array(c.state()["position"])
+    target = start + [1.5, -1.0, 0.5]
+    c.goto(target.tolist(), yaw=0.5)
+    ev = c.wait_for_event("arrived", timeout=60)
+    assert np.linalg.norm(np.array(ev["position"]) - target) < 0.05
+
+    run.clear()
+    states = {}
+    deadline = time.monotonic() + 30
+    while len(run.msgs["droneulator/front/color/image_raw/compressed"]) < 40 and time.monotonic() < deadline:
+        m = c.next_message(timeout=1.0)
+        if m and m.get("type") == "state":
+            states[m["state"]["t_ns"]] = m["state"]
+    with run.lock:
+        msgs = {k: list(v) for k, v in run.msgs.items()}
+
+    # every payload carries the CDR little-endian encapsulation header
+    assert all(h == b"\x00\x01\x00\x00" for v in msgs.values() for h, _ in v)
+
+    # odometry equals the WebSocket state at the same stamp
+    odom = {stamp_ns(m): m for _, m in msgs["droneulator/odom"]}
+    common = sorted(set(odom) & set(states))
+    assert len(common) > 10
+    for t in common:
+        p = odom[t].pose.pose.position
+        q = odom[t].pose.pose.orientation
+        np.testing.assert_allclose([p.x, p.y, p.z], states[t]["position"], atol=1e-9)
+        np.testing.assert_allclose([q.x, q.y, q.z, q.w], states[t]["quaternion"], atol=1e-9)
+        assert odom[t].header.frame_id == "odom" and odom[t].child_frame_id == "base_link"
+
+    # the TF chain map -> odom -> base_link -> front_link -> front_optical_frame is complete
+    edges = {
+        (tr.header.frame_id, tr.child_frame_id): tr
+        for _, m in msgs["tf"] + msgs["tf_static"]
+        for tr in m.transforms
+    }
+    for edge in [
+        ("map", "odom"),
+        ("odom", "base_link"),
+        ("base_link", "front_link"),
+        ("front_link", "front_optical_frame"),
+    ]:
+        assert edge in edges, edge
+    r = edges[("front_link", "front_optical_frame")].transform.rotation
+    R = quat_to_matrix(np.array([r.x, r.y, r.z, r.w]))
+    np.testing.assert_allclose(R @ [0, 0, 1], [1, 0, 0], atol=1e-9)  # optical z is the link's forward axis
+
+    # images: sizes equal camera_info, K exact, one stamp per frame, optical frame ids
+    infos = {stamp_ns(m): m for _, m in msgs["droneulator/front/color/camera_info"]}
+    rgb = {stamp_ns(m): m for _, m in msgs["droneulator/front/color/image_raw/compressed"]}
+    depth = {stamp_ns(m): m for _, m in msgs["droneulator/front/depth/image_raw"]}
+    seg = {stamp_ns(m): m for _, m in msgs["droneulator/front/segmentation/image_raw/compressed"]}
+    K = intrinsics(CAM)
+    for t, m in list(rgb.items())[:5]:
+        info = infos[t]
+        assert t in depth and t in seg
+        img = PILImage.open(io.BytesIO(bytes(m.data)))
+        assert img.format == "JPEG" and img.size == (info.width, info.height) == (CAM.width, CAM.height)
+        segimg = PILImage.open(io.BytesIO(bytes(seg[t].data)))
+        assert segimg.format == "PNG" and segimg.size == (info.width, info.height)
+        assert (depth[t].width, depth[t].height, depth[t].encoding) == (info.width, info.height, "32FC1")
+        np.testing.assert_allclose(np.array(info.k).reshape(3, 3), K)
+        for msg in (m, depth[t], seg[t], info):
+            assert msg.header.frame_id == "front_optical_frame"
+
+    # camera streams at 30 Hz in sim time
+    stamps = np.array(sorted(rgb))
+    period = np.median(np.diff(stamps)) / 1e9
+    assert period == pytest.approx(1 / 30, rel=0.1)
+    span = (stamps[-1] - stamps[0]) / 1e9
+    assert len(stamps) >= 0.9 * (span * 30 + 1)
+
+
+def test_depth_is_metric_on_known_geometry(run):
+    """Level camera 1 m above flat ground looking at the tree: ground depth is h * fy / (v - cy)."""
+    c = run.client
+    tree = get_scene("tree_inspection").landmarks["tree"]
+    cam_height = 1.0
+    c.reset(position=[tree[0] - 6.0, tree[1], cam_height], yaw=0.0)  # restarts the clock at 0
+    run.wait_for(lambda: c.state()["t"] > 1.0, 30, "1 s of sim time after the reset")
+    run.clear()  # frames from before the reset are all delivered by now
+    run.wait_for(lambda: run.msgs["droneulator/front/depth/image_raw"], 30, "a depth image after the reset")
+    with run.lock:
+        msg = run.msgs["droneulator/front/depth/image_raw"][0][1]
+    assert 0.5e9 < stamp_ns(msg) < 10e9  # rendered after the reset
+    d = np.frombuffer(bytes(msg.data), dtype="<f4").reshape(msg.height, msg.width)
+    K = intrinsics(CAM)
+    mount = camera_mount(np.array(CAM.position), CAM.rpy)
+    h = cam_height + mount[2, 3]
+    rows = np.arange(int(K[1, 2]) + 40, CAM.height)
+    expected = h * K[1, 1] / (rows - K[1, 2])
+    np.testing.assert_allclose(d[rows, 10], expected, rtol=3e-3)
+    centre = d[int(K[1, 2]), int(K[0, 2])]
+    assert 5.0 < centre < 6.0  # the trunk, in front of the vehicle at 6 m minus the trunk radius
+    assert np.isnan(d[0]).any()  # sky pixels are NaN
+
+
+def test_twist_and_pose_on_zenoh_move_the_vehicle(run):
+    c = run.client
+    c.reset(position=[0.0, -8.0, 2.0], yaw=0.0)
+    p0 = np.array(c.state()["position"])
+    twist_t = TS.types["geometry_msgs/msg/Twist"]
+    vec = TS.types["geometry_msgs/msg/Vector3"]
+    twist = twist_t(linear=vec(x=1.0, y=0.0, z=0.0), angular=vec(x=0.0, y=0.0, z=0.0))
+    pub = run.session.declare_publisher("droneulator/cmd_vel")
+    t0 = c.state()["t"]
+    pub.put(bytes(TS.serialize_cdr(twist, "geometry_msgs/msg/Twist")))
+    run.wait_for(lambda: c.state()["t"] > t0 + 3.0, 30, "3 s of sim time")
+    st = c.state()
+    assert st["mode"] == "velocity" and st["position"][0] > p0[0] + 1.0
+
+    pose_t = TS.types["geometry_msgs/msg/PoseStamped"]
+    goal = np.array([-3.0, -9.0, 2.5])
+    q = quat_from_yaw(math.pi / 2)
+    msg = pose_t(
+        header=TS.types["std_msgs/msg/Header"](
+            stamp=TS.types["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="map"
+        ),
+        pose=TS.types["geometry_msgs/msg/Pose"](
+            position=TS.types["geometry_msgs/msg/Point"](x=goal[0], y=goal[1], z=goal[2]),
+            orientation=TS.types["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
+        ),
+    )
+    c.subscribe(["events"])
+    run.session.declare_publisher("droneulator/goal_pose").put(
+        bytes(TS.serialize_cdr(msg, "geometry_msgs/msg/PoseStamped"))
+    )
+    ev = c.wait_for_event("arrived", timeout=60)
+    assert np.linalg.norm(np.array(ev["position"]) - goal) < 0.05
+    assert abs(math.remainder(c.state()["yaw"] - math.pi / 2, 2 * math.pi)) < 0.05
+
+
+def test_bad_input_gets_errors_and_the_simulation_keeps_running(run):
+    c = run.client
+    t0 = c.state()["t"]
+    with connect(run.url) as ws:
+        for raw, code in [
+            ("{not json", "parse_error"),
+            ('{"op": "fly_to_moon"}', "unknown_op"),
+            ('{"op": "goto", "position": [NaN, 0, 1]}', "invalid_argument"),
+            ('{"op": "goto", "position": [0, 0, -5]}', "below_ground"),
+            ('{"op": "goto", "position": [1000, 0, 2]}', "out_of_bounds"),
+            ("x" * 70000, "message_too_large"),
+        ]:
+            ws.send(raw)
+            reply = json.loads(ws.recv(timeout=10))
+            assert reply["ok"] is False and reply["error"]["code"] == code, reply
+    with pytest.raises(ApiError):
+        c.velocity(float("inf"), 0.0)
+    run.wait_for(lambda: c.state()["t"] > t0 + 1.0, 30, "sim time to keep advancing")
+
+
+def test_killed_render_server_is_restarted_and_the_flight_goes_on(run):
+    c = run.client
+    c.reset(position=[0.0, -8.0, 2.0], yaw=0.0)
+    pid = run.children()["render_server"]
+    before = np.array(c.state()["position"])
+    os.kill(pid, signal.SIGKILL)
+    run.wait_for(lambda: run.children().get("render_server", pid) != pid, 30, "the render server to restart")
+    n = len(run.msgs["droneulator/front/depth/image_raw"])
+    run.wait_for(
+        lambda: len(run.msgs["droneulator/front/depth/image_raw"]) > n + 5, 60, "frames after restart"
+    )
+    assert any("render server exited with code -9" in line for line in run.log)
+    st = c.state()
+    assert np.linalg.norm(np.array(st["position"]) - before) < 0.05  # flight state kept: still hovering there
+    assert run.proc.poll() is None
+
+
+def test_sigterm_stops_everything_within_2s():
+    r = Run("default")
+    kids = r.children()
+    assert set(kids) == {"dynamics_server", "render_server", "bridge"}
+    t0 = time.monotonic()
+    r.proc.send_signal(signal.SIGTERM)
+    r.proc.wait(5)
+    assert time.monotonic() - t0 < 2.0
+    time.sleep(0.2)
+    for pid in kids.values():
+        with pytest.raises(ProcessLookupError):
+            os.kill(pid, 0)
+    r.close()

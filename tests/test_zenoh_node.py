@@ -1,0 +1,536 @@
+"""RosZenohNode against real Zenoh peers in other processes (zenoh + rosbags only, no droneulator code).
+
+Every expected key, attachment and liveliness token is recomputed here from the published rules
+(zenoh-plugin-ros2dds ``ros2_utils.rs`` / ``liveliness_mgt.rs``; rmw_zenoh ``liveliness_utils.cpp``,
+``attachment_helpers.cpp``, ``rmw_publisher_data.cpp``), and the attachment is decoded with zenoh's own
+zenoh-ext deserialiser, so the tests do not reuse the implementation they check.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import socket
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from rosbags.typesys import Stores, get_typestore
+
+from droneulator.ros import messages as M
+from droneulator.ros.zenoh_node import QosProfile, RosZenohNode, ZenohNodeConfig
+
+REF = get_typestore(Stores.ROS2_JAZZY)
+TWIST_HASH = REF.hash_rihs01("geometry_msgs/msg/Twist")
+TWIST_DDS = "geometry_msgs::msg::dds_::Twist_"
+
+PEER_SCRIPT = textwrap.dedent(
+    '''
+    """Test peer: a plain Zenoh session that listens, or publishes, and reports JSON lines on stdout."""
+    import dataclasses, hashlib, json, sys, time
+    import numpy as np
+    import zenoh
+    from zenoh.ext import Int64, UInt8, z_deserialize
+    from rosbags.typesys import Stores, get_typestore
+
+    args = json.loads(sys.argv[1])
+    ts = get_typestore(Stores.ROS2_JAZZY)
+
+    def out(**kw):
+        print(json.dumps(kw), flush=True)
+
+    def plain(v):
+        if dataclasses.is_dataclass(v):
+            fields = [f.name for f in dataclasses.fields(v) if f.name != "__msgtype__"]
+            return {name: plain(getattr(v, name)) for name in fields}
+        if isinstance(v, np.ndarray):
+            return {"sha256": hashlib.sha256(v.tobytes()).hexdigest(), "len": int(v.size)}
+        if isinstance(v, list):
+            return [plain(x) for x in v]
+        return v
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("listen/endpoints", json.dumps(args.get("listen", [])))
+    conf.insert_json5("connect/endpoints", json.dumps(args.get("connect", [])))
+    session = zenoh.open(conf)
+
+    def tokens():
+        found = []
+        for pattern in ("@ros2_lv/**", "@/*/@ros2_lv/**"):
+            for reply in session.liveliness().get(pattern, timeout=2.0):
+                if reply.ok is not None:
+                    found.append(str(reply.ok.key_expr))
+        return sorted(found)
+
+    def wait_for_peer():
+        deadline = time.monotonic() + 10
+        while not list(session.info.peers_zid()) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        return [str(z) for z in session.info.peers_zid()]
+
+    if args["role"] == "listen":
+        got = []
+        def on_sample(sample):
+            payload = sample.payload.to_bytes()
+            item = {"key": str(sample.key_expr), "head": payload[:4].hex(), "len": len(payload),
+                    "shm": sample.payload.as_shm() is not None}
+            if sample.attachment is not None:
+                raw = sample.attachment.to_bytes()
+                seq, stamp, gid = z_deserialize(tuple[Int64, Int64, list[UInt8]], zenoh.ZBytes(raw))
+                item["attachment"] = {"seq": seq, "stamp": stamp, "gid": bytes(gid).hex(), "len": len(raw)}
+            item["msg"] = plain(ts.deserialize_cdr(payload, args["type"]))
+            got.append(item)
+        sub = session.declare_subscriber(args["key"], on_sample)
+        out(ready=True, peers=wait_for_peer())
+        deadline = time.monotonic() + 10
+        while len(got) < args["count"] and time.monotonic() < deadline:
+            time.sleep(0.01)
+        gone = set()
+        def on_token(s):
+            if s.kind == zenoh.SampleKind.DELETE:
+                gone.add(str(s.key_expr))
+        patterns = ("@ros2_lv/**", "@/*/@ros2_lv/**")
+        watchers = [session.liveliness().declare_subscriber(p, on_token) for p in patterns]
+        out(samples=got)
+        seen = tokens()
+        out(tokens=seen)
+        deadline = time.monotonic() + 10
+        while not set(seen) <= gone and time.monotonic() < deadline:
+            time.sleep(0.01)
+        out(gone=sorted(gone))
+    else:
+        pubs = {item["key"]: session.declare_publisher(item["key"]) for item in args["payloads"]}
+        out(ready=True, peers=wait_for_peer())
+        deadline = time.monotonic() + 10
+        while not all(p.matching_status for p in pubs.values()) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        out(matched=all(p.matching_status for p in pubs.values()), tokens=tokens())
+        for item in args["payloads"]:
+            attachment = bytes.fromhex(item["attachment"]) if "attachment" in item else None
+            pubs[item["key"]].put(bytes.fromhex(item["payload"]), attachment=attachment)
+            time.sleep(0.02)
+        time.sleep(0.2)
+        out(done=True)
+    session.close()
+    '''
+)
+
+
+def free_endpoint() -> str:
+    """A TCP endpoint on a port the OS just handed out, so parallel runs never collide."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+class Peer:
+    """A peer process; its JSON lines are read on a thread so every wait has a timeout."""
+
+    def __init__(self, script: Path, args: dict[str, Any]) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, str(script), json.dumps(args)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        self.lines: queue.Queue[dict[str, Any]] = queue.Queue()
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.put(json.loads(line))
+
+    def expect(self, field: str, timeout: float = 15.0) -> Any:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                item = self.lines.get(timeout=0.1)
+            except queue.Empty:
+                if self.proc.poll() is not None and self.lines.empty():
+                    break
+                continue
+            if field in item:
+                return item[field]
+        err = self.proc.stderr.read() if self.proc.poll() is not None and self.proc.stderr else ""
+        raise AssertionError(f"peer never reported {field!r}; stderr: {err}")
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait(timeout=10)
+
+
+@pytest.fixture(scope="module")
+def peer_script(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("peer") / "peer.py"
+    path.write_text(PEER_SCRIPT)
+    return path
+
+
+@pytest.fixture
+def spawn(peer_script: Path) -> Iterator[Callable[[dict[str, Any]], Peer]]:
+    peers: list[Peer] = []
+
+    def start(args: dict[str, Any]) -> Peer:
+        peers.append(Peer(peer_script, args))
+        return peers[-1]
+
+    yield start
+    for peer in peers:
+        peer.stop()
+
+
+def wait_until(pred: Callable[[], bool], timeout: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while not pred() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return pred()
+
+
+def twist_cdr(vx: float, wz: float) -> bytes:
+    T = REF.types
+    vec = T["geometry_msgs/msg/Vector3"]
+    msg = T["geometry_msgs/msg/Twist"](linear=vec(x=vx, y=0.0, z=0.0), angular=vec(x=0.0, y=0.0, z=wz))
+    return bytes(REF.serialize_cdr(msg, "geometry_msgs/msg/Twist"))
+
+
+def pose_cdr(frame: str, xyz: tuple[float, float, float], yaw: float) -> bytes:
+    T = REF.types
+    msg = T["geometry_msgs/msg/PoseStamped"](
+        header=T["std_msgs/msg/Header"](
+            stamp=T["builtin_interfaces/msg/Time"](sec=3, nanosec=4), frame_id=frame
+        ),
+        pose=T["geometry_msgs/msg/Pose"](
+            position=T["geometry_msgs/msg/Point"](x=xyz[0], y=xyz[1], z=xyz[2]),
+            orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=np.sin(yaw / 2), w=np.cos(yaw / 2)),
+        ),
+    )
+    return bytes(REF.serialize_cdr(msg, "geometry_msgs/msg/PoseStamped"))
+
+
+# --------------------------------------------------------------------------- keys and configuration
+def test_key_for_rules() -> None:
+    with RosZenohNode(ZenohNodeConfig(listen=())) as node:
+        assert node.key_for("/a/b", "geometry_msgs/msg/Twist") == "a/b"
+        assert node.key_for("a/b", "geometry_msgs/msg/Twist") == "a/b"
+        for bad in ("", "/a//b", "/a/b/", "/a/*", "~/x", "/1abc"):
+            with pytest.raises(ValueError):
+                node.key_for(bad, "geometry_msgs/msg/Twist")
+        with pytest.raises(ValueError):
+            node.key_for("/a", "Twist")
+    with RosZenohNode(ZenohNodeConfig(listen=(), namespace="/robot1")) as node:
+        assert node.key_for("/a/b", "geometry_msgs/msg/Twist") == "robot1/a/b"
+    with RosZenohNode(ZenohNodeConfig(listen=(), key_mode="rmw_zenoh", domain_id=7)) as node:
+        assert node.key_for("/cmd_vel", "geometry_msgs/msg/Twist") == f"7/cmd_vel/{TWIST_DDS}/{TWIST_HASH}"
+
+
+def test_config_file_is_authoritative_except_endpoints(tmp_path: Path) -> None:
+    path = tmp_path / "zenoh.json5"
+    path.write_text(
+        '{ mode: "client", connect: { endpoints: ["tcp/127.0.0.1:9"] },\n'
+        '  listen: { endpoints: ["tcp/127.0.0.1:8"] }, scouting: { multicast: { enabled: true } } }'
+    )
+    ep = free_endpoint()
+    conf = ZenohNodeConfig(config_file=str(path), listen=(ep,)).zenoh_config()
+    assert json.loads(conf.get_json("listen/endpoints")) == [ep]
+    assert json.loads(conf.get_json("connect/endpoints")) == ["tcp/127.0.0.1:9"]
+    assert json.loads(conf.get_json("mode")) == "client"
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is True
+    plain = ZenohNodeConfig(listen=(ep,)).zenoh_config()
+    assert json.loads(plain.get_json("mode")) == "peer"
+    assert json.loads(plain.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(plain.get_json("transport/shared_memory/enabled")) is True
+
+
+def test_ros2dds_announcement_qos() -> None:
+    """/tf_static is offered TRANSIENT_LOCAL depth 1 (tf2_ros StaticBroadcasterQoS), DDS enum values."""
+    tf_hash = REF.hash_rihs01("tf2_msgs/msg/TFMessage")
+    with RosZenohNode(ZenohNodeConfig(listen=())) as node:
+        static = node.publisher("/tf_static", "tf2_msgs/msg/TFMessage")
+        assert (
+            static.token_key
+            == f"@/{node.zid}/@ros2_lv/MP/tf_static/tf2_msgs§msg§TFMessage/:1:1:0,1:typehash={tf_hash};"
+        )
+        sub = node.subscribe("/x/y", "tf2_msgs/msg/TFMessage", print, qos=QosProfile(reliable=False, depth=5))
+        assert (
+            sub.token_key
+            == f"@/{node.zid}/@ros2_lv/MS/x§y/tf2_msgs§msg§TFMessage/:0:0:0,5:typehash={tf_hash};"
+        )
+    with RosZenohNode(ZenohNodeConfig(listen=(), announce=False)) as node:
+        assert node.publisher("/tf", "tf2_msgs/msg/TFMessage").token_key is None
+
+
+def test_from_bridge_config_ignores_topic_namespace() -> None:
+    class Bridge:
+        namespace = "droneulator"
+        key_mode = "ros2dds"
+        domain_id = 0
+        listen: list[str] = []
+        connect: list[str] = []
+        zenoh_config = ""
+
+    with RosZenohNode.from_config(Bridge()) as node:
+        assert node.key_for("/droneulator/odom", "nav_msgs/msg/Odometry") == "droneulator/odom"
+
+
+# --------------------------------------------------------------------------- ros2dds keys
+def test_ros2dds_publish_reaches_peer_process(spawn: Callable[[dict[str, Any]], Peer]) -> None:
+    ep = free_endpoint()
+    with RosZenohNode(ZenohNodeConfig(listen=(ep,))) as node:
+        peer = spawn(
+            {"role": "listen", "connect": [ep], "key": "**", "type": "geometry_msgs/msg/Twist", "count": 2}
+        )
+        assert node.zid in peer.expect("peers")
+        pub = node.publisher("/a/b", "geometry_msgs/msg/Twist")
+        assert node.publisher("/a/b", "geometry_msgs/msg/Twist") is pub
+        assert wait_until(lambda: pub.matching)
+        pub.publish(
+            M.serialize(M.TYPESTORE.deserialize_cdr(twist_cdr(1.25, -0.5), "geometry_msgs/msg/Twist"))
+        )
+        pub.publish(twist_cdr(2.0, 0.25), 123)
+        samples = peer.expect("samples")
+        assert [s["key"] for s in samples] == ["a/b", "a/b"]
+        assert all(s["head"] == "00010000" and "attachment" not in s for s in samples)
+        assert [(s["msg"]["linear"]["x"], s["msg"]["angular"]["z"]) for s in samples] == [
+            (1.25, -0.5),
+            (2.0, 0.25),
+        ]
+        # a bridge-style announcement (liveliness_mgt.rs::new_ke_liveliness_pub), keyless, RELIABLE,
+        # VOLATILE, KEEP_LAST 10, USER_DATA with the type hash
+        announce = f"@/{node.zid}/@ros2_lv/MP/a§b/geometry_msgs§msg§Twist/:1:0:0,10:typehash={TWIST_HASH};"
+        assert peer.expect("tokens") == [announce]
+    assert peer.expect("gone") == [announce]
+
+
+def test_ros2dds_depth_image_payload(spawn: Callable[[dict[str, Any]], Peer]) -> None:
+    import hashlib
+
+    ep = free_endpoint()
+    depth = np.random.default_rng(1).random((480, 640), dtype=np.float32)
+    with RosZenohNode(ZenohNodeConfig(listen=(ep,), namespace="/sim")) as node:
+        peer = spawn(
+            {"role": "listen", "connect": [ep], "key": "sim/**", "type": "sensor_msgs/msg/Image", "count": 3}
+        )
+        peer.expect("peers")
+        pub = node.publisher("/droneulator/front/depth/image_raw", "sensor_msgs/msg/Image")
+        assert wait_until(lambda: pub.matching)
+        for i in range(3):
+            pub.publish(M.serialize(M.image(i, "front_optical_frame", depth)), i)
+        samples = peer.expect("samples")
+    assert [s["key"] for s in samples] == ["sim/droneulator/front/depth/image_raw"] * 3
+    msg = samples[-1]["msg"]
+    assert (msg["width"], msg["height"], msg["encoding"], msg["step"]) == (640, 480, "32FC1", 2560)
+    assert msg["data"]["sha256"] == hashlib.sha256(depth.tobytes()).hexdigest()
+
+
+# --------------------------------------------------------------------------- rmw_zenoh keys
+def test_rmw_zenoh_key_attachment_and_liveliness(spawn: Callable[[dict[str, Any]], Peer]) -> None:
+    ep = free_endpoint()
+    cfg = ZenohNodeConfig(listen=(ep,), key_mode="rmw_zenoh", domain_id=3)
+    with RosZenohNode(cfg) as node:
+        peer = spawn(
+            {"role": "listen", "connect": [ep], "key": "3/**", "type": "geometry_msgs/msg/Twist", "count": 3}
+        )
+        assert node.zid in peer.expect("peers")
+        pub = node.publisher("/a/b", "geometry_msgs/msg/Twist")
+        assert wait_until(lambda: pub.matching)
+        before = time.time_ns()
+        pub.publish(twist_cdr(0.1, 0.0), 1_000)
+        pub.publish(twist_cdr(0.2, 0.0), 2_000)
+        pub.publish(twist_cdr(0.3, 0.0))
+        samples = peer.expect("samples")
+        assert {s["key"] for s in samples} == {f"3/a/b/{TWIST_DDS}/{TWIST_HASH}"}
+        att = [s["attachment"] for s in samples]
+        assert [a["seq"] for a in att] == [1, 2, 3]
+        assert [a["stamp"] for a in att[:2]] == [1_000, 2_000]
+        assert before <= att[2]["stamp"] <= time.time_ns()
+        assert {a["gid"] for a in att} == {pub.gid.hex()} and len(pub.gid) == 16
+        assert {a["len"] for a in att} == {33}
+        assert [s["msg"]["linear"]["x"] for s in samples] == [0.1, 0.2, 0.3]
+        prefix = f"@ros2_lv/3/{node.zid}/0"
+        expected = [
+            f"{prefix}/0/NN/%/%/droneulator",
+            f"{prefix}/1/MP/%/%/droneulator/%a%b/{TWIST_DDS}/{TWIST_HASH}/::,10:,:,:,,",
+        ]
+        assert peer.expect("tokens") == sorted(expected)
+    assert peer.expect("gone") == sorted(expected)
+
+
+def test_rmw_zenoh_qos_in_token(spawn: Callable[[dict[str, Any]], Peer]) -> None:
+    ep = free_endpoint()
+    with RosZenohNode(
+        ZenohNodeConfig(listen=(ep,), key_mode="rmw_zenoh", node_name="sim", node_namespace="/uav")
+    ) as node:
+        tf_hash = REF.hash_rihs01("tf2_msgs/msg/TFMessage")
+        peer = spawn(
+            {"role": "listen", "connect": [ep], "key": "0/**", "type": "tf2_msgs/msg/TFMessage", "count": 1}
+        )
+        peer.expect("peers")
+        static = node.publisher("/tf_static", "tf2_msgs/msg/TFMessage")  # tf2 static QoS by default
+        node.publisher("images", "sensor_msgs/msg/Image", qos=QosProfile(reliable=False, depth=42))
+        tf = M.tf_message([M.transform_stamped(5, "base_link", "cam_link", [0.1, 0, 0], [0, 0, 0, 1])])
+        # an advanced (transient-local) publisher has no matching status: probe the key with a plain one
+        probe = node.session.declare_publisher(static.key)
+        assert wait_until(lambda: probe.matching_status)
+        probe.undeclare()
+        static.publish(M.serialize(tf), 5)
+        (sample,) = peer.expect("samples")
+        assert sample["key"] == f"0/tf_static/tf2_msgs::msg::dds_::TFMessage_/{tf_hash}"
+        assert sample["attachment"]["seq"] == 1
+        assert sample["msg"]["transforms"][0]["child_frame_id"] == "cam_link"
+        prefix = f"@ros2_lv/0/{node.zid}/0"
+        image_hash = REF.hash_rihs01("sensor_msgs/msg/Image")
+        assert peer.expect("tokens") == sorted(
+            [
+                f"{prefix}/0/NN/%/%uav/sim",
+                f"{prefix}/1/MP/%/%uav/sim/%tf_static/tf2_msgs::msg::dds_::TFMessage_/{tf_hash}/:1:,1:,:,:,,",
+                f"{prefix}/2/MP/%/%uav/sim/%uav%images/sensor_msgs::msg::dds_::Image_/{image_hash}/2::,:,:,:,,",
+            ]
+        )
+
+
+# --------------------------------------------------------------------------- subscribing
+def test_subscribe_decodes_commands_from_peer(spawn: Callable[[dict[str, Any]], Peer]) -> None:
+    """The node connects to a listening peer this time (``connect`` instead of ``listen``)."""
+    ep = free_endpoint()
+    peer = spawn(
+        {
+            "role": "publish",
+            "listen": [ep],
+            "payloads": [
+                {"key": "droneulator/cmd_vel", "payload": twist_cdr(1.5, 0.2).hex()},
+                {"key": "droneulator/goal_pose", "payload": pose_cdr("map", (4.0, -1.0, 2.5), 1.2).hex()},
+            ],
+        }
+    )
+    twists: queue.Queue[Any] = queue.Queue()
+    goals: queue.Queue[Any] = queue.Queue()
+    with RosZenohNode(ZenohNodeConfig(listen=(), connect=(ep,))) as node:
+        node.subscribe("/droneulator/cmd_vel", "geometry_msgs/msg/Twist", twists.put)
+        node.subscribe("/droneulator/goal_pose", "geometry_msgs/msg/PoseStamped", goals.put)
+        assert peer.expect("matched") is True
+        assert M.twist_to_command(twists.get(timeout=15)) == (1.5, 0.2)
+        frame, pos, yaw = M.pose_stamped_to_goal(goals.get(timeout=15))
+        peer.expect("done")
+    assert frame == "map" and pos.tolist() == [4.0, -1.0, 2.5] and yaw == pytest.approx(1.2)
+
+
+def test_bad_payloads_are_logged_and_skipped(
+    spawn: Callable[[dict[str, Any]], Peer], caplog: pytest.LogCaptureFixture
+) -> None:
+    ep = free_endpoint()
+    good = twist_cdr(0.7, -0.1)
+    received: list[Any] = []
+    done = threading.Event()
+
+    def on_twist(msg: Any) -> None:
+        received.append(msg)
+        done.set()
+
+    with (
+        caplog.at_level(logging.ERROR, logger="droneulator.ros"),
+        RosZenohNode(ZenohNodeConfig(listen=(ep,))) as node,
+    ):
+        sub = node.subscribe("/cmd_vel", "geometry_msgs/msg/Twist", on_twist)
+        peer = spawn(
+            {
+                "role": "publish",
+                "connect": [ep],
+                "payloads": [
+                    {"key": "cmd_vel", "payload": b"definitely not cdr".hex()},
+                    {"key": "cmd_vel", "payload": good[:20].hex()},
+                    {"key": "cmd_vel", "payload": good.hex()},
+                ],
+            }
+        )
+        assert peer.expect("matched") is True
+        assert done.wait(15)
+        peer.expect("done")
+    assert len(received) == 1 and M.twist_to_command(received[0]) == (0.7, -0.1)
+    assert sub.errors == 2 and sub.received == 1
+    errors = [r for r in caplog.records if r.name == "droneulator.ros" and r.levelno == logging.ERROR]
+    assert len(errors) == 2 and all("/cmd_vel" in r.getMessage() for r in errors)
+
+
+def test_callback_exception_does_not_stop_subscription(
+    spawn: Callable[[dict[str, Any]], Peer], caplog: pytest.LogCaptureFixture
+) -> None:
+    ep = free_endpoint()
+    calls: list[float] = []
+    done = threading.Event()
+
+    def flaky(msg: Any) -> None:
+        calls.append(msg.linear.x)
+        if len(calls) == 1:
+            raise RuntimeError("boom")
+        done.set()
+
+    with (
+        caplog.at_level(logging.ERROR, logger="droneulator.ros"),
+        RosZenohNode(ZenohNodeConfig(listen=(ep,))) as node,
+    ):
+        node.subscribe("/cmd_vel", "geometry_msgs/msg/Twist", flaky)
+        peer = spawn(
+            {
+                "role": "publish",
+                "connect": [ep],
+                "payloads": [
+                    {"key": "cmd_vel", "payload": twist_cdr(1.0, 0).hex()},
+                    {"key": "cmd_vel", "payload": twist_cdr(2.0, 0).hex()},
+                ],
+            }
+        )
+        assert done.wait(15)
+        peer.expect("done")
+    assert calls == [1.0, 2.0]
+    assert any("callback for /cmd_vel failed" in r.getMessage() for r in caplog.records)
+
+
+def test_rmw_zenoh_subscription_token_and_attachment_tolerance(
+    spawn: Callable[[dict[str, Any]], Peer],
+) -> None:
+    ep = free_endpoint()
+    got: queue.Queue[Any] = queue.Queue()
+    with RosZenohNode(ZenohNodeConfig(listen=(ep,), key_mode="rmw_zenoh")) as node:
+        sub = node.subscribe("/droneulator/cmd_vel", "geometry_msgs/msg/Twist", got.put)
+        key = f"0/droneulator/cmd_vel/{TWIST_DDS}/{TWIST_HASH}"
+        assert sub.key == key
+        # what an rmw_zenoh publisher sends: the CDR sample plus its 33-byte attachment
+        attachment = (7).to_bytes(8, "little") + (99).to_bytes(8, "little") + b"\x10" + bytes(range(16))
+        peer = spawn(
+            {
+                "role": "publish",
+                "connect": [ep],
+                "payloads": [
+                    {"key": key, "payload": twist_cdr(0.5, 0.05).hex(), "attachment": attachment.hex()},
+                ],
+            }
+        )
+        tokens = peer.expect("tokens")
+        assert (
+            f"@ros2_lv/0/{node.zid}/0/1/MS/%/%/droneulator/%droneulator%cmd_vel/{TWIST_DDS}/{TWIST_HASH}/::,10:,:,:,,"
+            in tokens
+        )
+        assert M.twist_to_command(got.get(timeout=15)) == (0.5, 0.05)
+
+
+def test_closed_node_refuses_work() -> None:
+    node = RosZenohNode(ZenohNodeConfig(listen=()))
+    pub = node.publisher("/x", "std_msgs/msg/Header")
+    node.close()
+    node.close()
+    with pytest.raises(RuntimeError):
+        node.publisher("/y", "std_msgs/msg/Header")
+    with pytest.raises(RuntimeError):
+        pub.publish(M.serialize(M.header(0, "map")))
