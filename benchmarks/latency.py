@@ -1,0 +1,218 @@
+"""End-to-end latency of the ROS 2 / Zenoh bridge (paper Table II), plus the full run's lockstep
+real-time factor.
+
+1. ``droneulator run --realtime`` on a scene (default ``default``) with the 640x480 rig at 30 Hz and
+   odometry at 30 Hz, while the vehicle flies; the bridge logs the wall-clock time of each publish
+   call, taken *before* serialisation and encoding (``bridge.latency_log``).
+2. A subscriber in a separate process (this script with ``--subscriber``) connects over Zenoh,
+   deserialises every odometry, JPEG RGB and raw float32 depth message with rosbags, and logs the
+   wall-clock time once each is decoded.
+3. Latency = decoded time - publish-call time, matched by stream and stamp: mean, std, p50, p99, n.
+4. Then ``droneulator run`` in lockstep for ``--rtf-seconds`` wall seconds: real-time factor =
+   sim seconds advanced / wall seconds, read from the WebSocket state.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from _common import write
+
+PAPER_MS = {"odom": 0.45, "rgb": 5.65, "depth": 17.06}
+STREAMS = {
+    "odom": ("droneulator/odom", "nav_msgs/msg/Odometry"),
+    "rgb": ("droneulator/front/color/image_raw/compressed", "sensor_msgs/msg/CompressedImage"),
+    "depth": ("droneulator/front/depth/image_raw", "sensor_msgs/msg/Image"),
+}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def subscriber(endpoint: str, out: str, seconds: float) -> None:
+    """Separate process: decode every sample of the three streams and log when it was decoded."""
+    import zenoh
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    rows: list[str] = []
+
+    def handler(stream: str, typename: str):
+        def cb(sample) -> None:
+            msg = ts.deserialize_cdr(sample.payload.to_bytes(), typename)
+            now = time.time_ns()
+            rows.append(f"{stream} {msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec} {now}\n")
+
+        return cb
+
+    with zenoh.open(conf) as session:
+        subs = [session.declare_subscriber(key, handler(name, t)) for name, (key, t) in STREAMS.items()]
+        time.sleep(seconds)
+        for s in subs:
+            s.undeclare()
+    Path(out).write_text("".join(rows))
+
+
+def read_log(path: Path) -> dict[tuple[str, int], int]:
+    out = {}
+    for line in path.read_text().splitlines():
+        stream, stamp, wall = line.split()
+        out.setdefault((stream, int(stamp)), int(wall))
+    return out
+
+
+def start_run(args: argparse.Namespace, extra: list[str], api_port: int, zenoh_port: int) -> subprocess.Popen:
+    cmd = [
+        sys.executable,
+        "-m",
+        "droneulator.cli",
+        "run",
+        "--scene",
+        args.scene,
+        "--api-port",
+        str(api_port),
+        "--set",
+        f'bridge.listen=["tcp/127.0.0.1:{zenoh_port}"]',
+        *extra,
+    ]
+    return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+
+
+def connect(api_port: int):
+    from droneulator.api.client import DroneulatorClient
+
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            return DroneulatorClient(f"ws://127.0.0.1:{api_port}", timeout=30)
+        except OSError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.2)
+
+
+def stop(proc: subprocess.Popen) -> None:
+    proc.send_signal(signal.SIGTERM)
+    proc.wait(10)
+
+
+def measure_latency(args: argparse.Namespace) -> dict:
+    tmp = Path(tempfile.mkdtemp(prefix="droneulator-latency-"))
+    pub_log, sub_log = tmp / "publish.log", tmp / "decoded.log"
+    api_port, zenoh_port = free_port(), free_port()
+    run = start_run(
+        args,
+        ["--realtime", "--set", f"bridge.latency_log={pub_log}", "--set", "runtime.state_hz=30"],
+        api_port,
+        zenoh_port,
+    )
+    try:
+        client = connect(api_port)
+        client.subscribe(["events"])
+        client.takeoff(altitude=2.0)
+        client.wait_for_event("arrived", timeout=60)
+        client.velocity(0.5, 0.3)
+        sub = subprocess.Popen(
+            [
+                sys.executable,
+                __file__,
+                "--subscriber",
+                f"tcp/127.0.0.1:{zenoh_port}",
+                "--sub-out",
+                str(sub_log),
+                "--seconds",
+                str(args.seconds),
+            ]
+        )
+        sub.wait(args.seconds + 60)
+        client.close()
+    finally:
+        stop(run)
+    published, decoded = read_log(pub_log), read_log(sub_log)
+    res = {}
+    for stream in STREAMS:
+        lat = np.array(
+            [(decoded[k] - published[k]) / 1e6 for k in decoded if k[0] == stream and k in published]
+        )
+        res[stream] = {
+            "n": int(lat.size),
+            "mean_ms": float(lat.mean()),
+            "std_ms": float(lat.std()),
+            "p50_ms": float(np.percentile(lat, 50)),
+            "p99_ms": float(np.percentile(lat, 99)),
+            "paper_mean_ms": PAPER_MS[stream],
+        }
+    return res
+
+
+def measure_lockstep(args: argparse.Namespace) -> dict:
+    api_port, zenoh_port = free_port(), free_port()
+    run = start_run(args, ["--lockstep"], api_port, zenoh_port)
+    try:
+        client = connect(api_port)
+        client.subscribe(["events"])
+        client.takeoff(altitude=2.0)
+        client.wait_for_event("arrived", timeout=60)
+        client.velocity(0.5, 0.3)
+        t0, w0 = client.state()["t"], time.monotonic()
+        time.sleep(args.rtf_seconds)
+        t1, w1 = client.state()["t"], time.monotonic()
+        client.close()
+    finally:
+        stop(run)
+    return {"sim_seconds": t1 - t0, "wall_seconds": w1 - w0, "real_time_factor": (t1 - t0) / (w1 - w0)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scene", default="default", help="scene name (default default)")
+    ap.add_argument("--seconds", type=float, default=60.0, help="latency window in wall seconds (default 60)")
+    ap.add_argument("--rtf-seconds", type=float, default=20.0, help="lockstep timing window (default 20)")
+    ap.add_argument("--json", default=None, help="output path (default benchmarks/results/latency.json)")
+    ap.add_argument("--subscriber", metavar="ENDPOINT", help=argparse.SUPPRESS)
+    ap.add_argument("--sub-out", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.subscriber:
+        subscriber(args.subscriber, args.sub_out, args.seconds)
+        return
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
+    lat = measure_latency(args)
+    print(
+        f"end-to-end latency, {args.scene}, 640x480 at 30 Hz, {args.seconds:g} s, "
+        "subscriber in another process"
+    )
+    print(f"{'stream':8s} {'n':>6s} {'mean':>8s} {'std':>8s} {'p50':>8s} {'p99':>8s}   paper mean (ms)")
+    for name, r in lat.items():
+        print(
+            f"{name:8s} {r['n']:6d} {r['mean_ms']:8.2f} {r['std_ms']:8.2f} "
+            f"{r['p50_ms']:8.2f} {r['p99_ms']:8.2f}"
+            f"   {r['paper_mean_ms']:.2f}"
+        )
+    rtf = measure_lockstep(args)
+    print(
+        f"lockstep, all three processes, 640x480 at 30 Hz on {args.scene}: "
+        f"{rtf['sim_seconds']:.1f} s simulated in {rtf['wall_seconds']:.1f} s -> real-time factor "
+        f"{rtf['real_time_factor']:.2f}"
+    )
+    write("latency", {"scene": args.scene, "latency": lat, "lockstep": rtf}, args.json)
+
+
+if __name__ == "__main__":
+    main()
