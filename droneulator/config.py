@@ -136,6 +136,32 @@ class BridgeConfig:
 
 
 @dataclass
+class PX4Config:
+    """PX4 SITL simulator interface (``droneulator run --px4``). Noise is deterministic under the seed."""
+
+    enabled: bool = False
+    #: PX4 instance N connects to TCP port base_port + N
+    instance: int = 0
+    host: str = "127.0.0.1"
+    base_port: int = 4560
+    #: home position (WGS84) of the world origin, and the local magnetic field (gauss, NED)
+    home_lat_deg: float = 53.2281
+    home_lon_deg: float = -0.5470
+    home_alt_m: float = 10.0
+    mag_field_ned_gauss: tuple[float, float, float] = (0.19, -0.005, 0.45)
+    gps_hz: float = 10.0
+    #: sensor noise (1-sigma) and constant biases
+    accel_noise: float = 0.02
+    gyro_noise: float = 0.002
+    accel_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    gyro_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    mag_noise: float = 0.002
+    baro_noise_hpa: float = 0.01
+    gps_noise_m: float = 0.3
+    gps_vel_noise: float = 0.05
+
+
+@dataclass
 class SimConfig:
     scene: str = "default"
     seed: int = 0
@@ -144,6 +170,7 @@ class SimConfig:
     flight: FlightConfig = field(default_factory=FlightConfig)
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
     bridge: BridgeConfig = field(default_factory=BridgeConfig)
+    px4: PX4Config = field(default_factory=PX4Config)
 
 
 # --------------------------------------------------------------------------- loading & overrides

@@ -165,3 +165,20 @@ def test_same_seed_same_flight():
         s.run(2.0)
         runs.append(s.s.copy())
     np.testing.assert_array_equal(runs[0], runs[1])
+
+
+def test_direct_rotor_speeds_hover_and_acceleration(sim):
+    """External rotor commands (the PX4 path): hover speed holds altitude; motors off falls at g."""
+    p = airborne(sim, 3.0)
+    sim.set_rotor_speeds([sim.vehicle.hover_speed] * 4)
+    assert sim.mode.value == "external"
+    sim.run(0.5)
+    assert abs(sim.state.position[2] - p[2]) < 0.01
+    np.testing.assert_allclose(sim.acceleration, 0.0, atol=0.05)
+    sim.set_rotor_speeds([0.0] * 4)
+    sim.run(0.2)
+    assert sim.acceleration[2] == pytest.approx(-9.81, abs=0.3)
+    with pytest.raises(CommandError):
+        sim.set_rotor_speeds([1.0, float("nan"), 1.0, 1.0])
+    sim.hold()
+    assert sim.mode.value == "hold"

@@ -4,7 +4,8 @@
 * ``velocity``: the unicycle velocity mode of :mod:`droneulator.controllers.velocity`;
 * ``hold``: a constant reference at the current position and heading;
 * ``idle``: motors off (rests on the ground);
-* ``collided``: the vehicle stopped against the scene until the next command.
+* ``collided``: the vehicle stopped against the scene until the next command;
+* ``external``: rotor speeds set directly by an autopilot (PX4 SITL), no controller in the loop.
 """
 
 from __future__ import annotations
@@ -34,6 +35,8 @@ class Mode(StrEnum):
     VELOCITY = "velocity"
     LAND = "land"
     COLLIDED = "collided"
+    #: rotor speeds commanded from outside (PX4 SITL actuator outputs)
+    EXTERNAL = "external"
 
 
 @dataclass
@@ -60,6 +63,7 @@ class FlightController:
         self.target: np.ndarray | None = None
         self.target_yaw = 0.0
         self._zero = np.zeros(4)
+        self._external = np.zeros(4)
 
     @property
     def airborne_modes(self) -> tuple[Mode, ...]:
@@ -132,6 +136,11 @@ class FlightController:
         self.trajectory, self.target = None, None
         self.mode = Mode.VELOCITY
 
+    def external(self, rotor_speeds: np.ndarray) -> None:
+        """Hand the rotors to an external controller: these speeds (rad/s, RotorPy order) until changed."""
+        self._external[:] = rotor_speeds
+        self.mode, self.trajectory, self.velocity_ref, self.target = Mode.EXTERNAL, None, None, None
+
     def collided(self) -> None:
         self.mode, self.trajectory, self.velocity_ref, self.target = Mode.COLLIDED, None, None, None
 
@@ -141,6 +150,8 @@ class FlightController:
         events: list[Event] = []
         if self.mode in (Mode.IDLE, Mode.COLLIDED):
             return self._zero, None, events
+        if self.mode == Mode.EXTERNAL:
+            return self._external, None, events
         if self.mode == Mode.VELOCITY:
             assert self.velocity_ref is not None
             flat = self.velocity_ref.update(dt, s[0:3])

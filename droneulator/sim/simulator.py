@@ -181,6 +181,8 @@ class Simulator:
         self.flight.motors_off()
         self._reference: np.ndarray | None = None
         self.collisions = 0
+        #: world-frame acceleration over the last control step (m/s^2), for IMU models
+        self.acceleration = np.zeros(3)
         fly = pos[2] > 0.05 if airborne is None else airborne
         if fly:
             s[16:20] = self.vehicle.hover_speed
@@ -280,6 +282,18 @@ class Simulator:
     def motors_off(self) -> None:
         self.flight.motors_off()
 
+    def set_rotor_speeds(self, rotor_speeds: Any) -> None:
+        """Command the rotors directly (rad/s, RotorPy rotor order), bypassing the flight controller.
+
+        Used by autopilots in the loop (PX4 SITL); any flight command or ``motors_off`` ends it.
+        """
+        w = np.asarray(rotor_speeds, dtype=float)
+        if w.shape != (4,) or not np.all(np.isfinite(w)):
+            raise CommandError("invalid_argument", "rotor_speeds must be four finite numbers (rad/s)")
+        self.flight.external(
+            np.clip(w, self.quad_params["rotor_speed_min"], self.quad_params["rotor_speed_max"])
+        )
+
     # ------------------------------------------------------------------ stepping
     def step(self, n: int = 1) -> StepResult:
         """Advance ``n`` control periods; returns the frames rendered and events raised meanwhile."""
@@ -290,6 +304,7 @@ class Simulator:
             self._reference = ref
             out.events.extend(events)
             self.s[13:16] = self.wind.update(self.t, self.s[0:3])
+            v_before = self.s[3:6].copy()
             t_end = self.t_ns + self.control_period_ns
             while self.t_ns < t_end:
                 t_next = min(t_end, self._next_frame_ns) if self.camera_schedule else t_end
@@ -305,6 +320,7 @@ class Simulator:
                         out.camera_states.append(self.state)
                     self.frame_count += 1
                     self._next_frame_ns += self.camera_period_ns
+            self.acceleration = (self.s[3:6] - v_before) / dt
         return out
 
     def run(self, seconds: float) -> StepResult:
