@@ -7,7 +7,9 @@ real-time factor.
 2. A subscriber in a separate process (this script with ``--subscriber``) connects over Zenoh,
    deserialises every odometry, JPEG RGB and raw float32 depth message with rosbags, and logs the
    wall-clock time once each is decoded.
-3. Latency = decoded time - publish-call time, matched by stream and stamp: mean, std, p50, p99, n.
+3. Latency = decoded time - publish-call time, matched by stream and stamp: mean, std, p50, p99, n,
+   over the window after a warm-up (``--warmup``, default 1 s: the first large samples set up
+   Zenoh's shared-memory pool).
 4. Then ``droneulator run`` in lockstep for ``--rtf-seconds`` wall seconds: real-time factor =
    sim seconds advanced / wall seconds, read from the WebSocket state.
 """
@@ -108,6 +110,16 @@ def connect(api_port: int):
             time.sleep(0.2)
 
 
+def take_off_and_circle(api_port: int):
+    """Connect, take off to 2 m and fly a slow circle in velocity mode, so the images change."""
+    client = connect(api_port)
+    client.subscribe(["events"])
+    client.takeoff(altitude=2.0)
+    client.wait_for_event("arrived", timeout=60)
+    client.velocity(0.5, 0.3)
+    return client
+
+
 def stop(proc: subprocess.Popen) -> None:
     proc.send_signal(signal.SIGTERM)
     proc.wait(10)
@@ -124,11 +136,7 @@ def measure_latency(args: argparse.Namespace) -> dict:
         zenoh_port,
     )
     try:
-        client = connect(api_port)
-        client.subscribe(["events"])
-        client.takeoff(altitude=2.0)
-        client.wait_for_event("arrived", timeout=60)
-        client.velocity(0.5, 0.3)
+        client = take_off_and_circle(api_port)
         sub = subprocess.Popen(
             [
                 sys.executable,
@@ -166,11 +174,7 @@ def measure_lockstep(args: argparse.Namespace) -> dict:
     api_port, zenoh_port = free_port(), free_port()
     run = start_run(args, ["--lockstep"], api_port, zenoh_port)
     try:
-        client = connect(api_port)
-        client.subscribe(["events"])
-        client.takeoff(altitude=2.0)
-        client.wait_for_event("arrived", timeout=60)
-        client.velocity(0.5, 0.3)
+        client = take_off_and_circle(api_port)
         t0, w0 = client.state()["t"], time.monotonic()
         time.sleep(args.rtf_seconds)
         t1, w1 = client.state()["t"], time.monotonic()
@@ -184,6 +188,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene", default="default", help="scene name (default default)")
     ap.add_argument("--seconds", type=float, default=60.0, help="latency window in wall seconds (default 60)")
+    ap.add_argument("--warmup", type=float, default=1.0, help="seconds dropped at the start (default 1)")
     ap.add_argument("--rtf-seconds", type=float, default=20.0, help="lockstep timing window (default 20)")
     ap.add_argument("--json", default=None, help="output path (default benchmarks/results/latency.json)")
     ap.add_argument("--subscriber", metavar="ENDPOINT", help=argparse.SUPPRESS)

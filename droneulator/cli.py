@@ -62,6 +62,23 @@ def cmd_run(args: argparse.Namespace) -> int:
         cfg.runtime.mode = "realtime"
     if args.api_port is not None:
         cfg.runtime.api_port = args.api_port
+    if args.px4 or args.px4_instance is not None:
+        defaults = load_config()
+        cfg.px4.enabled = True
+        cfg.px4.instance = args.px4_instance or 0
+        # PX4's lockstep runs at 250 Hz; its SIH quad-X parameters suit PX4's default gains
+        if cfg.vehicle.control_hz == defaults.vehicle.control_hz:
+            cfg.vehicle.control_hz = 250.0
+        if cfg.vehicle.params == defaults.vehicle.params:
+            cfg.vehicle.params = "px4_quadx"
+        n = cfg.px4.instance
+        if n:  # one simulator per vehicle: keep the instances' ports and topics apart
+            if args.api_port is None:
+                cfg.runtime.api_port += n
+            if cfg.bridge.listen == defaults.bridge.listen:
+                cfg.bridge.listen = [f"tcp/127.0.0.1:{7448 + n}"]
+            if cfg.bridge.namespace == defaults.bridge.namespace:
+                cfg.bridge.namespace = f"{defaults.bridge.namespace}{n}"
     sup = Supervisor(cfg)
     sup.install_signal_handlers()
     try:
@@ -119,6 +136,18 @@ def build_parser() -> argparse.ArgumentParser:
     mode.add_argument("--lockstep", action="store_true", help="sim time waits for every consumer (default)")
     mode.add_argument("--realtime", action="store_true", help="pace sim time by the wall clock")
     p.add_argument("--api-port", type=int, default=None, help="WebSocket API port (default 8765)")
+    p.add_argument(
+        "--px4",
+        action="store_true",
+        help="fly from PX4 SITL: listen on TCP 4560 for PX4's simulator MAVLink (see docs/px4.md)",
+    )
+    p.add_argument(
+        "--px4-instance",
+        type=int,
+        default=None,
+        metavar="N",
+        help="PX4 instance N: listen on TCP 4560+N (implies --px4)",
+    )
     p.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
     p.add_argument(
         "--demo",

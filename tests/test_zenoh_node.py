@@ -525,6 +525,20 @@ def test_rmw_zenoh_subscription_token_and_attachment_tolerance(
         assert M.twist_to_command(got.get(timeout=15)) == (0.5, 0.05)
 
 
+def test_unclosed_node_does_not_hang_interpreter_exit() -> None:
+    """zenoh-python callback threads would block exit; the node closes itself from threading's exit hook."""
+    code = (
+        "from droneulator.ros.zenoh_node import RosZenohNode, ZenohNodeConfig\n"
+        "node = RosZenohNode(ZenohNodeConfig(listen=(), key_mode='rmw_zenoh'))\n"
+        "node.subscribe('/cmd_vel', 'geometry_msgs/msg/Twist', print)\n"
+        "node.publisher('/odom', 'nav_msgs/msg/Odometry')\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=Path(__file__).resolve().parents[1], timeout=30, capture_output=True
+    )
+    assert done.returncode == 0, done.stderr
+
+
 def test_closed_node_refuses_work() -> None:
     node = RosZenohNode(ZenohNodeConfig(listen=()))
     pub = node.publisher("/x", "std_msgs/msg/Header")

@@ -52,6 +52,7 @@ between local processes cheaply; ``shared_memory=False`` turns it off.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import json
 import logging
@@ -60,6 +61,7 @@ import re
 import struct
 import threading
 import time
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol
@@ -264,6 +266,7 @@ class RosPublisher:
         congestion_control: zenoh.CongestionControl,
         priority: zenoh.Priority,
         token_key: str | None,
+        express: bool = False,
     ) -> None:
         self.topic = topic
         self.typename = typename
@@ -294,7 +297,11 @@ class RosPublisher:
             )
         else:
             self._pub = node.session.declare_publisher(
-                key, congestion_control=congestion_control, priority=priority, reliability=reliability
+                key,
+                congestion_control=congestion_control,
+                priority=priority,
+                reliability=reliability,
+                express=express,
             )
         self._token = node.session.liveliness().declare_token(token_key) if token_key else None
         self._closed = False
@@ -383,6 +390,12 @@ class RosSubscription:
         self._sub.undeclare()
 
 
+def _close_at_exit(ref: weakref.ReferenceType[RosZenohNode]) -> None:
+    node = ref()
+    if node is not None:
+        node.close()
+
+
 class RosZenohNode:
     """One Zenoh session acting as one ROS 2 node (see the module docstring for the wire formats)."""
 
@@ -399,12 +412,17 @@ class RosZenohNode:
         self._node_token: Any = None
         self.node_token_key: str | None = None
         self._closed = False
+        # zenoh-python runs subscriber callbacks on a non-daemon Python thread that lives until the
+        # session closes, so an unclosed node would hang interpreter exit in threading._shutdown. Close
+        # it from threading's own exit hook (run before those threads are joined, like
+        # concurrent.futures does); a weak reference keeps the hook from pinning the node.
+        threading._register_atexit(functools.partial(_close_at_exit, weakref.ref(self)))
         if self.config.key_mode == "rmw_zenoh":
             self.node_token_key = self._rmw_token("NN", self.node_id)
             try:
                 self._node_token = self.session.liveliness().declare_token(self.node_token_key)
             except Exception:
-                self.session.close()
+                self.close()
                 raise
         log.debug("zenoh session %s open (%s keys)", self.zid, self.config.key_mode)
 
@@ -474,8 +492,9 @@ class RosZenohNode:
         QoS defaults to :func:`default_qos`. Camera frames (Image, CompressedImage, PointCloud2) use
         ``CongestionControl.DROP`` at ``Priority.DATA`` so a slow consumer never stalls the simulation;
         everything else (clock, odom, tf, camera_info) uses ``BLOCK`` at ``Priority.DATA_HIGH`` so it is
-        neither lost nor queued behind a multi-megabyte frame. Relative topic names resolve against
-        ``node_namespace``.
+        neither lost nor queued behind a multi-megabyte frame, and is sent *express* (not held back to
+        be batched with other messages), which matters for odometry latency. Relative topic names
+        resolve against ``node_namespace``.
         """
         self._check_open()
         with self._lock:
@@ -491,7 +510,9 @@ class RosZenohNode:
             messages.TYPESTORE.get_msgdef(typename)
             key = self.key_for(topic, typename)
             token = self._token_key("MP", topic, typename, key, qos)
-            pub = RosPublisher(self, topic, typename, key, qos, congestion_control, priority, token)
+            pub = RosPublisher(
+                self, topic, typename, key, qos, congestion_control, priority, token, express=not bulk
+            )
             self._publishers[(topic, typename)] = pub
             return pub
 

@@ -23,7 +23,7 @@ from typing import Any
 from droneulator.api.server import ApiServer
 from droneulator.config import SimConfig, from_dict
 from droneulator.runtime.ipc import ENV_ADDRESS, ENV_AUTHKEY, ENV_CONFIG, PROTOCOL_VERSION
-from droneulator.sim.simulator import NS, CommandError, Simulator, VehicleState
+from droneulator.sim.simulator import NS, CommandError, Simulator, StepResult, VehicleState
 
 log = logging.getLogger("droneulator.dynamics")
 ROLES = ("renderer", "bridge")
@@ -69,6 +69,11 @@ class DynamicsServer:
         self._scene_key = (cfg.scene, cfg.seed)
         self.stopping = threading.Event()
         self.dropped_frames = 0
+        self.px4 = None
+        if cfg.px4.enabled:
+            from droneulator.px4.link import PX4Link
+
+            self.px4 = PX4Link(self.sim, cfg.px4, seed=cfg.seed)
 
     # ------------------------------------------------------------------ peers
     def _accept_loop(self) -> None:
@@ -165,7 +170,11 @@ class DynamicsServer:
     def _step(self, realtime: bool) -> None:
         with self.lock:
             res = self.sim.step()
-            scene = (self.sim.config.scene, self.sim.config.seed)
+        self._after_step(res, realtime)
+
+    def _after_step(self, res: StepResult, realtime: bool) -> None:
+        """Send camera instants to the render server, events and states to their consumers."""
+        scene = (self.sim.config.scene, self.sim.config.seed)
         if scene != self._scene_key:  # reset to another scene through the API
             self._scene_key = scene
             self.in_flight.clear()
@@ -190,8 +199,37 @@ class DynamicsServer:
             self._send("bridge", ("state", state_payload(st)))
             self.api.publish_state({**st.to_dict(), "t_ns": st.t_ns})
 
+    def _px4_turn(self) -> bool:
+        """While PX4 is connected its actuator messages drive the clock (lockstep with PX4 and with
+        every consumer); WebSocket flight commands are refused meanwhile. True if PX4 is in control."""
+        assert self.px4 is not None
+        connected = self.px4.connected
+        ready = all(r in self.peers for r in ROLES) and len(self.in_flight) < self.window
+        res = (
+            self.px4.serve_once(0.002 if ready and connected else 0.0, self.lock)
+            if ready or not connected
+            else None
+        )
+        if self.px4.connected != self._px4_in_control:
+            self._px4_in_control = self.px4.connected
+            if self._px4_in_control:
+                self.api.refuse_flight("PX4 SITL is in control; flight commands come from PX4")
+                log.info("PX4 connected: it now drives the simulation clock")
+            else:
+                self.api.allow_flight()
+                log.warning("PX4 disconnected: the simulator runs on its own until it reconnects")
+        if res is not None:
+            self._after_step(res, realtime=False)
+        if self._px4_in_control:
+            self._poll(0 if ready else 0.05)
+        return self._px4_in_control
+
     def run(self) -> None:
         threading.Thread(target=self._accept_loop, name="hub-accept", daemon=True).start()
+        self._px4_in_control = False
+        if self.px4 is not None:
+            self.px4.start()
+            log.info("waiting for PX4 SITL on tcp://%s:%d", self.cfg.px4.host, self.px4.port)
         self.api.start()
         log.info(
             "dynamics server ready: scene %s, %s mode, API ws://%s:%d",
@@ -206,7 +244,9 @@ class DynamicsServer:
         report = time.monotonic() + 5.0
         while not self.stopping.is_set():
             self._take_new_peers()
-            if realtime:
+            if self.px4 is not None and self._px4_turn():
+                pass
+            elif realtime:
                 lag = (time.monotonic() - wall0) * self.cfg.runtime.speed - (self.sim.t - sim0)
                 if self.sim.t < sim0:  # reset through the API
                     wall0, sim0 = time.monotonic(), self.sim.t
@@ -229,6 +269,8 @@ class DynamicsServer:
 
     def close(self) -> None:
         self.stopping.set()
+        if self.px4 is not None:
+            self.px4.close()
         self.api.stop()
         for conn in self.peers.values():
             conn.close()
