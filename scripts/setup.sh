@@ -1,13 +1,13 @@
 #!/usr/bin/env bash
 # Set up Droneulator on a fresh Debian 12 / Ubuntu 24.04 machine:
 #   Debian packages (Python venv, EGL + Mesa for headless rendering), then .venv with the package.
-# Usage: bash scripts/setup.sh [--dev]     (--dev adds the test and lint tools)
+# Usage: bash scripts/setup.sh [--dev]     (--dev adds the test and lint tools and every workflow extra)
 # Idempotent: packages already present are not reinstalled.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 extras="."
-[[ "${1:-}" == "--dev" ]] && extras=".[dev]"
+[[ "${1:-}" == "--dev" ]] && extras=".[dev,colmap]"
 
 debs=(python3 python3-venv python3-dev libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri)
 missing=()
