@@ -159,6 +159,79 @@ class PX4Config:
     baro_noise_hpa: float = 0.01
     gps_noise_m: float = 0.3
     gps_vel_noise: float = 0.05
+    #: magnetometer bias (gauss, body FRD), barometer bias (hPa), GPS position bias (m, NED)
+    mag_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    baro_bias_hpa: float = 0.0
+    gps_bias_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    #: GPS vertical noise (1-sigma, m) and satellites reported
+    gps_vertical_noise_m: float = 0.5
+    gps_satellites: int = 10
+    #: magnetometer and barometer sample rates in HIL_SENSOR (sim time; PX4's Gazebo Iris: 100 / 50 Hz)
+    mag_hz: float = 100.0
+    baro_hz: float = 50.0
+    #: simulated seconds per wall second (PX4_SIM_SPEED_FACTOR); 0 steps as fast as PX4 answers
+    speed_factor: float = 1.0
+    #: PX4's THR_MDL_FAC: thrust fraction (1 - k) u + k u^2 of motor output u (0: thrust linear in u)
+    thrust_model_factor: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("gps_hz", "mag_hz", "baro_hz"):
+            if not math.isfinite(getattr(self, name)) or getattr(self, name) <= 0:
+                raise ValueError(f"px4.{name} must be a positive rate in Hz")
+        if not 0.0 <= self.thrust_model_factor <= 1.0:
+            raise ValueError("px4.thrust_model_factor (PX4's THR_MDL_FAC) must lie in [0, 1]")
+        if not math.isfinite(self.speed_factor) or self.speed_factor < 0:
+            raise ValueError("px4.speed_factor must be >= 0 (0: as fast as PX4 answers)")
+        if not 0 <= self.instance <= 255 or not 0 <= self.base_port + self.instance <= 65535:
+            raise ValueError("px4.instance and px4.base_port must give a TCP port in [0, 65535]")
+        if not -90.0 <= self.home_lat_deg <= 90.0 or not -180.0 <= self.home_lon_deg <= 180.0:
+            raise ValueError("px4.home_lat_deg / home_lon_deg must be a valid WGS84 position")
+
+
+@dataclass
+class CaptureConfig:
+    """Photogrammetry capture (``droneulator capture``): rings of viewpoints around the scene's tree."""
+
+    views: int = 18
+    #: orbit radius around the trunk, metres
+    radius: float = 7.0
+    #: one ring per altitude (m above the ground); the views are shared out between the rings
+    altitudes: list[float] = field(default_factory=lambda: [5.0])
+    #: camera mount pitch, degrees (positive looks down); None aims at the crown centre from the mean altitude
+    pitch_deg: float | None = None
+    camera: str = "front"
+    width: int = 1024
+    height: int = 768
+    hfov_deg: float = 70.0
+    #: camera rate while capturing (sim time): frames are only needed once the vehicle has settled
+    camera_hz: float = 10.0
+    jpeg_quality: int = 95
+    #: peak speed of each leg's min-snap goto, m/s
+    speed: float = 1.0
+    #: arcs wider than this are flown as several gotos so the path stays close to the circle, degrees
+    max_leg_deg: float = 25.0
+    #: settled once odometry stays this close to the viewpoint for settle_time_s of sim time
+    settle_position_m: float = 0.05
+    settle_speed_mps: float = 0.05
+    settle_yaw_deg: float = 1.0
+    settle_rate_dps: float = 3.0
+    settle_time_s: float = 0.3
+    #: wall-clock limit for one leg (flight and settling), seconds
+    leg_timeout_s: float = 120.0
+
+    def __post_init__(self) -> None:
+        if self.views < 1:
+            raise ValueError("capture.views must be at least 1")
+        if not self.altitudes or min(self.altitudes) <= 0:
+            raise ValueError("capture.altitudes must hold at least one altitude above the ground")
+        if self.views < len(self.altitudes):
+            raise ValueError("capture.views must be at least the number of rings (capture.altitudes)")
+        if not self.radius > 0 or not self.speed > 0 or not self.camera_hz > 0:
+            raise ValueError("capture.radius, capture.speed and capture.camera_hz must be positive")
+        if not 0 < self.max_leg_deg <= 180:
+            raise ValueError("capture.max_leg_deg must lie in (0, 180]")
+        if not 1 <= self.jpeg_quality <= 100:
+            raise ValueError("capture.jpeg_quality must lie in [1, 100]")
 
 
 @dataclass
@@ -171,6 +244,7 @@ class SimConfig:
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
     bridge: BridgeConfig = field(default_factory=BridgeConfig)
     px4: PX4Config = field(default_factory=PX4Config)
+    capture: CaptureConfig = field(default_factory=CaptureConfig)
 
 
 # --------------------------------------------------------------------------- loading & overrides

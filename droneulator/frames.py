@@ -221,3 +221,65 @@ def xyzw_to_wxyz(q: np.ndarray) -> np.ndarray:
 
 def wxyz_to_xyzw(q: np.ndarray) -> np.ndarray:
     return np.array([q[1], q[2], q[3], q[0]], dtype=float)
+
+
+# --------------------------------------------------------------------------- geodetic (WGS84 lat/lon)
+#: mean Earth radius PX4 uses for its local projections (``CONSTANTS_RADIUS_OF_EARTH``), metres
+EARTH_RADIUS_M = 6371000.0
+
+
+def enu_to_geodetic(
+    enu: np.ndarray, lat0_deg: float, lon0_deg: float, alt0_m: float
+) -> tuple[float, float, float]:
+    """(latitude deg, longitude deg, altitude m) of an ENU offset from a geodetic origin.
+
+    Uses the azimuthal equidistant projection of PX4's ``MapProjection::reproject`` on a sphere of
+    radius :data:`EARTH_RADIUS_M`, so PX4 projects the result back onto exactly this ENU offset.
+    Altitude is the origin's altitude plus the up component.
+    """
+    east, north, up = (float(v) for v in np.asarray(enu, dtype=float))
+    lat0, lon0 = math.radians(lat0_deg), math.radians(lon0_deg)
+    x_rad, y_rad = north / EARTH_RADIUS_M, east / EARTH_RADIUS_M
+    c = math.hypot(x_rad, y_rad)
+    if c == 0.0:
+        return float(lat0_deg), float(lon0_deg), alt0_m + up
+    sin_c, cos_c = math.sin(c), math.cos(c)
+    arg = cos_c * math.sin(lat0) + x_rad * sin_c * math.cos(lat0) / c
+    lat = math.asin(max(-1.0, min(1.0, arg)))
+    lon = lon0 + math.atan2(y_rad * sin_c, c * math.cos(lat0) * cos_c - x_rad * math.sin(lat0) * sin_c)
+    lon_deg = (math.degrees(lon) + 180.0) % 360.0 - 180.0
+    return math.degrees(lat), lon_deg, alt0_m + up
+
+
+def geodetic_to_enu(
+    lat_deg: float, lon_deg: float, alt_m: float, lat0_deg: float, lon0_deg: float, alt0_m: float
+) -> np.ndarray:
+    """ENU offset (m) of a geodetic point from an origin: the inverse of :func:`enu_to_geodetic`
+    (PX4's ``MapProjection::project``)."""
+    lat, lon = math.radians(lat_deg), math.radians(lon_deg)
+    lat0, lon0 = math.radians(lat0_deg), math.radians(lon0_deg)
+    cos_d_lon = math.cos(lon - lon0)
+    arg = math.sin(lat0) * math.sin(lat) + math.cos(lat0) * math.cos(lat) * cos_d_lon
+    c = math.acos(max(-1.0, min(1.0, arg)))
+    k = c / math.sin(c) if c != 0.0 else 1.0
+    north = k * (math.cos(lat0) * math.sin(lat) - math.sin(lat0) * math.cos(lat) * cos_d_lon) * EARTH_RADIUS_M
+    east = k * math.cos(lat) * math.sin(lon - lon0) * EARTH_RADIUS_M
+    return np.array([east, north, alt_m - alt0_m])
+
+
+# --------------------------------------------------------------------------- COLMAP image poses
+def colmap_cam_from_world(T_world_optical_: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """COLMAP ``images.txt`` pose ``(QW QX QY QZ, TX TY TZ)`` of an optical frame posed in the world.
+
+    COLMAP's camera frame is the ROS optical frame (x right, y down, z forward), so no axis swap is
+    needed; COLMAP stores the *world-to-camera* transform (``p_cam = R @ p_world + t``), i.e. the
+    inverse of ``T_world_optical``, with its quaternion scalar first.
+    """
+    T_cam_world = invert_transform(np.asarray(T_world_optical_, dtype=float))
+    return xyzw_to_wxyz(matrix_to_quat(T_cam_world[:3, :3])), T_cam_world[:3, 3].copy()
+
+
+def colmap_to_T_world_optical(qvec_wxyz: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`colmap_cam_from_world`: the optical frame's pose in the world."""
+    R = quat_to_matrix(wxyz_to_xyzw(np.asarray(qvec_wxyz, dtype=float)))
+    return invert_transform(make_transform(R, np.asarray(tvec, dtype=float)))

@@ -102,3 +102,18 @@ def test_transform_inverse_and_wxyz():
     np.testing.assert_allclose(p, [1.0, -2.0, 0.5])
     np.testing.assert_allclose(F.wxyz_to_xyzw(F.xyzw_to_wxyz(q)), q)
     assert math.isclose(F.wrap_angle(3 * math.pi), -math.pi)
+
+
+def test_enu_to_geodetic_known_offsets_and_round_trip():
+    lat0, lon0, alt0 = 53.2281, -0.5470, 10.0
+    assert F.enu_to_geodetic([0.0, 0.0, 0.0], lat0, lon0, alt0) == (lat0, lon0, alt0)
+    lat, lon, alt = F.enu_to_geodetic([0.0, 100.0, 5.0], lat0, lon0, alt0)  # 100 m north, 5 m up
+    assert math.isclose(lat - lat0, math.degrees(100.0 / F.EARTH_RADIUS_M), rel_tol=1e-6)
+    assert math.isclose(lon, lon0, abs_tol=1e-12) and alt == 15.0
+    lat, lon, _ = F.enu_to_geodetic([100.0, 0.0, 0.0], lat0, lon0, alt0)  # 100 m east
+    expected = math.degrees(100.0 / (F.EARTH_RADIUS_M * math.cos(math.radians(lat0))))
+    assert math.isclose(lon - lon0, expected, rel_tol=1e-6)
+    assert abs(lat - lat0) < 1e-7  # a great circle heading east stays within 1 cm of the parallel
+    for enu in np.random.default_rng(7).uniform(-3000.0, 3000.0, size=(20, 3)):
+        back = F.geodetic_to_enu(*F.enu_to_geodetic(enu, lat0, lon0, alt0), lat0, lon0, alt0)
+        np.testing.assert_allclose(back, enu, atol=1e-6)

@@ -60,7 +60,7 @@ def stamp_ns(msg) -> int:
 class Run:
     """A ``droneulator run`` subprocess plus a Zenoh subscriber recording every topic."""
 
-    def __init__(self, scene: str) -> None:
+    def __init__(self, scene: str, extra: tuple[str, ...] = ()) -> None:
         self.api_port, self.zenoh_port = free_port(), free_port()
         cmd = [
             sys.executable,
@@ -77,6 +77,7 @@ class Run:
             f'render.cameras=[{{"name": "front", "width": {CAM.width}, "height": {CAM.height}}}]',
             "--set",
             "render.shadow_map_size=1024",
+            *extra,
         ]
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         self.log: list[str] = []
@@ -346,3 +347,49 @@ def test_sigterm_stops_everything_within_2s():
         with pytest.raises(ProcessLookupError):
             os.kill(pid, 0)
     r.close()
+
+
+def test_px4_drives_the_clock_and_websocket_flight_is_refused():
+    """``run --px4`` with a pymavlink peer playing PX4: actuator messages step the clock, cameras and
+    odometry keep flowing, WebSocket flight commands answer flight_locked."""
+    from test_px4 import Peer
+
+    from droneulator.px4.mixing import MotorMap
+    from droneulator.vehicles.params import get_params
+
+    port = free_port()
+    r = Run("default", extra=("--px4", "--set", f"px4.base_port={port}"))
+    try:
+        c = r.client
+        peer = Peer(port)
+        peer.hello()
+        peer.next()  # the first HIL_SENSOR: PX4's boot is unblocked
+        peer.step((0.0,) * 4, armed=False)
+        with pytest.raises(ApiError) as e:
+            c.takeoff(altitude=2.0)
+        assert e.value.code == "flight_locked"
+        with pytest.raises(ApiError):
+            c.reset()
+        t0 = c.state()["t_ns"]
+        time.sleep(0.5)
+        assert c.state()["t_ns"] == t0  # no actuator message, no time
+        n_frames = len(r.msgs["droneulator/front/color/image_raw/compressed"])
+        for _ in range(100):
+            peer.step((0.0,) * 4, armed=False)
+        r.wait_for(lambda: c.state()["t_ns"] == t0 + 100 * 4_000_000, 10, "exactly 100 steps of 4 ms")
+        assert c.state()["position"][2] == 0.0  # disarmed: resting on the ground
+        r.wait_for(
+            lambda: len(r.msgs["droneulator/front/color/image_raw/compressed"]) >= n_frames + 11,
+            10,
+            "camera frames for the 0.4 s PX4 stepped",
+        )
+        qp = get_params("px4_quadx")
+        hover = np.sqrt(qp["mass"] * 9.81 / (4 * qp["k_eta"]))
+        u = [float(MotorMap(qp, 0.0).speed_to_output(hover * np.sqrt(1.15)))] * 4  # 15 % over hover thrust
+        for _ in range(250):
+            peer.step(u, armed=True)
+        st = c.state()
+        assert st["mode"] == "external" and st["position"][2] > 0.3  # it climbs
+        peer.close()
+    finally:
+        r.close()

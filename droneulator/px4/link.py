@@ -1,0 +1,523 @@
+"""The simulator side of PX4 SITL's ``simulator_mavlink`` protocol, over TCP, in lockstep.
+
+PX4 (``simulator_mavlink start -c 4560+N``) connects as a TCP *client* to port ``4560 + N`` and
+exchanges MAVLink 2 with the simulator, as it does with Gazebo-classic's ``mavlink_interface`` and
+jMAVSim:
+
+* PX4 -> simulator: a HEARTBEAT when it connects, a COMMAND_LONG ``SET_MESSAGE_INTERVAL`` asking
+  for HIL_STATE_QUATERNION, then one HIL_ACTUATOR_CONTROLS per IMU sample it has processed:
+  ``controls[0..3]`` are the quad-X motor outputs in [0, 1] (zeros while disarmed), ``mode`` has
+  ``MAV_MODE_FLAG_SAFETY_ARMED`` (128) while armed, ``flags`` bit 0 is set by lockstep builds.
+* simulator -> PX4, per physics step: HIL_SENSOR (``id`` 0; accel and gyro every step, mag and baro
+  at their rates, flagged in ``fields_updated``), HIL_GPS at ``gps_hz``, HIL_STATE_QUATERNION
+  (ground truth), and a HEARTBEAT at 1 Hz; ``time_usec`` is simulation time. PX4 sets its lockstep
+  clock from HIL_SENSOR ``time_usec`` and holds its boot script until the first one arrives.
+
+Before PX4's first lockstep HIL_ACTUATOR_CONTROLS on a connection the link free-runs (as Gazebo
+does until its first actuator message): PX4 can only boot, and so only start sending actuator
+outputs, while sensor time advances. After that each HIL_ACTUATOR_CONTROLS advances the simulation
+by exactly one control period, and without one simulation time stops.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import select
+import socket
+import time
+from collections import deque
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from pymavlink.dialects.v20 import common as mavlink
+
+from droneulator.config import PX4Config
+from droneulator.controllers.flight import Mode
+from droneulator.frames import enu_to_geodetic, enu_to_ned, xyzw_to_wxyz
+from droneulator.px4.mixing import LogThrottle, MotorMap
+from droneulator.px4.sensors import BaroSample, SensorSuite, Truth
+
+if TYPE_CHECKING:
+    import threading
+
+    from droneulator.sim.simulator import Simulator, StepResult
+
+log = logging.getLogger(__name__)
+
+NS = 1_000_000_000
+G0 = 9.80665
+
+#: HIL_SENSOR ``fields_updated`` groups PX4 checks (``SensorSource`` in SimulatorMavlink.hpp)
+SENSOR_ACCEL = 0b111
+SENSOR_GYRO = 0b111000
+SENSOR_MAG = 0b111000000
+#: abs_pressure, pressure_alt and temperature: PX4 takes the baro sample only with all three
+SENSOR_BARO = 0b1101000000000
+
+LOCKSTEP_FLAG = mavlink.HIL_ACTUATOR_CONTROLS_FLAGS_LOCKSTEP
+ARMED_FLAG = mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+#: MAVLink identity of the simulator (as Gazebo-classic's mavlink_interface: system 1, IMU component)
+SIM_SYSTEM_ID = 1
+SIM_COMPONENT_ID = mavlink.MAV_COMP_ID_IMU
+
+#: motors stop when an autopilot's last actuator message is older than this (Gazebo-classic's rule)
+ACTUATOR_TIMEOUT_NS = 200_000_000
+#: wall time a new connection has to answer the first HIL_SENSOR before the link free-runs
+BOOT_GRACE_S = 0.1
+#: falling further behind the wall clock than this restarts the pacing instead of catching up
+MAX_LAG_S = 0.25
+SEND_TIMEOUT_S = 5.0
+
+_STX_V1, _STX_V2 = 0xFE, 0xFD
+
+
+def _i16(x: float) -> int:
+    return int(np.clip(round(x), -32767, 32767))
+
+
+def _u16(x: float) -> int:
+    return int(np.clip(round(x), 0, 65534))
+
+
+def _next_stx(buf: bytearray, start: int) -> int | None:
+    hits = [i for i in (buf.find(_STX_V2, start), buf.find(_STX_V1, start)) if i >= 0]
+    return min(hits) if hits else None
+
+
+def _frame_length(buf: bytearray, p: int) -> int | None:
+    """Length of the MAVLink frame starting at ``p``, or None until its header has arrived."""
+    if len(buf) - p < 3:
+        return None
+    if buf[p] == _STX_V2:
+        signed = buf[p + 2] & mavlink.MAVLINK_IFLAG_SIGNED
+        return buf[p + 1] + mavlink.HEADER_LEN_V2 + 2 + (mavlink.MAVLINK_SIGNATURE_BLOCK_LEN if signed else 0)
+    return buf[p + 1] + mavlink.HEADER_LEN_V1 + 2
+
+
+class PX4Link:
+    """Serve PX4 SITL's simulator MAVLink on ``(cfg.host, cfg.base_port + cfg.instance)``.
+
+    The caller owns the loop: :meth:`serve_once` accepts PX4, reads its messages and, when one
+    HIL_ACTUATOR_CONTROLS arrives, steps ``sim`` once and sends the new sensor data back.
+    ``base_port = 0`` listens on a free port (see :attr:`port`).
+    """
+
+    def __init__(self, sim: Simulator, cfg: PX4Config, seed: int = 0) -> None:
+        self.sim = sim
+        self.cfg = cfg
+        self.motor_map = MotorMap(sim.quad_params, cfg.thrust_model_factor)
+        self.sensors = SensorSuite(cfg, seed)
+        self._tx = mavlink.MAVLink(None, SIM_SYSTEM_ID, SIM_COMPONENT_ID)
+        self._rx_mav = mavlink.MAVLink(None)
+        self._listener: socket.socket | None = None
+        self._conn: socket.socket | None = None
+        self._errors = LogThrottle(log)
+        self._rx = bytearray()
+        #: lockstep actuator commands not stepped yet: (armed, rotor speeds in RotorPy order)
+        self._pending: deque[tuple[bool, np.ndarray | None]] = deque()
+        self._last_cmd_t_ns: int | None = None
+        self._last_mag = np.zeros(3)
+        self._last_baro = BaroSample(0.0, 0.0, 0.0)
+        self._reset_connection()
+        hz = sim.config.vehicle.control_hz
+        if not math.isclose(hz, 250.0):
+            log.warning(
+                "vehicle.control_hz is %g Hz; PX4 SITL airframes expect a 250 Hz IMU (IMU_INTEG_RATE 250)", hz
+            )
+        log.info(
+            "PX4 quad-X motor -> %s rotor: %s",
+            sim.config.vehicle.params,
+            ", ".join(f"{n} {name} {spin} -> {r}" for n, name, spin, r in self.motor_map.table()),
+        )
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        """Listen for PX4 (idempotent)."""
+        if self._listener is not None:
+            return
+        port = 0 if self.cfg.base_port == 0 else self.cfg.base_port + self.cfg.instance
+        sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            sock.bind((self.cfg.host, port))
+            sock.listen(1)
+            sock.setblocking(False)
+        except OSError:
+            sock.close()
+            raise
+        self._listener = sock
+        log.info("waiting for PX4 SITL (simulator_mavlink) on tcp://%s:%d", self.cfg.host, self.port)
+
+    def close(self) -> None:
+        """Drop PX4 and stop listening (idempotent)."""
+        if self._conn is not None:
+            self._drop("the link closed")
+        if self._listener is not None:
+            self._listener.close()
+            self._listener = None
+
+    def __enter__(self) -> PX4Link:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def port(self) -> int:
+        if self._listener is None:
+            raise RuntimeError("PX4Link is not listening: call start() first")
+        return int(self._listener.getsockname()[1])
+
+    @property
+    def connected(self) -> bool:
+        """True while a PX4 is connected (it then owns the rotors and the simulation clock)."""
+        return self._conn is not None
+
+    @property
+    def lockstep(self) -> bool:
+        """True once the connected PX4 steps the simulation with lockstep actuator messages."""
+        return self._lockstep
+
+    @property
+    def armed(self) -> bool:
+        """Armed state in PX4's last HIL_ACTUATOR_CONTROLS on this connection."""
+        return self._armed
+
+    # ------------------------------------------------------------------ the loop
+    def serve_once(self, timeout: float, lock: threading.Lock | None = None) -> StepResult | None:
+        """Accept PX4 and handle its messages for up to ``timeout`` s; step at most once.
+
+        Returns the StepResult of the step taken (on a HIL_ACTUATOR_CONTROLS, or a free-running
+        step before lockstep starts), or None when nothing stepped within ``timeout``. ``lock`` is
+        held around every access to ``sim``.
+        """
+        if self._listener is None:
+            raise RuntimeError("PX4Link is not listening: call start() first")
+        guard = lock if lock is not None else contextlib.nullcontext()
+        deadline = time.monotonic() + max(0.0, float(timeout))
+        polled = False
+        while True:
+            wait_step = self._time_to_step() if self._conn is not None else None
+            if wait_step is not None and wait_step <= 0.0:
+                return self._step(guard)
+            now = time.monotonic()
+            if polled and now >= deadline:
+                return None
+            wait = max(0.0, deadline - now)
+            if wait_step is not None:
+                wait = min(wait, wait_step)
+            self._poll(wait, guard)
+            polled = True
+
+    def _time_to_step(self) -> float | None:
+        """Seconds until the next step is due (<= 0: now), or None while waiting for PX4."""
+        if self._force_step:
+            return 0.0
+        if self._pending:
+            speed = self.cfg.speed_factor
+        elif not self._lockstep:
+            speed = self.cfg.speed_factor or 1.0
+        else:
+            return None
+        if speed == 0.0:
+            return 0.0
+        now = time.monotonic()
+        due = self._pace_wall + (self.sim.t_ns - self._pace_sim) / NS / speed
+        if now - due > MAX_LAG_S:
+            self._pace_wall, self._pace_sim = now, self.sim.t_ns
+            due = now
+        return due - now
+
+    def _poll(self, wait: float, guard: Any) -> None:
+        assert self._listener is not None
+        conn = self._conn
+        socks = [self._listener] if conn is None else [self._listener, conn]
+        try:
+            readable, _, _ = select.select(socks, [], [], wait)
+        except (OSError, ValueError) as exc:
+            if conn is not None:
+                self._drop(f"socket error: {exc}")
+            return
+        if conn is not None and conn in readable:
+            self._receive(conn)
+        if self._listener in readable:
+            self._accept(guard)
+
+    # ------------------------------------------------------------------ connection
+    def _reset_connection(self) -> None:
+        self._rx.clear()
+        self._pending.clear()
+        self._lockstep = False
+        self._armed = False
+        self._free_cmd: tuple[bool, np.ndarray | None] | None = None
+        self._force_step = False
+        self._heartbeat_seen = False
+        self._timeout_logged = False
+        self._next_ns: dict[str, int] = {}
+        self._last_t_ns: int | None = None
+        self._pace_wall = time.monotonic()
+        self._pace_sim = self.sim.t_ns
+
+    def _accept(self, guard: Any) -> None:
+        assert self._listener is not None
+        try:
+            conn, addr = self._listener.accept()
+        except OSError:
+            return
+        if self._conn is not None:
+            log.warning("a new PX4 connection from %s:%d replaces the current one", *addr[:2])
+            self._drop("replaced by a new connection")
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        conn.settimeout(SEND_TIMEOUT_S)
+        self._conn = conn
+        self._reset_connection()
+        log.info("PX4 connected from %s:%d at t=%.3f s", addr[0], addr[1], self.sim.t)
+        if self.sim.t_ns == 0:
+            # PX4 treats timestamp 0 as "never": its clock starts from the first step instead
+            self._force_step = True
+            return
+        with guard:
+            truth = Truth.from_sim(self.sim)
+        self._send_batch(truth)
+        self._start_boot_grace()
+
+    def _start_boot_grace(self) -> None:
+        """Give PX4 BOOT_GRACE_S of wall time to answer the first batch before free-running."""
+        self._pace_wall, self._pace_sim = time.monotonic() + BOOT_GRACE_S, self.sim.t_ns
+
+    def _drop(self, reason: str) -> None:
+        conn, self._conn = self._conn, None
+        if conn is not None:
+            with contextlib.suppress(OSError):
+                conn.close()
+            log.warning(
+                "PX4 disconnected (%s) at t=%.3f s: simulation time waits for PX4", reason, self.sim.t
+            )
+        self._reset_connection()
+
+    def _receive(self, conn: socket.socket) -> None:
+        try:
+            data = conn.recv(65536)
+        except (BlockingIOError, InterruptedError, TimeoutError):
+            return
+        except OSError as exc:
+            self._drop(f"receive failed: {exc}")
+            return
+        if not data:
+            self._drop("PX4 closed the connection")
+            return
+        self._rx += data
+        for msg in self._extract():
+            self._handle(msg)
+
+    # ------------------------------------------------------------------ parsing
+    def _extract(self) -> list[Any]:
+        """Complete MAVLink messages in the receive buffer; bytes that cannot start a valid frame
+        are dropped with a logged error. A bad frame costs one byte, so a valid message inside a
+        run of garbage is still found."""
+        buf, out = self._rx, []
+        while buf:
+            found = None
+            keep = len(buf)
+            p = _next_stx(buf, 0)
+            while p is not None:
+                n = _frame_length(buf, p)
+                if n is None or p + n > len(buf):
+                    keep = min(keep, p)
+                else:
+                    msg = self._decode(bytes(buf[p : p + n]))
+                    if msg is not None:
+                        found = (p, n, msg)
+                        break
+                p = _next_stx(buf, p + 1)
+            if found is None:
+                if keep:
+                    self._garbage(keep)
+                    del buf[:keep]
+                return out
+            p, n, msg = found
+            if p:
+                self._garbage(p)
+            del buf[: p + n]
+            out.append(msg)
+        return out
+
+    def _decode(self, frame: bytes) -> Any:
+        if frame[0] == _STX_V2 and frame[2] & ~mavlink.MAVLINK_IFLAG_SIGNED:
+            return None
+        try:
+            return self._rx_mav.decode(bytearray(frame))
+        except Exception:
+            return None
+
+    def _garbage(self, n: int) -> None:
+        self._errors.error("garbage", "discarded %d bytes from PX4 that are not valid MAVLink", n)
+
+    def _handle(self, msg: Any) -> None:
+        kind = msg.get_type()
+        if kind == "HIL_ACTUATOR_CONTROLS":
+            armed = bool(msg.mode & ARMED_FLAG)
+            speeds = self.motor_map.rotor_speeds(msg.controls[:4]) if armed else None
+            if armed != self._armed:
+                log.info("PX4 %s at t=%.3f s", "armed" if armed else "disarmed", self.sim.t)
+                self._armed = armed
+            if msg.flags & LOCKSTEP_FLAG:
+                if not self._lockstep:
+                    log.info("PX4 lockstep started at t=%.3f s: one step per actuator message", self.sim.t)
+                    self._lockstep = True
+                    self._pace_wall, self._pace_sim = time.monotonic(), self.sim.t_ns
+                self._pending.append((armed, speeds))
+            else:
+                if self._lockstep or self._free_cmd is None:
+                    log.warning(
+                        "PX4 runs without lockstep: free-running at %g x real time",
+                        self.cfg.speed_factor or 1,
+                    )
+                self._lockstep = False
+                self._free_cmd = (armed, speeds)
+                self._last_cmd_t_ns = self.sim.t_ns
+        elif kind == "HEARTBEAT":
+            if not self._heartbeat_seen:
+                self._heartbeat_seen = True
+                log.info(
+                    "PX4 heartbeat: autopilot %d, %s",
+                    msg.autopilot,
+                    "armed" if msg.base_mode & 128 else "disarmed",
+                )
+        elif kind == "COMMAND_LONG":
+            log.debug("PX4 command %d (%s); HIL_STATE_QUATERNION is sent every step", msg.command, msg.param1)
+        else:
+            log.debug("ignoring %s from PX4", kind)
+
+    # ------------------------------------------------------------------ stepping
+    def _step(self, guard: Any) -> StepResult:
+        first, self._force_step = self._force_step, False
+        lockstep_cmd = self._pending.popleft() if self._pending else None
+        with guard:
+            t_ns = self.sim.t_ns
+            cmd = lockstep_cmd
+            if cmd is None and self._free_cmd is not None and self._fresh(t_ns):
+                cmd = self._free_cmd
+            if cmd is not None:
+                armed, speeds = cmd
+                if armed and speeds is not None:
+                    self.sim.set_rotor_speeds(speeds)
+                else:
+                    self.sim.motors_off()
+                if lockstep_cmd is not None:
+                    self._last_cmd_t_ns = t_ns
+            elif self.sim.mode == Mode.EXTERNAL and not self._fresh(t_ns):
+                self.sim.motors_off()
+                if not self._timeout_logged:
+                    self._timeout_logged = True
+                    log.warning("no actuator outputs from PX4 for 0.2 s of sim time: motors off")
+            result = self.sim.step()
+            truth = Truth.from_sim(self.sim)
+        self._send_batch(truth)
+        if first:
+            self._start_boot_grace()
+        return result
+
+    def _fresh(self, t_ns: int) -> bool:
+        return self._last_cmd_t_ns is not None and 0 <= t_ns - self._last_cmd_t_ns <= ACTUATOR_TIMEOUT_NS
+
+    def _due(self, name: str, t_ns: int, hz: float) -> bool:
+        """True when sensor ``name`` (sampled at ``hz`` in sim time) has a sample due at ``t_ns``."""
+        period = max(1, round(NS / hz))
+        nxt = self._next_ns.get(name)
+        if nxt is not None and t_ns < nxt:
+            return False
+        nxt = t_ns + period if nxt is None or nxt + period <= t_ns else nxt + period
+        self._next_ns[name] = nxt
+        return True
+
+    # ------------------------------------------------------------------ sending
+    def _send_batch(self, truth: Truth) -> None:
+        """HEARTBEAT (1 Hz), HIL_GPS (gps_hz), HIL_STATE_QUATERNION and HIL_SENSOR for ``truth``."""
+        t_ns = truth.t_ns
+        if self._last_t_ns is not None and t_ns < self._last_t_ns:
+            self._next_ns.clear()  # the simulation was reset: restart every schedule
+        self._last_t_ns = t_ns
+        t_us = t_ns // 1000
+        msgs = []
+        if self._due("heartbeat", t_ns, 1.0):
+            msgs.append(
+                self._tx.heartbeat_encode(
+                    mavlink.MAV_TYPE_GENERIC, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE
+                )
+            )
+        if self._due("gps", t_ns, self.cfg.gps_hz):
+            msgs.append(self._gps_message(truth, t_us))
+        msgs.append(self._state_message(truth, t_us))
+        msgs.append(self._sensor_message(truth, t_us))
+        self._send(b"".join(m.pack(self._tx) for m in msgs))
+
+    def _sensor_message(self, truth: Truth, t_us: int) -> Any:
+        accel, gyro = self.sensors.imu(truth)
+        fields = SENSOR_ACCEL | SENSOR_GYRO
+        if self._due("mag", truth.t_ns, self.cfg.mag_hz):
+            self._last_mag = self.sensors.mag(truth)
+            fields |= SENSOR_MAG
+        if self._due("baro", truth.t_ns, self.cfg.baro_hz):
+            self._last_baro = self.sensors.baro(truth)
+            fields |= SENSOR_BARO
+        b = self._last_baro
+        return self._tx.hil_sensor_encode(
+            t_us,
+            *accel,
+            *gyro,
+            *self._last_mag,
+            b.pressure_hpa,
+            0.0,
+            b.pressure_alt_m,
+            b.temperature_c,
+            fields,
+            0,
+        )
+
+    def _gps_message(self, truth: Truth, t_us: int) -> Any:
+        g = self.sensors.gps(truth)
+        return self._tx.hil_gps_encode(
+            t_us,
+            g.fix_type,
+            round(g.lat_deg * 1e7),
+            round(g.lon_deg * 1e7),
+            round(g.alt_msl_m * 1000.0),
+            _u16(g.eph_m * 100.0),
+            _u16(g.epv_m * 100.0),
+            _u16(g.ground_speed * 100.0),
+            *(_i16(v * 100.0) for v in g.vel_ned),
+            round(g.course_deg * 100.0) % 36000,
+            g.satellites,
+            0,
+            0,
+        )
+
+    def _state_message(self, truth: Truth, t_us: int) -> Any:
+        c = self.cfg
+        lat, lon, alt = enu_to_geodetic(truth.position, c.home_lat_deg, c.home_lon_deg, c.home_alt_m)
+        ias, tas = self.sensors.airspeed(truth)
+        acc_mg = truth.acceleration_frd / G0 * 1000.0
+        return self._tx.hil_state_quaternion_encode(
+            t_us,
+            [float(v) for v in xyzw_to_wxyz(truth.quaternion_ned_frd)],
+            *(float(v) for v in truth.gyro_frd),
+            round(lat * 1e7),
+            round(lon * 1e7),
+            round(alt * 1000.0),
+            *(_i16(v * 100.0) for v in enu_to_ned(truth.velocity)),
+            _u16(ias * 100.0),
+            _u16(tas * 100.0),
+            *(_i16(v) for v in acc_mg),
+        )
+
+    def _send(self, data: bytes) -> None:
+        if self._conn is None:
+            return
+        try:
+            self._conn.sendall(data)
+        except OSError as exc:
+            self._drop(f"send failed: {exc}")

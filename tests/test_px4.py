@@ -1,0 +1,465 @@
+"""PX4 SITL link over real TCP, with a pymavlink peer playing PX4's ``simulator_mavlink`` side."""
+
+from __future__ import annotations
+
+import logging
+import math
+import socket
+import threading
+import time
+from collections import deque
+from typing import Any
+
+import numpy as np
+import pytest
+from pymavlink.dialects.v20 import common as mavlink
+
+from droneulator import frames as F
+from droneulator.config import PX4Config, load_config
+from droneulator.px4 import MotorMap, PX4Link, px4_rotor_order
+from droneulator.px4.link import BOOT_GRACE_S, SENSOR_ACCEL, SENSOR_BARO, SENSOR_GYRO, SENSOR_MAG
+from droneulator.px4.sensors import SensorSuite, Truth
+from droneulator.sim.simulator import Simulator
+from droneulator.vehicles.params import get_params
+
+ALL_FIELDS = SENSOR_ACCEL | SENSOR_GYRO | SENSOR_MAG | SENSOR_BARO
+STEP_US = 4000  # 250 Hz lockstep
+
+
+def isa_hpa(alt_msl: float) -> float:
+    """ISA troposphere, written independently of the implementation under test."""
+    return 1013.25 * (1.0 - 0.0065 * alt_msl / 288.15) ** 5.25588
+
+
+def make_sim(params: str) -> Simulator:
+    cfg = load_config(overrides=["vehicle.control_hz=250", f"vehicle.params={params}"])
+    return Simulator(scene="default", render=False, config=cfg)
+
+
+def px4_cfg(**kw: Any) -> PX4Config:
+    return PX4Config(**{"base_port": 0, "speed_factor": 0.0, **kw})
+
+
+def wait_until(pred: Any, timeout: float = 5.0) -> None:
+    end = time.monotonic() + timeout
+    while not pred():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.005)
+
+
+class Served:
+    """A PX4Link served from a background thread, as the dynamics server does."""
+
+    def __init__(self, sim: Simulator, cfg: PX4Config | None = None, seed: int = 0) -> None:
+        self.sim = sim
+        self.lock = threading.Lock()
+        self.link = PX4Link(sim, cfg or px4_cfg(), seed=seed)
+        self.link.start()
+        self._stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self.link.serve_once(0.02, self.lock)
+
+    def reset(self, **kw: Any) -> None:
+        wait_until(lambda: not self.link.connected)
+        with self.lock:
+            self.sim.reset(**kw)
+
+    def close(self) -> None:
+        self._stop.set()
+        self.thread.join(5.0)
+        self.link.close()
+
+
+class Peer:
+    """Plays PX4: connects as the TCP client, sends HIL_ACTUATOR_CONTROLS, reads the sensor stream."""
+
+    def __init__(self, port: int) -> None:
+        self.sock = socket.create_connection(("127.0.0.1", port), timeout=5.0)
+        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self.mav = mavlink.MAVLink(None, 1, 1)
+        self.rx = mavlink.MAVLink(None)
+        self.inbox: deque[Any] = deque()
+        self.t_us = 0
+
+    def send(self, msg: Any) -> None:
+        self.sock.sendall(msg.pack(self.mav))
+
+    def hello(self) -> None:
+        """What PX4 sends on connecting: a HEARTBEAT and a request for HIL_STATE_QUATERNION."""
+        self.send(self.mav.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, 0, 0, 0))
+        self.send(self.mav.command_long_encode(0, 0, 511, 0, 115, 5000, 0, 0, 0, 0, 0))
+
+    def actuators(self, u: Any, armed: bool = True, lockstep: bool = True) -> None:
+        controls = [float(x) for x in u] + [0.0] * (16 - len(u))
+        self.send(
+            self.mav.hil_actuator_controls_encode(self.t_us, controls, 1 | (128 * armed), int(lockstep))
+        )
+
+    def _fill(self, timeout: float) -> None:
+        self.sock.settimeout(timeout)
+        data = self.sock.recv(65536)
+        if not data:
+            raise ConnectionError("the simulator closed the connection")
+        for m in self.rx.parse_buffer(data) or []:
+            self.inbox.append(m)
+
+    def next(self, kind: str = "HIL_SENSOR", timeout: float = 5.0) -> list[Any]:
+        """Messages up to and including the next ``kind``."""
+        out: list[Any] = []
+        end = time.monotonic() + timeout
+        while True:
+            while self.inbox:
+                m = self.inbox.popleft()
+                out.append(m)
+                if m.get_type() == "HIL_SENSOR":
+                    self.t_us = m.time_usec
+                if m.get_type() == kind:
+                    return out
+            self._fill(max(0.01, end - time.monotonic()))
+
+    def step(self, u: Any = (0.0,) * 4, **kw: Any) -> list[Any]:
+        self.actuators(u, **kw)
+        return self.next()
+
+    def drain(self, duration: float) -> list[Any]:
+        out: list[Any] = []
+        end = time.monotonic() + duration
+        while (left := end - time.monotonic()) > 0:
+            try:
+                self._fill(left)
+            except TimeoutError:
+                break
+        while self.inbox:
+            out.append(self.inbox.popleft())
+        return out
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def by_type(msgs: list[Any], kind: str) -> list[Any]:
+    return [m for m in msgs if m.get_type() == kind]
+
+
+def first_batch(served: Served, **reset: Any) -> dict[str, Any]:
+    """Reset the vehicle, connect, and return the messages sent on connection by type."""
+    served.reset(**reset)
+    peer = Peer(served.link.port)
+    batch = {m.get_type(): m for m in peer.next()}
+    peer.close()
+    return batch
+
+
+@pytest.fixture(scope="module")
+def sim():
+    s = make_sim("px4_quadx")
+    yield s
+    s.close()
+
+
+@pytest.fixture()
+def served(sim):
+    sim.reset()
+    s = Served(sim)
+    yield s
+    s.close()
+
+
+# --------------------------------------------------------------------------- mixing and sensors
+def test_motor_order_is_derived_from_geometry_and_spin():
+    assert px4_rotor_order(get_params("px4_quadx")) == (0, 1, 2, 3)
+    # hummingbird r1 front-left CW, r2 front-right CCW, r3 rear-right CW, r4 rear-left CCW
+    assert px4_rotor_order(get_params("hummingbird")) == (1, 3, 0, 2)
+    mirrored = get_params("hummingbird")
+    mirrored["rotor_directions"] = -np.asarray(mirrored["rotor_directions"])
+    with pytest.raises(ValueError, match="wrong way"):
+        px4_rotor_order(mirrored)
+    plus = get_params("hummingbird")
+    plus["rotor_pos"] = {
+        f"r{i}": 0.2 * np.array([math.cos(a), math.sin(a), 0.0]) for i, a in enumerate([0, 1.57, 3.14, 4.71])
+    }
+    with pytest.raises(ValueError, match="not an X frame"):
+        px4_rotor_order(plus)
+
+
+def test_output_to_speed_map_and_bad_values(caplog):
+    hb = get_params("hummingbird")  # rotor_speed 0 .. 1500 rad/s
+    mm = MotorMap(hb)  # PX4's default THR_MDL_FAC = 0: thrust linear in the output
+    thrust = hb["k_eta"] * mm.output_to_speed([0.0, 0.25, 0.5, 1.0]) ** 2
+    np.testing.assert_allclose(thrust / thrust[-1], [0.0, 0.25, 0.5, 1.0])
+    gazebo = MotorMap(hb, thrust_model_factor=1.0)  # speed linear in the output (Gazebo-classic Iris)
+    np.testing.assert_allclose(gazebo.output_to_speed([0.0, 0.5, 1.0]), [0.0, 750.0, 1500.0])
+    for m in (mm, gazebo, MotorMap(hb, 0.3)):
+        np.testing.assert_allclose(m.speed_to_output(m.output_to_speed([0.0, 0.37, 1.0])), [0.0, 0.37, 1.0])
+    np.testing.assert_allclose(gazebo.rotor_speeds([0.1, 0.2, 0.3, 0.4]), [450.0, 150.0, 600.0, 300.0])
+    with caplog.at_level(logging.ERROR, logger="droneulator.px4"):
+        np.testing.assert_allclose(gazebo.rotor_speeds([1.5, -0.2, 0.3, 0.4]), [450.0, 1500.0, 600.0, 0.0])
+        assert "outside [0, 1]" in caplog.text
+        np.testing.assert_allclose(
+            gazebo.rotor_speeds([float("nan"), 0.2, float("inf"), 0.4]), [450.0, 1500.0, 600.0, 300.0]
+        )
+        assert "not finite" in caplog.text  # motors 1 and 3 hold their last valid outputs, 1.0 and 0.3
+
+
+def test_sensor_models_in_px4_frames():
+    cfg = PX4Config(
+        accel_noise=0, gyro_noise=0, mag_noise=0, baro_noise_hpa=0, gps_noise_m=0, gps_vel_noise=0
+    )
+    cfg.gps_vertical_noise_m = 0.0
+    sensors = SensorSuite(cfg)
+    z3 = np.zeros(3)
+    north_level = F.quat_from_yaw(math.pi / 2)  # nose north: FRD body axes = NED axes
+    t = Truth(4000, z3, np.array([0.0, 2.0, -0.5]), north_level, np.array([0.1, 0.2, 0.3]), z3, z3)
+    accel, gyro = sensors.imu(t)
+    np.testing.assert_allclose(accel, [0, 0, -9.81], atol=1e-12)
+    np.testing.assert_allclose(gyro, [0.1, -0.2, -0.3], atol=1e-12)
+    np.testing.assert_allclose(sensors.mag(t), cfg.mag_field_ned_gauss, atol=1e-12)
+    g = sensors.gps(t)  # flying north and climbing
+    np.testing.assert_allclose(g.vel_ned, [2.0, 0.0, 0.5], atol=1e-12)
+    assert g.course_deg == pytest.approx(0.0) and g.ground_speed == pytest.approx(2.0)
+    rolled = F.quat_multiply(north_level, F.quat_from_euler(0.3, 0.0, 0.0))  # right wing down in FRD
+    accel, _ = sensors.imu(Truth(0, z3, z3, rolled, z3, z3, z3))
+    np.testing.assert_allclose(accel, [0.0, -9.81 * math.sin(0.3), -9.81 * math.cos(0.3)], atol=1e-9)
+
+
+# --------------------------------------------------------------------------- the link over TCP
+def test_connection_sends_every_sensor_then_rests_on_ground_in_lockstep(served, sim):
+    peer = Peer(served.link.port)
+    peer.hello()
+    first = peer.next()
+    assert [m.get_type() for m in first] == ["HEARTBEAT", "HIL_GPS", "HIL_STATE_QUATERNION", "HIL_SENSOR"]
+    sensor = first[-1]
+    assert sensor.time_usec == STEP_US  # PX4 takes time 0 for "never": the clock starts at one step
+    assert sensor.fields_updated == ALL_FIELDS and sensor.id == 0
+    assert first[1].fix_type == 3 and first[1].satellites_visible == 10
+    accels, gyros = [], []
+    for k in range(60):
+        batch = peer.step(armed=False)
+        s = batch[-1]
+        assert s.time_usec == STEP_US * (k + 2)
+        accels.append([s.xacc, s.yacc, s.zacc])
+        gyros.append([s.xgyro, s.ygyro, s.zgyro])
+    np.testing.assert_allclose(np.mean(accels, axis=0), [0.0, 0.0, -9.81], atol=0.01)
+    np.testing.assert_allclose(np.mean(gyros, axis=0), 0.0, atol=0.001)
+    assert np.std(np.array(accels)[:, 2]) == pytest.approx(0.02, rel=0.3)  # PX4Config.accel_noise
+    # the magnetometer reads the NED field rotated into the body (FRD)
+    R = F.quat_to_matrix(F.quat_enu_flu_to_ned_frd(sim.state.quaternion))
+    mag = R.T @ np.array(served.link.cfg.mag_field_ned_gauss)
+    np.testing.assert_allclose([sensor.xmag, sensor.ymag, sensor.zmag], mag, atol=0.01)
+    assert sim.mode.value == "idle" and sim.state.position[2] == 0.0  # disarmed: motors off
+    peer.close()
+
+
+def test_pressure_falls_with_altitude_per_isa_and_latitude_grows_northwards(served, sim):
+    home = served.link.cfg
+    spawn = sim.scene.spawn_position
+    low = first_batch(served, position=spawn)
+    high = first_batch(served, position=spawn + [0.0, 0.0, 12.0], airborne=True)
+    north = first_batch(served, position=spawn + [0.0, 10.0, 0.0])
+    for batch, z in ((low, 0.0), (high, 12.0)):
+        s, alt = batch["HIL_SENSOR"], home.home_alt_m + z
+        assert s.abs_pressure == pytest.approx(isa_hpa(alt), abs=0.05)
+        assert s.pressure_alt == pytest.approx(alt, abs=0.5)
+        assert s.temperature == pytest.approx(15.0 - 0.0065 * alt, abs=0.01)
+    assert isa_hpa(home.home_alt_m) - isa_hpa(home.home_alt_m + 12.0) == pytest.approx(1.43, abs=0.02)
+    assert high["HIL_SENSOR"].abs_pressure < low["HIL_SENSOR"].abs_pressure - 1.2
+    d_lat = (north["HIL_GPS"].lat - low["HIL_GPS"].lat) * 1e-7
+    assert math.radians(d_lat) * F.EARTH_RADIUS_M == pytest.approx(10.0, abs=2.0)
+    assert abs(north["HIL_GPS"].lon - low["HIL_GPS"].lon) * 1e-7 < 3e-5  # within ~2 m
+    assert low["HIL_GPS"].alt == pytest.approx(home.home_alt_m * 1000, abs=2500)
+    assert low["HIL_STATE_QUATERNION"].lat == round(home.home_lat_deg * 1e7)  # ground truth: no noise
+
+
+def test_state_quaternion_is_frd_to_ned_with_matching_yaw(served, sim):
+    for yaw_enu, yaw_ned in ((math.pi / 2, 0.0), (0.0, math.pi / 2), (1.0, math.pi / 2 - 1.0)):
+        q = first_batch(served, yaw=yaw_enu)["HIL_STATE_QUATERNION"].attitude_quaternion
+        roll, pitch, yaw = F.quat_to_euler(F.wxyz_to_xyzw(np.array(q)))
+        assert abs(F.wrap_angle(yaw - yaw_ned)) < 1e-6 and abs(roll) < 1e-6 and abs(pitch) < 1e-6
+    q = first_batch(served, yaw=math.pi / 2)["HIL_STATE_QUATERNION"].attitude_quaternion
+    np.testing.assert_allclose(np.abs(q), [1.0, 0.0, 0.0, 0.0], atol=1e-6)  # nose north = identity
+
+
+def test_free_runs_until_the_first_actuator_message_then_waits_for_each(sim):
+    sim.reset()
+    served = Served(sim, px4_cfg(speed_factor=1.0))
+    peer = Peer(served.link.port)
+    peer.hello()
+    t0 = time.monotonic()
+    boot = by_type(peer.drain(0.6), "HIL_SENSOR")  # PX4 booting: no actuator messages yet
+    wall = time.monotonic() - t0
+    times = [m.time_usec for m in boot]
+    assert np.all(np.diff(times) == STEP_US)
+    assert 0.3 * (wall - BOOT_GRACE_S) < (times[-1] - times[0]) / 1e6 < 1.2 * wall  # about real time
+    assert not served.link.lockstep
+    peer.t_us = times[-1]
+    peer.actuators([0.0] * 4, armed=False)  # PX4 is up: lockstep starts
+    wait_until(lambda: served.link.lockstep)
+    raced = by_type(peer.drain(0.1), "HIL_SENSOR")  # its step, maybe after a free step already under way
+    assert 1 <= len(raced) <= 3
+    t_stop = sim.t_ns
+    assert not by_type(peer.drain(0.4), "HIL_SENSOR") and sim.t_ns == t_stop  # no actuators: time stops
+    s = peer.step(armed=False)[-1]  # one actuator message, one step
+    assert s.time_usec * 1000 == sim.t_ns == t_stop + sim.control_period_ns
+    peer.close()
+    served.close()
+
+
+def test_px4_without_lockstep_free_runs_on_its_latest_outputs(sim, caplog):
+    start = sim.scene.spawn_position + [0.0, 0.0, 3.0]
+    sim.reset(position=start, airborne=True)
+    served = Served(sim, px4_cfg(speed_factor=1.0))
+    peer = Peer(served.link.port)
+    peer.next()
+    u = float(served.link.motor_map.speed_to_output(sim.vehicle.hover_speed))
+    msgs: list[Any] = []
+    for _ in range(20):  # a PX4 built without lockstep, sending at 50 Hz of wall time
+        peer.actuators([u] * 4, lockstep=False)
+        msgs += peer.drain(0.02)
+    assert len(by_type(msgs, "HIL_SENSOR")) > 20 and not served.link.lockstep
+    assert sim.mode.value == "external" and abs(sim.state.position[2] - start[2]) < 0.01
+    with caplog.at_level(logging.WARNING, logger="droneulator.px4"):
+        peer.drain(0.5)  # PX4 went quiet: after 0.2 s of sim time the motors stop (Gazebo's rule)
+        assert sim.mode.value == "idle" and sim.state.position[2] < start[2] - 0.1
+        assert "motors off" in caplog.text
+    peer.close()
+    served.close()
+
+
+def test_hover_outputs_hold_altitude(served, sim):
+    start = sim.scene.spawn_position + [0.0, 0.0, 3.0]
+    served.reset(position=start, airborne=True)
+    peer = Peer(served.link.port)
+    peer.next()
+    u = float(served.link.motor_map.speed_to_output(sim.vehicle.hover_speed))
+    assert u == pytest.approx(0.49, abs=0.01)  # SIH quad-X: hover at ~half thrust, as PX4 assumes
+    zs, accel = [], []
+    for _ in range(500):  # 2 s
+        s = peer.step([u] * 4)[-1]
+        zs.append(sim.state.position[2])
+        accel.append([s.xacc, s.yacc, s.zacc])
+    assert sim.mode.value == "external" and served.link.armed
+    assert max(abs(z - start[2]) for z in zs) < 0.02
+    np.testing.assert_allclose(np.mean(accel, axis=0), [0.0, 0.0, -9.81], atol=0.02)  # thrust balances g
+    peer.close()
+
+
+# PX4 quad-X: body rate signs (FRD roll p, pitch q, yaw r) from extra thrust on one motor
+QUAD_X_RESPONSE = {
+    1: (-1, +1, +1),  # front-right, CCW: rolls left, pitches nose up, yaws right (reaction torque)
+    2: (+1, -1, +1),  # rear-left, CCW
+    3: (+1, +1, -1),  # front-left, CW
+    4: (-1, -1, -1),  # rear-right, CW
+}
+
+
+@pytest.mark.parametrize("params", ["px4_quadx", "hummingbird"])
+def test_one_motor_step_gives_the_quad_x_torque_signs(params, sim):
+    s = sim if params == "px4_quadx" else make_sim(params)
+    served = Served(s)
+    try:
+        u = float(served.link.motor_map.speed_to_output(s.vehicle.hover_speed))
+        for motor, signs in QUAD_X_RESPONSE.items():
+            served.reset(position=s.scene.spawn_position + [0.0, 0.0, 3.0], airborne=True)
+            peer = Peer(served.link.port)
+            peer.next()
+            for _ in range(5):
+                peer.step([u] * 4)
+            cmd = [u] * 4
+            cmd[motor - 1] += 0.05
+            for _ in range(20):
+                batch = peer.step(cmd)
+            truth = by_type(batch, "HIL_STATE_QUATERNION")[-1]
+            rates = np.array([truth.rollspeed, truth.pitchspeed, truth.yawspeed])
+            assert np.all(np.sign(rates) == signs), (motor, rates)
+            assert np.all(np.abs(rates) > 1e-3)
+            fastest = int(np.argmax(s.state.rotor_speeds))
+            assert fastest == served.link.motor_map.order[motor - 1]
+            peer.close()
+    finally:
+        served.close()
+        if s is not sim:
+            s.close()
+
+
+def test_messages_arrive_at_their_rates(served, sim):
+    peer = Peer(served.link.port)
+    msgs = peer.next()
+    for _ in range(500):  # 2 s of sim time
+        msgs += peer.step(armed=False)
+    sensor = by_type(msgs, "HIL_SENSOR")
+    assert len(sensor) == 501 and len(by_type(msgs, "HIL_STATE_QUATERNION")) == 501
+    assert np.all(np.diff([m.time_usec for m in sensor]) == STEP_US)
+    gps = [m.time_usec for m in by_type(msgs, "HIL_GPS")]
+    assert len(gps) == 21 and np.all(np.diff(gps) == 100_000)  # gps_hz = 10 in sim time
+    beats = by_type(msgs, "HEARTBEAT")
+    assert len(beats) == 3 and all(b.autopilot == mavlink.MAV_AUTOPILOT_INVALID for b in beats)  # 1 Hz
+    n_mag = sum(bool(m.fields_updated & SENSOR_MAG == SENSOR_MAG) for m in sensor)
+    n_baro = sum(bool(m.fields_updated & SENSOR_BARO == SENSOR_BARO) for m in sensor)
+    assert abs(n_mag - 200) <= 2 and abs(n_baro - 100) <= 2  # 100 Hz and 50 Hz
+    assert all(m.fields_updated & (SENSOR_ACCEL | SENSOR_GYRO) == SENSOR_ACCEL | SENSOR_GYRO for m in sensor)
+    peer.close()
+
+
+def test_dropped_connection_resumes_where_it_stopped(served, sim):
+    peer = Peer(served.link.port)
+    peer.next()
+    for _ in range(20):
+        last = peer.step(armed=False)[-1]
+    peer.close()
+    wait_until(lambda: not served.link.connected)
+    t_drop = sim.t_ns
+    time.sleep(0.2)
+    assert sim.t_ns == t_drop == last.time_usec * 1000  # no PX4, no time
+    peer = Peer(served.link.port)
+    again = peer.next()[-1]
+    assert again.time_usec == last.time_usec and again.fields_updated == ALL_FIELDS
+    for k in range(20):
+        assert peer.step(armed=False)[-1].time_usec == last.time_usec + STEP_US * (k + 1)
+    newer = Peer(served.link.port)  # a restarted PX4 replaces a stale connection
+    assert newer.next()[-1].time_usec == sim.t_ns // 1000
+    assert newer.step(armed=False)[-1].time_usec == sim.t_ns // 1000
+    with pytest.raises((ConnectionError, OSError)):
+        peer.next(timeout=1.0)
+    newer.close()
+
+
+def test_garbage_and_bad_actuator_values_are_rejected_and_the_link_keeps_working(served, sim, caplog):
+    caplog.set_level(logging.ERROR, logger="droneulator.px4")
+    peer = Peer(served.link.port)
+    peer.next()
+    garbage = bytes(np.random.default_rng(3).integers(0, 256, 300, dtype=np.uint8)) + b"\xfd\xff\x00\x00"
+    peer.sock.sendall(garbage)  # ends inside a bogus frame header claiming 267 bytes
+    t = peer.step(armed=False)[-1].time_usec
+    assert "not valid MAVLink" in caplog.text
+    u = float(served.link.motor_map.speed_to_output(sim.vehicle.hover_speed))
+    s = peer.step([float("nan"), u, u, u])[-1]
+    assert s.time_usec == t + STEP_US and "not finite" in caplog.text
+    s = peer.step([1.5, -0.2, u, u])[-1]
+    assert s.time_usec == t + 2 * STEP_US and "outside [0, 1]" in caplog.text
+    assert np.all(np.isfinite(sim.state.rotor_speeds))
+    for _ in range(5):
+        s = peer.step(armed=False)[-1]
+    assert s.time_usec == t + 7 * STEP_US and served.link.connected
+    peer.close()
+
+
+def test_same_seed_gives_identical_sensor_streams(sim):
+    def run(seed: int) -> list[bytes]:
+        sim.reset(position=sim.scene.spawn_position + [0.0, 0.0, 3.0], airborne=True)
+        served = Served(sim, seed=seed)
+        peer = Peer(served.link.port)
+        msgs = peer.next()
+        u = float(served.link.motor_map.speed_to_output(sim.vehicle.hover_speed))
+        for k in range(60):
+            msgs += peer.step([u + 0.02 * math.sin(0.3 * k), u, u, u - 0.02 * math.sin(0.3 * k)])
+        peer.close()
+        served.close()
+        return [bytes(m.get_msgbuf()) for m in msgs]
+
+    a, b, c = run(5), run(5), run(6)
+    assert a == b
+    assert a != c and len(a) == len(c)
