@@ -390,6 +390,8 @@ def test_px4_drives_the_clock_and_websocket_flight_is_refused():
             peer.step(u, armed=True)
         st = c.state()
         assert st["mode"] == "external" and st["position"][2] > 0.3  # it climbs
-        peer.close()
+        peer.close()  # PX4 goes away mid-flight: the simulator holds position and accepts commands again
+        r.wait_for(lambda: c.state()["mode"] == "hold", 10, "the vehicle to hold after PX4 left")
+        c.goto([1.0, 1.0, 2.0])
     finally:
         r.close()

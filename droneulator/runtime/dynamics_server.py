@@ -216,8 +216,13 @@ class DynamicsServer:
                 self.api.refuse_flight("PX4 SITL is in control; flight commands come from PX4")
                 log.info("PX4 connected: it now drives the simulation clock")
             else:
+                with self.lock:  # the internal controller takes over: hover in place, or rest
+                    if self.sim.state.position[2] > 0.05:
+                        self.sim.hold()
+                    else:
+                        self.sim.motors_off()
                 self.api.allow_flight()
-                log.warning("PX4 disconnected: the simulator runs on its own until it reconnects")
+                log.warning("PX4 disconnected: holding position until it reconnects")
         if res is not None:
             self._after_step(res, realtime=False)
         if self._px4_in_control:
