@@ -106,6 +106,133 @@ def cmd_config(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_capture(args: argparse.Namespace) -> int:
+    import signal
+
+    from droneulator.workflows.photogrammetry.capture import capture
+
+    cfg = _config(args)
+    cap = cfg.capture
+    for name in (
+        "views",
+        "radius",
+        "altitudes",
+        "arc_deg",
+        "pitch_deg",
+        "width",
+        "height",
+        "hfov_deg",
+        "speed",
+        "camera_hz",
+        "jpeg_quality",
+        "settle_position_m",
+        "settle_speed_mps",
+        "settle_time_s",
+    ):
+        value = getattr(args, name)
+        if value is not None:
+            setattr(cap, name, value)
+    cap.__post_init__()
+
+    def interrupt(*_: object) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, interrupt)  # a kill stops like Ctrl-C: the views so far stay valid
+    try:
+        capture(cfg, Path(args.out), url=args.url, zenoh_endpoint=args.zenoh, progress=not args.no_progress)
+    except KeyboardInterrupt:
+        print(
+            f"interrupted: the views captured so far are in {args.out}; run again to resume", file=sys.stderr
+        )
+        return 130
+    return 0
+
+
+def cmd_reconstruct(args: argparse.Namespace) -> int:
+    from droneulator.workflows.photogrammetry.reconstruct import ReconstructOptions, reconstruct
+
+    opts = ReconstructOptions(
+        max_features=args.max_features,
+        matcher=args.matcher,
+        spatial_neighbors=args.neighbors,
+        prior_position_std_m=args.prior_std,
+        verification=args.verification,
+        refine_rotations=args.refine_rotations,
+        dense=not args.no_dense,
+    )
+    report = reconstruct(Path(args.dataset), opts)
+    return 0 if report["registered_images"] >= 2 else 1
+
+
+def _add_rl_config_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scene-seed", type=int, default=None, help="vineyard scene seed (default 0)")
+    p.add_argument("--config", default=None, help="JSON or TOML file with SimConfig fields")
+    p.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override one option, e.g. --set rl.heading=goal --set rl.safety_margin=0.4",
+    )
+
+
+def cmd_train(args: argparse.Namespace) -> int:
+    from droneulator.workflows.rl.train import train
+
+    cfg = load_config(args.config, args.overrides, seed=args.scene_seed)
+    overrides = {} if args.learning_starts is None else {"learning_starts": args.learning_starts}
+    summary = train(
+        cfg,
+        Path(args.out),
+        steps=args.steps,
+        seed=args.seed,
+        n_envs=args.envs,
+        algo=args.algo,
+        vec=args.vec,
+        checkpoint_every=args.checkpoint_every,
+        threads=args.threads,
+        progress=not args.no_progress,
+        overrides=overrides,
+    )
+    print(
+        f"trained {summary['steps']} steps in {summary['wall_s']:.0f} s "
+        f"({summary['steps_per_s']:.1f} steps/s, {summary['n_envs']} env(s)); model: {summary['model']}"
+    )
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from droneulator.workflows.rl.evaluate import evaluate, load_run_config
+
+    cfg = load_run_config(Path(args.model))
+    if args.config or args.overrides or args.scene_seed is not None:
+        base = Path(args.model).parent / "config.json"
+        cfg = load_config(
+            args.config or (base if base.exists() else None), args.overrides, seed=args.scene_seed
+        )
+    summary = evaluate(
+        Path(args.model),
+        episodes=args.episodes,
+        seed=args.seed,
+        out=Path(args.out) if args.out else None,
+        cfg=cfg,
+        logs=Path(args.logs) if args.logs else None,
+        mode="remote" if args.url else "local",
+        url=args.url,
+        zenoh=args.zenoh,
+        deterministic=not args.stochastic,
+    )
+    for i, e in enumerate(summary["per_episode"]):
+        print(
+            f"episode {i} (seed {e['seed']}): {e['termination']:13s} {e['sim_time_s']:6.1f} s "
+            f"return {e['return']:7.1f}  path {e['shortest_path_m']:5.1f} m  flown {e['flown_m']:5.1f} m"
+        )
+    where = Path(summary["figures"]["trajectories"]).parent
+    print(f"success rate {summary['successes']}/{summary['episodes']}; evaluation.json and figures: {where}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="droneulator", description="UAV simulator for agricultural robotics.")
     sub = ap.add_subparsers(dest="command", required=True)
@@ -157,6 +284,122 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", default="out/run", help="where --demo saves frames (default out/run)")
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser(
+        "capture",
+        help="fly a circular photogrammetry capture around the scene's tree and record a COLMAP dataset",
+        description="Fly rings of viewpoints around the tree over the WebSocket API, record RGB, TF poses "
+        "and camera_info from the ROS 2 topics over Zenoh, and write images/, sparse_known/, poses.json/.csv "
+        "and metadata.json to --out. Re-running the same command resumes an interrupted capture.",
+    )
+    _add_config_args(p, "tree_inspection")
+    p.add_argument("--out", required=True, help="dataset folder")
+    p.add_argument("--views", type=int, default=None, help="number of views, shared out between the rings")
+    p.add_argument("--radius", type=float, default=None, help="orbit radius around the trunk (m)")
+    p.add_argument(
+        "--altitudes", type=float, nargs="+", default=None, metavar="Z", help="one ring per altitude (m)"
+    )
+    p.add_argument(
+        "--arc", dest="arc_deg", type=float, default=None, help="arc of each ring in degrees (default 360)"
+    )
+    p.add_argument(
+        "--pitch",
+        dest="pitch_deg",
+        type=float,
+        default=None,
+        help="camera pitch, deg down (default: aim at the crown)",
+    )
+    p.add_argument("--width", type=int, default=None, help="image width (px)")
+    p.add_argument("--height", type=int, default=None, help="image height (px)")
+    p.add_argument("--hfov", dest="hfov_deg", type=float, default=None, help="horizontal field of view (deg)")
+    p.add_argument("--speed", type=float, default=None, help="peak speed of each leg (m/s)")
+    p.add_argument("--camera-hz", type=float, default=None, help="camera rate while capturing (sim Hz)")
+    p.add_argument("--jpeg-quality", type=int, default=None, help="JPEG quality of the published images")
+    p.add_argument("--settle-position", dest="settle_position_m", type=float, default=None, help="m")
+    p.add_argument("--settle-speed", dest="settle_speed_mps", type=float, default=None, help="m/s")
+    p.add_argument("--settle-time", dest="settle_time_s", type=float, default=None, help="sim seconds")
+    p.add_argument(
+        "--url", default=None, help="use the simulator at this WebSocket URL instead of starting one"
+    )
+    p.add_argument(
+        "--zenoh", default=None, help="with --url: Zenoh endpoint of its bridge (default tcp/127.0.0.1:7448)"
+    )
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_capture)
+
+    p = sub.add_parser(
+        "reconstruct",
+        help="COLMAP reconstruction of a capture: SIFT, matching, triangulation from the known poses, "
+        "bundle adjustment with pose priors (needs pycolmap: pip install droneulator[colmap])",
+    )
+    p.add_argument("dataset", help="a folder written by `droneulator capture`")
+    p.add_argument("--max-features", type=int, default=8192, help="SIFT features per image")
+    p.add_argument(
+        "--matcher",
+        choices=("spatial", "exhaustive"),
+        default="spatial",
+        help="spatial: each image with its nearest neighbours by prior position (default); "
+        "exhaustive: all pairs",
+    )
+    p.add_argument("--neighbors", type=int, default=12, help="spatial matcher: neighbours per image")
+    p.add_argument(
+        "--prior-std", type=float, default=0.01, help="standard deviation of the position priors (m)"
+    )
+    p.add_argument(
+        "--verification",
+        choices=("ransac", "known_poses"),
+        default="ransac",
+        help="two-view verification: COLMAP's RANSAC (homographies not accepted; default) or the matches "
+        "that agree with the recorded relative poses",
+    )
+    p.add_argument(
+        "--refine-rotations", action="store_true", help="let bundle adjustment refine the camera rotations"
+    )
+    p.add_argument("--no-dense", action="store_true", help="skip dense stereo even where CUDA is available")
+    p.set_defaults(func=cmd_reconstruct)
+
+    p = sub.add_parser(
+        "train",
+        help="train SAC on droneulator/VineyardNav-v0 with Stable-Baselines3 (pip install droneulator[rl])",
+        description="Train SAC on the vineyard navigation environment. Writes the final model, checkpoints, "
+        "monitor.csv, progress.csv, TensorBoard logs (tb/), config.json and train_summary.json to --out.",
+    )
+    p.add_argument("--algo", choices=("sac",), default="sac", help="algorithm (default sac)")
+    p.add_argument("--steps", type=int, default=50_000, help="environment steps (default 50000)")
+    p.add_argument(
+        "--seed", type=int, default=0, help="training seed: env i starts from seed + i (default 0)"
+    )
+    p.add_argument("--envs", type=int, default=1, help="parallel environments (default 1)")
+    p.add_argument(
+        "--vec",
+        choices=("auto", "dummy", "subproc"),
+        default="auto",
+        help="vectorisation: subprocesses when --envs > 1 (auto, default), or all in this process (dummy)",
+    )
+    p.add_argument("--out", default="out/rl", help="run folder (default out/rl)")
+    p.add_argument("--learning-starts", type=int, default=None, help="random warm-up steps (default 2000)")
+    p.add_argument("--checkpoint-every", type=int, default=10_000, help="checkpoint period in steps")
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_rl_config_args(p)
+    p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser(
+        "evaluate",
+        help="evaluate a trained policy on held-out seeds; writes evaluation.json and the paper's figures",
+        description="Roll the policy out (deterministic actions) on seeds not used in training and write "
+        "evaluation.json, trajectories.png and training_curves.png (from the run's monitor.csv).",
+    )
+    p.add_argument("model", help="model .zip written by `droneulator train`")
+    p.add_argument("--episodes", type=int, default=10, help="episodes (default 10)")
+    p.add_argument("--seed", type=int, default=1_000_000, help="first evaluation seed (default 1000000)")
+    p.add_argument("--out", default=None, help="output folder (default: the model's folder)")
+    p.add_argument("--logs", default=None, help="training run folder for the curves (default: the model's)")
+    p.add_argument("--stochastic", action="store_true", help="sample actions instead of the policy mean")
+    p.add_argument("--url", default=None, help="evaluate against a running `droneulator run` at this URL")
+    p.add_argument("--zenoh", default=None, help="with --url: Zenoh endpoint of its bridge")
+    _add_rl_config_args(p)
+    p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("config", help="print the effective configuration as JSON")
     _add_config_args(p)

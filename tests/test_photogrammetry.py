@@ -1,0 +1,294 @@
+"""Workflow 1: photogrammetry capture and COLMAP reconstruction with pose priors.
+
+The fast tests check the conventions (pose and pixel centre) against pycolmap's own reading of the
+written model, the capture plan, the TF lookup and the resume logic. The slow one flies a real capture
+through ``droneulator run`` (subprocess, WebSocket, Zenoh), reconstructs it and resumes it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from droneulator import frames as F
+from droneulator.config import load_config
+from droneulator.render.camera import intrinsics
+from droneulator.workflows.photogrammetry.capture import (
+    CaptureDataset,
+    DatasetMismatchError,
+    TfBuffer,
+    arc_waypoints,
+    pending_views,
+    plan_settings,
+    plan_viewpoints,
+    ring_sizes,
+    segment_errors,
+)
+from droneulator.workflows.photogrammetry.colmap_model import (
+    K_from_colmap_pinhole,
+    KnownModel,
+    colmap_pinhole_params,
+    project_opencv,
+    read_text_model,
+    write_text_model,
+)
+
+W, H = 320, 240
+K = intrinsics(
+    load_config(None, [f'render.cameras=[{{"width": {W}, "height": {H}, "hfov_deg": 80}}]']).render.cameras[0]
+)
+
+
+def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """T_world_optical of a camera at ``eye`` looking at ``target`` with the image's up towards +z."""
+    z = (target - eye) / np.linalg.norm(target - eye)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    return F.make_transform(np.column_stack([x, np.cross(z, x), z]), eye)
+
+
+def synthetic_views(n: int = 6) -> tuple[list[tuple[int, str, np.ndarray]], np.ndarray]:
+    rng = np.random.default_rng(1)
+    points = rng.uniform([-1.5, -1.5, 0.5], [1.5, 1.5, 3.5], (40, 3))
+    views = []
+    for i in range(n):
+        a = 2 * math.pi * i / n
+        eye = np.array([6 * math.cos(a), 6 * math.sin(a), 2.5 + 0.3 * i])
+        views.append((i + 1, f"{i:04d}.jpg", look_at(eye, np.array([0.0, 0.0, 2.0]))))
+    return views, points
+
+
+# --------------------------------------------------------------------------- conventions
+def test_pixel_centre_offset_and_round_trip():
+    params = colmap_pinhole_params(K)
+    assert K[0, 2] == (W - 1) / 2 and K[1, 2] == (H - 1) / 2  # OpenCV: top-left pixel centre at 0
+    np.testing.assert_array_equal(params, [K[0, 0], K[1, 1], W / 2, H / 2])  # COLMAP: it is at 0.5
+    np.testing.assert_array_equal(K_from_colmap_pinhole(params), K)
+
+
+def test_colmap_pose_is_world_to_camera_in_the_optical_frame():
+    views, points = synthetic_views()
+    for _, _, T in views:
+        qvec, tvec = F.colmap_cam_from_world(T)
+        R = F.quat_to_matrix(F.wxyz_to_xyzw(qvec))
+        p_cam = points @ R.T + tvec  # COLMAP: X_cam = R X_world + t
+        np.testing.assert_allclose(p_cam, F.transform_points(F.invert_transform(T), points), atol=1e-12)
+        np.testing.assert_allclose(F.colmap_to_T_world_optical(qvec, tvec), T, atol=1e-12)
+
+
+def test_text_model_round_trip(tmp_path: Path):
+    views, _ = synthetic_views()
+    model = KnownModel.from_views(K, W, H, views)
+    write_text_model(tmp_path, model)
+    back = read_text_model(tmp_path)
+    np.testing.assert_array_equal(back.cameras[1].params, model.cameras[1].params)
+    for image_id, name, T in views:
+        assert back.images[image_id].name == name
+        np.testing.assert_allclose(back.images[image_id].T_world_optical, T, atol=1e-12)
+    assert (tmp_path / "points3D.txt").read_text().startswith("#")
+
+
+def _broken(kind: str, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    if kind == "camera-to-world":
+        return F.invert_transform(T), K  # the writer handed the inverse pose
+    if kind == "pixel-centre":
+        Kb = K.copy()
+        Kb[:2, 2] -= 0.5  # cx, cy written without COLMAP's +0.5
+        return T, Kb
+    if kind == "flipped-y":
+        return T @ F.make_transform(np.diag([1.0, -1.0, -1.0]), np.zeros(3)), K  # OpenGL camera axes
+    return T, K
+
+
+@pytest.mark.parametrize("kind", ["correct", "camera-to-world", "pixel-centre", "flipped-y"])
+def test_pycolmap_reads_the_model_with_our_conventions_and_a_broken_one_fails(tmp_path: Path, kind: str):
+    pycolmap = pytest.importorskip("pycolmap")
+    from droneulator.workflows.photogrammetry.reconstruct import model_convention_error
+
+    views, points = synthetic_views()
+    observations = {name: project_opencv(K, T, points) for _, name, T in views}
+    written = [(i, name, _broken(kind, T)[0]) for i, name, T in views]
+    write_text_model(tmp_path, KnownModel.from_views(_broken(kind, np.eye(4))[1], W, H, written))
+    rec = pycolmap.Reconstruction(tmp_path)
+    assert rec.num_reg_images() == len(views)
+    err = model_convention_error(rec, points, observations)
+    if kind == "correct":
+        assert err < 1e-6
+    else:
+        assert err > 0.3, f"a {kind} model was not caught (error {err} px)"
+
+
+# --------------------------------------------------------------------------- the plan
+def test_plan_faces_the_tree_on_staggered_rings():
+    plan = plan_viewpoints([1.0, -2.0, 0.0], 7.0, [4.0, 6.0], 9)
+    assert ring_sizes(9, 2) == [5, 4]
+    assert [v.ring for v in plan] == [0] * 5 + [1] * 4
+    assert [v.name for v in plan] == [f"{i:04d}.jpg" for i in range(9)]
+    for v in plan:
+        p = np.array(v.position)
+        assert math.hypot(p[0] - 1.0, p[1] + 2.0) == pytest.approx(7.0)
+        assert p[2] == (4.0 if v.ring == 0 else 6.0)
+        heading = np.array([math.cos(v.yaw), math.sin(v.yaw)])
+        np.testing.assert_allclose(heading, (np.array([1.0, -2.0]) - p[:2]) / 7.0, atol=1e-12)
+    az0 = [v.azimuth for v in plan if v.ring == 0]
+    assert np.allclose(np.diff(np.unwrap(az0)), 2 * math.pi / 5)
+    assert plan[5].azimuth == pytest.approx(math.pi / 4)  # second ring staggered by half its spacing
+
+    arc = plan_viewpoints([0.0, 0.0], 5.0, [3.0], 4, arc_deg=90.0)
+    assert [round(math.degrees(v.azimuth)) for v in arc] == [0, 30, 60, 90]
+
+
+def test_arcs_are_split_and_tracking_errors_measure_the_commanded_segment():
+    pts = arc_waypoints([0.0, 0.0], 7.0, 5.0, 0.0, math.radians(45.0), 25.0)
+    assert len(pts) == 2 and np.allclose(pts[-1], [7 * math.cos(math.pi / 4), 7 * math.sin(math.pi / 4), 5.0])
+    assert all(abs(np.linalg.norm(p[:2]) - 7.0) < 1e-12 for p in pts)
+    a, b = np.array([0.0, 0.0, 5.0]), np.array([2.0, 0.0, 5.0])
+    path, alt = segment_errors(np.array([[1.0, 0.1, 4.9], [3.0, 0.0, 5.0], [-1.0, 0.0, 5.0]]), a, b)
+    np.testing.assert_allclose(path, [math.hypot(0.1, 0.1), 1.0, 1.0])
+    np.testing.assert_allclose(alt, [0.1, 0.0, 0.0], atol=1e-12)
+
+
+def _tf(parent: str, child: str, t_ns: int, p, q) -> SimpleNamespace:
+    return SimpleNamespace(
+        header=SimpleNamespace(
+            frame_id=parent, stamp=SimpleNamespace(sec=t_ns // 10**9, nanosec=t_ns % 10**9)
+        ),
+        child_frame_id=child,
+        transform=SimpleNamespace(
+            translation=SimpleNamespace(x=p[0], y=p[1], z=p[2]),
+            rotation=SimpleNamespace(x=q[0], y=q[1], z=q[2], w=q[3]),
+        ),
+    )
+
+
+def test_tf_buffer_interpolates_the_dynamic_edge_and_chains_the_static_ones():
+    tf = TfBuffer()
+    ident = [0.0, 0.0, 0.0, 1.0]
+    tf.on_tf(SimpleNamespace(transforms=[_tf("map", "odom", 0, [0, 0, 0], ident)]), static=True)
+    tf.on_tf(
+        SimpleNamespace(transforms=[_tf("base_link", "cam_optical", 0, [0.1, 0, 0], F.quat_from_yaw(0.0))]),
+        static=True,
+    )
+    tf.on_tf(
+        SimpleNamespace(transforms=[_tf("odom", "base_link", 10_000_000, [0, 0, 1], F.quat_from_yaw(0.0))])
+    )
+    tf.on_tf(
+        SimpleNamespace(transforms=[_tf("odom", "base_link", 20_000_000, [1, 0, 1], F.quat_from_yaw(0.2))])
+    )
+    T = tf.lookup("map", "base_link", 15_000_000)
+    np.testing.assert_allclose(T[:3, 3], [0.5, 0.0, 1.0])
+    assert F.yaw_of(F.matrix_to_quat(T[:3, :3])) == pytest.approx(0.1)
+    T_opt = tf.lookup("map", "cam_optical", 20_000_000)
+    np.testing.assert_allclose(T_opt[:3, 3], [1 + 0.1 * math.cos(0.2), 0.1 * math.sin(0.2), 1.0])
+    with pytest.raises(TimeoutError):
+        tf.lookup("map", "base_link", 25_000_000, timeout=0.05)  # not received yet
+
+
+# --------------------------------------------------------------------------- resume
+def _fake_view(i: int) -> dict:
+    T = look_at(np.array([7.0 * math.cos(i), 7.0 * math.sin(i), 5.0]), np.array([0.0, 0.0, 4.0]))
+    p, q = F.pose_from_transform(T)
+    pose = {"position": p.tolist(), "quaternion_xyzw": q.tolist()}
+    leg = {"kind": "capture", "max_path_error_m": 0.01, "max_altitude_error_m": 0.001}
+    return {"index": i, "image_id": i + 1, "name": f"{i:04d}.jpg", "stamp_ns": i, "optical": pose,
+            "base_link": pose, "leg": leg}  # fmt: skip
+
+
+def test_resume_captures_only_the_missing_views_and_keeps_the_others(tmp_path: Path):
+    cfg = load_config(None, ["capture.views=6"], scene="tree_inspection")
+    cam = {"frame_id": "front_optical_frame", "width": W, "height": H, "K": K.tolist(), "hfov_deg": 80.0}
+    settings = plan_settings(cfg, 10.0, cam)
+    plan = plan_viewpoints([0.0, 0.0], cfg.capture.radius, cfg.capture.altitudes, cfg.capture.views)
+
+    first = CaptureDataset.open(tmp_path, settings)
+    first.set_camera(cam)
+    for i in (0, 1, 2, 4):
+        first.add(_fake_view(i), f"jpeg {i}".encode(), {"captured": 1})
+    first.finish_run({"captured": 4, "wall_s": 1.0})
+    (tmp_path / "images" / "0004.jpg").unlink()  # interrupted before its files were all written
+
+    again = CaptureDataset.open(tmp_path, settings)
+    assert sorted(again.views) == [0, 1, 2]
+    assert [v.index for v in pending_views(plan, again.views)] == [3, 4, 5]
+    again.set_camera(cam)
+    for i in (3, 4, 5):
+        again.add(_fake_view(i), f"jpeg {i}".encode(), {"captured": 1})
+    assert [(tmp_path / "images" / f"{i:04d}.jpg").read_bytes() for i in range(6)] == [
+        f"jpeg {i}".encode() for i in range(6)
+    ]
+    model = read_text_model(tmp_path / "sparse_known")
+    assert sorted(model.images) == [1, 2, 3, 4, 5, 6]
+    meta = json.loads((tmp_path / "metadata.json").read_text())
+    assert meta["complete"] and meta["views_captured"] == 6 and len(meta["runs"]) == 2
+    assert pending_views(plan, CaptureDataset.open(tmp_path, settings).views) == []
+
+    other = plan_settings(load_config(None, ["capture.views=8"], scene="tree_inspection"), 10.0, cam)
+    with pytest.raises(DatasetMismatchError, match="views"):
+        CaptureDataset.open(tmp_path, other)
+    wider = dict(cam, K=(K * [[1.01], [1.01], [1]]).tolist())
+    with pytest.raises(DatasetMismatchError):
+        CaptureDataset.open(tmp_path, settings).set_camera(wider)
+
+
+# --------------------------------------------------------------------------- end to end
+@pytest.mark.slow
+def test_capture_reconstruct_and_resume_end_to_end(tmp_path: Path):
+    pycolmap = pytest.importorskip("pycolmap")
+    from droneulator.workflows.photogrammetry.capture import capture
+    from droneulator.workflows.photogrammetry.reconstruct import ReconstructOptions, reconstruct
+
+    out = tmp_path / "ds"
+    overrides = [
+        "capture.views=8",
+        f"capture.width={W}",
+        f"capture.height={H}",
+        "capture.hfov_deg=90",
+        "capture.arc_deg=90",
+        "render.shadow_map_size=1024",
+    ]
+    cfg = load_config(None, overrides, scene="tree_inspection")
+    meta = capture(cfg, out, progress=False)
+    assert meta["complete"] and meta["views_captured"] == 8
+    assert meta["tracking"]["max_path_error_m"] < 0.1 and meta["tracking"]["max_altitude_error_m"] < 0.05
+
+    poses = json.loads((out / "poses.json").read_text())
+    K_info = np.array(poses["camera"]["K"])
+    assert poses["camera"]["frame_id"] == "front_optical_frame" and poses["world_frame"] == "map"
+    for v in poses["views"]:
+        assert v["position_error_m"] < 0.05 and v["speed_mps"] < 0.05  # recorded once settled
+        assert (out / "images" / v["name"]).read_bytes()[:2] == b"\xff\xd8"  # JPEG as published
+    known = pycolmap.Reconstruction(out / "sparse_known")
+    cam = known.cameras[1]
+    assert cam.model.name == "PINHOLE" and (cam.width, cam.height) == (W, H)
+    np.testing.assert_allclose(
+        cam.params, [K_info[0, 0], K_info[1, 1], K_info[0, 2] + 0.5, K_info[1, 2] + 0.5], atol=1e-12
+    )
+    assert known.num_reg_images() == 8
+
+    report = reconstruct(out, ReconstructOptions(max_features=4096))
+    assert report["registered_images"] == 8
+    assert report["sparse_points"] > 100
+    assert report["mean_reprojection_error_px"] < 1.0
+    # the triangulated points seen through the recorded poses and camera_info K, no COLMAP code involved
+    assert report["known_pose_reprojection"]["mean_px"] < 1.0
+    assert not report["dense"]["ran"] or pycolmap.has_cuda
+    sparse = pycolmap.Reconstruction(out / "sparse")
+    assert sparse.num_points3D() == report["sparse_points"]
+    assert (out / "reconstruction.png").stat().st_size > 10_000
+    assert "sparse points" in (out / "report.md").read_text()
+
+    # resume: two views lost (images deleted) are captured again, the others are left untouched
+    digests = {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in (out / "images").iterdir()}
+    for name in ("0003.jpg", "0007.jpg"):
+        (out / "images" / name).unlink()
+    meta = capture(cfg, out, progress=False)
+    assert meta["runs"][-1]["captured"] == 2 and meta["complete"]
+    after = {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in (out / "images").iterdir()}
+    assert sorted(after) == sorted(digests)
+    assert all(after[n] == d for n, d in digests.items() if n not in ("0003.jpg", "0007.jpg"))
