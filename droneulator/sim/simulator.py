@@ -17,7 +17,7 @@ import numpy as np
 
 from droneulator.config import SimConfig, load_config
 from droneulator.controllers.flight import Event, FlightController, Mode
-from droneulator.frames import camera_mount, quat_from_yaw, transform_from_pose, yaw_of
+from droneulator.frames import quat_from_yaw, transform_from_pose, yaw_of
 from droneulator.scenes import get_scene
 from droneulator.scenes.base import Scene
 from droneulator.vehicles.dynamics import STATE_SIZE, FastMultirotor
@@ -125,7 +125,6 @@ class Simulator:
         self.render_enabled = render
         self.camera_schedule = render or external_cameras
         self.renderer = None
-        self.mounts = {c.name: camera_mount(np.array(c.position), c.rpy) for c in self.config.render.cameras}
         self.scene: Scene
         self._load_scene(self.config.scene, self.config.seed)
         self.reset()
@@ -159,9 +158,9 @@ class Simulator:
         A position above the ground starts hovering there (mode ``hold``) unless ``airborne=False``.
         """
         if scene is not None or (seed is not None and seed != self.config.seed):
-            self.config.scene = scene or self.config.scene
-            self.config.seed = self.config.seed if seed is None else seed
-            self._load_scene(self.config.scene, self.config.seed)
+            new = (scene or self.config.scene, self.config.seed if seed is None else seed)
+            self._load_scene(*new)  # raises for an unknown scene before anything changes
+            self.config.scene, self.config.seed = new
         pos = np.array(self.scene.spawn_position if position is None else position, dtype=float)
         if pos.shape != (3,) or not np.all(np.isfinite(pos)):
             raise CommandError("invalid_argument", "reset position must be three finite numbers")
@@ -169,7 +168,6 @@ class Simulator:
         if not math.isfinite(yaw_):
             raise CommandError("invalid_argument", "reset yaw must be finite")
         self._check_position(pos, allow_ground=True)
-        self.rng = np.random.default_rng(self.config.seed)
         self.wind = make_wind(self.config.vehicle, self.config.seed, 1.0 / self.config.vehicle.control_hz)
         self.t_ns = 0
         self._next_frame_ns = self.camera_period_ns
