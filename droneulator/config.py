@@ -275,8 +275,10 @@ class RLConfig:
     min_separation: float = 8.0
     max_path_length: float = 45.0
     other_row_prob: float = 0.7
+    #: start heading: toward the first leg of the shortest path, plus normal noise of this std (deg)
+    start_yaw_std_deg: float = 30.0
     #: episode time limit (truncation): base seconds plus the initial path length over this speed
-    time_limit_base_s: float = 10.0
+    time_limit_base_s: float = 5.0
     min_average_speed: float = 1.0
 
     def __post_init__(self) -> None:

@@ -154,6 +154,16 @@ def transform_points(T: np.ndarray, p: np.ndarray) -> np.ndarray:
     return p @ T[:3, :3].T + T[:3, 3]
 
 
+def world_to_body(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """A world-frame vector (velocity, ...) expressed in the body frame of attitude ``q`` ([x, y, z, w])."""
+    return quat_to_matrix(q).T @ np.asarray(v, dtype=float)
+
+
+def body_to_world(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """A body-frame vector (angular velocity, ...) expressed in the world frame."""
+    return quat_to_matrix(q) @ np.asarray(v, dtype=float)
+
+
 # --------------------------------------------------------------------------- named conversions
 def zup_to_gl(v: np.ndarray) -> np.ndarray:
     """Points or directions (..., 3) from the Z-up world to the Y-up OpenGL world."""

@@ -7,7 +7,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 extras="."
-[[ "${1:-}" == "--dev" ]] && extras=".[dev,colmap]"
+[[ "${1:-}" == "--dev" ]] && extras=".[dev,colmap,rl]"
 
 debs=(python3 python3-venv python3-dev libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri)
 missing=()
@@ -26,5 +26,9 @@ py=${PYTHON:-python3}
 "$py" -c 'import sys; assert sys.version_info >= (3, 11), "Python 3.11+ is required"'
 [[ -x .venv/bin/python ]] || "$py" -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
+if [[ "$extras" == *rl* ]]; then
+    # the CPU build first: an unpinned resolution would fetch gigabytes of CUDA packages
+    .venv/bin/python -m pip install -q "torch==2.13.0"
+fi
 .venv/bin/python -m pip install -q -e "$extras"
 echo "setup: ready ($(.venv/bin/python --version), $(.venv/bin/droneulator --help >/dev/null && echo droneulator OK))"

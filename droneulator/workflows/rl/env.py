@@ -1,0 +1,397 @@
+"""``droneulator/VineyardNav-v0``: point-to-point flight through the vineyard on a depth strip (§III-C).
+
+Spaces (both float32):
+
+* **Observation** (35,): ``[0:32]`` the depth strip, the centre row of the depth image min-pooled
+  into 32 equal sectors of the field of view (the nearest return in each, so a thin post is never
+  skipped), clipped at ``rl.depth_clip`` and divided by it (NaN, no return: 1.0); ``[32]`` heading
+  error to the target divided by pi, in [-1, 1] (positive: turn left); ``[33]`` measured forward
+  speed (body x) and ``[34]`` measured yaw rate (world z), normalised like the action and clipped.
+  The target is a point ``rl.lookahead`` m along the shortest path to the goal (``rl.heading =
+  "path"``, default: the global planner's guidance, so a goal behind a vine row is reached round the
+  row end) or the goal itself (``"goal"``).
+* **Action** (2,) in [-1, 1]: forward speed ``mid + a0 * half`` with ``mid, half`` the centre and
+  half-width of ``[rl.forward_min, rl.forward_max]`` (default [-2, 3] m/s: a0 = 0 means 0.5 m/s)
+  and yaw rate ``a1 * rl.max_yaw_rate`` (default 1.5 rad/s), sent through the velocity mode, which
+  holds the altitude.
+
+One step is one camera frame (``render.camera_hz``, 30 Hz sim time): the command is applied and the
+simulation runs in lockstep up to the next camera instant. Reward: ``rl.progress_scale * (d_prev -
+d) - rl.step_penalty``, plus ``rl.goal_reward`` on reaching ``rl.goal_radius`` of the goal, minus
+``rl.collision_penalty`` on a collision (the simulator's event) or on leaving the flyable bounds;
+``d`` is the shortest-path distance to the goal on the occupancy grid (:mod:`.astar`). Episodes are
+truncated after ``rl.time_limit_base_s + d0 / rl.min_average_speed`` seconds of sim time.
+
+``mode="local"`` (default) steps an in-process :class:`~droneulator.sim.simulator.Simulator` and
+renders depth only; ``mode="remote"`` drives a running ``droneulator run`` (:mod:`.remote`). Both
+return the depth image and the vehicle state, and the observation is built from them by the same
+code. ``reset(options={"start": (x, y, yaw), "goal": (x, y)})`` sets the task explicitly.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import gymnasium as gym
+import numpy as np
+
+from droneulator.config import CameraConfig, RLConfig, SimConfig, load_config
+from droneulator.frames import body_to_world, world_to_body, wrap_angle, yaw_of
+from droneulator.scenes.base import Scene
+from droneulator.workflows.rl.astar import DistanceField, OccupancyGrid, occupancy_from_scene
+
+STRIP_SAMPLES = 32
+OBS_SIZE = STRIP_SAMPLES + 3
+SCENE = "vineyard"
+CAMERA_NAME = "front"
+
+_GRIDS: dict[tuple[Any, ...], OccupancyGrid] = {}
+
+
+@dataclass
+class Kinematics:
+    """The vehicle state an observation needs (Z-up world, quaternion [x, y, z, w], body rates)."""
+
+    t: float
+    position: np.ndarray
+    quaternion: np.ndarray
+    velocity: np.ndarray  # world frame, m/s
+    angular_velocity: np.ndarray  # body frame, rad/s
+    mode: str
+
+    @classmethod
+    def from_dict(cls, st: dict[str, Any]) -> Kinematics:
+        """From a state dict of the WebSocket API or :meth:`VehicleState.to_dict`."""
+        return cls(
+            float(st["t"]),
+            np.asarray(st["position"], dtype=float),
+            np.asarray(st["quaternion"], dtype=float),
+            np.asarray(st["velocity"], dtype=float),
+            np.asarray(st["angular_velocity"], dtype=float),
+            str(st["mode"]),
+        )
+
+    @property
+    def yaw(self) -> float:
+        return yaw_of(self.quaternion)
+
+    @property
+    def forward_speed(self) -> float:
+        return float(world_to_body(self.quaternion, self.velocity)[0])
+
+    @property
+    def yaw_rate(self) -> float:
+        return float(body_to_world(self.quaternion, self.angular_velocity)[2])
+
+
+class Backend(Protocol):
+    """Where the vehicle flies: reset to a pose, step one camera frame under a velocity command."""
+
+    scene: Scene
+
+    def reset(self, position: np.ndarray, yaw: float) -> tuple[np.ndarray, Kinematics]: ...
+
+    def step(self, forward: float, yaw_rate: float) -> tuple[np.ndarray, Kinematics, bool]:
+        """Depth image and state at the next camera frame, and whether a collision happened."""
+        ...
+
+    def close(self) -> None: ...
+
+
+def rl_camera(rl: RLConfig) -> CameraConfig:
+    """The RL depth camera: level, at the default mount, far plane at the depth clip."""
+    return CameraConfig(CAMERA_NAME, rl.camera_width, rl.camera_height, rl.hfov_deg, far=rl.depth_clip)
+
+
+def env_config(config: SimConfig | None = None, **rl_overrides: Any) -> SimConfig:
+    """A copy of ``config`` set up for the environment: vineyard scene, the RL camera only, no shadows
+    (depth is unaffected), ``rl`` fields replaced by ``rl_overrides``."""
+    cfg = copy.deepcopy(config) if config is not None else load_config()
+    cfg.scene = SCENE
+    if rl_overrides:
+        cfg.rl = dataclasses.replace(cfg.rl, **rl_overrides)
+    cfg.render.cameras = [rl_camera(cfg.rl)]
+    cfg.render.shadows = False
+    return cfg
+
+
+def runtime_overrides(cfg: SimConfig) -> list[str]:
+    """``--set`` options for ``droneulator run`` so that its camera matches the RL camera (remote mode)."""
+    cam = rl_camera(cfg.rl)
+    spec = (
+        f'[{{"name": "{cam.name}", "width": {cam.width}, "height": {cam.height}, '
+        f'"hfov_deg": {cam.hfov_deg}, "far": {cam.far}}}]'
+    )
+    return [f"render.cameras={spec}", "render.shadows=false"]
+
+
+def depth_strip(depth: np.ndarray, clip: float, samples: int = STRIP_SAMPLES) -> np.ndarray:
+    """The centre row (row ``h // 2``) of a depth image min-pooled into ``samples`` equal sectors,
+    clipped at ``clip`` and divided by it; NaN (no return) reads 1.0."""
+    row = np.asarray(depth, dtype=np.float64)[depth.shape[0] // 2]
+    if row.size < samples:
+        raise ValueError(f"a depth image {row.size} px wide cannot give {samples} strip samples")
+    row = np.where(np.isnan(row), clip, np.minimum(row, clip))
+    edges = np.linspace(0, row.size, samples + 1).round().astype(int)
+    return (np.minimum.reduceat(row, edges[:-1]) / clip).astype(np.float32)
+
+
+class LocalBackend:
+    """An in-process simulator (physics only, camera instants scheduled) plus a depth-only renderer."""
+
+    def __init__(self, cfg: SimConfig) -> None:
+        from droneulator.render.renderer import Renderer
+        from droneulator.sim.simulator import Simulator
+
+        self.sim = Simulator(config=cfg, render=False, external_cameras=True)
+        self.scene = self.sim.scene
+        self.renderer = Renderer(self.scene, cfg.render.cameras, shadows=False)
+
+    def _depth(self, T_world_body: np.ndarray) -> np.ndarray:
+        return self.renderer.render(T_world_body, rgb=False)[CAMERA_NAME].depth.copy()
+
+    @staticmethod
+    def _kinematics(st: Any) -> Kinematics:
+        return Kinematics(st.t, st.position, st.quaternion, st.velocity, st.angular_velocity, st.mode)
+
+    def reset(self, position: np.ndarray, yaw: float) -> tuple[np.ndarray, Kinematics]:
+        st = self.sim.reset(position=np.asarray(position, dtype=float), yaw=float(yaw), airborne=True)
+        return self._depth(st.T_world_body), self._kinematics(st)
+
+    def step(self, forward: float, yaw_rate: float) -> tuple[np.ndarray, Kinematics, bool]:
+        self.sim.velocity(forward, yaw_rate)
+        collided = False
+        while True:
+            res = self.sim.step()
+            collided = collided or any(e.type == "collision" for e in res.events)
+            if res.camera_states:
+                st = res.camera_states[-1]
+                return self._depth(st.T_world_body), self._kinematics(st), collided
+
+    def close(self) -> None:
+        self.renderer.close()
+        self.sim.close()
+
+
+class VineyardNavEnv(gym.Env[np.ndarray, np.ndarray]):
+    """Vineyard point-to-point navigation (see the module docstring for spaces, reward and episodes).
+
+    ``config``: a :class:`SimConfig` (its ``rl`` section and vehicle/flight settings are used);
+    ``mode``: "local" or "remote" (then ``url`` of the WebSocket API and ``zenoh`` endpoint of the
+    bridge); further keyword arguments replace fields of ``config.rl``.
+    """
+
+    metadata = {"render_modes": [], "render_fps": 30}
+
+    def __init__(
+        self,
+        config: SimConfig | None = None,
+        mode: str = "local",
+        url: str | None = None,
+        zenoh: str | None = None,
+        **rl_overrides: Any,
+    ) -> None:
+        super().__init__()
+        self.config = env_config(config, **rl_overrides)
+        self.rl = self.config.rl
+        self.mode = mode
+        if mode == "local":
+            self.backend: Backend = LocalBackend(self.config)
+        elif mode == "remote":
+            from droneulator.workflows.rl.remote import RemoteBackend
+
+            self.backend = RemoteBackend(self.config, url or "ws://127.0.0.1:8765", zenoh)
+        else:
+            raise ValueError(f"mode must be 'local' or 'remote', got {mode!r}")
+        self.scene = self.backend.scene
+        self.grid = occupancy_grid(self.scene, self.rl, self.config.vehicle.collision_radius)
+        self.frame_dt = 1.0 / self.config.render.camera_hz
+        low = np.concatenate([np.zeros(STRIP_SAMPLES), -np.ones(3)]).astype(np.float32)
+        self.observation_space = gym.spaces.Box(low, np.ones(OBS_SIZE, dtype=np.float32), dtype=np.float32)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), dtype=np.float32)
+        self._mid = 0.5 * (self.rl.forward_min + self.rl.forward_max)
+        self._half = 0.5 * (self.rl.forward_max - self.rl.forward_min)
+        lm = self.scene.landmarks
+        rows = np.asarray(lm["row_y"], dtype=float)
+        spacing = float(rows[1] - rows[0]) if len(rows) > 1 else 3.0
+        self.lanes = np.sort(np.concatenate([lm["alley_y"], [rows[0] - spacing / 2, rows[-1] + spacing / 2]]))
+        self.row_x = (float(lm["row_x_min"][0]), float(lm["row_x_max"][0]))
+        self.field: DistanceField | None = None
+        self.goal = np.zeros(2)
+        self.start = np.zeros(3)
+        self._d = 0.0
+        self._steps = 0
+        self.max_steps = 0
+        #: the vehicle state of the latest observation
+        self.kinematics: Kinematics | None = None
+        self.initial_distance = 0.0
+
+    # ------------------------------------------------------------------ mappings
+    def action_to_command(self, action: np.ndarray) -> tuple[float, float]:
+        """Normalised action in [-1, 1]^2 -> (forward speed m/s, yaw rate rad/s)."""
+        a = np.clip(np.asarray(action, dtype=np.float64).reshape(2), -1.0, 1.0)
+        return float(self._mid + a[0] * self._half), float(a[1] * self.rl.max_yaw_rate)
+
+    def command_to_action(self, forward: float, yaw_rate: float) -> np.ndarray:
+        """Inverse of :meth:`action_to_command` (clipped to the action space)."""
+        a = [(forward - self._mid) / self._half, yaw_rate / self.rl.max_yaw_rate]
+        return np.clip(np.array(a, dtype=np.float32), -1.0, 1.0)
+
+    def target(self, position: np.ndarray) -> np.ndarray:
+        """The point the heading error refers to (see ``rl.heading``)."""
+        assert self.field is not None
+        if self.rl.heading == "goal":
+            return self.goal
+        return self.field.lookahead(position[:2], self.rl.lookahead)
+
+    def observe(self, depth: np.ndarray, kin: Kinematics) -> np.ndarray:
+        """The observation vector from a depth image and the vehicle state (both backends)."""
+        tgt = self.target(kin.position)
+        bearing = math.atan2(tgt[1] - kin.position[1], tgt[0] - kin.position[0])
+        heading = wrap_angle(bearing - kin.yaw) / math.pi
+        speed = (kin.forward_speed - self._mid) / self._half
+        rate = kin.yaw_rate / self.rl.max_yaw_rate
+        tail = np.clip([heading, speed, rate], -1.0, 1.0)
+        return np.concatenate([depth_strip(depth, self.rl.depth_clip), tail.astype(np.float32)])
+
+    # ------------------------------------------------------------------ tasks
+    def _lane_point(self, lane: int) -> np.ndarray:
+        rng = self.np_random
+        x0, x1 = self.row_x
+        return np.array([rng.uniform(x0 + 1.0, x1 - 1.0), self.lanes[lane] + rng.uniform(-0.3, 0.3)])
+
+    def _headland_point(self) -> np.ndarray:
+        rng = self.np_random
+        x0, x1 = self.row_x
+        x = x1 + rng.uniform(1.5, 6.0) if rng.random() < 0.5 else x0 - rng.uniform(1.5, 6.0)
+        return np.array([x, rng.uniform(self.lanes[0], self.lanes[-1])])
+
+    def sample_task(self) -> tuple[np.ndarray, float, np.ndarray, DistanceField]:
+        """Random start (x, y), start yaw, goal (x, y) and the goal's distance field.
+
+        Goals lie in an alley (85 %) or a headland; starts, for a goal in an alley, lie in another
+        alley with probability ``rl.other_row_prob`` (the route then turns round a row end), else in
+        the same alley or a headland. Both are free, the start is reachable and the shortest path
+        length lies in ``[rl.min_separation, rl.max_path_length]``. The start faces the first leg of
+        the shortest path, give or take ``rl.start_yaw_std_deg`` (one standard deviation).
+        """
+        rng = self.np_random
+        n = len(self.lanes)
+        for _ in range(200):
+            goal_lane = int(rng.integers(n)) if rng.random() < 0.85 else -1
+            goal = self._lane_point(goal_lane) if goal_lane >= 0 else self._headland_point()
+            if not self.grid.is_free(goal):
+                continue
+            field = DistanceField(self.grid, goal)
+            for _ in range(30):
+                if goal_lane < 0:
+                    start = self._lane_point(int(rng.integers(n)))
+                elif rng.random() < self.rl.other_row_prob:
+                    start = self._lane_point(int(rng.choice([k for k in range(n) if k != goal_lane])))
+                elif rng.random() < 0.5:
+                    start = self._lane_point(goal_lane)
+                else:
+                    start = self._headland_point()
+                if not (self.grid.is_free(start) and field.is_reachable(start)):
+                    continue
+                d0 = field.distance(start)
+                if self.rl.min_separation <= d0 <= self.rl.max_path_length:
+                    carrot = field.lookahead(start, self.rl.lookahead)
+                    yaw = math.atan2(carrot[1] - start[1], carrot[0] - start[0])
+                    yaw += rng.normal(0.0, math.radians(self.rl.start_yaw_std_deg))
+                    return start, wrap_angle(yaw), goal, field
+        raise RuntimeError("could not sample a start and goal: check the rl.* sampling settings")
+
+    # ------------------------------------------------------------------ gymnasium API
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        opts = options or {}
+        if "start" in opts or "goal" in opts:
+            if not ("start" in opts and "goal" in opts):
+                raise ValueError("options need both 'start' (x, y, yaw) and 'goal' (x, y)")
+            sx, sy, yaw = (float(v) for v in opts["start"])
+            start, goal = np.array([sx, sy]), np.asarray(opts["goal"], dtype=float)[:2]
+            field = DistanceField(self.grid, goal)
+        else:
+            start, yaw, goal, field = self.sample_task()
+        self.field, self.goal = field, goal.copy()
+        self.start = np.array([start[0], start[1], yaw])
+        depth, kin = self.backend.reset(np.array([start[0], start[1], self.rl.altitude]), yaw)
+        self.kinematics = kin
+        self._d = self.initial_distance = field.distance(kin.position)
+        self._steps = 0
+        limit_s = self.rl.time_limit_base_s + self.initial_distance / self.rl.min_average_speed
+        self.max_steps = math.ceil(limit_s / self.frame_dt)
+        return self.observe(depth, kin), self._info(kin, None, (0.0, 0.0))
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        if self.field is None:
+            raise RuntimeError("call reset() before step()")
+        a = np.asarray(action, dtype=np.float64)
+        if a.size != 2 or not np.all(np.isfinite(a)):
+            raise ValueError(f"action must be two finite numbers, got {action!r}")
+        command = self.action_to_command(a)
+        depth, kin, collided = self.backend.step(*command)
+        self.kinematics = kin
+        self._steps += 1
+        d = self.field.distance(kin.position)
+        reward = self.rl.progress_scale * (self._d - d) - self.rl.step_penalty
+        self._d = d
+        reason = None
+        if collided or kin.mode == "collided":
+            reason = "collision"
+        elif np.any(kin.position[:2] < self.scene.bounds_min[:2]) or np.any(
+            kin.position[:2] > self.scene.bounds_max[:2]
+        ):
+            reason = "out_of_bounds"
+        elif math.hypot(*(kin.position[:2] - self.goal)) <= self.rl.goal_radius:
+            reason = "goal"
+        if reason == "goal":
+            reward += self.rl.goal_reward
+        elif reason is not None:
+            reward -= self.rl.collision_penalty
+        terminated = reason is not None
+        truncated = not terminated and self._steps >= self.max_steps
+        if truncated:
+            reason = "time_limit"
+        return (
+            self.observe(depth, kin),
+            float(reward),
+            terminated,
+            truncated,
+            self._info(kin, reason, command),
+        )
+
+    def _info(self, kin: Kinematics, reason: str | None, command: tuple[float, float]) -> dict[str, Any]:
+        return {
+            "t": kin.t,
+            "position": kin.position.copy(),
+            "yaw": kin.yaw,
+            "command": command,
+            "distance": self._d,
+            "goal_distance": float(math.hypot(*(kin.position[:2] - self.goal))),
+            "termination": reason,
+            "is_success": reason == "goal",
+        }
+
+    def close(self) -> None:
+        backend = getattr(self, "backend", None)
+        if backend is not None:
+            backend.close()
+            self.backend = None  # type: ignore[assignment]
+        super().close()
+
+
+def occupancy_grid(scene: Scene, rl: RLConfig, collision_radius: float) -> OccupancyGrid:
+    """The scene's occupancy grid at the RL altitude, inflated by the vehicle radius plus the safety
+    margin; built once per process for each scene and setting."""
+    key = (scene.name, scene.seed, rl.altitude, collision_radius + rl.safety_margin, rl.grid_resolution)
+    if key not in _GRIDS:
+        _GRIDS[key] = occupancy_from_scene(scene, rl.altitude, key[3], rl.grid_resolution)
+    return _GRIDS[key]

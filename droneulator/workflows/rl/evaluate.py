@@ -1,0 +1,292 @@
+"""``droneulator evaluate``: roll a trained policy out on held-out seeds and draw the paper's figures.
+
+Writes to ``out`` (default: the model's folder): ``evaluation.json`` (success rate and per-episode
+outcomes), ``training_curves.png`` (episode return, length and success over training, from the
+run's ``monitor.csv``) and ``trajectories.png`` (the rollouts over the vineyard's occupancy map,
+coloured by time, with the forward-speed and yaw-rate commands along them).
+
+Evaluation seeds start at :data:`EVAL_SEED` by default, far from the training seeds (``seed`` to
+``seed + envs - 1``; later training episodes draw from those seeds' generators); an overlap with the
+seeds recorded in ``train_summary.json`` is refused. Actions are deterministic (the policy's mean).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from droneulator.config import SimConfig, load_config
+from droneulator.workflows.rl.astar import occupancy_from_scene
+from droneulator.workflows.rl.env import VineyardNavEnv
+
+EVAL_SEED = 1_000_000
+
+
+@dataclass
+class Rollout:
+    """One evaluation episode, sampled at every environment step (the reset included)."""
+
+    seed: int
+    start: np.ndarray
+    goal: np.ndarray
+    initial_distance: float
+    path: np.ndarray
+    t: list[float] = field(default_factory=list)
+    xy: list[np.ndarray] = field(default_factory=list)
+    forward: list[float] = field(default_factory=list)
+    yaw_rate: list[float] = field(default_factory=list)
+    clearance: list[float] = field(default_factory=list)
+    ret: float = 0.0
+    termination: str | None = None
+
+    def summary(self) -> dict[str, Any]:
+        xy = np.array(self.xy)
+        flown = float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum()) if len(xy) > 1 else 0.0
+        duration = self.t[-1] - self.t[0] if self.t else 0.0
+        return {
+            "seed": self.seed,
+            "success": self.termination == "goal",
+            "termination": self.termination,
+            "steps": len(self.t) - 1,
+            "sim_time_s": duration,
+            "return": self.ret,
+            "start": [float(v) for v in self.start],
+            "goal": [float(v) for v in self.goal],
+            "shortest_path_m": self.initial_distance,
+            "flown_m": flown,
+            "path_ratio": flown / self.initial_distance if self.initial_distance > 0 else math.nan,
+            "mean_speed_mps": flown / duration if duration > 0 else 0.0,
+            "min_clearance_m": float(min(self.clearance)) if self.clearance else math.nan,
+        }
+
+
+def load_run_config(model: Path) -> SimConfig:
+    """The SimConfig the model was trained with (``config.json`` beside it), or the defaults."""
+    path = Path(model).parent / "config.json"
+    return load_config(path if path.exists() else None)
+
+
+def training_seeds(model: Path) -> list[int]:
+    path = Path(model).parent / "train_summary.json"
+    if not path.exists():
+        return []
+    return [int(s) for s in json.loads(path.read_text()).get("train_seeds", [])]
+
+
+def rollout(env: VineyardNavEnv, policy: Any, seed: int, deterministic: bool = True) -> Rollout:
+    """Run one episode with ``policy.predict`` from ``env.reset(seed=seed)``."""
+    obs, info = env.reset(seed=seed)
+    assert env.field is not None
+    _, path = env.grid.shortest_path(env.start[:2], env.goal)
+    ro = Rollout(seed, env.start.copy(), env.goal.copy(), env.initial_distance, path)
+    col, radius = env.scene.collision, env.config.vehicle.collision_radius
+
+    def record(info: dict[str, Any]) -> None:
+        ro.t.append(float(info["t"]))
+        ro.xy.append(np.asarray(info["position"][:2], dtype=float))
+        ro.forward.append(float(info["command"][0]))
+        ro.yaw_rate.append(float(info["command"][1]))
+        ro.clearance.append(col.distance(np.asarray(info["position"], dtype=float)) - radius)
+
+    record(info)
+    while True:
+        action, _ = policy.predict(obs, deterministic=deterministic)
+        obs, reward, terminated, truncated, info = env.step(action)
+        ro.ret += float(reward)
+        record(info)
+        if terminated or truncated:
+            ro.termination = info["termination"]
+            return ro
+
+
+def plot_training_curves(run_dir: Path, png: Path, window: int = 20) -> bool:
+    """Episode return, length and success rate against environment steps from ``monitor.csv``
+    (raw episodes and a ``window``-episode moving mean). False if the run has no monitor log."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import pandas as pd
+
+    csv = Path(run_dir) / "monitor.csv"
+    if not csv.exists():
+        return False
+    df = pd.read_csv(csv, skiprows=1)
+    if df.empty:
+        return False
+    steps = df["l"].cumsum().to_numpy()
+    success = df["is_success"].astype(str).str.lower().eq("true").astype(float)
+    fig, axes = plt.subplots(3, 1, figsize=(8, 8), sharex=True)
+    for ax, values, label in (
+        (axes[0], df["r"].to_numpy(), "episode return"),
+        (axes[1], df["l"].to_numpy(), "episode length (steps)"),
+    ):
+        ax.plot(steps, values, ".", color="0.65", markersize=3, label="episode")
+        mean = pd.Series(values).rolling(window, min_periods=1).mean().to_numpy()
+        ax.plot(steps, mean, color="C0", lw=2, label=f"mean of {window}")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="best", fontsize=8)
+    axes[2].plot(steps, success.rolling(window, min_periods=1).mean().to_numpy(), color="C2", lw=2)
+    axes[2].set_ylabel(f"success rate ({window} ep.)")
+    axes[2].set_ylim(-0.05, 1.05)
+    axes[2].set_xlabel("environment steps")
+    axes[2].grid(alpha=0.3)
+    fig.suptitle(f"SAC training on VineyardNav-v0 ({len(df)} episodes, {int(steps[-1])} steps)")
+    fig.tight_layout()
+    fig.savefig(png, dpi=120)
+    plt.close(fig)
+    return True
+
+
+def plot_trajectories(env: VineyardNavEnv, rollouts: list[Rollout], png: Path) -> None:
+    """Rollouts over the occupancy map (vine rows at flight altitude, inflated margin lighter), each
+    coloured by time, with the commands along them against time in the same colours."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.collections import LineCollection
+    from matplotlib.colors import ListedColormap, Normalize
+
+    grid = env.grid
+    solid = occupancy_from_scene(env.scene, env.rl.altitude, 0.0, grid.resolution)
+    layer = np.where(~solid.free, 2, np.where(~grid.free, 1, 0)).T
+    cmap_map = ListedColormap(["white", "#d9d9d9", "#2e7d32"])
+    t_max = max((ro.t[-1] - ro.t[0] for ro in rollouts), default=1.0) or 1.0
+    norm = Normalize(0.0, t_max)
+    cmap = plt.get_cmap("viridis")
+
+    fig = plt.figure(figsize=(15, 7.5))
+    gs = fig.add_gridspec(2, 2, width_ratios=[1.45, 1.0])
+    ax = fig.add_subplot(gs[:, 0])
+    ax_v = fig.add_subplot(gs[0, 1])
+    ax_w = fig.add_subplot(gs[1, 1], sharex=ax_v)
+    x0, x1, y0, y1 = grid.extent()
+    r = grid.resolution / 2
+    ax.imshow(layer, origin="lower", extent=(x0 - r, x1 + r, y0 - r, y1 + r), cmap=cmap_map, vmin=0, vmax=2)
+    for k, ro in enumerate(rollouts):
+        t = np.array(ro.t) - ro.t[0]
+        xy = np.array(ro.xy)
+        if len(ro.path):
+            ax.plot(ro.path[:, 0], ro.path[:, 1], "--", color="0.45", lw=0.8)
+        seg = np.stack([xy[:-1], xy[1:]], axis=1)
+        lc = LineCollection(seg, cmap=cmap, norm=norm, linewidths=2.2)
+        lc.set_array(t[1:])
+        ax.add_collection(lc)
+        ax.plot(*ro.start[:2], "o", color="C0", markersize=7, markeredgecolor="k")
+        ok = ro.termination == "goal"
+        ax.plot(*ro.goal, "*", color="C3" if not ok else "gold", markersize=14, markeredgecolor="k")
+        ax.add_patch(plt.Circle(tuple(ro.goal), env.rl.goal_radius, fill=False, ls=":", color="C3"))
+        ax.annotate(str(k), ro.start[:2], textcoords="offset points", xytext=(5, 5), fontsize=8)
+        if ro.termination == "time_limit":
+            ax.plot(*xy[-1], "s", color="orange", markersize=7, markeredgecolor="k")
+        elif not ok:
+            ax.plot(*xy[-1], "x", color="red", markersize=10, mew=2.5)
+        for axis, values in ((ax_v, ro.forward), (ax_w, ro.yaw_rate)):
+            pts = np.stack([t[1:], np.array(values[1:])], axis=1)
+            if len(pts) > 1:
+                cl = LineCollection(
+                    np.stack([pts[:-1], pts[1:]], axis=1), cmap=cmap, norm=norm, linewidths=1.2
+                )
+                cl.set_array(t[2:])
+                axis.add_collection(cl)
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    n_ok = sum(ro.termination == "goal" for ro in rollouts)
+    ax.set_title(
+        f"evaluation: {n_ok}/{len(rollouts)} reached the goal\n"
+        "o start, * goal, -- A* path, x collision, square time limit",
+        fontsize=10,
+    )
+    rl = env.rl
+    ax_v.set_ylim(rl.forward_min - 0.2, rl.forward_max + 0.2)
+    ax_v.set_ylabel("forward speed command (m/s)")
+    ax_w.set_ylim(-rl.max_yaw_rate - 0.1, rl.max_yaw_rate + 0.1)
+    ax_w.set_ylabel("yaw rate command (rad/s)")
+    ax_w.set_xlabel("time (s)")
+    ax_v.set_xlim(0, t_max)
+    for a in (ax_v, ax_w):
+        a.grid(alpha=0.3)
+    sm = plt.cm.ScalarMappable(norm=norm, cmap=cmap)
+    fig.colorbar(sm, ax=[ax_v, ax_w], label="time since start (s)", fraction=0.05)
+    fig.savefig(png, dpi=120, bbox_inches="tight")
+    plt.close(fig)
+
+
+def evaluate(
+    model: Path,
+    episodes: int = 10,
+    seed: int = EVAL_SEED,
+    out: Path | None = None,
+    cfg: SimConfig | None = None,
+    logs: Path | None = None,
+    mode: str = "local",
+    url: str | None = None,
+    zenoh: str | None = None,
+    deterministic: bool = True,
+) -> dict[str, Any]:
+    """Evaluate the SAC policy in ``model`` on seeds ``seed .. seed + episodes - 1``; returns (and
+    writes) the summary. ``logs`` is the training run folder for the curves (default: the model's)."""
+    from stable_baselines3 import SAC
+
+    model = Path(model)
+    if not model.exists():
+        raise FileNotFoundError(f"no model at {model}")
+    seeds = list(range(seed, seed + episodes))
+    overlap = sorted(set(seeds) & set(training_seeds(model)))
+    if overlap:
+        raise ValueError(f"evaluation seeds {overlap} were used in training: pick another --seed")
+    out = Path(out) if out is not None else model.parent
+    out.mkdir(parents=True, exist_ok=True)
+    cfg = cfg or load_run_config(model)
+    policy = SAC.load(model, device="cpu")
+    env = VineyardNavEnv(config=cfg, mode=mode, url=url, zenoh=zenoh)
+    t0 = time.perf_counter()
+    try:
+        rollouts = [rollout(env, policy, s, deterministic) for s in seeds]
+        wall = time.perf_counter() - t0
+        plot_trajectories(env, rollouts, out / "trajectories.png")
+    finally:
+        env.close()
+    curves = plot_training_curves(Path(logs) if logs else model.parent, out / "training_curves.png")
+    per_episode = [ro.summary() for ro in rollouts]
+    n_ok = sum(e["success"] for e in per_episode)
+    ok = [e for e in per_episode if e["success"]]
+    summary = {
+        "model": str(model),
+        "mode": mode,
+        "episodes": episodes,
+        "seeds": seeds,
+        "training_seeds": training_seeds(model),
+        "deterministic": deterministic,
+        "successes": n_ok,
+        "success_rate": n_ok / episodes if episodes else 0.0,
+        "terminations": {r: sum(e["termination"] == r for e in per_episode) for r in _reasons(per_episode)},
+        "mean_return": float(np.mean([e["return"] for e in per_episode])) if per_episode else 0.0,
+        "mean_time_to_goal_s": float(np.mean([e["sim_time_s"] for e in ok])) if ok else None,
+        "mean_speed_mps": float(np.mean([e["mean_speed_mps"] for e in ok])) if ok else None,
+        "mean_path_ratio": float(np.mean([e["path_ratio"] for e in ok])) if ok else None,
+        "min_clearance_m": float(min(e["min_clearance_m"] for e in per_episode)) if per_episode else None,
+        "wall_s": wall,
+        "figures": {
+            "trajectories": str(out / "trajectories.png"),
+            "training_curves": str(out / "training_curves.png") if curves else None,
+        },
+        "per_episode": per_episode,
+    }
+    (out / "evaluation.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def _reasons(per_episode: list[dict[str, Any]]) -> list[str]:
+    return sorted({str(e["termination"]) for e in per_episode})

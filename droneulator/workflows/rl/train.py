@@ -1,0 +1,187 @@
+"""``droneulator train``: Stable-Baselines3 SAC on ``droneulator/VineyardNav-v0``.
+
+Writes to ``out``: ``model.zip`` (final policy), ``checkpoints/``, ``monitor.csv`` (one row per
+episode: return, length, wall time, success, termination), ``progress.csv`` and ``tb/`` (SB3's
+training log as CSV and TensorBoard), ``config.json`` (the SimConfig the environments ran with) and
+``train_summary.json`` (steps, wall time, seeds, hyperparameters).
+
+The SAC settings are tuned for a 50k-step budget on a small CPU: one gradient step per transition
+(update-to-data ratio 1), 2x256 MLPs, a 2k-step uniform-random warm-up, batch 256. Environment
+stepping and learning alternate (SB3 is synchronous), so the learner may use every core; vectorised
+environments step in parallel subprocesses, each single-threaded.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import time
+from collections import Counter, deque
+from pathlib import Path
+from typing import Any
+
+from droneulator.config import SimConfig, from_dict, to_dict
+from droneulator.workflows.rl import ENV_ID
+from droneulator.workflows.rl.env import env_config
+
+ALGORITHMS = ("sac",)
+
+#: SAC hyperparameters (Stable-Baselines3 names) for ~50k environment steps
+SAC_HYPERPARAMETERS: dict[str, Any] = {
+    "learning_rate": 5e-4,
+    "buffer_size": 200_000,
+    "learning_starts": 2_000,
+    "batch_size": 256,
+    "tau": 0.01,
+    "gamma": 0.99,
+    "train_freq": 1,
+    "gradient_steps": -1,  # as many gradient steps as transitions collected (one per vectorised env)
+    "ent_coef": "auto",
+    "policy_kwargs": {"net_arch": [256, 256]},
+}
+
+
+def _make_env(config: dict[str, Any], single_thread: bool = False) -> Any:
+    """One environment (module level, so SubprocVecEnv can pickle it). ``single_thread`` (subprocess
+    environments) keeps llvmpipe and BLAS on one thread, so N environments fit N cores; it must be set
+    before the renderer creates its GL context, hence here."""
+    if single_thread:
+        for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "LP_NUM_THREADS"):
+            os.environ[var] = "1"
+    import gymnasium as gym
+
+    import droneulator.workflows.rl  # noqa: F401  (registers the environment id in a fresh subprocess)
+
+    return gym.make(ENV_ID, config=from_dict(SimConfig, config))
+
+
+def make_vec_env(cfg: SimConfig, n_envs: int = 1, vec: str = "auto", monitor: Path | None = None) -> Any:
+    """``n_envs`` environments in a DummyVecEnv (one, or ``vec="dummy"``) or a SubprocVecEnv, wrapped in
+    a VecMonitor writing ``monitor`` (CSV) when given."""
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecMonitor
+
+    kind = ("subproc" if n_envs > 1 else "dummy") if vec == "auto" else vec
+    if kind == "subproc":
+        factory = functools.partial(_make_env, to_dict(cfg), True)
+        venv = SubprocVecEnv([factory] * n_envs, start_method="forkserver")
+    elif kind == "dummy":
+        venv = DummyVecEnv([functools.partial(_make_env, to_dict(cfg))] * n_envs)
+    else:
+        raise ValueError(f"vec must be 'auto', 'dummy' or 'subproc', got {vec!r}")
+    filename = None if monitor is None else str(monitor)
+    return VecMonitor(venv, filename=filename, info_keywords=("is_success", "termination"))
+
+
+def default_threads() -> int:
+    """Torch threads for the learner: every core (environments and learner never run at once)."""
+    return max(1, os.cpu_count() or 1)
+
+
+def _episode_callback() -> Any:
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class EpisodeOutcomes(BaseCallback):
+        """Logs the share of the last 100 episodes ending at the goal, in a collision or at the limit,
+        and writes a last log row when training ends (short runs may finish no logged episode)."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            self.recent: deque[str] = deque(maxlen=100)
+
+        def _on_step(self) -> bool:
+            for done, info in zip(self.locals["dones"], self.locals["infos"], strict=True):
+                if done:
+                    self.recent.append(str(info.get("termination")))
+            if self.recent:
+                counts = Counter(self.recent)
+                for reason in ("goal", "collision", "out_of_bounds", "time_limit"):
+                    self.logger.record(f"rollout/{reason}_rate", counts[reason] / len(self.recent))
+            return True
+
+        def _on_training_end(self) -> None:
+            self.logger.record("time/total_timesteps", self.num_timesteps)
+            self.logger.dump(self.num_timesteps)
+
+    return EpisodeOutcomes()
+
+
+def train(
+    cfg: SimConfig | None,
+    out: Path,
+    steps: int = 50_000,
+    seed: int = 0,
+    n_envs: int = 1,
+    algo: str = "sac",
+    vec: str = "auto",
+    checkpoint_every: int = 10_000,
+    threads: int | None = None,
+    progress: bool = True,
+    overrides: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Train ``algo`` for ``steps`` environment steps; returns (and writes) the training summary.
+
+    ``overrides`` replace entries of :data:`SAC_HYPERPARAMETERS` (e.g. ``learning_starts`` for a
+    short run). Environment ``i`` is first reset with seed ``seed + i``.
+    """
+    import torch
+    from stable_baselines3 import SAC
+    from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
+    from stable_baselines3.common.logger import Logger, make_output_format
+
+    if algo not in ALGORITHMS:
+        raise ValueError(f"unknown algorithm {algo!r}; available: {', '.join(ALGORITHMS)}")
+    if steps < 1 or n_envs < 1:
+        raise ValueError("steps and envs must be at least 1")
+    cfg = env_config(cfg)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    threads = threads or default_threads()
+    torch.set_num_threads(threads)
+    hyper = {**SAC_HYPERPARAMETERS, **(overrides or {})}
+    (out / "config.json").write_text(json.dumps(to_dict(cfg), indent=2))
+
+    venv = make_vec_env(cfg, n_envs, vec, monitor=out / "monitor.csv")
+    try:
+        model = SAC("MlpPolicy", venv, seed=seed, device="cpu", verbose=0, **hyper)
+        model.set_logger(
+            Logger(
+                str(out),
+                [make_output_format("csv", str(out)), make_output_format("tensorboard", str(out / "tb"))],
+            )
+        )
+        callbacks = CallbackList(
+            [
+                CheckpointCallback(
+                    save_freq=max(1, checkpoint_every // n_envs),
+                    save_path=str(out / "checkpoints"),
+                    name_prefix=algo,
+                ),
+                _episode_callback(),
+            ]
+        )
+        t0 = time.perf_counter()
+        model.learn(total_timesteps=steps, callback=callbacks, progress_bar=progress, log_interval=1)
+        wall = time.perf_counter() - t0
+        model.save(out / "model.zip")
+        model.logger.close()
+    finally:
+        venv.close()
+    summary = {
+        "algo": algo,
+        "env_id": ENV_ID,
+        "steps": int(model.num_timesteps),
+        "requested_steps": steps,
+        "wall_s": wall,
+        "steps_per_s": model.num_timesteps / wall,
+        "sim_s": model.num_timesteps / cfg.render.camera_hz,
+        "n_envs": n_envs,
+        "vec": ("subproc" if n_envs > 1 else "dummy") if vec == "auto" else vec,
+        "torch_threads": threads,
+        "seed": seed,
+        "train_seeds": [seed + i for i in range(n_envs)],
+        "hyperparameters": hyper,
+        "model": str(out / "model.zip"),
+    }
+    (out / "train_summary.json").write_text(json.dumps(summary, indent=2, default=str))
+    return summary
