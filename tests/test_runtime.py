@@ -193,6 +193,9 @@ def test_fly_and_decode_every_topic(run):
         q = odom[t].pose.pose.orientation
         np.testing.assert_allclose([p.x, p.y, p.z], states[t]["position"], atol=1e-9)
         np.testing.assert_allclose([q.x, q.y, q.z, q.w], states[t]["quaternion"], atol=1e-9)
+        v = odom[t].twist.twist.linear  # REP 105: twist in the child (base_link) frame
+        R = quat_to_matrix(np.array([q.x, q.y, q.z, q.w]))
+        np.testing.assert_allclose(R @ [v.x, v.y, v.z], states[t]["velocity"], atol=1e-9)
         assert odom[t].header.frame_id == "odom" and odom[t].child_frame_id == "base_link"
 
     # the TF chain map -> odom -> base_link -> front_link -> front_optical_frame is complete

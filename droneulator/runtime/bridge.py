@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from droneulator.config import SimConfig, from_dict
-from droneulator.frames import T_link_optical, camera_mount, pose_from_transform, quat_to_matrix
+from droneulator.frames import T_link_optical, camera_mount, pose_from_transform, world_to_body
 from droneulator.imaging import encode_jpeg, encode_png
 from droneulator.render.camera import intrinsics
 from droneulator.ros import messages as M
@@ -127,7 +127,7 @@ class Bridge:
         self.pub_clock.publish(M.serialize(M.clock(t)), t)
         self._mark("odom", t)
         pos, quat = np.array(st["position"]), np.array(st["quaternion"])
-        v_body = quat_to_matrix(quat).T @ np.array(st["velocity"])
+        v_body = world_to_body(quat, np.array(st["velocity"]))
         odom = M.odometry(t, "odom", "base_link", pos, quat, v_body, np.array(st["angular_velocity"]))
         self.pub_odom.publish(M.serialize(odom), t)
         tf = M.tf_message([M.transform_stamped(t, "odom", "base_link", pos, quat)])
