@@ -221,9 +221,11 @@ def test_fly_and_decode_every_topic(run):
     depth = {stamp_ns(m): m for _, m in msgs["droneulator/front/depth/image_raw"]}
     seg = {stamp_ns(m): m for _, m in msgs["droneulator/front/segmentation/image_raw/compressed"]}
     K = intrinsics(CAM)
-    for t, m in list(rgb.items())[:5]:
-        info = infos[t]
-        assert t in depth and t in seg
+    # a frame straddling clear() or the end of the window may be partial; every other is complete
+    complete = sorted(set(rgb) & set(infos) & set(depth) & set(seg))
+    assert len(complete) >= len(rgb) - 2
+    for t in complete[:5]:
+        m, info = rgb[t], infos[t]
         img = PILImage.open(io.BytesIO(bytes(m.data)))
         assert img.format == "JPEG" and img.size == (info.width, info.height) == (CAM.width, CAM.height)
         segimg = PILImage.open(io.BytesIO(bytes(seg[t].data)))
