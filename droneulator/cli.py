@@ -11,9 +11,8 @@ from pathlib import Path
 from droneulator.config import SimConfig, load_config
 
 
-def _add_config_args(p: argparse.ArgumentParser, scene_default: str | None = None) -> None:
-    p.add_argument("--scene", default=scene_default, help="scene name (see `droneulator scenes`)")
-    p.add_argument("--seed", type=int, default=None, help="scene and noise seed (default 0)")
+def _add_file_args(p: argparse.ArgumentParser, example: str) -> None:
+    """``--config FILE`` and repeatable ``--set KEY=VALUE`` (applied in that order over the defaults)."""
     p.add_argument("--config", default=None, help="JSON or TOML file with SimConfig fields")
     p.add_argument(
         "--set",
@@ -21,8 +20,14 @@ def _add_config_args(p: argparse.ArgumentParser, scene_default: str | None = Non
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="override one option, e.g. --set render.shadows=false --set vehicle.params=crazyflie",
+        help=f"override one option, e.g. {example}",
     )
+
+
+def _add_config_args(p: argparse.ArgumentParser, scene_default: str | None = None) -> None:
+    p.add_argument("--scene", default=scene_default, help="scene name (see `droneulator scenes`)")
+    p.add_argument("--seed", type=int, default=None, help="scene and noise seed (default 0)")
+    _add_file_args(p, "--set render.shadows=false --set vehicle.params=crazyflie")
 
 
 def _config(args: argparse.Namespace) -> SimConfig:
@@ -166,15 +171,7 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
 
 def _add_rl_config_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene-seed", type=int, default=None, help="vineyard scene seed (default 0)")
-    p.add_argument("--config", default=None, help="JSON or TOML file with SimConfig fields")
-    p.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override one option, e.g. --set rl.heading=goal --set rl.safety_margin=0.4",
-    )
+    _add_file_args(p, "--set rl.heading=goal --set rl.safety_margin=0.4")
 
 
 def cmd_train(args: argparse.Namespace) -> int:
@@ -203,16 +200,17 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from droneulator.workflows.rl.evaluate import evaluate, load_run_config
+    from droneulator.workflows.rl.evaluate import evaluate, load_run_config, resolve_model
 
-    cfg = load_run_config(Path(args.model))
+    model = resolve_model(args.model)
+    cfg = load_run_config(model)
     if args.config or args.overrides or args.scene_seed is not None:
-        base = Path(args.model).parent / "config.json"
+        base = model.parent / "config.json"
         cfg = load_config(
             args.config or (base if base.exists() else None), args.overrides, seed=args.scene_seed
         )
     summary = evaluate(
-        Path(args.model),
+        model,
         episodes=args.episodes,
         seed=args.seed,
         out=Path(args.out) if args.out else None,
@@ -379,7 +377,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="out/rl", help="run folder (default out/rl)")
     p.add_argument("--learning-starts", type=int, default=None, help="random warm-up steps (default 2000)")
     p.add_argument("--checkpoint-every", type=int, default=10_000, help="checkpoint period in steps")
-    p.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
+    p.add_argument("--threads", type=int, default=None, help="torch threads for the learner (default 1)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_rl_config_args(p)
     p.set_defaults(func=cmd_train)
@@ -390,7 +388,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Roll the policy out (deterministic actions) on seeds not used in training and write "
         "evaluation.json, trajectories.png and training_curves.png (from the run's monitor.csv).",
     )
-    p.add_argument("model", help="model .zip written by `droneulator train`")
+    p.add_argument("model", help="model .zip written by `droneulator train`, or its run folder")
     p.add_argument("--episodes", type=int, default=10, help="episodes (default 10)")
     p.add_argument("--seed", type=int, default=1_000_000, help="first evaluation seed (default 1000000)")
     p.add_argument("--out", default=None, help="output folder (default: the model's folder)")

@@ -278,8 +278,8 @@ class RLConfig:
     #: start heading: toward the first leg of the shortest path, plus normal noise of this std (deg)
     start_yaw_std_deg: float = 30.0
     #: episode time limit (truncation): base seconds plus the initial path length over this speed
-    time_limit_base_s: float = 5.0
-    min_average_speed: float = 1.0
+    time_limit_base_s: float = 10.0
+    min_average_speed: float = 0.75
 
     def __post_init__(self) -> None:
         if self.heading not in ("path", "goal"):

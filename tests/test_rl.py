@@ -208,7 +208,7 @@ def test_short_training_run_writes_logs_and_model_and_evaluate_writes_figures(tm
     assert summary["train_seeds"] == [3, 4]
 
     assert main(["evaluate", str(out / "model.zip"), "--episodes", "2", "--seed", "3"]) == 2  # seeds used
-    assert main(["evaluate", str(out / "model.zip"), "--episodes", "2"]) == 0
+    assert main(["evaluate", str(out), "--episodes", "2"]) == 0  # the run folder names its model.zip
     result = json.loads((out / "evaluation.json").read_text())
     assert result["episodes"] == 2 and len(result["per_episode"]) == 2
     assert result["seeds"] == [1_000_000, 1_000_001] and 0.0 <= result["success_rate"] <= 1.0

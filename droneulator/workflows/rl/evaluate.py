@@ -26,6 +26,8 @@ from droneulator.workflows.rl.astar import occupancy_from_scene
 from droneulator.workflows.rl.env import VineyardNavEnv
 
 EVAL_SEED = 1_000_000
+#: the commands panel overlays this moving mean (s) on the per-step commands
+SMOOTH_S = 0.5
 
 
 @dataclass
@@ -64,6 +66,12 @@ class Rollout:
             "mean_speed_mps": flown / duration if duration > 0 else 0.0,
             "min_clearance_m": float(min(self.clearance)) if self.clearance else math.nan,
         }
+
+
+def resolve_model(model: Path | str) -> Path:
+    """A model .zip as given, or ``model.zip`` in a run folder."""
+    model = Path(model)
+    return model / "model.zip" if model.is_dir() else model
 
 
 def load_run_config(model: Path) -> SimConfig:
@@ -145,9 +153,18 @@ def plot_training_curves(run_dir: Path, png: Path, window: int = 20) -> bool:
     return True
 
 
+def moving_mean(values: np.ndarray, n: int) -> np.ndarray:
+    """Centred moving mean over ``n`` samples (shorter windows at the ends)."""
+    if n <= 1 or len(values) == 0:
+        return values
+    kernel = np.ones(n)
+    return np.convolve(values, kernel, "same") / np.convolve(np.ones(len(values)), kernel, "same")
+
+
 def plot_trajectories(env: VineyardNavEnv, rollouts: list[Rollout], png: Path) -> None:
     """Rollouts over the occupancy map (vine rows at flight altitude, inflated margin lighter), each
-    coloured by time, with the commands along them against time in the same colours."""
+    coloured by time, with the commands along them against time: every step in grey and their moving
+    mean in the same colours as the path."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -160,6 +177,7 @@ def plot_trajectories(env: VineyardNavEnv, rollouts: list[Rollout], png: Path) -
     layer = np.where(~solid.free, 2, np.where(~grid.free, 1, 0)).T
     cmap_map = ListedColormap(["white", "#d9d9d9", "#2e7d32"])
     t_max = max((ro.t[-1] - ro.t[0] for ro in rollouts), default=1.0) or 1.0
+    smooth = max(1, round(SMOOTH_S * env.config.render.camera_hz))
     norm = Normalize(0.0, t_max)
     cmap = plt.get_cmap("viridis")
 
@@ -190,7 +208,9 @@ def plot_trajectories(env: VineyardNavEnv, rollouts: list[Rollout], png: Path) -
         elif not ok:
             ax.plot(*xy[-1], "x", color="red", markersize=10, mew=2.5)
         for axis, values in ((ax_v, ro.forward), (ax_w, ro.yaw_rate)):
-            pts = np.stack([t[1:], np.array(values[1:])], axis=1)
+            raw = np.array(values[1:])
+            axis.plot(t[1:], raw, color="0.6", lw=0.4, alpha=0.5)
+            pts = np.stack([t[1:], moving_mean(raw, smooth)], axis=1)
             if len(pts) > 1:
                 cl = LineCollection(
                     np.stack([pts[:-1], pts[1:]], axis=1), cmap=cmap, norm=norm, linewidths=1.2
@@ -213,6 +233,7 @@ def plot_trajectories(env: VineyardNavEnv, rollouts: list[Rollout], png: Path) -
     ax_v.set_ylabel("forward speed command (m/s)")
     ax_w.set_ylim(-rl.max_yaw_rate - 0.1, rl.max_yaw_rate + 0.1)
     ax_w.set_ylabel("yaw rate command (rad/s)")
+    ax_v.set_title(f"commands: each step (grey) and their {SMOOTH_S:g} s moving mean (coloured)", fontsize=10)
     ax_w.set_xlabel("time (s)")
     ax_v.set_xlim(0, t_max)
     for a in (ax_v, ax_w):
@@ -235,11 +256,12 @@ def evaluate(
     zenoh: str | None = None,
     deterministic: bool = True,
 ) -> dict[str, Any]:
-    """Evaluate the SAC policy in ``model`` on seeds ``seed .. seed + episodes - 1``; returns (and
-    writes) the summary. ``logs`` is the training run folder for the curves (default: the model's)."""
+    """Evaluate the SAC policy in ``model`` (a .zip, or a run folder holding ``model.zip``) on seeds
+    ``seed .. seed + episodes - 1``; returns (and writes) the summary. ``logs`` is the training run
+    folder for the curves (default: the model's)."""
     from stable_baselines3 import SAC
 
-    model = Path(model)
+    model = resolve_model(model)
     if not model.exists():
         raise FileNotFoundError(f"no model at {model}")
     seeds = list(range(seed, seed + episodes))

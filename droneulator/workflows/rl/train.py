@@ -5,10 +5,12 @@ episode: return, length, wall time, success, termination), ``progress.csv`` and 
 training log as CSV and TensorBoard), ``config.json`` (the SimConfig the environments ran with) and
 ``train_summary.json`` (steps, wall time, seeds, hyperparameters).
 
-The SAC settings are tuned for a 50k-step budget on a small CPU: one gradient step per transition
-(update-to-data ratio 1), 2x256 MLPs, a 2k-step uniform-random warm-up, batch 256. Environment
-stepping and learning alternate (SB3 is synchronous), so the learner may use every core; vectorised
-environments step in parallel subprocesses, each single-threaded.
+The SAC settings are tuned for a 50k-step budget on a small CPU: two gradient steps per transition
+(update-to-data ratio 2) on small 2x64 MLPs (cheap updates, so the ratio is affordable), 5-step
+returns with gamma 0.99 (a 3 s horizon at 30 Hz, long enough to see a vine row before reaching it),
+a 2k-step uniform-random warm-up, batch 256. The learner uses one torch thread (more only add
+overhead at this size); environment stepping and learning alternate (SB3 is synchronous), and
+vectorised environments step in parallel subprocesses, each single-threaded.
 """
 
 from __future__ import annotations
@@ -29,17 +31,22 @@ ALGORITHMS = ("sac",)
 
 #: SAC hyperparameters (Stable-Baselines3 names) for ~50k environment steps
 SAC_HYPERPARAMETERS: dict[str, Any] = {
-    "learning_rate": 5e-4,
+    "learning_rate": 1e-3,
     "buffer_size": 200_000,
     "learning_starts": 2_000,
     "batch_size": 256,
     "tau": 0.01,
     "gamma": 0.99,
+    "n_steps": 5,
     "train_freq": 1,
-    "gradient_steps": -1,  # as many gradient steps as transitions collected (one per vectorised env)
-    "ent_coef": "auto",
-    "policy_kwargs": {"net_arch": [256, 256]},
+    "gradient_steps": 2,
+    "ent_coef": "auto_0.1",
+    "policy_kwargs": {"net_arch": [64, 64]},
 }
+
+#: torch threads for the learner: with 2x64 networks and batch 256 a second thread made a gradient
+#: step slower on 2 cores (``benchmarks/rl.py`` measures both)
+DEFAULT_THREADS = 1
 
 
 def _make_env(config: dict[str, Any], single_thread: bool = False) -> Any:
@@ -71,11 +78,6 @@ def make_vec_env(cfg: SimConfig, n_envs: int = 1, vec: str = "auto", monitor: Pa
         raise ValueError(f"vec must be 'auto', 'dummy' or 'subproc', got {vec!r}")
     filename = None if monitor is None else str(monitor)
     return VecMonitor(venv, filename=filename, info_keywords=("is_success", "termination"))
-
-
-def default_threads() -> int:
-    """Torch threads for the learner: every core (environments and learner never run at once)."""
-    return max(1, os.cpu_count() or 1)
 
 
 def _episode_callback() -> Any:
@@ -136,7 +138,7 @@ def train(
     cfg = env_config(cfg)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    threads = threads or default_threads()
+    threads = threads or DEFAULT_THREADS
     torch.set_num_threads(threads)
     hyper = {**SAC_HYPERPARAMETERS, **(overrides or {})}
     (out / "config.json").write_text(json.dumps(to_dict(cfg), indent=2))
