@@ -198,7 +198,7 @@ def test_short_training_run_writes_logs_and_model_and_evaluate_writes_figures(tm
 
     out = tmp_path / "run"
     args = ["train", "--steps", "1200", "--learning-starts", "200", "--envs", "2", "--out", str(out)]
-    assert main([*args, "--checkpoint-every", "600", "--seed", "3", "--no-progress"]) == 0
+    assert main([*args, "--checkpoint-every", "600", "--seed", "3"]) == 0  # with the progress bar
     for name in ("model.zip", "monitor.csv", "progress.csv", "config.json", "train_summary.json"):
         assert (out / name).stat().st_size > 0, name
     assert list((out / "tb").glob("events.out.tfevents.*"))

@@ -8,9 +8,9 @@ training log as CSV and TensorBoard), ``config.json`` (the SimConfig the environ
 The SAC settings are tuned for a 50k-step budget on a small CPU: two gradient steps per transition
 (update-to-data ratio 2) on small 2x64 MLPs (cheap updates, so the ratio is affordable), 5-step
 returns with gamma 0.99 (a 3 s horizon at 30 Hz, long enough to see a vine row before reaching it),
-a 2k-step uniform-random warm-up, batch 256. The learner uses one torch thread (more only add
-overhead at this size); environment stepping and learning alternate (SB3 is synchronous), and
-vectorised environments step in parallel subprocesses, each single-threaded.
+a 2k-step uniform-random warm-up, batch 256. The learner uses one torch thread by default;
+environment stepping and learning alternate (SB3 is synchronous), and vectorised environments step
+in parallel subprocesses, each single-threaded.
 """
 
 from __future__ import annotations
@@ -44,8 +44,9 @@ SAC_HYPERPARAMETERS: dict[str, Any] = {
     "policy_kwargs": {"net_arch": [64, 64]},
 }
 
-#: torch threads for the learner: with 2x64 networks and batch 256 a second thread made a gradient
-#: step slower on 2 cores (``benchmarks/rl.py`` measures both)
+#: torch threads for the learner (``--threads``): one. At 2x64 networks and batch 256 a second thread
+#: saves at most a fifth of a gradient step on an idle 2-core machine and costs more than that when
+#: anything else runs (``benchmarks/rl.py`` measures both), and one leaves a core to other runs
 DEFAULT_THREADS = 1
 
 
