@@ -271,7 +271,9 @@ def evaluate(
     out = Path(out) if out is not None else model.parent
     out.mkdir(parents=True, exist_ok=True)
     cfg = cfg or load_run_config(model)
-    policy = SAC.load(model, device="cpu")
+    # a saved run records the n-step buffer SB3 chose for it; let SB3 choose again instead of warning
+    # that the saved buffer class overrides n_steps (evaluation never samples the buffer)
+    policy = SAC.load(model, device="cpu", custom_objects={"replay_buffer_class": None})
     env = VineyardNavEnv(config=cfg, mode=mode, url=url, zenoh=zenoh)
     t0 = time.perf_counter()
     try:

@@ -19,9 +19,12 @@ import functools
 import json
 import os
 import time
+import warnings
 from collections import Counter, deque
 from pathlib import Path
 from typing import Any
+
+from tqdm import TqdmExperimentalWarning
 
 from droneulator.config import SimConfig, from_dict, to_dict
 from droneulator.workflows.rl import ENV_ID
@@ -164,7 +167,10 @@ def train(
             ]
         )
         t0 = time.perf_counter()
-        model.learn(total_timesteps=steps, callback=callbacks, progress_bar=progress, log_interval=1)
+        with warnings.catch_warnings():
+            # SB3 draws its progress bar with tqdm.rich, which tqdm still labels experimental
+            warnings.filterwarnings("ignore", category=TqdmExperimentalWarning)
+            model.learn(total_timesteps=steps, callback=callbacks, progress_bar=progress, log_interval=1)
         wall = time.perf_counter() - t0
         model.save(out / "model.zip")
         model.logger.close()
