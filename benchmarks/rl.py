@@ -4,7 +4,7 @@
    included), single and vectorised (SubprocVecEnv, N = 2), and the real-time factor: simulated
    seconds per wall second (one step is one 30 Hz camera frame). The paper's environment runs
    locked to real time, i.e. a factor of 1.
-2. SAC learner cost per gradient step with 1 and 2 torch threads (the training default uses all cores).
+2. SAC learner cost per gradient step with 1 and 2 torch threads (training uses 1 by default).
 3. Wall time of a SAC training run (default 50,000 steps, the paper's budget: 28 min at 30 Hz real
    time); with ``--train-steps`` below 50,000 the 50k time is also projected from the measured rate.
 4. Success rate of the trained policy on 10 held-out seeds (``droneulator evaluate``), with figures.
