@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
 # --------------------------------------------------------------------------- constant axis swaps
 #: Z-up world -> Y-up OpenGL world (rotation of -90 deg about x).
@@ -30,95 +31,71 @@ R_GLCAM_OPT = np.diag([1.0, -1.0, -1.0])
 #: ENU world -> NED world (also FLU body -> FRD body is R_FRD_FLU).
 R_NED_ENU = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 R_FRD_FLU = np.diag([1.0, -1.0, -1.0])
+_ROT_NED_ENU = Rotation.from_matrix(R_NED_ENU)
+_ROT_FRD_FLU = Rotation.from_matrix(R_FRD_FLU)
 
 
 # --------------------------------------------------------------------------- quaternions [x,y,z,w]
+# SciPy's ``Rotation`` uses the same [x, y, z, w] order; it does the quaternion algebra here. The
+# numba kernels use the compiled twins in :mod:`droneulator.frames_numba` instead.
 def quat_normalize(q: np.ndarray) -> np.ndarray:
+    """Unit quaternion along ``q``; a zero quaternion has no attitude and raises ValueError."""
     q = np.asarray(q, dtype=float)
-    return q / np.linalg.norm(q)
+    n = float(np.linalg.norm(q))
+    if q.shape != (4,) or not n > 0.0 or not math.isfinite(n):
+        raise ValueError(f"a quaternion needs four finite components, not all zero; got {q.tolist()}")
+    return q / n
 
 
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     """Rotation matrix of a (normalised here) ``[x, y, z, w]`` quaternion."""
-    x, y, z, w = quat_normalize(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    return Rotation.from_quat(quat_normalize(q)).as_matrix()
 
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
-    """``[x, y, z, w]`` quaternion (w >= 0) of a rotation matrix (Shepperd's method)."""
-    R = np.asarray(R, dtype=float)
-    tr = R[0, 0] + R[1, 1] + R[2, 2]
-    if tr > 0:
-        s = 2.0 * math.sqrt(tr + 1.0)
-        q = [(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s]
-    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
-        q = [0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s, (R[2, 1] - R[1, 2]) / s]
-    elif R[1, 1] > R[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
-        q = [(R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s, (R[0, 2] - R[2, 0]) / s]
-    else:
-        s = 2.0 * math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
-        q = [(R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s, (R[1, 0] - R[0, 1]) / s]
-    q = np.array(q)
-    return quat_normalize(-q if q[3] < 0 else q)
+    """``[x, y, z, w]`` quaternion (w >= 0) of a rotation matrix."""
+    return Rotation.from_matrix(np.asarray(R, dtype=float)).as_quat(canonical=True)
 
 
 def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product ``a * b`` (apply ``b`` first, then ``a``)."""
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return np.array(
-        [
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz,
-        ]
-    )
+    """Product ``a * b`` of unit quaternions (apply ``b`` first, then ``a``)."""
+    return (Rotation.from_quat(quat_normalize(a)) * Rotation.from_quat(quat_normalize(b))).as_quat()
 
 
 def quat_conjugate(q: np.ndarray) -> np.ndarray:
-    return np.array([-q[0], -q[1], -q[2], q[3]], dtype=float)
+    """The inverse rotation of a unit quaternion."""
+    return Rotation.from_quat(quat_normalize(q)).inv().as_quat()
 
 
 def quat_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
     """Quaternion of intrinsic Z-Y-X (yaw, then pitch, then roll) Euler angles in radians."""
-    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
-    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
-    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    return np.array(
-        [
-            sr * cp * cy - cr * sp * sy,
-            cr * sp * cy + sr * cp * sy,
-            cr * cp * sy - sr * sp * cy,
-            cr * cp * cy + sr * sp * sy,
-        ]
-    )
+    return Rotation.from_euler("ZYX", [yaw, pitch, roll]).as_quat()
 
 
 def quat_to_euler(q: np.ndarray) -> tuple[float, float, float]:
     """(roll, pitch, yaw) in radians, Z-Y-X convention, inverse of :func:`quat_from_euler`."""
-    x, y, z, w = quat_normalize(q)
-    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
-    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return roll, pitch, yaw
+    yaw, pitch, roll = Rotation.from_quat(quat_normalize(q)).as_euler("ZYX")
+    return float(roll), float(pitch), float(yaw)
 
 
 def quat_from_yaw(yaw: float) -> np.ndarray:
+    """Level attitude with heading ``yaw`` (radians about world z)."""
     return np.array([0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)])
 
 
 def yaw_of(q: np.ndarray) -> float:
-    """Heading (rotation about world z) of a body quaternion, radians in (-pi, pi]."""
-    return quat_to_euler(q)[2]
+    """Heading (Z-Y-X Euler yaw about world z) of a body quaternion, radians in (-pi, pi].
+
+    ``q`` need not be normalised (ROS goal poses often are not); a zero quaternion raises ValueError.
+    """
+    x, y, z, w = (float(c) for c in quat_normalize(q))
+    return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
+def quat_slerp(q0: np.ndarray, q1: np.ndarray, f: float) -> np.ndarray:
+    """Spherical linear interpolation from ``q0`` (``f = 0``) to ``q1`` (``f = 1``) along the shorter arc."""
+    key = Rotation.from_quat(np.stack([quat_normalize(q0), quat_normalize(q1)]))
+    return Slerp([0.0, 1.0], key)(float(f)).as_quat()
 
 
 def wrap_angle(a: float) -> float:
@@ -217,11 +194,12 @@ frd_to_flu = flu_to_frd
 
 def quat_enu_flu_to_ned_frd(q: np.ndarray) -> np.ndarray:
     """Attitude ``[x,y,z,w]`` (FLU body in ENU world) -> FRD body in NED world, same ``[x,y,z,w]`` order."""
-    return matrix_to_quat(R_NED_ENU @ quat_to_matrix(q) @ R_FRD_FLU.T)
+    return (_ROT_NED_ENU * Rotation.from_quat(quat_normalize(q)) * _ROT_FRD_FLU.inv()).as_quat(canonical=True)
 
 
 def quat_ned_frd_to_enu_flu(q: np.ndarray) -> np.ndarray:
-    return matrix_to_quat(R_NED_ENU.T @ quat_to_matrix(q) @ R_FRD_FLU)
+    """Inverse of :func:`quat_enu_flu_to_ned_frd`."""
+    return (_ROT_NED_ENU.inv() * Rotation.from_quat(quat_normalize(q)) * _ROT_FRD_FLU).as_quat(canonical=True)
 
 
 def xyzw_to_wxyz(q: np.ndarray) -> np.ndarray:

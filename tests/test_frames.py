@@ -117,3 +117,45 @@ def test_enu_to_geodetic_known_offsets_and_round_trip():
     for enu in np.random.default_rng(7).uniform(-3000.0, 3000.0, size=(20, 3)):
         back = F.geodetic_to_enu(*F.enu_to_geodetic(enu, lat0, lon0, alt0), lat0, lon0, alt0)
         np.testing.assert_allclose(back, enu, atol=1e-6)
+
+
+# --------------------------------------------------------------------------- numba twins
+def test_numba_twins_equal_the_numpy_conversions_on_random_inputs():
+    from droneulator import frames_numba as N
+
+    r = np.random.default_rng(11)
+    for _ in range(200):
+        q = r.normal(size=4) * r.uniform(0.2, 5.0)  # unnormalised on purpose: both normalise
+        v = r.normal(size=3) * 10.0
+        np.testing.assert_allclose(N.quat_to_matrix(q), F.quat_to_matrix(q), atol=1e-12)
+        qu = F.quat_normalize(q)
+        assert math.isclose(N.yaw_of(qu), F.yaw_of(q), abs_tol=1e-12)
+        np.testing.assert_allclose(N.body_to_world(qu, v), F.body_to_world(q, v), atol=1e-10)
+        np.testing.assert_allclose(N.world_to_body(qu, v), F.world_to_body(q, v), atol=1e-10)
+        np.testing.assert_allclose(N.enu_to_ned(v), F.enu_to_ned(v), atol=0)
+        np.testing.assert_allclose(N.flu_to_frd(v), F.flu_to_frd(v), atol=0)
+        yaw = r.uniform(-math.pi, math.pi)
+        out = np.full(4, np.nan)
+        N.set_quat_from_yaw(out, yaw)
+        np.testing.assert_allclose(out, F.quat_from_yaw(yaw), atol=0)
+        assert math.isclose(N.yaw_of(out), yaw, abs_tol=1e-12)
+
+
+def test_yaw_of_matches_scipy_and_ignores_scale_and_rejects_zero():
+    for q in QUATS:
+        expected = Rotation.from_quat(q).as_euler("ZYX")[0]
+        assert math.isclose(F.yaw_of(3.7 * q), expected, abs_tol=1e-12)
+    with pytest.raises(ValueError, match="not all zero"):
+        F.yaw_of(np.zeros(4))
+
+
+def test_slerp_interpolates_on_the_shorter_arc():
+    a, b = F.quat_from_yaw(0.2), F.quat_from_yaw(1.0)
+    assert math.isclose(F.yaw_of(F.quat_slerp(a, b, 0.25)), 0.4, abs_tol=1e-12)
+    np.testing.assert_allclose(F.quat_to_matrix(F.quat_slerp(a, -b, 1.0)), F.quat_to_matrix(b), atol=1e-12)
+    # the sign of either end does not change the path: -b is the same attitude as b
+    mid, mid_flipped = F.quat_slerp(a, b, 0.5), F.quat_slerp(a, -b, 0.5)
+    np.testing.assert_allclose(F.quat_to_matrix(mid), F.quat_to_matrix(mid_flipped), atol=1e-12)
+    # across +-pi it goes the short way (yaw 3.0 -> -3.0 passes through pi, not 0)
+    q = F.quat_slerp(F.quat_from_yaw(3.0), F.quat_from_yaw(-3.0), 0.5)
+    assert abs(abs(F.yaw_of(q)) - math.pi) < 1e-12

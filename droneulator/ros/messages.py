@@ -7,7 +7,8 @@ zenoh-bridge-ros2dds and rmw_zenoh carry (rmw_zenoh: ``TypeSupport::serializeROS
 encapsulation before the body).
 
 Values are taken as ROS-frame values: positions and orientations in ``map``/``odom`` (ENU), body
-rates and velocities in ``base_link`` (FLU), quaternions ``[x, y, z, w]``. Nothing here converts frames.
+rates and velocities in ``base_link`` (FLU), quaternions ``[x, y, z, w]``. Nothing here converts
+frames; the goal heading comes from :func:`droneulator.frames.yaw_of`.
 
 Speed: rosbags' generated serialiser copies a ``uint8[]`` field with a single buffer copy, so a
 640x480 ``32FC1`` image (1.2 MB) serialises in about 0.06 ms; no hand-written CDR path is needed.
@@ -25,6 +26,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 from rosbags.serde import SerdeError
 from rosbags.typesys import Stores, get_typestore
+
+from droneulator.frames import yaw_of
 
 __all__ = [
     "TYPESTORE",
@@ -317,5 +320,4 @@ def pose_stamped_to_goal(msg: Any) -> tuple[str, np.ndarray, float]:
     norm2 = x * x + y * y + z * z + w * w
     if norm2 < 1e-12:
         raise ValueError("goal orientation quaternion is zero")
-    yaw = math.atan2(2.0 * (w * z + x * y), norm2 - 2.0 * (y * y + z * z))
-    return msg.header.frame_id, position, yaw
+    return msg.header.frame_id, position, yaw_of(np.array([x, y, z, w]))

@@ -48,7 +48,7 @@ from tqdm import tqdm
 
 from droneulator.api.client import DroneulatorClient
 from droneulator.config import CameraConfig, CaptureConfig, SimConfig, to_dict
-from droneulator.frames import pose_from_transform, quat_normalize, transform_from_pose, wrap_angle, yaw_of
+from droneulator.frames import pose_from_transform, quat_slerp, transform_from_pose, wrap_angle, yaw_of
 from droneulator.ros.zenoh_node import RosZenohNode
 from droneulator.runtime.bridge import topic_names
 from droneulator.workflows.photogrammetry.colmap_model import (
@@ -163,17 +163,6 @@ def pending_views(plan: Sequence[Viewpoint], done: set[int] | dict[int, Any]) ->
 
 
 # --------------------------------------------------------------------------- TF
-def _slerp(q0: np.ndarray, q1: np.ndarray, s: float) -> np.ndarray:
-    q0, q1 = quat_normalize(q0), quat_normalize(q1)
-    dot = float(q0 @ q1)
-    if dot < 0.0:
-        q1, dot = -q1, -dot
-    if dot > 0.9995:
-        return quat_normalize(q0 + s * (q1 - q0))
-    theta = math.acos(dot)
-    return (math.sin((1 - s) * theta) * q0 + math.sin(s * theta) * q1) / math.sin(theta)
-
-
 class TfBuffer:
     """A small tf2-like buffer: static edges, and timed dynamic edges interpolated at a stamp."""
 
@@ -230,7 +219,7 @@ class TfBuffer:
             return parent, transform_from_pose(p1, q1)
         s0, p0, q0 = series[i - 1]
         f = (t_ns - s0) / (s1 - s0)
-        return parent, transform_from_pose(p0 + f * (p1 - p0), _slerp(q0, q1, f))
+        return parent, transform_from_pose(p0 + f * (p1 - p0), quat_slerp(q0, q1, f))
 
     def lookup(self, target: str, source: str, t_ns: int, timeout: float = 5.0) -> np.ndarray:
         """``T_target_source`` at ``t_ns``, waiting up to ``timeout`` s for the transforms to arrive."""
