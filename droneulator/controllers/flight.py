@@ -22,6 +22,7 @@ from droneulator.controllers.se3 import FastSE3Control
 from droneulator.controllers.velocity import VelocityReference
 from droneulator.frames import yaw_of
 from droneulator.trajectories.minsnap import PolyTrajectory, goto_trajectory, hold_trajectory
+from droneulator.vehicles.dynamics import STATE
 
 LAND_SPEED = 0.6
 TOUCHDOWN_ALTITUDE = 0.03
@@ -84,10 +85,10 @@ class FlightController:
         mode: Mode = Mode.GOTO,
     ) -> float:
         """Start a min-snap move to ``position`` (yaw kept if None); returns the planned duration."""
-        yaw0 = yaw_of(s[6:10])
+        yaw0 = yaw_of(s[STATE.q])
         yaw1 = yaw0 if yaw is None else float(yaw)
-        v0 = np.zeros(3) if self.mode in (Mode.IDLE, Mode.COLLIDED) else s[3:6].copy()
-        start = s[0:3].copy()
+        v0 = np.zeros(3) if self.mode in (Mode.IDLE, Mode.COLLIDED) else s[STATE.v].copy()
+        start = s[STATE.x].copy()
         if self.mode in (Mode.GOTO, Mode.TAKEOFF, Mode.LAND, Mode.HOLD) and self.trajectory is not None:
             ref = self.trajectory.flat(t)  # continue from the reference, not the measured state
             start, v0, yaw0 = ref[0:3].copy(), ref[3:6].copy(), float(ref[9])
@@ -111,14 +112,15 @@ class FlightController:
 
     def takeoff(self, s: np.ndarray, t: float, altitude: float | None = None) -> float:
         alt = self.cfg.takeoff_altitude if altitude is None else float(altitude)
-        return self.goto(s, t, np.array([s[0], s[1], alt]), speed=self.cfg.default_speed, mode=Mode.TAKEOFF)
+        target = np.array([*s[STATE.x][:2], alt])
+        return self.goto(s, t, target, speed=self.cfg.default_speed, mode=Mode.TAKEOFF)
 
     def land(self, s: np.ndarray, t: float) -> float:
-        return self.goto(s, t, np.array([s[0], s[1], 0.0]), speed=LAND_SPEED, mode=Mode.LAND)
+        return self.goto(s, t, np.array([*s[STATE.x][:2], 0.0]), speed=LAND_SPEED, mode=Mode.LAND)
 
     def hold(self, s: np.ndarray, t: float) -> None:
-        self.trajectory = hold_trajectory(s[0:3].copy(), yaw_of(s[6:10]), t)
-        self.target, self.target_yaw = s[0:3].copy(), yaw_of(s[6:10])
+        self.trajectory = hold_trajectory(s[STATE.x].copy(), yaw_of(s[STATE.q]), t)
+        self.target, self.target_yaw = s[STATE.x].copy(), yaw_of(s[STATE.q])
         self.velocity_ref = None
         self.mode = Mode.HOLD
 
@@ -128,9 +130,9 @@ class FlightController:
                 ref = self.trajectory.flat(t)
                 pos, yaw = ref[0:3].copy(), float(ref[9])
             else:
-                pos, yaw = s[0:3].copy(), yaw_of(s[6:10])
+                pos, yaw = s[STATE.x].copy(), yaw_of(s[STATE.q])
             c, sn = math.cos(yaw), math.sin(yaw)
-            speed0 = float(s[3] * c + s[4] * sn) if self.mode != Mode.COLLIDED else 0.0
+            speed0 = float(s[STATE.v][:2] @ (c, sn)) if self.mode != Mode.COLLIDED else 0.0
             self.velocity_ref = VelocityReference(self.cfg, pos, yaw, speed=speed0)
         self.velocity_ref.command(forward, yaw_rate)
         self.trajectory, self.target = None, None
@@ -154,14 +156,14 @@ class FlightController:
             return self._external, None, events
         if self.mode == Mode.VELOCITY:
             assert self.velocity_ref is not None
-            flat = self.velocity_ref.update(dt, s[0:3])
+            flat = self.velocity_ref.update(dt, s[STATE.x])
         else:
             assert self.trajectory is not None
             flat = self.trajectory.flat(t)
             done = t >= self.trajectory.t0 + self.trajectory.duration
-            if done and self.mode == Mode.LAND and s[2] < TOUCHDOWN_ALTITUDE:
+            if done and self.mode == Mode.LAND and s[STATE.x][2] < TOUCHDOWN_ALTITUDE:
                 self.motors_off()
-                events.append(Event("landed", t, {"position": s[0:3].tolist()}))
+                events.append(Event("landed", t, {"position": s[STATE.x].tolist()}))
                 return self._zero, None, events
             if done and self.mode in (Mode.GOTO, Mode.TAKEOFF) and self._settled(s):
                 events.append(
@@ -170,7 +172,7 @@ class FlightController:
                         t,
                         {
                             "target": self.target.tolist(),
-                            "position": s[0:3].tolist(),
+                            "position": s[STATE.x].tolist(),
                             "command": self.mode.value,
                         },
                     )
@@ -181,6 +183,6 @@ class FlightController:
     def _settled(self, s: np.ndarray) -> bool:
         assert self.target is not None
         return (
-            float(np.linalg.norm(s[0:3] - self.target)) < self.cfg.arrive_tolerance
-            and float(np.linalg.norm(s[3:6])) < self.cfg.arrive_speed
+            float(np.linalg.norm(s[STATE.x] - self.target)) < self.cfg.arrive_tolerance
+            and float(np.linalg.norm(s[STATE.v])) < self.cfg.arrive_speed
         )

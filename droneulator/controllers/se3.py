@@ -15,7 +15,8 @@ import numba
 import numpy as np
 from rotorpy.controllers.quadrotor_control import SE3Control
 
-from droneulator.vehicles.dynamics import quat_to_rot
+from droneulator.frames_numba import quat_to_matrix
+from droneulator.vehicles.dynamics import STATE
 
 # Packed flat output: x(3) x_dot(3) x_ddot(3) yaw yaw_dot
 FLAT_SIZE = 11
@@ -42,7 +43,7 @@ def se3_motor_speeds(
     for i in range(3):
         F_des[i] = mass * (-kp_pos[i] * (x[i] - flat[i]) - kd_pos[i] * (v[i] - flat[3 + i]) + flat[6 + i])
     F_des[2] += mass * g
-    R = quat_to_rot(q)
+    R = quat_to_matrix(q)
     u1 = F_des[0] * R[0, 2] + F_des[1] * R[1, 2] + F_des[2] * R[2, 2]
 
     b3 = F_des / math.sqrt(F_des[0] ** 2 + F_des[1] ** 2 + F_des[2] ** 2)
@@ -102,10 +103,10 @@ class FastSE3Control:
     def motor_speeds(self, s: np.ndarray, flat: np.ndarray) -> np.ndarray:
         """Commanded rotor speeds (rad/s, unclipped) for packed state ``s`` and packed flat output."""
         return se3_motor_speeds(
-            s[0:3],
-            s[3:6],
-            s[6:10],
-            s[10:13],
+            s[STATE.x],
+            s[STATE.v],
+            s[STATE.q],
+            s[STATE.w],
             flat,
             self.mass,
             self.inertia,

@@ -20,7 +20,7 @@ from droneulator.controllers.flight import Event, FlightController, Mode
 from droneulator.frames import quat_from_yaw, transform_from_pose, yaw_of
 from droneulator.scenes import get_scene
 from droneulator.scenes.base import Scene
-from droneulator.vehicles.dynamics import STATE_SIZE, FastMultirotor
+from droneulator.vehicles.dynamics import STATE, STATE_SIZE, FastMultirotor
 from droneulator.vehicles.params import get_params
 from droneulator.wind import make_wind
 
@@ -173,8 +173,8 @@ class Simulator:
         self._next_frame_ns = self.camera_period_ns
         self.frame_count = 0
         s = np.zeros(STATE_SIZE)
-        s[0:3] = pos
-        s[6:10] = quat_from_yaw(yaw_)
+        s[STATE.x] = pos
+        s[STATE.q] = quat_from_yaw(yaw_)
         self.s = s
         self.flight.motors_off()
         self._reference: np.ndarray | None = None
@@ -183,7 +183,7 @@ class Simulator:
         self.acceleration = np.zeros(3)
         fly = pos[2] > 0.05 if airborne is None else airborne
         if fly:
-            s[16:20] = self.vehicle.hover_speed
+            s[STATE.rotor_speeds] = self.vehicle.hover_speed
             self.flight.hold(s, 0.0)
         return self.state
 
@@ -197,15 +197,21 @@ class Simulator:
         return self.flight.mode
 
     @property
+    def wind_velocity(self) -> np.ndarray:
+        """Wind velocity (world frame, m/s) over the current control step: a sensor model input
+        (airspeed) that :attr:`state` does not carry."""
+        return self.s[STATE.wind].copy()
+
+    @property
     def state(self) -> VehicleState:
         s = self.s
         return VehicleState(
             self.t_ns,
-            s[0:3].copy(),
-            s[3:6].copy(),
-            s[6:10].copy(),
-            s[10:13].copy(),
-            s[16:20].copy(),
+            s[STATE.x].copy(),
+            s[STATE.v].copy(),
+            s[STATE.q].copy(),
+            s[STATE.w].copy(),
+            s[STATE.rotor_speeds].copy(),
             self.flight.mode.value,
             None if self._reference is None else self._reference.copy(),
         )
@@ -235,7 +241,7 @@ class Simulator:
         """Climb vertically to ``altitude`` (default from config); returns the planned duration."""
         self._finite("altitude", altitude)
         alt = self.config.flight.takeoff_altitude if altitude is None else float(altitude)
-        self._check_position(np.array([self.s[0], self.s[1], alt]))
+        self._check_position(np.array([*self.s[STATE.x][:2], alt]))
         return self.flight.takeoff(self.s, self.t, alt)
 
     def goto(
@@ -301,8 +307,8 @@ class Simulator:
             cmd, ref, events = self.flight.update(self.s, self.t, dt)
             self._reference = ref
             out.events.extend(events)
-            self.s[13:16] = self.wind.update(self.t, self.s[0:3])
-            v_before = self.s[3:6].copy()
+            self.s[STATE.wind] = self.wind.update(self.t, self.s[STATE.x])
+            v_before = self.s[STATE.v].copy()
             t_end = self.t_ns + self.control_period_ns
             while self.t_ns < t_end:
                 t_next = min(t_end, self._next_frame_ns) if self.camera_schedule else t_end
@@ -318,7 +324,7 @@ class Simulator:
                         out.camera_states.append(self.state)
                     self.frame_count += 1
                     self._next_frame_ns += self.camera_period_ns
-            self.acceleration = (self.s[3:6] - v_before) / dt
+            self.acceleration = (self.s[STATE.v] - v_before) / dt
         return out
 
     def run(self, seconds: float) -> StepResult:
@@ -338,12 +344,12 @@ class Simulator:
 
     def _on_collision(self) -> Event:
         s = self.s
-        s[3:6] = 0.0
-        s[10:13] = 0.0
-        s[6:10] = quat_from_yaw(yaw_of(s[6:10]))
+        s[STATE.v] = 0.0
+        s[STATE.w] = 0.0
+        s[STATE.q] = quat_from_yaw(yaw_of(s[STATE.q]))
         self.flight.collided()
         self.collisions += 1
-        return Event("collision", self.t, {"position": s[0:3].tolist()})
+        return Event("collision", self.t, {"position": s[STATE.x].tolist()})
 
     def render(self) -> FrameSet:
         """Render every camera from the current state (also usable outside the camera schedule).

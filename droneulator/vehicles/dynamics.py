@@ -8,17 +8,20 @@ ground reaction and ground contact — compiled with numba and integrated with f
 Its trajectories are checked against RotorPy's own integration in the tests and benchmarks.
 
 State vector layout (RotorPy's ``_pack_state``): ``x[0:3] v[3:6] q[6:10] (x,y,z,w) w[10:13]
-wind[13:16] rotor_speeds[16:20]``.
+wind[13:16] rotor_speeds[16:20]``. Code outside :mod:`droneulator.vehicles` names these fields
+through :data:`STATE` (``s[STATE.q]``) instead of writing the slices; the compiled kernels below
+index the vector directly.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numba
 import numpy as np
 
+from droneulator.frames_numba import quat_to_matrix, set_quat_from_yaw, yaw_of
 from droneulator.scenes.collision import sdf_lookup
 
 # Layout of the packed parameter vector.
@@ -28,7 +31,33 @@ _INERTIA = 17  # 9 entries, row-major
 _INV_INERTIA = 26  # 9 entries
 _N_PARAMS = 35
 
-STATE_SIZE = 20
+
+class StateLayout(NamedTuple):
+    """Named slices of the packed state vector, with RotorPy's field names and order.
+
+    ``x`` position (world, m), ``v`` velocity (world, m/s), ``q`` attitude ``[x, y, z, w]`` (body FLU
+    to world), ``w`` body rates (rad/s), ``wind`` wind velocity (world, m/s), ``rotor_speeds`` (rad/s).
+    """
+
+    x: slice = slice(0, 3)
+    v: slice = slice(3, 6)
+    q: slice = slice(6, 10)
+    w: slice = slice(10, 13)
+    wind: slice = slice(13, 16)
+    rotor_speeds: slice = slice(16, 20)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self._fields
+
+    @property
+    def size(self) -> int:
+        return max(part.stop for part in self)
+
+
+#: the packed state's layout: ``s[STATE.x]`` is the position, ``s[STATE.rotor_speeds]`` the rotors
+STATE = StateLayout()
+STATE_SIZE = STATE.size
 
 
 def pack_params(
@@ -72,30 +101,12 @@ def pack_params(
 
 
 @numba.njit(cache=True)
-def quat_to_rot(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of quaternion [x,y,z,w], normalising it first (as SciPy does)."""
-    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
-    x, y, z, w = q[0] / n, q[1] / n, q[2] / n, q[3] / n
-    R = np.empty((3, 3))
-    R[0, 0] = 1 - 2 * (y * y + z * z)
-    R[0, 1] = 2 * (x * y - z * w)
-    R[0, 2] = 2 * (x * z + y * w)
-    R[1, 0] = 2 * (x * y + z * w)
-    R[1, 1] = 1 - 2 * (x * x + z * z)
-    R[1, 2] = 2 * (y * z - x * w)
-    R[2, 0] = 2 * (x * z - y * w)
-    R[2, 1] = 2 * (y * z + x * w)
-    R[2, 2] = 1 - 2 * (x * x + y * y)
-    return R
-
-
-@numba.njit(cache=True)
 def state_derivative(
     s: np.ndarray, cmd: np.ndarray, p: np.ndarray, geom: np.ndarray, dirs: np.ndarray
 ) -> np.ndarray:
     """d/dt of the packed state for constant commanded rotor speeds (RotorPy ``_s_dot_fn``)."""
     ds = np.zeros(STATE_SIZE)
-    R = quat_to_rot(s[6:10])
+    R = quat_to_matrix(s[6:10])
     qx, qy, qz, qw = s[6], s[7], s[8], s[9]
     wx, wy, wz = s[10], s[11], s[12]
     mass = p[_MASS]
@@ -172,12 +183,7 @@ def _ground_contact(s: np.ndarray, p: np.ndarray) -> None:
     s[10] = 0.0
     s[11] = 0.0
     s[12] = 0.0
-    qx, qy, qz, qw = s[6], s[7], s[8], s[9]
-    yaw = math.atan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
-    s[6] = 0.0
-    s[7] = 0.0
-    s[8] = math.sin(yaw / 2)
-    s[9] = math.cos(yaw / 2)
+    set_quat_from_yaw(s[6:10], yaw_of(s[6:10]))
 
 
 @numba.njit(cache=True)
@@ -277,22 +283,11 @@ class FastMultirotor:
 def pack_state(state: dict[str, np.ndarray]) -> np.ndarray:
     """RotorPy state dict -> packed vector."""
     s = np.zeros(STATE_SIZE)
-    s[0:3] = state["x"]
-    s[3:6] = state["v"]
-    s[6:10] = state["q"]
-    s[10:13] = state["w"]
-    s[13:16] = state.get("wind", np.zeros(3))
-    s[16:20] = state["rotor_speeds"]
+    for name in STATE.names:
+        s[getattr(STATE, name)] = state.get(name, 0.0) if name == "wind" else state[name]
     return s
 
 
 def unpack_state(s: np.ndarray) -> dict[str, np.ndarray]:
     """Packed vector -> RotorPy state dict (copies)."""
-    return {
-        "x": s[0:3].copy(),
-        "v": s[3:6].copy(),
-        "q": s[6:10].copy(),
-        "w": s[10:13].copy(),
-        "wind": s[13:16].copy(),
-        "rotor_speeds": s[16:20].copy(),
-    }
+    return {name: s[getattr(STATE, name)].copy() for name in STATE.names}
