@@ -18,7 +18,7 @@ import pytest
 
 from droneulator import frames as F
 from droneulator.config import load_config
-from droneulator.render.camera import intrinsics
+from droneulator.sensors.camera import intrinsics
 from droneulator.workflows.photogrammetry.capture import (
     CaptureDataset,
     DatasetMismatchError,

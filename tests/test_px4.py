@@ -18,7 +18,7 @@ from droneulator import frames as F
 from droneulator.config import PX4Config, load_config
 from droneulator.px4 import MotorMap, PX4Link, px4_rotor_order
 from droneulator.px4.link import BOOT_GRACE_S, SENSOR_ACCEL, SENSOR_BARO, SENSOR_GYRO, SENSOR_MAG
-from droneulator.px4.sensors import SensorSuite, Truth
+from droneulator.sensors import SensorSuite, Truth
 from droneulator.sim.simulator import Simulator
 from droneulator.vehicles.params import get_params
 

@@ -10,8 +10,8 @@ import pytest
 from droneulator import frames
 from droneulator.config import CameraConfig
 from droneulator.render import CameraFrame, Renderer
-from droneulator.render.camera import intrinsics, project
 from droneulator.scenes.base import CollisionModel, MeshPart, Scene, SemanticClass
+from droneulator.sensors.camera import intrinsics, project
 
 WHITE = np.full((4, 4, 4), 255, dtype=np.uint8)
 

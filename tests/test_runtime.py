@@ -28,8 +28,8 @@ from websockets.sync.client import connect
 from droneulator.api.client import ApiError, DroneulatorClient
 from droneulator.config import CameraConfig
 from droneulator.frames import camera_mount, quat_from_yaw, quat_to_matrix
-from droneulator.render.camera import intrinsics
 from droneulator.scenes import get_scene
+from droneulator.sensors.camera import intrinsics
 
 pytestmark = pytest.mark.slow
 TS = get_typestore(Stores.ROS2_JAZZY)

@@ -10,8 +10,8 @@ from PIL import Image
 from droneulator.cli import main
 from droneulator.config import CameraConfig, load_config
 from droneulator.frames import invert_transform, transform_points
-from droneulator.render.camera import project
 from droneulator.scenes.base import SemanticClass
+from droneulator.sensors.camera import project
 from droneulator.sim.simulator import NS, Simulator
 
 

@@ -37,7 +37,8 @@ from droneulator.config import PX4Config
 from droneulator.controllers.flight import Mode
 from droneulator.frames import enu_to_geodetic, enu_to_ned, xyzw_to_wxyz
 from droneulator.px4.mixing import LogThrottle, MotorMap
-from droneulator.px4.sensors import BaroSample, SensorSuite, Truth
+from droneulator.sensors import SensorSuite, Truth
+from droneulator.sensors.baro import BaroSample
 
 if TYPE_CHECKING:
     import threading

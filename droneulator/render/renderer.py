@@ -26,8 +26,8 @@ from PIL import Image
 
 from droneulator import frames
 from droneulator.config import CameraConfig
-from droneulator.render.camera import gl_projection, intrinsics
 from droneulator.scenes.base import Scene
+from droneulator.sensors.camera import gl_projection, intrinsics
 
 #: Target number of ground tiles along the longer side of the scene.
 TILES_PER_SIDE = 12

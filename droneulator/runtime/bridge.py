@@ -35,10 +35,10 @@ import numpy as np
 from droneulator.config import SimConfig, from_dict
 from droneulator.frames import T_link_optical, camera_mount, pose_from_transform, world_to_body
 from droneulator.imaging import encode_jpeg, encode_png
-from droneulator.render.camera import intrinsics
 from droneulator.ros import messages as M
 from droneulator.ros.zenoh_node import RosZenohNode
 from droneulator.runtime.ipc import ENV_CONFIG, ENV_RING, FrameRing, hub_connect
+from droneulator.sensors.camera import intrinsics
 
 log = logging.getLogger("droneulator.bridge")
 

@@ -13,6 +13,8 @@ import math
 import numpy as np
 
 from droneulator.config import CameraConfig
+from droneulator.frames import camera_mount
+from droneulator.sensors.registry import register
 
 
 def intrinsics(cam: CameraConfig) -> np.ndarray:
@@ -51,3 +53,19 @@ def project(K: np.ndarray, p_optical: np.ndarray) -> np.ndarray:
     p = np.asarray(p_optical, dtype=float)
     uvw = p @ K.T
     return uvw[..., :2] / uvw[..., 2:3]
+
+
+@register("camera")
+class Camera:
+    """A body-mounted pinhole camera (RGB, depth and segmentation images are drawn by
+    :class:`droneulator.render.Renderer`): its intrinsics and its mount on the body."""
+
+    def __init__(self, cfg: CameraConfig) -> None:
+        self.cfg = cfg
+        self.K = intrinsics(cfg)
+        #: camera link (FLU axes) in the body frame
+        self.T_body_link = camera_mount(np.asarray(cfg.position, dtype=float), cfg.rpy)
+
+    def project(self, p_optical: np.ndarray) -> np.ndarray:
+        """Pixel coordinates (..., 2) of points (..., 3) in this camera's optical frame."""
+        return project(self.K, p_optical)
