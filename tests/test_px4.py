@@ -463,3 +463,24 @@ def test_same_seed_gives_identical_sensor_streams(sim):
     a, b, c = run(5), run(5), run(6)
     assert a == b
     assert a != c and len(a) == len(c)
+
+
+def test_split_frames_and_a_corrupted_copy_before_a_valid_frame_are_handled(served, sim, caplog):
+    """pymavlink frames the stream: a message split over TCP segments is stepped once complete, and
+    a corrupted copy (bad checksum) in front of a valid message costs bytes, not the message."""
+    caplog.set_level(logging.ERROR, logger="droneulator.px4")
+    peer = Peer(served.link.port)
+    peer.next()
+    t = peer.step(armed=False)[-1].time_usec  # lockstep from here: one step per actuator message
+    frame = peer.mav.hil_actuator_controls_encode(t, [0.0] * 16, 1, 1).pack(peer.mav)
+    peer.sock.sendall(frame[:7])
+    time.sleep(0.05)
+    assert by_type(peer.drain(0.05), "HIL_SENSOR") == []  # half a frame steps nothing
+    peer.sock.sendall(frame[7:])
+    assert peer.next()[-1].time_usec == t + STEP_US
+    frame = peer.mav.hil_actuator_controls_encode(t, [0.0] * 16, 1, 1).pack(peer.mav)
+    corrupt = frame[:-1] + bytes([frame[-1] ^ 0xFF])
+    peer.sock.sendall(corrupt + frame)
+    assert peer.next()[-1].time_usec == t + 2 * STEP_US
+    assert "not valid MAVLink" in caplog.text and served.link.connected
+    peer.close()

@@ -71,7 +71,7 @@ BOOT_GRACE_S = 0.1
 MAX_LAG_S = 0.25
 SEND_TIMEOUT_S = 5.0
 
-_STX_V1, _STX_V2 = 0xFE, 0xFD
+_STX = bytes([mavlink.PROTOCOL_MARKER_V2, mavlink.PROTOCOL_MARKER_V1])
 
 
 def _i16(x: float) -> int:
@@ -83,18 +83,22 @@ def _u16(x: float) -> int:
 
 
 def _next_stx(buf: bytearray, start: int) -> int | None:
-    hits = [i for i in (buf.find(_STX_V2, start), buf.find(_STX_V1, start)) if i >= 0]
+    """Index of the next byte at or after ``start`` that can begin a MAVLink 1 or 2 frame."""
+    hits = [i for i in (buf.find(stx, start) for stx in _STX) if i >= 0]
     return min(hits) if hits else None
 
 
-def _frame_length(buf: bytearray, p: int) -> int | None:
-    """Length of the MAVLink frame starting at ``p``, or None until its header has arrived."""
-    if len(buf) - p < 3:
+def _parse_frame(data: bytes) -> tuple[Any, int] | bool | None:
+    """pymavlink's parser on a frame starting at ``data[0]``: ``(message, frame length)``, None while
+    the frame is incomplete, or False when pymavlink rejects it (checksum, unknown message, flags)."""
+    parser = mavlink.MAVLink(None)
+    parser.robust_parsing = True
+    msg = parser.parse_char(data)
+    if msg is None:
         return None
-    if buf[p] == _STX_V2:
-        signed = buf[p + 2] & mavlink.MAVLINK_IFLAG_SIGNED
-        return buf[p + 1] + mavlink.HEADER_LEN_V2 + 2 + (mavlink.MAVLINK_SIGNATURE_BLOCK_LEN if signed else 0)
-    return buf[p + 1] + mavlink.HEADER_LEN_V1 + 2
+    if isinstance(msg, mavlink.MAVLink_bad_data):
+        return False
+    return msg, len(data) - parser.buf_len()
 
 
 class PX4Link:
@@ -111,7 +115,6 @@ class PX4Link:
         self.motor_map = MotorMap(sim.quad_params, cfg.thrust_model_factor)
         self.sensors = SensorSuite(cfg, seed)
         self._tx = mavlink.MAVLink(None, SIM_SYSTEM_ID, SIM_COMPONENT_ID)
-        self._rx_mav = mavlink.MAVLink(None)
         self._listener: socket.socket | None = None
         self._conn: socket.socket | None = None
         self._errors = LogThrottle(log)
@@ -316,43 +319,37 @@ class PX4Link:
 
     # ------------------------------------------------------------------ parsing
     def _extract(self) -> list[Any]:
-        """Complete MAVLink messages in the receive buffer; bytes that cannot start a valid frame
-        are dropped with a logged error. A bad frame costs one byte, so a valid message inside a
-        run of garbage is still found."""
+        """Complete MAVLink messages in the receive buffer, framed and checked by pymavlink.
+
+        Bytes that cannot start a valid frame are dropped with a logged error. A rejected frame
+        costs one byte, not its claimed length, and an incomplete frame is given up once a valid
+        frame starts after it, so a valid message inside (or after) a run of garbage is still found:
+        in lockstep PX4 sends one message and waits, so nothing else would complete the bogus frame.
+        """
         buf, out = self._rx, []
         while buf:
             found = None
             keep = len(buf)
             p = _next_stx(buf, 0)
             while p is not None:
-                n = _frame_length(buf, p)
-                if n is None or p + n > len(buf):
+                parsed = _parse_frame(bytes(buf[p:]))
+                if parsed is None:
                     keep = min(keep, p)
-                else:
-                    msg = self._decode(bytes(buf[p : p + n]))
-                    if msg is not None:
-                        found = (p, n, msg)
-                        break
+                elif parsed is not False:
+                    found = (p, *parsed)
+                    break
                 p = _next_stx(buf, p + 1)
             if found is None:
                 if keep:
                     self._garbage(keep)
                     del buf[:keep]
                 return out
-            p, n, msg = found
+            p, msg, n = found
             if p:
                 self._garbage(p)
             del buf[: p + n]
             out.append(msg)
         return out
-
-    def _decode(self, frame: bytes) -> Any:
-        if frame[0] == _STX_V2 and frame[2] & ~mavlink.MAVLINK_IFLAG_SIGNED:
-            return None
-        try:
-            return self._rx_mav.decode(bytearray(frame))
-        except Exception:
-            return None
 
     def _garbage(self, n: int) -> None:
         self._errors.error("garbage", "discarded %d bytes from PX4 that are not valid MAVLink", n)
