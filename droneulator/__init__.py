@@ -1,0 +1,12 @@
+"""Droneulator: a UAV simulator (RotorPy dynamics, OpenGL sensors, ROS 2 over Zenoh, PX4 SITL).
+
+Importing the package registers the Gymnasium environment ``droneulator/VineyardNav-v0`` when
+Gymnasium is installed (by name only: the environment, torch and the renderer load on ``gym.make``).
+"""
+
+from importlib.util import find_spec
+
+if find_spec("gymnasium") is not None:
+    from droneulator.workflows.rl import register_envs
+
+    register_envs()

@@ -8,7 +8,7 @@ from rotorpy.vehicles.multirotor import Multirotor
 
 from droneulator.controllers.se3 import FastSE3Control, pack_flat
 from droneulator.trajectories.minsnap import PolyTrajectory, goto_trajectory, rest_to_rest
-from droneulator.vehicles.dynamics import FastMultirotor, pack_state, state_derivative, unpack_state
+from droneulator.vehicles.dynamics import STATE, FastMultirotor, pack_state, state_derivative, unpack_state
 from droneulator.vehicles.params import PARAMETER_SETS, get_params
 
 rng = np.random.default_rng(1)
@@ -131,7 +131,7 @@ def test_closed_loop_matches_rotorpy_integration_within_1cm():
         fo = traj.update(i * 0.01)
         st = ref_v.step(st, ref_c.update(i * 0.01, st, fo), 0.01)
         assert not fast_v.step(s, fast_c.motor_speeds(s, pack_flat(fo)), 0.01)
-        err.append(np.linalg.norm(st["x"] - s[0:3]))
+        err.append(np.linalg.norm(st["x"] - s[STATE.x]))
     assert max(err) < 0.01
     assert np.linalg.norm(unpack_state(s)["x"] - traj.update(10.0)["x"]) < 0.1  # it really flew the path
 
@@ -153,4 +153,4 @@ def test_motors_off_rests_on_ground():
         fast.step(s, np.zeros(4), 0.01)
         zs.append(s[2])
     assert min(zs) >= 0.0
-    assert s[2] == 0.0 and np.allclose(s[3:6], 0.0, atol=1e-9)
+    assert s[STATE.x][2] == 0.0 and np.allclose(s[STATE.v], 0.0, atol=1e-9)

@@ -16,6 +16,7 @@ from PIL import Image
 
 import droneulator.workflows.rl as rl
 from droneulator.sim.simulator import Simulator
+from droneulator.vehicles.dynamics import STATE
 from droneulator.workflows.rl.astar import OccupancyGrid
 from droneulator.workflows.rl.env import VineyardNavEnv, depth_strip, env_config, runtime_overrides
 
@@ -142,7 +143,7 @@ def test_depth_strip_is_the_centre_row_of_the_rendered_image(env):
         for _ in range(15):
             obs, *_ = env.step(np.array([0.3, 0.5]))
         kin = u.kinematics
-        sim.s[0:3], sim.s[6:10] = kin.position, kin.quaternion  # the full attitude, rolled and pitched
+        sim.s[STATE.x], sim.s[STATE.q] = kin.position, kin.quaternion  # the full attitude, rolled and pitched
         depth = sim.render().cameras["front"].depth
         np.testing.assert_allclose(obs[:32], expected_strip(depth), atol=1e-6)
     assert (obs[:32] < 1.0).any()  # vines in view, not only misses

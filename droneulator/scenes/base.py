@@ -8,6 +8,8 @@ from enum import IntEnum
 
 import numpy as np
 
+from droneulator.scenes.collision import CollisionModel
+
 
 class SemanticClass(IntEnum):
     """Class ids written to the segmentation image (uint8 per pixel)."""
@@ -91,22 +93,3 @@ class Scene:
     def in_bounds(self, p: np.ndarray) -> bool:
         p = np.asarray(p, dtype=float)
         return bool(np.all(p >= self.bounds_min) and np.all(p <= self.bounds_max))
-
-
-class CollisionModel:
-    """Signed distance to scene geometry on a regular grid, built once per scene.
-
-    ``distance(p)`` is the trilinearly interpolated distance (metres) from world point ``p`` to the
-    nearest obstacle surface, negative inside obstacles. The ground plane z = 0 is handled by the
-    vehicle's ground contact, not here.
-    """
-
-    def __init__(self, sdf: np.ndarray, origin: np.ndarray, resolution: float) -> None:
-        self.sdf = np.ascontiguousarray(sdf, dtype=np.float32)
-        self.origin = np.asarray(origin, dtype=np.float64)
-        self.resolution = float(resolution)
-
-    def distance(self, p: np.ndarray) -> float:
-        from droneulator.scenes.collision import sdf_lookup
-
-        return float(sdf_lookup(self.sdf, self.origin, self.resolution, np.asarray(p, dtype=np.float64)))

@@ -12,8 +12,6 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
-from droneulator.scenes.base import CollisionModel
-
 #: Distances are clamped to this value (metres); it is also the answer outside the grid.
 CLAMP_DISTANCE = 2.0
 
@@ -226,3 +224,20 @@ def sdf_gradient(sdf: np.ndarray, origin: np.ndarray, resolution: float, p: np.n
         q[a] = p[a]
         g[a] = (d1 - d0) / (2.0 * h)
     return g
+
+
+class CollisionModel:
+    """Signed distance to scene geometry on a regular grid, built once per scene.
+
+    ``distance(p)`` is the trilinearly interpolated distance (metres) from world point ``p`` to the
+    nearest obstacle surface, negative inside obstacles. The ground plane z = 0 is handled by the
+    vehicle's ground contact, not here.
+    """
+
+    def __init__(self, sdf: np.ndarray, origin: np.ndarray, resolution: float) -> None:
+        self.sdf = np.ascontiguousarray(sdf, dtype=np.float32)
+        self.origin = np.asarray(origin, dtype=np.float64)
+        self.resolution = float(resolution)
+
+    def distance(self, p: np.ndarray) -> float:
+        return float(sdf_lookup(self.sdf, self.origin, self.resolution, np.asarray(p, dtype=np.float64)))

@@ -1,18 +1,34 @@
 """Workflow 3 (paper §III-C): reinforcement learning of vineyard navigation from a depth strip.
 
-* :mod:`.env` is the Gymnasium environment ``droneulator/VineyardNav-v0`` (registered on import),
-  stepping the in-process simulator in lockstep, one step per camera frame;
+* :mod:`.env` is the Gymnasium environment ``droneulator/VineyardNav-v0``, stepping the in-process
+  simulator in lockstep, one step per camera frame;
 * :mod:`.remote` is the same environment driving a running ``droneulator run`` over WebSocket and Zenoh;
+* :mod:`.backend` holds what both share (scene, camera, the state an observation needs);
 * :mod:`.astar` holds the occupancy grid, A* and the per-episode goal distance field of the reward;
 * :mod:`.train` and :mod:`.evaluate` train Stable-Baselines3 SAC and evaluate it with the paper's figures
   (optional extra ``droneulator[rl]``).
+
+The environment id is registered by ``import droneulator`` whenever Gymnasium is installed, with an
+entry-point string, so registering imports neither the environment nor its dependencies.
 """
 
-from gymnasium.envs.registration import register, registry
+from __future__ import annotations
 
 ENV_ID = "droneulator/VineyardNav-v0"
+ENTRY_POINT = "droneulator.workflows.rl.env:VineyardNavEnv"
 
-if ENV_ID not in registry:
-    register(id=ENV_ID, entry_point="droneulator.workflows.rl.env:VineyardNavEnv")
 
-__all__ = ["ENV_ID"]
+def register_envs() -> bool:
+    """Register :data:`ENV_ID` with Gymnasium (idempotent); False when Gymnasium is not installed."""
+    try:
+        from gymnasium.envs.registration import register, registry
+    except ImportError:
+        return False
+    if ENV_ID not in registry:
+        register(id=ENV_ID, entry_point=ENTRY_POINT)
+    return True
+
+
+register_envs()
+
+__all__ = ["ENTRY_POINT", "ENV_ID", "register_envs"]

@@ -28,7 +28,7 @@ from droneulator.config import SimConfig
 from droneulator.ros.zenoh_node import RosZenohNode
 from droneulator.runtime.bridge import topic_names
 from droneulator.scenes import get_scene
-from droneulator.workflows.rl.env import CAMERA_NAME, SCENE, Kinematics
+from droneulator.workflows.rl.backend import CAMERA_NAME, SCENE, Kinematics
 
 log = logging.getLogger(__name__)
 

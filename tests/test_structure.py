@@ -1,0 +1,178 @@
+"""Package structure: no import circles, the sensor registry, named state fields, lazy Gym registration."""
+
+from __future__ import annotations
+
+import ast
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rotorpy.vehicles.multirotor import Multirotor
+
+from droneulator.config import PX4Config
+from droneulator.sensors import SENSORS, SensorSuite, Truth, get_sensor
+from droneulator.vehicles.dynamics import STATE, STATE_SIZE, pack_state, unpack_state
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "droneulator"
+
+
+def _fresh(code: str) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=300
+    )
+
+
+def _import_graph() -> dict[str, set[str]]:
+    """Module -> droneulator modules it imports anywhere in its source (lazy imports included)."""
+    mods = {}
+    for f in PACKAGE.rglob("*.py"):
+        name = ".".join(f.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
+        mods[name] = f
+    graph: dict[str, set[str]] = {}
+    for name, f in mods.items():
+        deps: set[str] = set()
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                names = [node.module, *(f"{node.module}.{a.name}" for a in node.names)]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            else:
+                continue
+            deps |= {m for m in names if m in mods and m != name}
+        graph[name] = deps
+    return graph
+
+
+def _reaches(graph: dict[str, set[str]], start: str, goal: str) -> bool:
+    seen, todo = set(), [start]
+    while todo:
+        m = todo.pop()
+        if m == goal:
+            return True
+        if m not in seen:
+            seen.add(m)
+            todo.extend(graph[m])
+    return False
+
+
+@pytest.mark.parametrize(
+    ("a", "b"),
+    [
+        ("droneulator.scenes.base", "droneulator.scenes.collision"),
+        ("droneulator.workflows.rl.env", "droneulator.workflows.rl.remote"),
+        ("droneulator.frames", "droneulator.vehicles.dynamics"),
+        ("droneulator.sensors.registry", "droneulator.sensors"),
+    ],
+)
+def test_no_import_circle(a: str, b: str) -> None:
+    graph = _import_graph()
+    assert not (_reaches(graph, a, b) and _reaches(graph, b, a)), f"{a} and {b} import each other"
+
+
+@pytest.mark.parametrize(
+    "module",
+    [
+        "droneulator.scenes.collision",
+        "droneulator.scenes.base",
+        "droneulator.workflows.rl.remote",
+        "droneulator.workflows.rl.env",
+        "droneulator.sensors.camera",
+        "droneulator.px4.link",
+    ],
+)
+def test_module_imports_first_in_a_fresh_interpreter(module: str) -> None:
+    r = _fresh(f"import {module}")
+    assert r.returncode == 0, r.stderr
+
+
+def test_gym_make_after_plain_import_droneulator() -> None:
+    code = """
+import sys
+import droneulator
+import gymnasium as gym
+ID = "droneulator/VineyardNav-v0"
+spec = gym.spec(ID)
+assert spec.entry_point == "droneulator.workflows.rl.env:VineyardNavEnv", spec.entry_point
+lazy = [m for m in ("droneulator.workflows.rl.env", "torch", "moderngl") if m in sys.modules]
+assert not lazy, f"registering imported {lazy}"
+env = gym.make(ID)
+obs, _ = env.reset(seed=0)
+assert obs.shape == (35,), obs.shape
+env.close()
+print("ok")
+"""
+    r = _fresh(code)
+    assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr
+
+
+def test_import_droneulator_without_gymnasium_registers_nothing() -> None:
+    """A blocked gymnasium stands in for an install without the rl extra."""
+    r = _fresh(
+        "import sys; sys.modules['gymnasium'] = None\n"
+        "import importlib.util, droneulator\n"
+        "assert 'droneulator.workflows.rl.env' not in sys.modules and 'torch' not in sys.modules\n"
+        "from droneulator.workflows.rl import register_envs\n"
+        "assert register_envs() is False\n"
+        "print('ok')"
+    )
+    assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr
+
+
+# --------------------------------------------------------------------------- sensors
+def test_every_sensor_kind_is_registered_and_unknown_kinds_are_named() -> None:
+    assert {"imu", "mag", "baro", "gps", "airspeed", "camera"} <= set(SENSORS)
+    assert all(get_sensor(k).kind == k for k in SENSORS)
+    with pytest.raises(ValueError, match="unknown sensor kind 'lidar'; registered: .*imu"):
+        get_sensor("lidar")
+
+
+def test_each_sensor_draws_its_own_noise_stream() -> None:
+    """Sampling the IMU more often leaves the GPS noise of the same seed unchanged."""
+    z3 = np.zeros(3)
+    truth = Truth(0, z3, z3, np.array([0.0, 0.0, 0.0, 1.0]), z3, z3, z3)
+    a, b = SensorSuite(PX4Config(), seed=3), SensorSuite(PX4Config(), seed=3)
+    for _ in range(5):
+        b.imu(truth)
+    ga, gb = a.gps(truth), b.gps(truth)
+    assert (ga.lat_deg, ga.lon_deg, ga.alt_msl_m) == (gb.lat_deg, gb.lon_deg, gb.alt_msl_m)
+    assert np.array_equal(ga.vel_ned, gb.vel_ned)
+    assert not np.array_equal(a.imu(truth)[0], b.imu(truth)[0])
+
+
+# --------------------------------------------------------------------------- state layout
+def test_state_layout_is_rotorpys_packing() -> None:
+    r = np.random.default_rng(1)
+    st = {
+        "x": r.normal(size=3),
+        "v": r.normal(size=3),
+        "q": r.normal(size=4),
+        "w": r.normal(size=3),
+        "wind": r.normal(size=3),
+        "rotor_speeds": r.normal(size=4),
+    }
+    s = pack_state(st)
+    assert STATE_SIZE == 20 and s.shape == (STATE_SIZE,)
+    np.testing.assert_array_equal(s, Multirotor._pack_state(st))
+    for name in STATE.names:
+        np.testing.assert_array_equal(s[getattr(STATE, name)], st[name])
+        np.testing.assert_array_equal(unpack_state(s)[name], st[name])
+
+
+def test_no_raw_state_slices_outside_vehicles() -> None:
+    """``s[13:16]``-style slices of the packed state are written only in droneulator/vehicles/."""
+    import re
+
+    raw = re.compile(r"\bs\[(0:3|3:6|6:10|10:13|13:16|16:20)\]")
+    offenders = [
+        f"{f.relative_to(ROOT)}:{i}"
+        for f in PACKAGE.rglob("*.py")
+        if "vehicles" not in f.parts
+        for i, line in enumerate(f.read_text().splitlines(), 1)
+        if raw.search(line)
+    ]
+    assert offenders == []
