@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -112,18 +113,29 @@ class RuntimeConfig:
             raise ValueError("runtime.frame_slots must be at least 2")
 
 
+_ROS_NAMESPACE = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
+
+
 @dataclass
 class BridgeConfig:
-    """ROS 2 over Zenoh publishing."""
+    """ROS 2 over Zenoh publishing (see docs/ros2.md)."""
 
+    #: ROS namespace of the simulator's topics: /<namespace>/odom, /<namespace>/front/...
     namespace: str = "droneulator"
     #: "ros2dds" (zenoh-bridge-ros2dds keys) or "rmw_zenoh"
     key_mode: str = "ros2dds"
     domain_id: int = 0
+    #: Zenoh mode of the simulator's session: "router" routes for the simulator's other process and for
+    #: local subscribers; "peer"; or "client" (leaf of the router named in connect)
+    mode: str = "router"
     listen: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7448"])
+    #: empty: nothing in ros2dds key mode, rmw_zenohd on tcp/127.0.0.1:7447 in rmw_zenoh key mode
     connect: list[str] = field(default_factory=list)
     #: optional Zenoh JSON5 configuration file (listen/connect above are applied on top)
     zenoh_config: str = ""
+    #: ros2dds key mode: zenoh-bridge-ros2dds' own namespace option ("-n /ns" -> keys "ns/..."), so a
+    #: bridge started with it routes the simulator's topics
+    ros2dds_namespace: str = "/"
     jpeg_quality: int = 90
     #: append "stream stamp_ns publish_wall_ns" per published message here (latency benchmark)
     latency_log: str = ""
@@ -131,6 +143,17 @@ class BridgeConfig:
     def __post_init__(self) -> None:
         if self.key_mode not in ("ros2dds", "rmw_zenoh"):
             raise ValueError(f"bridge.key_mode must be 'ros2dds' or 'rmw_zenoh', got {self.key_mode!r}")
+        if self.mode not in ("router", "peer", "client"):
+            raise ValueError(f"bridge.mode must be 'router', 'peer' or 'client', got {self.mode!r}")
+        if self.ros2dds_namespace != "/" and not _ROS_NAMESPACE.match(self.ros2dds_namespace):
+            raise ValueError(
+                f"bridge.ros2dds_namespace must be '/' or an absolute ROS namespace like '/robot1', "
+                f"got {self.ros2dds_namespace!r}"
+            )
+        if self.ros2dds_namespace != "/" and self.key_mode != "ros2dds":
+            raise ValueError("bridge.ros2dds_namespace applies to bridge.key_mode=ros2dds only")
+        if self.mode == "client" and self.key_mode == "ros2dds" and not (self.connect or self.zenoh_config):
+            raise ValueError("bridge.mode=client needs a router to connect to: set bridge.connect")
         if not 1 <= self.jpeg_quality <= 100:
             raise ValueError("bridge.jpeg_quality must lie in [1, 100]")
 

@@ -5,11 +5,21 @@ installation; messages are rosbags objects serialised to standard CDR.
 """
 
 from droneulator.ros.zenoh_node import (
+    RMW_ZENOH_ROUTER,
     QosProfile,
     RosPublisher,
     RosSubscription,
     RosZenohNode,
     ZenohNodeConfig,
+    rmw_gid,
 )
 
-__all__ = ["QosProfile", "RosPublisher", "RosSubscription", "RosZenohNode", "ZenohNodeConfig"]
+__all__ = [
+    "RMW_ZENOH_ROUTER",
+    "QosProfile",
+    "RosPublisher",
+    "RosSubscription",
+    "RosZenohNode",
+    "ZenohNodeConfig",
+    "rmw_gid",
+]

@@ -5,7 +5,10 @@ Two wire conventions, chosen with ``key_mode``:
 ``"ros2dds"`` (default): what zenoh-bridge-ros2dds / zenoh-plugin-ros2dds routes.
     Key = ROS name without its leading ``/``, prefixed by the bridge-style ``namespace`` if set
     (``ros2_utils.rs::ros2_name_to_key_expr``): topic ``/a/b`` -> ``a/b`` (``ns/a/b`` with
-    ``namespace="/ns"``). Payload = the full CDR sample, encapsulation header included. No attachment.
+    ``namespace="/ns"``). A bridge started with ``-n /ns`` routes exactly those keys: it strips its
+    namespace from an announced key to name the DDS topic (``key_expr_to_ros2_name``: ``ns/a/b`` ->
+    ``/a/b``) and listens on ``<ns>/<topic>``. Payload = the full CDR sample, encapsulation header
+    included. No attachment.
     The bridge forwards a key to DDS once it has a route for it: either a local DDS reader of that
     topic, or a remote announcement. With ``announce=True`` this node announces its publishers and
     subscribers exactly like a remote bridge does (``liveliness_mgt.rs``)::
@@ -17,8 +20,9 @@ Two wire conventions, chosen with ``key_mode``:
     with DDS enum values (reliability BEST_EFFORT 0 / RELIABLE 1, durability VOLATILE 0 /
     TRANSIENT_LOCAL 1, history KEEP_LAST 0 / KEEP_ALL 1), so the bridge creates the DDS writer
     (``routes_mgr.rs::on_ros_announcement_event``) and ``ros2 topic list`` shows the topic at once.
+    ``<key>`` is the routed key, namespace prefix included (``ns§a§b``).
 
-``"rmw_zenoh"``: what ``rmw_zenoh_cpp`` itself speaks (Jazzy and later).
+``"rmw_zenoh"``: what ``rmw_zenoh_cpp`` itself speaks (Jazzy 0.2.4+, Kilted; docs/ros2.md).
     Key = ``<domain_id>/<topic without leading and trailing />/<pkg>::msg::dds_::<Name>_/RIHS01_<hex>``
     (``liveliness_utils.cpp::TopicInfo``; type name from ``type_support_common.cpp::_create_type_name``;
     hash from ``rosidl_stringify_type_hash``). Every sample carries the attachment of
@@ -38,13 +42,18 @@ Two wire conventions, chosen with ``key_mode``:
     become ``%``), ids decimal from one per-session counter (node 0, entities 1, 2, ...), and
     ``<qos>`` from ``qos_to_keyexpr`` relative to rmw_zenoh's defaults (``qos.cpp``: RELIABLE,
     VOLATILE, KEEP_LAST 42, infinite durations), e.g. reliable/volatile/keep-last 10 -> ``::,10:,:,:,,``.
-    rmw_zenoh derives the gid from an XXH3-128 hash of the token; here it is a random stable 16 bytes
-    per entity (only ever compared for equality by ROS). rmw_zenoh peers discover each other through a
-    router: connect this node to ``rmw_zenohd`` (``tcp/127.0.0.1:7447`` by default).
+    Every entity's gid is the XXH3-128 hash of its token, low 64 bits then high 64 bits, each little
+    endian (``liveliness_utils.cpp::Entity::Entity``), so ``ros2 topic info -v`` and
+    ``message_info.publisher_gid`` show the same 16 bytes. rmw_zenoh peers discover each other
+    through the ``rmw_zenohd`` router, which does not forward between peers: without explicit
+    ``connect`` endpoints this node connects to it on ``tcp/127.0.0.1:7447`` like an rmw_zenoh node.
 
 Session defaults: peer mode, listening on ``tcp/127.0.0.1:7448`` and multicast scouting off, so a run
 never attaches to whatever else happens to be on the LAN and tests are deterministic; peers find the node
-through explicit ``connect``/``listen`` endpoints (gossip through a router still works). Zenoh's shared
+through explicit ``connect``/``listen`` endpoints (gossip through a router still works). Connect endpoints
+that are not up yet never block or fail the open in peer and router mode: zenoh retries them in the
+background (``connect/timeout_ms`` -1 with ``exit_on_failure`` false, set explicitly); a client has
+nothing to do without its router, so it tries once and the open fails with a clear error. Zenoh's shared
 memory transport optimisation is left on (zenoh 1.x default: samples above 3 KiB to a peer on the same
 host go through a 16 MiB ``/dev/shm`` pool instead of the socket), which is what moves camera images
 between local processes cheaply; ``shared_memory=False`` turns it off.
@@ -56,7 +65,6 @@ import functools
 import itertools
 import json
 import logging
-import os
 import re
 import struct
 import threading
@@ -66,6 +74,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol
 
+import xxhash
 import zenoh
 import zenoh.ext
 
@@ -78,13 +87,24 @@ __all__ = [
     "RosPublisher",
     "RosSubscription",
     "RosZenohNode",
+    "RMW_ZENOH_ROUTER",
     "ZenohNodeConfig",
     "default_qos",
+    "rmw_gid",
 ]
 
 log = logging.getLogger("droneulator.ros")
 
 KeyMode = Literal["ros2dds", "rmw_zenoh"]
+ZenohMode = Literal["peer", "client", "router"]
+
+#: where rmw_zenoh nodes find ``rmw_zenohd`` (``DEFAULT_RMW_ZENOH_SESSION_CONFIG.json5``: tcp/localhost:7447)
+RMW_ZENOH_ROUTER = "tcp/127.0.0.1:7447"
+
+#: zenoh's connect semantics per mode, set explicitly (``orchestrator.rs::connect_peers``): peers and
+#: routers retry unreachable endpoints in the background forever, a client tries once and fails the open
+_CONNECT_TIMEOUT_MS = {"router": -1, "peer": -1, "client": 0}
+_CONNECT_EXIT_ON_FAILURE = {"router": False, "peer": False, "client": True}
 
 #: zenoh-ext serialisation of (int64, int64, std::array<uint8_t, 16>); the length 16 is one LEB128 byte
 _ATTACHMENT = struct.Struct("<qqB16s")
@@ -156,6 +176,15 @@ def ros2dds_qos(qos: QosProfile, type_hash: str) -> str:
     return f":{reliability}:{durability}:{history},{qos.depth}:typehash={type_hash};"
 
 
+def rmw_gid(token_key: str) -> bytes:
+    """rmw_zenoh's 16-byte gid of an entity: XXH3-128 of its liveliness token, ``low64`` then ``high64``.
+
+    ``liveliness_utils.cpp::Entity::Entity`` memcpy's both 64-bit halves in host order; every ROS 2 tier-1
+    platform is little endian, so the bytes are the 128-bit hash as a little-endian integer.
+    """
+    return xxhash.xxh3_128_intdigest(token_key.encode()).to_bytes(_GID_SIZE, "little")
+
+
 def mangle(name: str) -> str:
     """``liveliness_utils.cpp::mangle_name``: every ``/`` becomes ``%``."""
     return name.replace("/", "%")
@@ -186,11 +215,13 @@ def fully_qualified(name: str, node_namespace: str = "/") -> str:
 
 
 class _BridgeConfigLike(Protocol):
+    mode: str
     key_mode: str
     domain_id: int
     listen: list[str]
     connect: list[str]
     zenoh_config: str
+    ros2dds_namespace: str
 
 
 @dataclass(frozen=True)
@@ -199,11 +230,15 @@ class ZenohNodeConfig:
 
     Without ``config_file`` every field applies. With one, the file is authoritative and only
     non-empty ``listen`` / ``connect`` lists are applied on top (``insert_json5``).
+
+    ``connect=None`` means the key mode's default: nothing for ros2dds, :data:`RMW_ZENOH_ROUTER` for
+    rmw_zenoh (also on top of a config file that names no connect endpoints); a given tuple, even an
+    empty one, replaces it.
     """
 
-    mode: Literal["peer", "client", "router"] = "peer"
+    mode: ZenohMode = "peer"
     listen: tuple[str, ...] = ("tcp/127.0.0.1:7448",)
-    connect: tuple[str, ...] = ()
+    connect: tuple[str, ...] | None = None
     #: optional Zenoh JSON5 configuration file
     config_file: str | None = None
     multicast_scouting: bool = False
@@ -224,6 +259,8 @@ class ZenohNodeConfig:
             raise ValueError(f"key_mode must be 'ros2dds' or 'rmw_zenoh', got {self.key_mode!r}")
         if self.mode not in ("peer", "client", "router"):
             raise ValueError(f"mode must be 'peer', 'client' or 'router', got {self.mode!r}")
+        if self.namespace != "/" and self.key_mode != "ros2dds":
+            raise ValueError("namespace is zenoh-bridge-ros2dds' key prefix: key_mode 'ros2dds' only")
         if not 0 <= self.domain_id <= 232:
             raise ValueError("domain_id must lie in [0, 232]")
         if self.namespace != "/":
@@ -233,21 +270,34 @@ class ZenohNodeConfig:
         if self.node_namespace != "/":
             fully_qualified(self.node_namespace)
         object.__setattr__(self, "listen", tuple(self.listen))
-        object.__setattr__(self, "connect", tuple(self.connect))
+        if self.connect is not None:
+            object.__setattr__(self, "connect", tuple(self.connect))
+        if self.mode == "client" and not self.config_file and not self.endpoints_to_connect():
+            raise ValueError("a Zenoh client needs a router to connect to: give connect endpoints")
+
+    def endpoints_to_connect(self) -> tuple[str, ...]:
+        """``connect``, or the key mode's default when it is None."""
+        if self.connect is not None:
+            return self.connect
+        return (RMW_ZENOH_ROUTER,) if self.key_mode == "rmw_zenoh" else ()
 
     def zenoh_config(self) -> zenoh.Config:
         """The ``zenoh.Config`` this describes."""
+        connect = self.endpoints_to_connect()
         if self.config_file:
             conf = zenoh.Config.from_file(self.config_file)
             if self.listen:
                 conf.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
-            if self.connect:
-                conf.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+            file_connects = json.loads(conf.get_json("connect/endpoints"))
+            if connect and (self.connect or not file_connects):
+                conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
             return conf
         conf = zenoh.Config()
         conf.insert_json5("mode", json.dumps(self.mode))
         conf.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
-        conf.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+        conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+        conf.insert_json5("connect/timeout_ms", json.dumps(_CONNECT_TIMEOUT_MS))
+        conf.insert_json5("connect/exit_on_failure", json.dumps(_CONNECT_EXIT_ON_FAILURE))
         conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
         conf.insert_json5("transport/shared_memory/enabled", json.dumps(self.shared_memory))
         return conf
@@ -272,10 +322,10 @@ class RosPublisher:
         self.typename = typename
         self.key = key
         self.qos = qos
-        #: rmw_zenoh source gid: stable for the publisher's life, random across runs
-        self.gid = os.urandom(_GID_SIZE)
         self.token_key = token_key
         self._rmw = node.config.key_mode == "rmw_zenoh"
+        #: rmw_zenoh: the source gid in every attachment, derived from the token (:func:`rmw_gid`)
+        self.gid = rmw_gid(token_key) if self._rmw and token_key else None
         self._seq = itertools.count(1)
         reliability = zenoh.Reliability.RELIABLE if qos.reliable else zenoh.Reliability.BEST_EFFORT
         if self._rmw and qos.transient_local:
@@ -319,7 +369,7 @@ class RosPublisher:
         """
         if self._closed:
             raise RuntimeError(f"publisher for {self.topic} is closed")
-        if self._rmw:
+        if self.gid is not None:
             ts = time.time_ns() if t_ns is None else int(t_ns)
             self._pub.put(cdr, attachment=_ATTACHMENT.pack(next(self._seq), ts, _GID_SIZE, self.gid))
         else:
@@ -355,6 +405,8 @@ class RosSubscription:
         self.typename = typename
         self.key = key
         self.token_key = token_key
+        #: rmw_zenoh: the gid ROS tools report for this subscription (:func:`rmw_gid`)
+        self.gid = rmw_gid(token_key) if node.config.key_mode == "rmw_zenoh" and token_key else None
         self._callback = callback
         self.received = 0
         self.errors = 0
@@ -401,7 +453,15 @@ class RosZenohNode:
 
     def __init__(self, config: ZenohNodeConfig | None = None) -> None:
         self.config = config or ZenohNodeConfig()
-        self.session = zenoh.open(self.config.zenoh_config())
+        try:
+            self.session = zenoh.open(self.config.zenoh_config())
+        except zenoh.ZError as exc:
+            cfg = self.config
+            source = f", config file {cfg.config_file}" if cfg.config_file else ""
+            raise ConnectionError(
+                f"cannot open the Zenoh session ({cfg.mode} mode, listen {list(cfg.listen)}, connect "
+                f"{list(cfg.endpoints_to_connect())}{source}): {exc}"
+            ) from exc
         self.zid = str(self.session.zid())
         self._lock = threading.Lock()
         self._publishers: dict[tuple[str, str], RosPublisher] = {}
@@ -428,17 +488,21 @@ class RosZenohNode:
 
     @classmethod
     def from_config(cls, bridge: _BridgeConfigLike, **overrides: Any) -> RosZenohNode:
-        """A node from a ``droneulator.config.BridgeConfig``.
+        """A node from a ``droneulator.config.BridgeConfig``; ``overrides`` replace any field.
 
-        Uses key_mode, domain_id, listen, connect and zenoh_config. ``BridgeConfig.namespace`` is not
-        used: the bridge already puts it into its topic names.
+        Uses mode, key_mode, domain_id, listen, connect (empty: the key mode's default, see
+        :class:`ZenohNodeConfig`), zenoh_config and ros2dds_namespace (the bridge-style key prefix).
+        ``BridgeConfig.namespace`` is not used: the simulator already puts it into its topic names.
+        A second session of the same run passes e.g. ``mode="client", listen=(), connect=(...)``.
         """
         fields: dict[str, Any] = {
+            "mode": bridge.mode,
             "key_mode": bridge.key_mode,
             "domain_id": bridge.domain_id,
             "listen": tuple(bridge.listen),
-            "connect": tuple(bridge.connect),
+            "connect": tuple(bridge.connect) or None,
             "config_file": bridge.zenoh_config or None,
+            "namespace": bridge.ros2dds_namespace,
         }
         fields.update(overrides)
         return cls(ZenohNodeConfig(**fields))
