@@ -23,6 +23,7 @@ import pytest
 from droneulator.config import load_config
 from droneulator.runtime import preflight
 from droneulator.runtime.preflight import Listen, StartupError
+from droneulator.runtime.supervisor import Supervisor
 
 ROOT = Path(__file__).resolve().parents[1]
 #: every port the run would use left to the OS (port 0 is not checked), so only the one under test counts
@@ -291,3 +292,29 @@ def test_zenoh_config_file_endpoints_are_checked(tmp_path: Path, taken_port: int
     with pytest.raises(StartupError, match="bridge.zenoh_config") as err:
         preflight.run_ports(cfg)
     assert err.value.exit_code == preflight.USAGE
+
+
+# --------------------------------------------------------------------------- the supervisor's own start-up
+def test_supervisor_start_failure_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    """A dynamics server that dies while starting (here: a parameter set preflight would have refused)
+    gives one line naming its error; its traceback goes to the log file the line names."""
+    cfg = load_config(
+        None, ["vehicle.params=zeppelin", "runtime.api_port=0", 'bridge.listen=["tcp/127.0.0.1:0"]']
+    )
+    sup = Supervisor(cfg)
+    try:
+        with pytest.raises(RuntimeError) as err:
+            sup.start()
+    finally:
+        sup.stop()
+    message = str(err.value)
+    assert "\n" not in message and "Traceback" not in message
+    assert "the dynamics server stopped while starting (exit code 1)" in message
+    assert "unknown vehicle parameter set 'zeppelin'" in message
+    log_file = Path(message.rsplit("its full output: ", 1)[1])
+    try:
+        assert "Traceback" in log_file.read_text()
+    finally:
+        log_file.unlink()
+    assert "Traceback" not in capsys.readouterr().out
+    assert sup.children["render"].proc is None and sup.children["bridge"].proc is None
