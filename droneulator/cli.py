@@ -1,4 +1,10 @@
-"""The ``droneulator`` command line."""
+"""The ``droneulator`` command line.
+
+A start-up failure the user can cause (a bad ``--config`` file or ``--set`` value, an unknown scene, a
+port in use, no EGL) ends in one ``droneulator: error: ...`` line on stderr before any simulator
+process starts: exit status 2 for usage and configuration errors, 1 otherwise (see
+:mod:`droneulator.runtime.preflight`).
+"""
 
 from __future__ import annotations
 
@@ -8,7 +14,9 @@ import sys
 import threading
 from pathlib import Path
 
-from droneulator.config import SimConfig, load_config
+from droneulator.config import SimConfig
+from droneulator.runtime import preflight
+from droneulator.runtime.preflight import StartupError
 
 
 def _add_file_args(p: argparse.ArgumentParser, example: str) -> None:
@@ -31,7 +39,16 @@ def _add_config_args(p: argparse.ArgumentParser, scene_default: str | None = Non
 
 
 def _config(args: argparse.Namespace) -> SimConfig:
-    return load_config(args.config, args.overrides, scene=args.scene, seed=args.seed)
+    return preflight.load(args.config, args.overrides, scene=args.scene, seed=args.seed)
+
+
+def _simulation_config(args: argparse.Namespace) -> SimConfig:
+    """The config of an in-process simulator (snapshot, demo), checked with its output folder and EGL."""
+    cfg = _config(args)
+    preflight.check_simulation(cfg)
+    preflight.check_output_dir(args.out)
+    preflight.check_egl()
+    return cfg
 
 
 def cmd_scenes(args: argparse.Namespace) -> int:
@@ -43,32 +60,32 @@ def cmd_scenes(args: argparse.Namespace) -> int:
 
 
 def cmd_snapshot(args: argparse.Namespace) -> int:
+    cfg = _simulation_config(args)  # before the heavy imports: a start-up error is reported at once
     from droneulator.snapshot import snapshot
 
-    written = snapshot(_config(args), Path(args.out), altitude=args.altitude)
+    written = snapshot(cfg, Path(args.out), altitude=args.altitude)
     for key, path in written.items():
         print(f"{key:28s} {path}")
     return 0
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    cfg = _simulation_config(args)
     from droneulator.demo import run_demo
 
-    summary = run_demo(_config(args), Path(args.out), save_every=args.save_every)
+    summary = run_demo(cfg, Path(args.out), save_every=args.save_every)
     Path(args.out, "summary.json").write_text(json.dumps(summary, indent=2))
     return 0
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from droneulator.runtime.supervisor import Supervisor
-
     cfg = _config(args)
     if args.realtime:
         cfg.runtime.mode = "realtime"
     if args.api_port is not None:
         cfg.runtime.api_port = args.api_port
     if args.px4 or args.px4_instance is not None:
-        defaults = load_config()
+        defaults = SimConfig()
         cfg.px4.enabled = True
         cfg.px4.instance = args.px4_instance or 0
         # PX4's lockstep runs at 250 Hz; its SIH quad-X parameters suit PX4's default gains
@@ -84,14 +101,19 @@ def cmd_run(args: argparse.Namespace) -> int:
                 cfg.bridge.listen = [f"tcp/127.0.0.1:{7448 + n}"]
             if cfg.bridge.namespace == defaults.bridge.namespace:
                 cfg.bridge.namespace = f"{defaults.bridge.namespace}{n}"
+    preflight.check_run(cfg)
+    if args.demo:
+        preflight.check_output_dir(args.out)
+
+    from droneulator.runtime.supervisor import Supervisor
+
     sup = Supervisor(cfg)
     sup.install_signal_handlers()
     try:
         sup.start()
     except RuntimeError as exc:
         sup.stop()
-        print(f"droneulator: error: {exc}", file=sys.stderr)
-        return 1
+        raise StartupError(str(exc)) from None
     if args.demo:
         from droneulator.runtime.demo_client import run_demo_client
 
@@ -177,7 +199,7 @@ def _add_rl_config_args(p: argparse.ArgumentParser) -> None:
 def cmd_train(args: argparse.Namespace) -> int:
     from droneulator.workflows.rl.train import train
 
-    cfg = load_config(args.config, args.overrides, seed=args.scene_seed)
+    cfg = preflight.load(args.config, args.overrides, seed=args.scene_seed)
     overrides = {} if args.learning_starts is None else {"learning_starts": args.learning_starts}
     summary = train(
         cfg,
@@ -206,7 +228,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     cfg = load_run_config(model)
     if args.config or args.overrides or args.scene_seed is not None:
         base = model.parent / "config.json"
-        cfg = load_config(
+        cfg = preflight.load(
             args.config or (base if base.exists() else None), args.overrides, seed=args.scene_seed
         )
     summary = evaluate(
@@ -409,6 +431,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
+    except StartupError as exc:
+        print(f"droneulator: error: {exc}", file=sys.stderr)
+        return exc.exit_code
     except (ValueError, FileNotFoundError) as exc:
         print(f"droneulator: error: {exc}", file=sys.stderr)
         return 2

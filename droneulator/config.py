@@ -53,12 +53,16 @@ class RenderConfig:
     cameras: list[CameraConfig] = field(default_factory=lambda: [CameraConfig()])
 
 
+#: RotorPy wind profiles ``VehicleConfig.wind`` can name (built by :func:`droneulator.wind.make_wind`)
+WIND_MODELS = ("none", "constant", "sinusoid", "dryden")
+
+
 @dataclass
 class VehicleConfig:
     #: RotorPy parameter set: see ``droneulator.vehicles.params.PARAMETER_SETS``
     params: str = "hummingbird"
     aero: bool = True
-    #: wind model: "none", "constant", "sinusoid" or "dryden"
+    #: wind model: one of WIND_MODELS
     wind: str = "none"
     wind_velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
     #: turbulence intensity (dryden) or amplitude (sinusoid) per axis, m/s
@@ -68,6 +72,10 @@ class VehicleConfig:
     control_hz: float = 100.0
     #: fixed RK4 sub-steps per control period
     substeps: int = 10
+
+    def __post_init__(self) -> None:
+        if self.wind not in WIND_MODELS:
+            raise ValueError(f"vehicle.wind must be one of {', '.join(WIND_MODELS)}; got {self.wind!r}")
 
 
 @dataclass
@@ -330,36 +338,59 @@ class SimConfig:
 
 
 # --------------------------------------------------------------------------- loading & overrides
-def _coerce(value: Any, typ: Any) -> Any:
+class ConfigError(ValueError):
+    """A bad option value or name; the message names the option by its dotted key (``runtime.api_port``)."""
+
+
+def _coerce(value: Any, typ: Any, key: str) -> Any:
     origin = getattr(typ, "__origin__", None)
     if dataclasses.is_dataclass(typ):
         if isinstance(value, typ):
             return value
-        return from_dict(typ, value)
-    if origin is list:
-        (inner,) = typ.__args__
-        return [_coerce(v, inner) for v in value]
-    if origin is tuple:
-        return tuple(_coerce(v, t) for v, t in zip(value, typ.__args__, strict=True))
+        return from_dict(typ, value, f"{key}.")
+    if origin in (list, tuple):
+        if not isinstance(value, list | tuple):
+            raise ConfigError(f"{key}: expected a list, got {value!r}")
+        if origin is list:
+            (inner,) = typ.__args__
+            return [_coerce(v, inner, f"{key}[{i}]") for i, v in enumerate(value)]
+        if len(value) != len(typ.__args__):
+            raise ConfigError(f"{key}: expected {len(typ.__args__)} values, got {len(value)}")
+        pairs = enumerate(zip(value, typ.__args__, strict=True))
+        return tuple(_coerce(v, t, f"{key}[{i}]") for i, (v, t) in pairs)
     if typ is bool and isinstance(value, str):
         if value.lower() in ("1", "true", "yes", "on"):
             return True
         if value.lower() in ("0", "false", "no", "off"):
             return False
-        raise ValueError(f"not a boolean: {value!r}")
+        raise ConfigError(f"{key}: not a boolean: {value!r}")
     if typ in (int, float, str, bool):
-        return typ(value)
+        if isinstance(value, dict | list | tuple) or value is None:
+            raise ConfigError(f"{key}: expected {typ.__name__}, got {value!r}")
+        if typ is int and isinstance(value, float) and not value.is_integer():
+            raise ConfigError(f"{key}: expected an integer, got {value!r}")
+        try:
+            return typ(value)
+        except ValueError:
+            raise ConfigError(f"{key}: expected {typ.__name__}, got {value!r}") from None
     return value
 
 
-def from_dict(cls: type, data: dict[str, Any]) -> Any:
-    """Build dataclass ``cls`` from a (possibly partial) nested dict; unknown keys are errors."""
+def from_dict(cls: type, data: dict[str, Any], prefix: str = "") -> Any:
+    """Build dataclass ``cls`` from a (possibly partial) nested dict; unknown keys and values of the
+    wrong type are :class:`ConfigError` naming the key (under ``prefix``, e.g. ``"render."``)."""
+    if not isinstance(data, dict):
+        where = prefix.rstrip(".") or "the configuration"
+        raise ConfigError(f"{where}: expected a table of {cls.__name__} options, got {data!r}")
     hints = get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = set(data) - names
+    names = [f.name for f in dataclasses.fields(cls)]
+    unknown = sorted(set(data) - set(names))
     if unknown:
-        raise ValueError(f"unknown {cls.__name__} option(s): {', '.join(sorted(unknown))}")
-    return cls(**{k: _coerce(v, hints[k]) for k, v in data.items()})
+        raise ConfigError(
+            f"unknown {cls.__name__} option(s): {', '.join(prefix + k for k in unknown)}; "
+            f"known: {', '.join(names)}"
+        )
+    return cls(**{k: _coerce(v, hints[k], prefix + k) for k, v in data.items()})
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:

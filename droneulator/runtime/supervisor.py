@@ -52,6 +52,7 @@ class Child:
     module: str
     proc: subprocess.Popen | None = None
     restarts: int = 0
+    pump: threading.Thread | None = None
     tail: collections.deque = field(default_factory=lambda: collections.deque(maxlen=20))
 
 
@@ -66,6 +67,9 @@ class Supervisor:
         self.children = {n: Child(n, m) for n, m in CHILDREN.items()}
         self.stop_requested = threading.Event()
         self.failure: str | None = None
+        #: the dynamics server's output while it starts: echoed once it is ready, summarised if it fails
+        self._held: list[str] | None = None
+        self._echo_lock = threading.Lock()
 
     def _env(self) -> dict[str, str]:
         return {
@@ -87,7 +91,8 @@ class Supervisor:
             preexec_fn=_die_with_parent,
             start_new_session=True,
         )
-        threading.Thread(target=self._pump, args=(child, child.proc), daemon=True).start()
+        child.pump = threading.Thread(target=self._pump, args=(child, child.proc), daemon=True)
+        child.pump.start()
         log.info("started %s server (pid %d)", child.name, child.proc.pid)
 
     def _pump(self, child: Child, proc: subprocess.Popen) -> None:
@@ -95,22 +100,57 @@ class Supervisor:
         for line in proc.stdout:
             line = line.rstrip()
             child.tail.append(line)
-            if self.echo:
-                print(f"[{child.name}] {line}", flush=True)
+            with self._echo_lock:
+                if child.name == "dynamics" and self._held is not None:
+                    self._held.append(line)
+                elif self.echo:
+                    print(f"[{child.name}] {line}", flush=True)
 
     def start(self) -> None:
-        self._spawn(self.children["dynamics"])
+        """Start the dynamics server, then (once it listens) the render server and the bridge.
+
+        Raises RuntimeError with a one-line message if the dynamics server exits while starting; its
+        output so far (a traceback, say) goes to a log file the message names, not to the terminal."""
+        self._held = []
+        dynamics = self.children["dynamics"]
+        self._spawn(dynamics)
         deadline = time.monotonic() + 30
         while not os.path.exists(self.address):  # the hub socket exists once the server is listening
-            proc = self.children["dynamics"].proc
+            proc = dynamics.proc
             if proc is not None and proc.poll() is not None:
-                self._fail(self.children["dynamics"])
+                self.failure = self._start_failure(dynamics, proc)
                 raise RuntimeError(self.failure)
             if time.monotonic() > deadline:
+                self._release_held()
                 raise RuntimeError("dynamics server did not start within 30 s")
             time.sleep(0.05)
+        self._release_held()
         self._spawn(self.children["render"])
         self._spawn(self.children["bridge"])
+
+    def _release_held(self) -> None:
+        with self._echo_lock:
+            held, self._held = self._held or [], None
+            if self.echo:
+                for line in held:
+                    print(f"[dynamics] {line}", flush=True)
+
+    def _start_failure(self, child: Child, proc: subprocess.Popen) -> str:
+        """One line for a dynamics server that exited while starting: its exit status and last line."""
+        if child.pump is not None:
+            child.pump.join(2.0)  # the rest of its output
+        with self._echo_lock:
+            held, self._held = self._held or [], None
+        code = proc.returncode
+        status = f"killed by {signal.Signals(-code).name}" if code < 0 else f"exit code {code}"
+        last = next((ln.strip() for ln in reversed(held) if ln.strip()), "no output")
+        log_path = Path(tempfile.gettempdir(), f"droneulator-dynamics-{proc.pid}.log")
+        try:
+            log_path.write_text("\n".join(held) + "\n")
+            full = f"; its full output: {log_path}"
+        except OSError:
+            full = ""
+        return f"the dynamics server stopped while starting ({status}): {last}{full}"
 
     def _fail(self, child: Child) -> None:
         code = child.proc.returncode if child.proc else None

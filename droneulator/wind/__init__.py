@@ -7,9 +7,7 @@ from typing import Protocol
 import numpy as np
 from rotorpy.wind.default_winds import ConstantWind, NoWind, SinusoidWind
 
-from droneulator.config import VehicleConfig
-
-WIND_MODELS = ("none", "constant", "sinusoid", "dryden")
+from droneulator.config import WIND_MODELS, VehicleConfig
 
 
 class WindModel(Protocol):
