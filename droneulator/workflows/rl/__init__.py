@@ -8,11 +8,14 @@
   (optional extra ``droneulator[rl]``).
 """
 
-from gymnasium.envs.registration import register, registry
-
 ENV_ID = "droneulator/VineyardNav-v0"
 
-if ENV_ID not in registry:
-    register(id=ENV_ID, entry_point="droneulator.workflows.rl.env:VineyardNavEnv")
+try:  # droneulator.config imports .config from here: the core must load without the rl extra
+    from gymnasium.envs.registration import register, registry
+except ModuleNotFoundError:
+    pass
+else:
+    if ENV_ID not in registry:
+        register(id=ENV_ID, entry_point="droneulator.workflows.rl.env:VineyardNavEnv")
 
 __all__ = ["ENV_ID"]

@@ -39,10 +39,11 @@ from typing import Any, Protocol
 import gymnasium as gym
 import numpy as np
 
-from droneulator.config import CameraConfig, RLConfig, SimConfig, load_config
+from droneulator.config import CameraConfig, SimConfig, load_config
 from droneulator.frames import body_to_world, world_to_body, wrap_angle, yaw_of
 from droneulator.scenes.base import Scene
 from droneulator.workflows.rl.astar import DistanceField, OccupancyGrid, occupancy_from_scene
+from droneulator.workflows.rl.config import RLConfig
 
 STRIP_SAMPLES = 32
 OBS_SIZE = STRIP_SAMPLES + 3
