@@ -31,6 +31,11 @@ CLOCK = "/clock"
 TF = "/tf"
 TF_STATIC = "/tf_static"
 
+#: TF frame ids (REP 105): map -> odom -> base_link -> <cam>_link -> <cam>_optical_frame
+MAP_FRAME = "map"
+ODOM_FRAME = "odom"
+BASE_FRAME = "base_link"
+
 #: ROS 2 message type of each key of :func:`topic_names` and :func:`vehicle_topics`
 TYPES: dict[str, str] = {
     "clock": "rosgraph_msgs/msg/Clock",
@@ -66,6 +71,11 @@ def topic_names(ns: str, cam: str) -> dict[str, str]:
         "info_depth": f"{base}/depth/camera_info",
         "info_seg": f"{base}/segmentation/camera_info",
     }
+
+
+def optical_frame(cam: str) -> str:
+    """Frame id of camera ``cam``'s optical frame (x right, y down, z forward), its images' ``frame_id``."""
+    return f"{cam}_optical_frame"
 
 
 def vehicle_topics(ns: str) -> dict[str, str]:
