@@ -43,7 +43,7 @@ def cmd_scenes(args: argparse.Namespace) -> int:
 
 
 def cmd_snapshot(args: argparse.Namespace) -> int:
-    from droneulator.snapshot import snapshot
+    from droneulator.workflows.snapshot import snapshot
 
     written = snapshot(_config(args), Path(args.out), altitude=args.altitude)
     for key, path in written.items():
@@ -52,7 +52,7 @@ def cmd_snapshot(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from droneulator.demo import run_demo
+    from droneulator.workflows.demo import run_demo
 
     summary = run_demo(_config(args), Path(args.out), save_every=args.save_every)
     Path(args.out, "summary.json").write_text(json.dumps(summary, indent=2))
@@ -93,7 +93,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"droneulator: error: {exc}", file=sys.stderr)
         return 1
     if args.demo:
-        from droneulator.runtime.demo_client import run_demo_client
+        from droneulator.workflows.demo_client import run_demo_client
 
         threading.Thread(
             target=run_demo_client, args=(cfg, Path(args.out), sup.stop_requested), daemon=True
