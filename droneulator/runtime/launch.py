@@ -3,7 +3,7 @@ capture, the benchmarks and the tests share.
 
     with launch_run(load_config(scene="vineyard"), ["--realtime"]) as run:
         client = run.client()                      # the WebSocket API at run.url
-        node = RosZenohNode.from_config(cfg.bridge, listen=(), connect=(run.zenoh_endpoint,))
+        node = RosZenohNode.from_config(run.config.bridge, listen=(), connect=(run.zenoh_endpoint,))
 
 :func:`launch_run` picks a free API port and a free Zenoh listen endpoint, writes the config to a
 temporary file for ``--config``, streams the run's output to a file or to memory, and returns once the
