@@ -19,8 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -30,18 +28,15 @@ from pathlib import Path
 import numpy as np
 from _common import write
 
+from droneulator.api.client import DroneulatorClient
+from droneulator.config import load_config
+from droneulator.ros.topics import TYPES, header_ns, topic_names, vehicle_topics
+from droneulator.runtime.launch import LaunchedRun, launch_run
+
 PAPER_MS = {"odom": 0.45, "rgb": 5.65, "depth": 17.06}
-STREAMS = {
-    "odom": ("droneulator/odom", "nav_msgs/msg/Odometry"),
-    "rgb": ("droneulator/front/color/image_raw/compressed", "sensor_msgs/msg/CompressedImage"),
-    "depth": ("droneulator/front/depth/image_raw", "sensor_msgs/msg/Image"),
-}
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+_NAMES = {**vehicle_topics("droneulator"), **topic_names("droneulator", "front")}
+#: stream -> (zenoh-bridge-ros2dds key: the topic name without its leading slash, message type)
+STREAMS = {k: (_NAMES[k].lstrip("/"), TYPES[k]) for k in ("odom", "rgb", "depth")}
 
 
 def subscriber(endpoint: str, out: str, seconds: float) -> None:
@@ -60,7 +55,7 @@ def subscriber(endpoint: str, out: str, seconds: float) -> None:
         def cb(sample) -> None:
             msg = ts.deserialize_cdr(sample.payload.to_bytes(), typename)
             now = time.time_ns()
-            rows.append(f"{stream} {msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec} {now}\n")
+            rows.append(f"{stream} {header_ns(msg)} {now}\n")
 
         return cb
 
@@ -80,39 +75,9 @@ def read_log(path: Path) -> dict[tuple[str, int], int]:
     return out
 
 
-def start_run(args: argparse.Namespace, extra: list[str], api_port: int, zenoh_port: int) -> subprocess.Popen:
-    cmd = [
-        sys.executable,
-        "-m",
-        "droneulator.cli",
-        "run",
-        "--scene",
-        args.scene,
-        "--api-port",
-        str(api_port),
-        "--set",
-        f'bridge.listen=["tcp/127.0.0.1:{zenoh_port}"]',
-        *extra,
-    ]
-    return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
-
-
-def connect(api_port: int):
-    from droneulator.api.client import DroneulatorClient
-
-    deadline = time.monotonic() + 60
-    while True:
-        try:
-            return DroneulatorClient(f"ws://127.0.0.1:{api_port}", timeout=30)
-        except OSError:
-            if time.monotonic() > deadline:
-                raise
-            time.sleep(0.2)
-
-
-def take_off_and_circle(api_port: int):
+def take_off_and_circle(run: LaunchedRun) -> DroneulatorClient:
     """Connect, take off to 2 m and fly a slow circle in velocity mode, so the images change."""
-    client = connect(api_port)
+    client = run.client()
     client.subscribe(["events"])
     client.takeoff(altitude=2.0)
     client.wait_for_event("arrived", timeout=60)
@@ -120,29 +85,18 @@ def take_off_and_circle(api_port: int):
     return client
 
 
-def stop(proc: subprocess.Popen) -> None:
-    proc.send_signal(signal.SIGTERM)
-    proc.wait(10)
-
-
 def measure_latency(args: argparse.Namespace) -> dict:
     tmp = Path(tempfile.mkdtemp(prefix="droneulator-latency-"))
     pub_log, sub_log = tmp / "publish.log", tmp / "decoded.log"
-    api_port, zenoh_port = free_port(), free_port()
-    run = start_run(
-        args,
-        ["--realtime", "--set", f"bridge.latency_log={pub_log}", "--set", "runtime.state_hz=30"],
-        api_port,
-        zenoh_port,
-    )
-    try:
-        client = take_off_and_circle(api_port)
+    extra = ["--realtime", "--set", f"bridge.latency_log={pub_log}", "--set", "runtime.state_hz=30"]
+    with launch_run(load_config(scene=args.scene), extra) as run:
+        client = take_off_and_circle(run)
         sub = subprocess.Popen(
             [
                 sys.executable,
                 __file__,
                 "--subscriber",
-                f"tcp/127.0.0.1:{zenoh_port}",
+                run.zenoh_endpoint,
                 "--sub-out",
                 str(sub_log),
                 "--seconds",
@@ -151,8 +105,6 @@ def measure_latency(args: argparse.Namespace) -> dict:
         )
         sub.wait(args.seconds + 60)
         client.close()
-    finally:
-        stop(run)
     published, decoded = read_log(pub_log), read_log(sub_log)
     res = {}
     for stream in STREAMS:
@@ -171,16 +123,12 @@ def measure_latency(args: argparse.Namespace) -> dict:
 
 
 def measure_lockstep(args: argparse.Namespace) -> dict:
-    api_port, zenoh_port = free_port(), free_port()
-    run = start_run(args, ["--lockstep"], api_port, zenoh_port)
-    try:
-        client = take_off_and_circle(api_port)
+    with launch_run(load_config(scene=args.scene), ["--lockstep"]) as run:
+        client = take_off_and_circle(run)
         t0, w0 = client.state()["t"], time.monotonic()
         time.sleep(args.rtf_seconds)
         t1, w1 = client.state()["t"], time.monotonic()
         client.close()
-    finally:
-        stop(run)
     return {"sim_seconds": t1 - t0, "wall_seconds": w1 - w0, "real_time_factor": (t1 - t0) / (w1 - w0)}
 
 

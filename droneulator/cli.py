@@ -61,7 +61,7 @@ def cmd_scenes(args: argparse.Namespace) -> int:
 
 def cmd_snapshot(args: argparse.Namespace) -> int:
     cfg = _simulation_config(args)  # before the heavy imports: a start-up error is reported at once
-    from droneulator.snapshot import snapshot
+    from droneulator.workflows.snapshot import snapshot
 
     written = snapshot(cfg, Path(args.out), altitude=args.altitude)
     for key, path in written.items():
@@ -71,7 +71,7 @@ def cmd_snapshot(args: argparse.Namespace) -> int:
 
 def cmd_demo(args: argparse.Namespace) -> int:
     cfg = _simulation_config(args)
-    from droneulator.demo import run_demo
+    from droneulator.workflows.demo import run_demo
 
     summary = run_demo(cfg, Path(args.out), save_every=args.save_every)
     Path(args.out, "summary.json").write_text(json.dumps(summary, indent=2))
@@ -115,7 +115,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         sup.stop()
         raise StartupError(str(exc)) from None
     if args.demo:
-        from droneulator.runtime.demo_client import run_demo_client
+        from droneulator.workflows.demo_client import run_demo_client
 
         threading.Thread(
             target=run_demo_client, args=(cfg, Path(args.out), sup.stop_requested), daemon=True

@@ -15,6 +15,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, get_type_hints
 
+from droneulator.workflows.photogrammetry.config import CaptureConfig
+from droneulator.workflows.rl.config import RLConfig
+
 
 @dataclass
 class CameraConfig:
@@ -217,110 +220,6 @@ class PX4Config:
             raise ValueError("px4.instance and px4.base_port must give a TCP port in [0, 65535]")
         if not -90.0 <= self.home_lat_deg <= 90.0 or not -180.0 <= self.home_lon_deg <= 180.0:
             raise ValueError("px4.home_lat_deg / home_lon_deg must be a valid WGS84 position")
-
-
-@dataclass
-class CaptureConfig:
-    """Photogrammetry capture (``droneulator capture``): rings of viewpoints around the scene's tree."""
-
-    views: int = 18
-    #: orbit radius around the trunk, metres
-    radius: float = 7.0
-    #: one ring per altitude (m above the ground); the views are shared out between the rings
-    altitudes: list[float] = field(default_factory=lambda: [5.0])
-    #: each ring's views span this arc, degrees from azimuth 0 (360: a full circle, else both ends included)
-    arc_deg: float = 360.0
-    #: camera mount pitch, degrees (positive looks down); None aims at the crown centre from the mean altitude
-    pitch_deg: float | None = None
-    camera: str = "front"
-    width: int = 1024
-    height: int = 768
-    hfov_deg: float = 70.0
-    #: camera rate while capturing (sim time): frames are only needed once the vehicle has settled
-    camera_hz: float = 10.0
-    jpeg_quality: int = 95
-    #: peak speed of each leg's min-snap goto, m/s
-    speed: float = 1.0
-    #: arcs wider than this are flown as several gotos so the path stays close to the circle, degrees
-    max_leg_deg: float = 25.0
-    #: settled once odometry stays this close to the viewpoint for settle_time_s of sim time
-    settle_position_m: float = 0.05
-    settle_speed_mps: float = 0.05
-    settle_yaw_deg: float = 1.0
-    settle_rate_dps: float = 3.0
-    settle_time_s: float = 0.3
-    #: wall-clock limit for one leg (flight and settling), seconds
-    leg_timeout_s: float = 120.0
-
-    def __post_init__(self) -> None:
-        if self.views < 1:
-            raise ValueError("capture.views must be at least 1")
-        if not self.altitudes or min(self.altitudes) <= 0:
-            raise ValueError("capture.altitudes must hold at least one altitude above the ground")
-        if self.views < len(self.altitudes):
-            raise ValueError("capture.views must be at least the number of rings (capture.altitudes)")
-        if not self.radius > 0 or not self.speed > 0 or not self.camera_hz > 0:
-            raise ValueError("capture.radius, capture.speed and capture.camera_hz must be positive")
-        if not 0 < self.arc_deg <= 360:
-            raise ValueError("capture.arc_deg must lie in (0, 360]")
-        if not 0 < self.max_leg_deg <= 180:
-            raise ValueError("capture.max_leg_deg must lie in (0, 180]")
-        if not 1 <= self.jpeg_quality <= 100:
-            raise ValueError("capture.jpeg_quality must lie in [1, 100]")
-
-
-@dataclass
-class RLConfig:
-    """Workflow 3 (``droneulator train``/``evaluate``): vineyard navigation environment and its reward.
-
-    The agent sees a depth strip from a small depth-only camera, the heading error to the goal (through
-    a look-ahead point on the A* path, or straight at it) and its own speeds; it commands forward speed
-    and yaw rate in velocity mode at a held altitude. Reward: ``progress_scale * (d_prev - d) -
-    step_penalty``, plus ``goal_reward`` within ``goal_radius`` of the goal or minus
-    ``collision_penalty`` on a collision, with ``d`` the shortest-path distance to the goal.
-    """
-
-    altitude: float = 1.5
-    #: depth camera (depth only, no shadows): its centre row is min-pooled into the 32-sample strip
-    camera_width: int = 128
-    camera_height: int = 9
-    hfov_deg: float = 90.0
-    #: depth is clipped here and normalised by it; the camera's far plane sits here too (faithful: a miss
-    #: and a return beyond it both read 1.0)
-    depth_clip: float = 10.0
-    forward_min: float = -2.0
-    forward_max: float = 3.0
-    max_yaw_rate: float = 1.5
-    progress_scale: float = 1.0
-    step_penalty: float = 0.01
-    goal_reward: float = 100.0
-    collision_penalty: float = 30.0
-    goal_radius: float = 1.5
-    #: occupancy grid: cell size and the safety margin added to the vehicle's collision radius
-    grid_resolution: float = 0.1
-    safety_margin: float = 0.3
-    #: heading error toward "path" (a point ``lookahead`` m along the shortest path) or "goal" (straight)
-    heading: str = "path"
-    lookahead: float = 2.0
-    #: start/goal sampling: shortest-path distance range and the share of goals in another alley
-    min_separation: float = 8.0
-    max_path_length: float = 45.0
-    other_row_prob: float = 0.7
-    #: start heading: toward the first leg of the shortest path, plus normal noise of this std (deg)
-    start_yaw_std_deg: float = 30.0
-    #: episode time limit (truncation): base seconds plus the initial path length over this speed
-    time_limit_base_s: float = 10.0
-    min_average_speed: float = 0.75
-
-    def __post_init__(self) -> None:
-        if self.heading not in ("path", "goal"):
-            raise ValueError(f"rl.heading must be 'path' or 'goal', got {self.heading!r}")
-        if not self.forward_min < 0 < self.forward_max or not self.max_yaw_rate > 0:
-            raise ValueError("rl.forward_min < 0 < rl.forward_max and rl.max_yaw_rate > 0 are required")
-        if self.camera_width < 32 or self.camera_height < 1:
-            raise ValueError("rl.camera_width must be at least 32 (one pixel per strip sample)")
-        if not 0 < self.min_separation < self.max_path_length:
-            raise ValueError("rl.min_separation must be positive and below rl.max_path_length")
 
 
 @dataclass

@@ -61,3 +61,19 @@ def test_cli_config_prints_effective_json_and_reports_errors(capsys):
     assert out["scene"] == "orchard" and out["vehicle"]["aero"] is False
     assert main(["config", "--set", "render.bogus=1"]) == 2
     assert "unknown RenderConfig option" in capsys.readouterr().err
+
+
+def test_workflow_sections_keep_their_keys_in_files_and_overrides(tmp_path):
+    from droneulator.workflows.photogrammetry.config import CaptureConfig
+    from droneulator.workflows.rl.config import RLConfig
+
+    f = tmp_path / "c.toml"
+    f.write_text('[capture]\nviews = 36\naltitudes = [4.0, 6.0]\n[rl]\nheading = "goal"\n')
+    cfg = load_config(f, ["capture.radius=6.5", "rl.lookahead=3"])
+    assert isinstance(cfg.capture, CaptureConfig) and isinstance(cfg.rl, RLConfig)
+    assert (cfg.capture.views, cfg.capture.altitudes, cfg.capture.radius) == (36, [4.0, 6.0], 6.5)
+    assert (cfg.rl.heading, cfg.rl.lookahead) == ("goal", 3.0)
+    with pytest.raises(ValueError, match="unknown CaptureConfig option"):
+        load_config(None, ["capture.nonsense=1"])
+    with pytest.raises(ValueError, match="rl.heading"):
+        load_config(None, ["rl.heading=sideways"])

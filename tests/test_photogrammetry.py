@@ -19,17 +19,7 @@ import pytest
 from droneulator import frames as F
 from droneulator.config import load_config
 from droneulator.sensors.camera import intrinsics
-from droneulator.workflows.photogrammetry.capture import (
-    CaptureDataset,
-    DatasetMismatchError,
-    TfBuffer,
-    arc_waypoints,
-    pending_views,
-    plan_settings,
-    plan_viewpoints,
-    ring_sizes,
-    segment_errors,
-)
+from droneulator.workflows.photogrammetry.capture import aim_pitch, run_config, tree_landmarks
 from droneulator.workflows.photogrammetry.colmap_model import (
     K_from_colmap_pinhole,
     KnownModel,
@@ -38,6 +28,15 @@ from droneulator.workflows.photogrammetry.colmap_model import (
     read_text_model,
     write_text_model,
 )
+from droneulator.workflows.photogrammetry.dataset import CaptureDataset, DatasetMismatchError, plan_settings
+from droneulator.workflows.photogrammetry.plan import (
+    arc_waypoints,
+    pending_views,
+    plan_viewpoints,
+    ring_sizes,
+    segment_errors,
+)
+from droneulator.workflows.photogrammetry.record import TfBuffer
 
 W, H = 320, 240
 K = intrinsics(
@@ -188,6 +187,30 @@ def test_tf_buffer_interpolates_the_dynamic_edge_and_chains_the_static_ones():
     np.testing.assert_allclose(T_opt[:3, 3], [1 + 0.1 * math.cos(0.2), 0.1 * math.sin(0.2), 1.0])
     with pytest.raises(TimeoutError):
         tf.lookup("map", "base_link", 25_000_000, timeout=0.05)  # not received yet
+
+
+def test_the_tree_comes_from_scene_info_landmarks_and_sets_the_capture_camera():
+    from droneulator.scenes import get_scene  # the reference: the scene itself (capture only sees the API)
+
+    scene = get_scene("tree_inspection", 0)
+    info = {"name": "tree_inspection", "landmarks": {k: v.tolist() for k, v in scene.landmarks.items()}}
+    center, look_at_z = tree_landmarks(info)
+    np.testing.assert_array_equal(center, scene.landmarks["tree"])
+    assert look_at_z == scene.landmarks["crown_center"][2]
+    cfg = load_config(None, ["capture.radius=6", "capture.altitudes=[4, 6]"], scene="tree_inspection")
+    pitch = aim_pitch(cfg.capture, info)
+    # the optical axis from the mean altitude (5 m) at the mount (0.12 m ahead) meets the crown centre
+    assert math.tan(math.radians(pitch)) == pytest.approx((5.0 - look_at_z) / (6.0 - 0.12))
+    run = run_config(cfg, pitch)
+    assert run.runtime.mode == "lockstep" and run.render.camera_hz == cfg.capture.camera_hz
+    (cam,) = run.render.cameras
+    assert (cam.width, cam.height, cam.rpy_deg) == (1024, 768, (0.0, pitch, 0.0))
+    assert cfg.render.cameras[0].width == 640  # the caller's config is left as it was
+
+    with pytest.raises(ValueError, match="no 'tree' landmark"):
+        tree_landmarks({"name": "vineyard", "landmarks": {"rows": [[0, 0, 0]]}})
+    with pytest.raises(ValueError, match=r"\[x, y, z\]"):
+        tree_landmarks({"name": "x", "landmarks": {"tree": [1.0, 2.0]}})
 
 
 # --------------------------------------------------------------------------- resume

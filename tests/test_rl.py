@@ -4,10 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
-import sys
-import threading
-import time
 
 import gymnasium as gym
 import numpy as np
@@ -221,39 +217,22 @@ def test_short_training_run_writes_logs_and_model_and_evaluate_writes_figures(tm
 # --------------------------------------------------------------------------- remote mode
 @pytest.mark.slow
 def test_remote_mode_against_a_running_simulator():
-    from test_runtime import free_port
+    from droneulator.config import load_config
+    from droneulator.runtime.launch import launch_run
 
-    api, zport = free_port(), free_port()
-    cmd = [sys.executable, "-m", "droneulator.cli", "run", "--scene", "vineyard", "--api-port", str(api)]
-    cmd += ["--set", f'bridge.listen=["tcp/127.0.0.1:{zport}"]']
-    for o in runtime_overrides(env_config()):
-        cmd += ["--set", o]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    log: list[str] = []
-    threading.Thread(target=lambda: log.extend(proc.stdout), daemon=True).start()
-    env = None
-    url = f"ws://127.0.0.1:{api}"
-    try:
-        deadline = time.monotonic() + 90
-        while env is None:
-            try:
-                env = VineyardNavEnv(mode="remote", url=url, zenoh=f"tcp/127.0.0.1:{zport}")
-            except OSError:
-                if time.monotonic() > deadline or proc.poll() is not None:
-                    raise RuntimeError("runtime did not start:\n" + "".join(log)) from None
-                time.sleep(0.3)
-        obs, info = env.reset(seed=0, options={"start": ALLEY, "goal": GOAL_FAR})
-        assert obs.shape == (35,) and env.observation_space.contains(obs)
-        np.testing.assert_allclose(info["position"], [-8.0, 0.0, 1.5], atol=0.05)
-        assert obs[:32].min() < 0.5  # the hedges on both sides of the alley
-        for _ in range(8):
-            obs, reward, terminated, truncated, info = env.step(np.array([0.6, 0.0]))
-            assert env.observation_space.contains(obs) and not terminated
-        assert info["position"][0] > -8.0 + 0.3  # it flew along the alley
-        assert env.kinematics.mode == "velocity" and obs[33] > -0.2  # moving forward
-        assert reward > 0.0
-    finally:
-        if env is not None:
+    extra = [a for o in runtime_overrides(env_config()) for a in ("--set", o)]  # as a user starts it
+    with launch_run(load_config(scene="vineyard"), extra) as run:
+        env = VineyardNavEnv(mode="remote", url=run.url, zenoh=run.zenoh_endpoint)
+        try:
+            obs, info = env.reset(seed=0, options={"start": ALLEY, "goal": GOAL_FAR})
+            assert obs.shape == (35,) and env.observation_space.contains(obs)
+            np.testing.assert_allclose(info["position"], [-8.0, 0.0, 1.5], atol=0.05)
+            assert obs[:32].min() < 0.5  # the hedges on both sides of the alley
+            for _ in range(8):
+                obs, reward, terminated, truncated, info = env.step(np.array([0.6, 0.0]))
+                assert env.observation_space.contains(obs) and not terminated
+            assert info["position"][0] > -8.0 + 0.3  # it flew along the alley
+            assert env.kinematics.mode == "velocity" and obs[33] > -0.2  # moving forward
+            assert reward > 0.0
+        finally:
             env.close()
-        proc.terminate()
-        proc.wait(15)

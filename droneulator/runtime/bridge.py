@@ -36,6 +36,7 @@ from droneulator.config import SimConfig, from_dict
 from droneulator.frames import T_link_optical, camera_mount, pose_from_transform, world_to_body
 from droneulator.imaging import encode_jpeg, encode_png
 from droneulator.ros import messages as M
+from droneulator.ros.topics import topic_names
 from droneulator.ros.zenoh_node import RosZenohNode
 from droneulator.runtime.ipc import ENV_CONFIG, ENV_RING, FrameRing, hub_connect
 from droneulator.sensors.camera import intrinsics
@@ -43,18 +44,6 @@ from droneulator.sensors.camera import intrinsics
 log = logging.getLogger("droneulator.bridge")
 
 STATIC_TF_PERIOD_S = 1.0
-
-
-def topic_names(ns: str, cam: str) -> dict[str, str]:
-    base = f"/{ns}/{cam}"
-    return {
-        "rgb": f"{base}/color/image_raw/compressed",
-        "depth": f"{base}/depth/image_raw",
-        "seg": f"{base}/segmentation/image_raw/compressed",
-        "info_rgb": f"{base}/color/camera_info",
-        "info_depth": f"{base}/depth/camera_info",
-        "info_seg": f"{base}/segmentation/camera_info",
-    }
 
 
 class Bridge:

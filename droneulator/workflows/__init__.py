@@ -1,1 +1,6 @@
-"""User-level workflows built on the running simulator's public interfaces (WebSocket API, ROS 2 topics)."""
+"""User-level workflows.
+
+``photogrammetry/`` (capture, COLMAP), ``rl/`` (Gymnasium environment, SAC) and the demo client
+(``droneulator run --demo``) work on the running simulator's public interfaces only (WebSocket API,
+ROS 2 topics); ``demo`` and ``snapshot`` drive an in-process :class:`~droneulator.sim.simulator.Simulator`.
+"""

@@ -25,8 +25,8 @@ import numpy as np
 
 from droneulator.api.client import DroneulatorClient
 from droneulator.config import SimConfig
+from droneulator.ros.topics import decode_depth, header_ns, seconds_to_ns, topic_names
 from droneulator.ros.zenoh_node import RosZenohNode
-from droneulator.runtime.bridge import topic_names
 from droneulator.scenes import get_scene
 from droneulator.workflows.rl.backend import CAMERA_NAME, SCENE, Kinematics
 
@@ -61,8 +61,7 @@ class RemoteBackend:
         self.node.subscribe(topic, "sensor_msgs/msg/Image", self._on_depth)
 
     def _on_depth(self, msg: Any) -> None:
-        t_ns = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
-        depth = np.frombuffer(bytes(msg.data), dtype="<f4").reshape(msg.height, msg.width).copy()
+        t_ns, depth = header_ns(msg), decode_depth(msg)
         with self._cond:
             self._frame = (t_ns, depth)
             self._cond.notify_all()
@@ -101,12 +100,12 @@ class RemoteBackend:
             time.sleep(0.005)
         with self._cond:
             self._frame = None
-        depth = self._frame_after(round(t * 1e9))
+        depth = self._frame_after(seconds_to_ns(t))
         return depth, Kinematics.from_dict(self.client.state())
 
     def step(self, forward: float, yaw_rate: float) -> tuple[np.ndarray, Kinematics, bool]:
         accepted = self.client.velocity(forward, yaw_rate)
-        depth = self._frame_after(round(float(accepted["t"]) * 1e9) + 1)
+        depth = self._frame_after(seconds_to_ns(accepted["t"]) + 1)
         kin = Kinematics.from_dict(self.client.state())
         return depth, kin, kin.mode == "collided"
 

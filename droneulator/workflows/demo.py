@@ -2,7 +2,7 @@
 within 1 m of an obstacle are skipped), turn a full circle in velocity mode, return and land.
 
 :func:`plan_mission` is shared by ``droneulator demo`` (in process, :func:`run_demo`) and
-``droneulator run --demo`` (through the WebSocket API, :mod:`droneulator.runtime.demo_client`).
+``droneulator run --demo`` (through the WebSocket API, :mod:`droneulator.workflows.demo_client`).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from droneulator.controllers.flight import Event
 from droneulator.frames import quat_from_yaw, quat_to_matrix
 from droneulator.scenes.base import Scene
 from droneulator.sim.simulator import Simulator
-from droneulator.snapshot import save_frames
+from droneulator.workflows.snapshot import save_frames
 
 TURN_RATE = 0.8
 

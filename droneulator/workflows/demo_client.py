@@ -3,7 +3,6 @@ WebSocket API, images from the ROS 2 topics over Zenoh — print telemetry and s
 
 from __future__ import annotations
 
-import io
 import threading
 import time
 from pathlib import Path
@@ -14,13 +13,18 @@ from PIL import Image
 
 from droneulator.api.client import DroneulatorClient
 from droneulator.config import SimConfig
-from droneulator.demo import plan_mission, telemetry_line
 from droneulator.imaging import depth_to_rgb, segmentation_to_rgb
+from droneulator.ros.topics import (
+    TYPES,
+    decode_compressed,
+    decode_depth,
+    header_ns,
+    seconds_to_ns,
+    topic_names,
+)
 from droneulator.ros.zenoh_node import RosZenohNode
-from droneulator.runtime.bridge import topic_names
 from droneulator.scenes import get_scene
-
-NS = 1_000_000_000
+from droneulator.workflows.demo import plan_mission, telemetry_line
 
 
 class FrameSaver:
@@ -28,7 +32,7 @@ class FrameSaver:
 
     def __init__(self, out: Path, every: float = 1.0) -> None:
         self.out = out
-        self.every_ns = round(every * NS)
+        self.every_ns = seconds_to_ns(every)
         self.lock = threading.Lock()
         self.received = 0
         self.saved = 0
@@ -36,7 +40,7 @@ class FrameSaver:
         self.next_ns = 0
 
     def on(self, kind: str, msg: Any) -> None:
-        t = msg.header.stamp.sec * NS + msg.header.stamp.nanosec
+        t = header_ns(msg)
         with self.lock:
             self.received += kind == "rgb"
             if t < self.next_ns:
@@ -51,11 +55,10 @@ class FrameSaver:
             stem = self.out / f"{self.saved:04d}_front"
             self.saved += 1
         (stem.parent / f"{stem.name}_rgb.jpg").write_bytes(bytes(parts["rgb"].data))
-        d = parts["depth"]
-        depth = np.frombuffer(bytes(d.data), dtype="<f4").reshape(d.height, d.width)
+        depth = decode_depth(parts["depth"])
         np.save(stem.parent / f"{stem.name}_depth.npy", depth)
         Image.fromarray(depth_to_rgb(depth)).save(stem.parent / f"{stem.name}_depth.png")
-        seg = np.asarray(Image.open(io.BytesIO(bytes(parts["seg"].data))))
+        seg = decode_compressed(parts["seg"])
         Image.fromarray(segmentation_to_rgb(seg)).save(stem.parent / f"{stem.name}_seg.png")
 
 
@@ -85,12 +88,8 @@ def _fly(cfg: SimConfig, out: Path, stop: threading.Event) -> None:
     saver = FrameSaver(out)
     names = topic_names(cfg.bridge.namespace, cam)
     node = RosZenohNode.from_config(cfg.bridge, listen=(), connect=tuple(cfg.bridge.listen))
-    for kind, typename in (
-        ("rgb", "sensor_msgs/msg/CompressedImage"),
-        ("depth", "sensor_msgs/msg/Image"),
-        ("seg", "sensor_msgs/msg/CompressedImage"),
-    ):
-        node.subscribe(names[kind], typename, lambda m, k=kind: saver.on(k, m))
+    for kind in ("rgb", "depth", "seg"):
+        node.subscribe(names[kind], TYPES[kind], lambda m, k=kind: saver.on(k, m))
     client.subscribe(["state", "events"], rate_hz=10.0)
     wall0 = time.monotonic()
     state: dict[str, Any] = client.state()

@@ -1,0 +1,149 @@
+"""What a subscriber of the simulator's ROS 2 topics needs: their names and types, stamp conversion, and
+decoding of the published images into numpy arrays.
+
+The bridge publishes under these names, and every client (capture, the RL remote backend, the demo
+client, the benchmarks) finds them here instead of spelling them out itself::
+
+    /clock                                           rosgraph_msgs/Clock
+    /tf, /tf_static                                  tf2_msgs/TFMessage
+    /<ns>/odom                                       nav_msgs/Odometry
+    /<ns>/cmd_vel, /<ns>/goal_pose       (in)        geometry_msgs/Twist, geometry_msgs/PoseStamped
+    /<ns>/<cam>/{color,depth,segmentation}/camera_info   sensor_msgs/CameraInfo
+    /<ns>/<cam>/color/image_raw/compressed           sensor_msgs/CompressedImage (jpeg)
+    /<ns>/<cam>/depth/image_raw                      sensor_msgs/Image (32FC1, metres, NaN = no return)
+    /<ns>/<cam>/segmentation/image_raw/compressed    sensor_msgs/CompressedImage (png, class ids)
+
+Stamps are ``builtin_interfaces/Time`` (``sec``, ``nanosec``); the simulator's own clock is integer
+nanoseconds since the last reset, so the helpers here convert between the two without floats.
+"""
+
+from __future__ import annotations
+
+import io
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+NS_PER_S = 1_000_000_000
+
+CLOCK = "/clock"
+TF = "/tf"
+TF_STATIC = "/tf_static"
+
+#: TF frame ids (REP 105): map -> odom -> base_link -> <cam>_link -> <cam>_optical_frame
+MAP_FRAME = "map"
+ODOM_FRAME = "odom"
+BASE_FRAME = "base_link"
+
+#: ROS 2 message type of each key of :func:`topic_names` and :func:`vehicle_topics`
+TYPES: dict[str, str] = {
+    "clock": "rosgraph_msgs/msg/Clock",
+    "tf": "tf2_msgs/msg/TFMessage",
+    "tf_static": "tf2_msgs/msg/TFMessage",
+    "odom": "nav_msgs/msg/Odometry",
+    "cmd_vel": "geometry_msgs/msg/Twist",
+    "goal_pose": "geometry_msgs/msg/PoseStamped",
+    "rgb": "sensor_msgs/msg/CompressedImage",
+    "depth": "sensor_msgs/msg/Image",
+    "seg": "sensor_msgs/msg/CompressedImage",
+    "info_rgb": "sensor_msgs/msg/CameraInfo",
+    "info_depth": "sensor_msgs/msg/CameraInfo",
+    "info_seg": "sensor_msgs/msg/CameraInfo",
+}
+
+
+def _check_name(what: str, name: str) -> None:
+    if not name or name.startswith("/") or name.endswith("/") or " " in name:
+        raise ValueError(f"{what} must be a relative ROS name without spaces, got {name!r}")
+
+
+def topic_names(ns: str, cam: str) -> dict[str, str]:
+    """Image and camera_info topics of camera ``cam`` under namespace ``ns`` (keys as in :data:`TYPES`)."""
+    _check_name("namespace", ns)
+    _check_name("camera name", cam)
+    base = f"/{ns}/{cam}"
+    return {
+        "rgb": f"{base}/color/image_raw/compressed",
+        "depth": f"{base}/depth/image_raw",
+        "seg": f"{base}/segmentation/image_raw/compressed",
+        "info_rgb": f"{base}/color/camera_info",
+        "info_depth": f"{base}/depth/camera_info",
+        "info_seg": f"{base}/segmentation/camera_info",
+    }
+
+
+def optical_frame(cam: str) -> str:
+    """Frame id of camera ``cam``'s optical frame (x right, y down, z forward), its images' ``frame_id``."""
+    return f"{cam}_optical_frame"
+
+
+def vehicle_topics(ns: str) -> dict[str, str]:
+    """The vehicle's own topics under namespace ``ns`` and the global clock and TF topics."""
+    _check_name("namespace", ns)
+    return {
+        "clock": CLOCK,
+        "tf": TF,
+        "tf_static": TF_STATIC,
+        "odom": f"/{ns}/odom",
+        "cmd_vel": f"/{ns}/cmd_vel",
+        "goal_pose": f"/{ns}/goal_pose",
+    }
+
+
+# --------------------------------------------------------------------------- stamps
+def stamp_to_ns(stamp: Any) -> int:
+    """Integer nanoseconds of a ``builtin_interfaces/Time`` (anything with ``sec`` and ``nanosec``)."""
+    return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
+
+
+def header_ns(msg: Any) -> int:
+    """Integer nanoseconds of a stamped message's ``header.stamp``."""
+    return stamp_to_ns(msg.header.stamp)
+
+
+def ns_to_sec_nanosec(t_ns: int) -> tuple[int, int]:
+    """``(sec, nanosec)`` of ``t_ns`` as rclpy splits it (``nanosec`` in [0, 1e9), also below zero)."""
+    return divmod(int(t_ns), NS_PER_S)
+
+
+def seconds_to_ns(t: float) -> int:
+    """Seconds (the WebSocket API's ``t``) to integer nanoseconds, rounded to the nearest one."""
+    return round(float(t) * NS_PER_S)
+
+
+def ns_to_seconds(t_ns: int) -> float:
+    return int(t_ns) / NS_PER_S
+
+
+# --------------------------------------------------------------------------- images
+def decode_compressed(msg: Any) -> np.ndarray:
+    """Pixels of a ``sensor_msgs/CompressedImage`` in ``jpeg`` or ``png``: HxWx3 ``uint8`` for colour,
+    HxW for single-channel images (the segmentation's class ids stay ``uint8`` ids)."""
+    fmt = str(msg.format).split(";")[0].strip().lower()
+    if fmt not in ("jpeg", "jpg", "png"):
+        raise ValueError(f"unsupported CompressedImage format {msg.format!r} (expected jpeg or png)")
+    data = bytes(msg.data)
+    try:
+        with Image.open(io.BytesIO(data)) as img:
+            if img.format.lower() not in (("jpeg",) if fmt in ("jpeg", "jpg") else ("png",)):
+                raise ValueError(f"CompressedImage says {msg.format!r} but holds {img.format}")
+            return np.asarray(img)
+    except OSError as exc:  # PIL's UnidentifiedImageError and truncated data
+        raise ValueError(f"CompressedImage ({msg.format}, {len(data)} bytes) does not decode: {exc}") from exc
+
+
+def decode_depth(msg: Any) -> np.ndarray:
+    """Metres of a ``32FC1`` ``sensor_msgs/Image`` as an HxW ``float32`` array (NaN: no return).
+
+    Honours ``step`` (row padding) and ``is_bigendian``; the result owns its memory.
+    """
+    if msg.encoding != "32FC1":
+        raise ValueError(f"depth image encoding {msg.encoding!r} is not 32FC1")
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    data = np.asarray(msg.data, dtype=np.uint8).reshape(-1)
+    if step < 4 * w or data.size < h * step:
+        raise ValueError(f"32FC1 image {w}x{h}: step {step} and {data.size} data bytes do not fit")
+    dtype = np.dtype(">f4" if msg.is_bigendian else "<f4")
+    rows = data[: h * step].reshape(h, step)[:, : 4 * w]
+    return np.ascontiguousarray(rows).view(dtype).reshape(h, w).astype(np.float32)

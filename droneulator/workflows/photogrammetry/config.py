@@ -1,0 +1,55 @@
+"""Settings of ``droneulator capture`` (the ``capture`` section of a config file and of ``--set``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass
+class CaptureConfig:
+    """Photogrammetry capture (``droneulator capture``): rings of viewpoints around the scene's tree."""
+
+    views: int = 18
+    #: orbit radius around the trunk, metres
+    radius: float = 7.0
+    #: one ring per altitude (m above the ground); the views are shared out between the rings
+    altitudes: list[float] = field(default_factory=lambda: [5.0])
+    #: each ring's views span this arc, degrees from azimuth 0 (360: a full circle, else both ends included)
+    arc_deg: float = 360.0
+    #: camera mount pitch, degrees (positive looks down); None aims at the crown centre from the mean altitude
+    pitch_deg: float | None = None
+    camera: str = "front"
+    width: int = 1024
+    height: int = 768
+    hfov_deg: float = 70.0
+    #: camera rate while capturing (sim time): frames are only needed once the vehicle has settled
+    camera_hz: float = 10.0
+    jpeg_quality: int = 95
+    #: peak speed of each leg's min-snap goto, m/s
+    speed: float = 1.0
+    #: arcs wider than this are flown as several gotos so the path stays close to the circle, degrees
+    max_leg_deg: float = 25.0
+    #: settled once odometry stays this close to the viewpoint for settle_time_s of sim time
+    settle_position_m: float = 0.05
+    settle_speed_mps: float = 0.05
+    settle_yaw_deg: float = 1.0
+    settle_rate_dps: float = 3.0
+    settle_time_s: float = 0.3
+    #: wall-clock limit for one leg (flight and settling), seconds
+    leg_timeout_s: float = 120.0
+
+    def __post_init__(self) -> None:
+        if self.views < 1:
+            raise ValueError("capture.views must be at least 1")
+        if not self.altitudes or min(self.altitudes) <= 0:
+            raise ValueError("capture.altitudes must hold at least one altitude above the ground")
+        if self.views < len(self.altitudes):
+            raise ValueError("capture.views must be at least the number of rings (capture.altitudes)")
+        if not self.radius > 0 or not self.speed > 0 or not self.camera_hz > 0:
+            raise ValueError("capture.radius, capture.speed and capture.camera_hz must be positive")
+        if not 0 < self.arc_deg <= 360:
+            raise ValueError("capture.arc_deg must lie in (0, 360]")
+        if not 0 < self.max_leg_deg <= 180:
+            raise ValueError("capture.max_leg_deg must lie in (0, 180]")
+        if not 1 <= self.jpeg_quality <= 100:
+            raise ValueError("capture.jpeg_quality must lie in [1, 100]")

@@ -1,0 +1,116 @@
+"""Stage 1 of a capture: the viewpoints around the tree and the paths between them (pure geometry).
+
+Views sit on rings of radius ``capture.radius`` around the tree's vertical axis, one ring per
+altitude, each facing the axis. Arcs between views are split into legs of at most
+``capture.max_leg_deg`` so that a straight min-snap leg stays close to the circle, and
+:func:`segment_errors` measures how far the flown path strays from a commanded leg.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from droneulator.frames import wrap_angle
+
+
+@dataclass(frozen=True)
+class Viewpoint:
+    """One capture pose: ``index`` names the image (``NNNN.jpg``); ``yaw`` faces the tree."""
+
+    index: int
+    ring: int
+    azimuth: float
+    position: tuple[float, float, float]
+    yaw: float
+
+    @property
+    def name(self) -> str:
+        return image_name(self.index)
+
+
+def image_name(index: int) -> str:
+    return f"{index:04d}.jpg"
+
+
+def ring_sizes(views: int, rings: int) -> list[int]:
+    """Views per ring, shared out as evenly as possible (the first rings take the remainder)."""
+    base, extra = divmod(views, rings)
+    return [base + (r < extra) for r in range(rings)]
+
+
+def ring_point(center: Sequence[float], radius: float, azimuth: float, altitude: float) -> np.ndarray:
+    return np.array(
+        [center[0] + radius * math.cos(azimuth), center[1] + radius * math.sin(azimuth), altitude]
+    )
+
+
+def facing_yaw(center: Sequence[float], p: Sequence[float]) -> float:
+    """Heading from ``p`` towards the vertical axis through ``center``."""
+    return math.atan2(center[1] - p[1], center[0] - p[0])
+
+
+def plan_viewpoints(
+    center: Sequence[float],
+    radius: float,
+    altitudes: Sequence[float],
+    views: int,
+    arc_deg: float = 360.0,
+    start_azimuth: float = 0.0,
+) -> list[Viewpoint]:
+    """Rings of evenly spaced viewpoints around ``center`` (x, y), counter-clockwise, ring after ring.
+
+    A full circle (``arc_deg`` 360) spaces a ring's views by 360/n and staggers successive rings by half
+    a spacing so that their views interleave; a partial arc puts views at both of its ends.
+    """
+    plan: list[Viewpoint] = []
+    full = arc_deg >= 360.0
+    for ring, (alt, n) in enumerate(zip(altitudes, ring_sizes(views, len(altitudes)), strict=True)):
+        step = math.radians(arc_deg) / (n if full else max(n - 1, 1))
+        offset = 0.5 * (ring % 2) if full else 0.0
+        for j in range(n):
+            az = wrap_angle(start_azimuth + (j + offset) * step)
+            p = ring_point(center, radius, az, alt)
+            plan.append(Viewpoint(len(plan), ring, az, tuple(float(v) for v in p), facing_yaw(center, p)))
+    return plan
+
+
+def aim_pitch_deg(
+    radius: float, altitudes: Sequence[float], look_at_z: float, mount: Sequence[float]
+) -> float:
+    """Mount pitch (degrees, positive down) that points the optical axis at height ``look_at_z`` on the
+    tree's axis from the mean ring altitude, for a camera mounted at ``mount`` (body FLU) facing the tree."""
+    drop = float(np.mean(altitudes)) + mount[2] - look_at_z
+    return math.degrees(math.atan2(drop, radius - mount[0]))
+
+
+def arc_waypoints(
+    center: Sequence[float], radius: float, altitude: float, az_from: float, az_to: float, max_step_deg: float
+) -> list[np.ndarray]:
+    """Points along the shorter arc from ``az_from`` to ``az_to`` (end included), ``max_step_deg`` apart
+    at most."""
+    delta = wrap_angle(az_to - az_from)
+    if abs(delta) < 1e-9:
+        return []
+    n = max(1, math.ceil(abs(math.degrees(delta)) / max_step_deg - 1e-9))
+    return [ring_point(center, radius, az_from + delta * (k + 1) / n, altitude) for k in range(n)]
+
+
+def segment_errors(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance of each point (n, 3) from the segment a-b, and its height error against the segment's
+    height at the closest point: the tracking errors against a straight commanded path."""
+    points = np.atleast_2d(points)
+    ab = b - a
+    denom = float(ab @ ab)
+    s = np.zeros(len(points)) if denom < 1e-12 else np.clip((points - a) @ ab / denom, 0.0, 1.0)
+    closest = a + s[:, None] * ab
+    return np.linalg.norm(points - closest, axis=1), np.abs(points[:, 2] - closest[:, 2])
+
+
+def pending_views(plan: Sequence[Viewpoint], done: set[int] | dict[int, Any]) -> list[Viewpoint]:
+    """The viewpoints still to capture, in flight order."""
+    return [v for v in plan if v.index not in done]

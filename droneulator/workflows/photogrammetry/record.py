@@ -1,0 +1,264 @@
+"""Stage 3 of a capture: recording from the ROS 2 topics over Zenoh.
+
+:class:`TopicRecorder` subscribes to odometry, ``/tf``, ``/tf_static``, the colour camera and its
+camera_info, exactly as any ROS 2 client would. :class:`TfBuffer` answers pose lookups at an image's
+stamp the way tf2 does: static edges as they are, the ``odom -> base_link`` edge interpolated between
+its samples (linear in position, slerp in rotation). :func:`record_view` turns the first frame after
+the vehicle settled into the view's record: stamp, optical and base_link poses in ``map``, errors.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from droneulator.frames import pose_from_transform, quat_slerp, transform_from_pose
+from droneulator.ros.topics import (
+    BASE_FRAME,
+    MAP_FRAME,
+    TYPES,
+    header_ns,
+    topic_names,
+    vehicle_topics,
+)
+from droneulator.ros.zenoh_node import RosZenohNode
+from droneulator.workflows.photogrammetry.plan import Viewpoint
+
+
+class TfBuffer:
+    """A small tf2-like buffer: static edges, and timed dynamic edges interpolated at a stamp."""
+
+    def __init__(self, history: int = 4000) -> None:
+        self._lock = threading.Condition()
+        self._static: dict[str, tuple[str, np.ndarray]] = {}
+        self._dynamic: dict[str, tuple[str, deque[tuple[int, np.ndarray, np.ndarray]]]] = {}
+        self._history = history
+
+    @staticmethod
+    def _unpack(tr: Any) -> tuple[str, str, int, np.ndarray, np.ndarray]:
+        t, r = tr.transform.translation, tr.transform.rotation
+        return (
+            tr.header.frame_id,
+            tr.child_frame_id,
+            header_ns(tr),
+            np.array([t.x, t.y, t.z]),
+            np.array([r.x, r.y, r.z, r.w]),
+        )
+
+    def on_tf(self, msg: Any, static: bool = False) -> None:
+        with self._lock:
+            for tr in msg.transforms:
+                parent, child, stamp, p, q = self._unpack(tr)
+                if static:
+                    self._static[child] = (parent, transform_from_pose(p, q))
+                    continue
+                entry = self._dynamic.get(child)
+                if entry is None or entry[0] != parent:
+                    entry = (parent, deque(maxlen=self._history))
+                    self._dynamic[child] = entry
+                series = entry[1]
+                if series and stamp < series[-1][0]:  # the clock went back (a reset): start over
+                    series.clear()
+                series.append((stamp, p, q))
+            self._lock.notify_all()
+
+    def _edge(self, child: str, t_ns: int) -> tuple[str, np.ndarray] | None:
+        """``(parent, T_parent_child)`` at ``t_ns``; None while the data to answer is not there yet."""
+        if child in self._static:
+            return self._static[child]
+        if child not in self._dynamic:
+            return None
+        parent, series = self._dynamic[child]
+        if not series or series[-1][0] < t_ns:
+            return None
+        if series[0][0] > t_ns:
+            raise LookupError(f"TF {parent} -> {child} at {t_ns} ns is older than the buffer")
+        stamps = [s for s, _, _ in series]
+        i = int(np.searchsorted(stamps, t_ns))
+        s1, p1, q1 = series[i]
+        if s1 == t_ns or i == 0:
+            return parent, transform_from_pose(p1, q1)
+        s0, p0, q0 = series[i - 1]
+        f = (t_ns - s0) / (s1 - s0)
+        q = quat_slerp(q0, q1, f)
+        return parent, transform_from_pose(p0 + f * (p1 - p0), q)
+
+    def lookup(self, target: str, source: str, t_ns: int, timeout: float = 5.0) -> np.ndarray:
+        """``T_target_source`` at ``t_ns``, waiting up to ``timeout`` s for the transforms to arrive."""
+        deadline = time.monotonic() + timeout
+        with self._lock:
+            while True:
+                T = np.eye(4)
+                frame = source
+                while frame != target:
+                    edge = self._edge(frame, t_ns)
+                    if edge is None:
+                        break
+                    frame, T_parent = edge[0], edge[1]
+                    T = T_parent @ T
+                else:
+                    return T
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise TimeoutError(f"no TF {target} -> {source} at {t_ns} ns (stuck at {frame!r})")
+                self._lock.wait(remaining)
+
+
+@dataclass
+class OdomSample:
+    stamp: int
+    position: np.ndarray
+    quaternion: np.ndarray
+    linear: np.ndarray  # body frame, m/s
+    angular: np.ndarray  # body frame, rad/s
+
+
+@dataclass
+class Frame:
+    stamp: int
+    frame_id: str
+    jpeg: bytes
+
+
+class TopicRecorder:
+    """Subscriptions to odometry, TF, the colour camera and its camera_info, decoded by rosbags."""
+
+    def __init__(self, node: RosZenohNode, namespace: str, camera: str) -> None:
+        self.tf = TfBuffer()
+        self._cond = threading.Condition()
+        self._odom: deque[OdomSample] = deque(maxlen=6000)
+        self._infos: dict[int, Any] = {}
+        self._frames: deque[Frame] = deque(maxlen=8)
+        names = {**vehicle_topics(namespace), **topic_names(namespace, camera)}
+        handlers: dict[str, Callable[[Any], None]] = {
+            "odom": self._on_odom,
+            "tf": self.tf.on_tf,
+            "tf_static": lambda m: self.tf.on_tf(m, static=True),
+            "info_rgb": self._on_info,
+            "rgb": self._on_rgb,
+        }
+        for key, handler in handlers.items():
+            node.subscribe(names[key], TYPES[key], handler)
+
+    def _on_odom(self, msg: Any) -> None:
+        p, q = msg.pose.pose.position, msg.pose.pose.orientation
+        v, w = msg.twist.twist.linear, msg.twist.twist.angular
+        s = OdomSample(
+            header_ns(msg),
+            np.array([p.x, p.y, p.z]),
+            np.array([q.x, q.y, q.z, q.w]),
+            np.array([v.x, v.y, v.z]),
+            np.array([w.x, w.y, w.z]),
+        )
+        with self._cond:
+            if self._odom and s.stamp < self._odom[-1].stamp:
+                self._odom.clear()
+            self._odom.append(s)
+            self._cond.notify_all()
+
+    def _on_info(self, msg: Any) -> None:
+        with self._cond:
+            self._infos[header_ns(msg)] = msg
+            if len(self._infos) > 64:
+                for k in sorted(self._infos)[:-32]:
+                    del self._infos[k]
+            self._cond.notify_all()
+
+    def _on_rgb(self, msg: Any) -> None:
+        with self._cond:
+            self._frames.append(Frame(header_ns(msg), msg.header.frame_id, bytes(msg.data)))
+            self._cond.notify_all()
+
+    def _wait(self, predicate: Callable[[], Any], timeout: float, what: str) -> Any:
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while not (result := predicate()):
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise TimeoutError(f"no {what} within {timeout:.0f} s")
+                self._cond.wait(remaining)
+            return result
+
+    def odom_after(self, t_ns: int, timeout: float) -> list[OdomSample]:
+        """Odometry samples stamped after ``t_ns``, waiting up to ``timeout`` s for at least one."""
+        return self._wait(lambda: [s for s in self._odom if s.stamp > t_ns], timeout, "odometry")
+
+    def latest_odom(self, timeout: float = 30.0) -> OdomSample:
+        return self._wait(lambda: self._odom[-1] if self._odom else None, timeout, "odometry")
+
+    def odom_at(self, t_ns: int, timeout: float = 5.0) -> OdomSample:
+        """The odometry sample nearest ``t_ns`` once a later one has arrived."""
+        samples = self._wait(lambda: self._odom[-1].stamp >= t_ns and list(self._odom), timeout, "odometry")
+        return min(samples, key=lambda s: abs(s.stamp - t_ns))
+
+    def frame_after(self, t_ns: int, timeout: float) -> Frame:
+        """The first colour frame stamped at or after ``t_ns``."""
+        return self._wait(
+            lambda: next((f for f in self._frames if f.stamp >= t_ns), None), timeout, "camera frame"
+        )
+
+    def camera_info(self, t_ns: int | None = None, timeout: float = 5.0) -> Any:
+        """camera_info stamped ``t_ns`` (the latest one when None)."""
+        if t_ns is None:
+            return self._wait(
+                lambda: self._infos[max(self._infos)] if self._infos else None, timeout, "camera_info"
+            )
+        return self._wait(lambda: self._infos.get(t_ns), timeout, f"camera_info at {t_ns} ns")
+
+
+def camera_info_dict(info: Any) -> dict[str, Any]:
+    """What the dataset keeps of a ``sensor_msgs/CameraInfo``: frame, size, K, distortion, field of view."""
+    K = np.array(info.k, dtype=float).reshape(3, 3)
+    return {
+        "frame_id": info.header.frame_id,
+        "width": int(info.width),
+        "height": int(info.height),
+        "K": K.tolist(),
+        "distortion_model": info.distortion_model,
+        "D": [float(d) for d in info.d],
+        "hfov_deg": math.degrees(2 * math.atan(info.width / 2 / K[0, 0])),
+    }
+
+
+def pose_dict(T: np.ndarray) -> dict[str, list[float]]:
+    p, q = pose_from_transform(T)
+    return {"position": p.tolist(), "quaternion_xyzw": q.tolist()}
+
+
+def record_view(
+    topics: TopicRecorder, view: Viewpoint, cam: dict[str, Any], settled_ns: int, leg: dict[str, Any]
+) -> tuple[dict[str, Any], bytes]:
+    """The first frame after the vehicle settled at ``view``, with its camera_info and the TF poses at
+    its stamp: the view's record (``leg``: the flight statistics that brought it there) and its JPEG."""
+    frame = topics.frame_after(settled_ns, timeout=30.0)
+    info = camera_info_dict(topics.camera_info(frame.stamp))
+    if info["K"] != cam["K"] or (info["width"], info["height"]) != (cam["width"], cam["height"]):
+        raise RuntimeError(f"camera_info changed during the capture: {info} != {cam}")
+    T_world_opt = topics.tf.lookup(MAP_FRAME, frame.frame_id, frame.stamp)
+    T_world_base = topics.tf.lookup(MAP_FRAME, BASE_FRAME, frame.stamp)
+    odom = topics.odom_at(frame.stamp)
+    target = np.array(view.position)
+    return (
+        {
+            "index": view.index,
+            "image_id": view.index + 1,
+            "name": view.name,
+            "ring": view.ring,
+            "azimuth_deg": math.degrees(view.azimuth),
+            "stamp_ns": frame.stamp,
+            "target": {"position": list(view.position), "yaw": view.yaw},
+            "optical": pose_dict(T_world_opt),
+            "base_link": pose_dict(T_world_base),
+            "position_error_m": float(np.linalg.norm(T_world_base[:3, 3] - target)),
+            "speed_mps": float(np.linalg.norm(odom.linear)),
+            "leg": leg,
+        },
+        frame.jpeg,
+    )

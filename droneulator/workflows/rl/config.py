@@ -1,0 +1,59 @@
+"""Settings of ``droneulator train``/``evaluate`` (the ``rl`` section of a config file and of ``--set``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class RLConfig:
+    """Workflow 3 (``droneulator train``/``evaluate``): vineyard navigation environment and its reward.
+
+    The agent sees a depth strip from a small depth-only camera, the heading error to the goal (through
+    a look-ahead point on the A* path, or straight at it) and its own speeds; it commands forward speed
+    and yaw rate in velocity mode at a held altitude. Reward: ``progress_scale * (d_prev - d) -
+    step_penalty``, plus ``goal_reward`` within ``goal_radius`` of the goal or minus
+    ``collision_penalty`` on a collision, with ``d`` the shortest-path distance to the goal.
+    """
+
+    altitude: float = 1.5
+    #: depth camera (depth only, no shadows): its centre row is min-pooled into the 32-sample strip
+    camera_width: int = 128
+    camera_height: int = 9
+    hfov_deg: float = 90.0
+    #: depth is clipped here and normalised by it; the camera's far plane sits here too (faithful: a miss
+    #: and a return beyond it both read 1.0)
+    depth_clip: float = 10.0
+    forward_min: float = -2.0
+    forward_max: float = 3.0
+    max_yaw_rate: float = 1.5
+    progress_scale: float = 1.0
+    step_penalty: float = 0.01
+    goal_reward: float = 100.0
+    collision_penalty: float = 30.0
+    goal_radius: float = 1.5
+    #: occupancy grid: cell size and the safety margin added to the vehicle's collision radius
+    grid_resolution: float = 0.1
+    safety_margin: float = 0.3
+    #: heading error toward "path" (a point ``lookahead`` m along the shortest path) or "goal" (straight)
+    heading: str = "path"
+    lookahead: float = 2.0
+    #: start/goal sampling: shortest-path distance range and the share of goals in another alley
+    min_separation: float = 8.0
+    max_path_length: float = 45.0
+    other_row_prob: float = 0.7
+    #: start heading: toward the first leg of the shortest path, plus normal noise of this std (deg)
+    start_yaw_std_deg: float = 30.0
+    #: episode time limit (truncation): base seconds plus the initial path length over this speed
+    time_limit_base_s: float = 10.0
+    min_average_speed: float = 0.75
+
+    def __post_init__(self) -> None:
+        if self.heading not in ("path", "goal"):
+            raise ValueError(f"rl.heading must be 'path' or 'goal', got {self.heading!r}")
+        if not self.forward_min < 0 < self.forward_max or not self.max_yaw_rate > 0:
+            raise ValueError("rl.forward_min < 0 < rl.forward_max and rl.max_yaw_rate > 0 are required")
+        if self.camera_width < 32 or self.camera_height < 1:
+            raise ValueError("rl.camera_width must be at least 32 (one pixel per strip sample)")
+        if not 0 < self.min_separation < self.max_path_length:
+            raise ValueError("rl.min_separation must be positive and below rl.max_path_length")

@@ -1,0 +1,67 @@
+"""``launch_run``: a real ``droneulator run`` child on free ports, its failures and its shutdown."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import threading
+import time
+
+import pytest
+
+from droneulator.config import load_config
+from droneulator.ros.topics import TYPES, stamp_to_ns, vehicle_topics
+from droneulator.ros.zenoh_node import RosZenohNode
+from droneulator.runtime.launch import LaunchError, launch_run
+
+pytestmark = pytest.mark.slow
+
+
+def ps(*select: str) -> list[str]:
+    """Command lines of the live processes ``ps`` selects (zombies waiting for init are not alive)."""
+    out = subprocess.run(["ps", "-o", "stat=,args=", *select], capture_output=True, text=True)
+    return [line.split(None, 1)[1] for line in out.stdout.splitlines() if not line.lstrip().startswith("Z")]
+
+
+def test_reserved_options_are_refused_before_anything_starts():
+    for args in (["--api-port", "9000"], ["--set", "bridge.listen=[]"], ["--scene=orchard"]):
+        with pytest.raises(ValueError, match="launch_run sets"):
+            launch_run(load_config(), args)
+
+
+def test_a_run_that_dies_or_does_not_answer_raises_with_its_log_and_is_gone():
+    with pytest.raises(LaunchError) as err:
+        launch_run(load_config(scene="no_such_scene"))
+    assert "exited with code" in str(err.value) and "unknown scene 'no_such_scene'" in str(err.value)
+
+    t0 = time.monotonic()
+    with pytest.raises(LaunchError, match="did not answer on ws://127.0.0.1:[0-9]+ within 0.3 s"):
+        launch_run(load_config(), start_timeout=0.3)
+    assert time.monotonic() - t0 < 15
+    assert not [c for c in ps("--ppid", str(os.getpid())) if "droneulator" in c]
+
+
+def test_a_run_serves_its_api_and_topics_on_the_chosen_ports_and_stops_cleanly(tmp_path):
+    cfg = load_config(None, ['render.cameras=[{"width": 160, "height": 120}]', "render.shadows=false"])
+    with launch_run(cfg, ["--realtime"], log=tmp_path / "run.log") as run:
+        assert cfg.runtime.api_port == 8765 and cfg.bridge.listen == ["tcp/127.0.0.1:7448"]  # untouched
+        assert run.url == f"ws://127.0.0.1:{run.config.runtime.api_port}" and run.url != "ws://127.0.0.1:8765"
+        assert run.config.bridge.listen == [run.zenoh_endpoint]
+        with run.client() as client:
+            assert client.scene_info()["name"] == "default"
+            assert client.state()["mode"] == "idle"
+        got: list[int] = []
+        arrived = threading.Event()
+
+        def on_clock(msg) -> None:
+            got.append(stamp_to_ns(msg.clock))
+            arrived.set()
+
+        with RosZenohNode.from_config(cfg.bridge, listen=(), connect=(run.zenoh_endpoint,)) as node:
+            node.subscribe(vehicle_topics("droneulator")["clock"], TYPES["clock"], on_clock)
+            assert arrived.wait(30), "no /clock from the run's Zenoh endpoint"
+        assert run.running() and got[0] >= 0
+    assert run.proc.returncode == 0  # SIGTERM: an orderly shutdown
+    assert ps("-g", str(run.pid)) == []  # the whole group (dynamics, render, bridge) is gone
+    assert "bridge ready" in (tmp_path / "run.log").read_text()
+    assert "bridge ready" in run.log.tail(200)
