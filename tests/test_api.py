@@ -19,7 +19,8 @@ from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import ClientConnection, connect
 
 from droneulator.api import ApiError, ApiServer, DroneulatorClient, handle_request
-from droneulator.api.protocol import ERROR_CODES, OPS, ops_markdown, state_dict
+from droneulator.api.commands import CommandPath
+from droneulator.api.protocol import ERROR_CODES, OPS, ops_markdown
 from droneulator.sim.simulator import Simulator
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "api.md"
@@ -161,9 +162,8 @@ class Rig:
     def __init__(self) -> None:
         self.sim = Simulator(scene="default", render=False)
         self.lock = threading.Lock()
-        self.server = ApiServer(
-            self.sim, self.lock, port=0, max_message_bytes=MAX_MESSAGE, state_rate_hz=30.0
-        )
+        self.commands = CommandPath(self.sim, self.lock)
+        self.server = ApiServer(self.commands, port=0, max_message_bytes=MAX_MESSAGE, state_rate_hz=30.0)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._step, name="test-stepper", daemon=True)
 
@@ -171,7 +171,7 @@ class Rig:
         while not self._stop.is_set():
             with self.lock:
                 events = [e.to_dict() for _ in range(STEPS_PER_TICK) for e in self.sim.step().events]
-                state = state_dict(self.sim.state)  # what the runtime publishes too
+                state = self.sim.state  # what the runtime publishes too
             for e in events:
                 self.server.publish_event(e)
             self.server.publish_state(state)
@@ -378,14 +378,14 @@ def test_two_clients_at_once_and_a_subscriber_that_never_reads(rig, client):
 def test_flight_lock_and_extra_ops_over_the_server(rig, client):
     rig.server.add_op("echo", lambda args: {"echo": args})
     assert client.request("echo", word="hi") == {"echo": {"word": "hi"}}
-    rig.server.refuse_flight("PX4 is in control")
+    rig.commands.refuse_flight("PX4 is in control")
     try:
         with pytest.raises(ApiError) as e:
             client.takeoff(1.0)
         assert (e.value.code, e.value.message) == ("flight_locked", "PX4 is in control")
         assert client.state()["t"] >= 0
     finally:
-        rig.server.allow_flight()
+        rig.commands.allow_flight()
     client.reset()
     assert client.takeoff(1.0)["duration"] > 0
     with pytest.raises(ValueError):
@@ -394,9 +394,9 @@ def test_flight_lock_and_extra_ops_over_the_server(rig, client):
 
 def test_stop_is_prompt_even_with_a_command_waiting_for_the_lock(rig, bare_sim):
     with pytest.raises(OSError):
-        ApiServer(bare_sim, threading.Lock(), port=rig.server.port).start()
+        ApiServer(CommandPath(bare_sim), port=rig.server.port).start()
     lock = threading.Lock()
-    server = ApiServer(bare_sim, lock, port=0).start()
+    server = ApiServer(CommandPath(bare_sim, lock), port=0).start()
     c = DroneulatorClient(server.url, timeout=5.0)
     assert c.ping()["pong"]
     with lock:  # like a stepping loop that stops the server while holding the lock
@@ -407,7 +407,7 @@ def test_stop_is_prompt_even_with_a_command_waiting_for_the_lock(rig, bare_sim):
         assert time.monotonic() - start < 3.0
     time.sleep(0.1)
     assert bare_sim.mode.value == "idle"  # the command never ran
-    server.publish_state({"t": 0.0})
+    server.publish_state(bare_sim.state)
     server.publish_event({"type": "late"})
     with pytest.raises(ApiError) as e:
         c.ping()

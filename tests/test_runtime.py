@@ -251,13 +251,14 @@ def test_depth_is_metric_on_known_geometry(run):
     c = run.client
     tree = get_scene("tree_inspection").landmarks["tree"]
     cam_height = 1.0
-    c.reset(position=[tree[0] - 6.0, tree[1], cam_height], yaw=0.0)  # restarts the clock at 0
+    # restarts the episode clock at 0; the ROS clock carries on from the reset's stamp
+    reset_stamp = c.reset(position=[tree[0] - 6.0, tree[1], cam_height], yaw=0.0)["state"]["stamp_ns"]
     run.wait_for(lambda: c.state()["t"] > 1.0, 30, "1 s of sim time after the reset")
     run.clear()  # frames from before the reset are all delivered by now
     run.wait_for(lambda: run.msgs["droneulator/front/depth/image_raw"], 30, "a depth image after the reset")
     with run.lock:
         msg = run.msgs["droneulator/front/depth/image_raw"][0][1]
-    assert 0.5e9 < stamp_ns(msg) < 10e9  # rendered after the reset
+    assert reset_stamp + 0.5e9 < stamp_ns(msg) < reset_stamp + 10e9  # rendered after the reset
     d = np.frombuffer(bytes(msg.data), dtype="<f4").reshape(msg.height, msg.width)
     K = intrinsics(CAM)
     mount = camera_mount(np.array(CAM.position), CAM.rpy)

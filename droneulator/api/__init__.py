@@ -5,6 +5,7 @@ Importing this package does not import the simulator, so clients stay light.
 """
 
 from droneulator.api.client import ConnectionLostError, DroneulatorClient
+from droneulator.api.commands import CommandPath
 from droneulator.api.protocol import ERROR_CODES, OPS, ApiError, handle_request
 from droneulator.api.server import ApiServer
 
@@ -13,6 +14,7 @@ __all__ = [
     "OPS",
     "ApiError",
     "ApiServer",
+    "CommandPath",
     "ConnectionLostError",
     "DroneulatorClient",
     "handle_request",

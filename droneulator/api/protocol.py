@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from droneulator.sim.simulator import Simulator, VehicleState
+    from droneulator.sim.simulator import Simulator
 
 log = logging.getLogger(__name__)
 
@@ -152,16 +152,11 @@ def _reset(sim: Simulator, a: dict[str, Any]) -> dict[str, Any]:
         scene=scene,
         airborne=a.get("airborne"),
     )
-    return {"scene": sim.scene.name, "seed": sim.config.seed, "state": state_dict(state)}
-
-
-def state_dict(state: VehicleState) -> dict[str, Any]:
-    """The state object of the ``state`` op and of the state stream: ``to_dict()`` plus exact ``t_ns``."""
-    return {**state.to_dict(), "t_ns": int(state.t_ns)}
+    return {"scene": sim.scene.name, "seed": sim.config.seed, "state": state.to_dict()}
 
 
 def _state(sim: Simulator, a: dict[str, Any]) -> dict[str, Any]:
-    return state_dict(sim.state)
+    return sim.state.to_dict()
 
 
 def _ping(sim: Simulator, a: dict[str, Any]) -> dict[str, Any]:
@@ -278,7 +273,9 @@ OPS: dict[str, Op] = {
         Op(
             "state",
             "The current ground-truth vehicle state.",
-            "`t` (s) and `t_ns` (integer ns) since the last reset; `position` [x, y, z] (m, world); "
+            "`t` (s) and `t_ns` (integer ns) since the last reset; `stamp_ns` (integer ns): the "
+            "simulator's monotonic clock, which keeps counting across resets and stamps every ROS message "
+            "(equal to `t_ns` before the first reset); `position` [x, y, z] (m, world); "
             "`velocity` (m/s, world); `quaternion` [x, y, z, w] (body FLU to world); `angular_velocity` "
             "(rad/s, body); `yaw` (rad); `mode` (`idle`, `takeoff`, `goto`, `hold`, `velocity`, `land`, "
             "`collided`)",
@@ -454,24 +451,36 @@ def parse_request(raw: str | bytes, extra_ops: Collection[str] = ()) -> Request:
         raise RequestError("invalid_request", "missing `op`", rid)
     if not isinstance(op, str):
         raise RequestError("invalid_request", "`op` must be a string", rid)
+    return make_request(op, {k: v for k, v in msg.items() if k not in ("id", "op")}, rid, extra_ops)
+
+
+def make_request(
+    op: str, args: Mapping[str, Any], request_id: int | str | None = None, extra_ops: Collection[str] = ()
+) -> Request:
+    """Validate ``args`` of ``op`` against :data:`OPS` (raw for extra ops); raises :class:`RequestError`.
+
+    Every command source builds its requests here (the WebSocket server through :func:`parse_request`,
+    ROS topics directly), so one set of rules applies to all of them.
+    """
     if op not in OPS and op not in extra_ops:
         known = ", ".join([*OPS, *sorted(extra_ops)])
-        raise RequestError("unknown_op", f"unknown op {op[:64]!r}; known ops: {known}", rid)
-    args = {k: v for k, v in msg.items() if k not in ("id", "op")}
-    bad = _non_finite(args)
+        raise RequestError("unknown_op", f"unknown op {op[:64]!r}; known ops: {known}", request_id)
+    bad = _non_finite(dict(args))
     if bad is not None:
         raise RequestError(
-            "invalid_argument", f"`{bad}` must be a finite number (NaN/Infinity not allowed)", rid
+            "invalid_argument", f"`{bad}` must be a finite number (NaN/Infinity not allowed)", request_id
         )
     if op not in OPS:
-        return Request(rid, op, args)
+        return Request(request_id, op, dict(args))
     spec = OPS[op]
     names = {a.name for a in spec.args}
     extra = sorted(set(args) - names)
     if extra:
         accepted = ", ".join(sorted(names)) or "none"
         raise RequestError(
-            "invalid_argument", f"unexpected field(s) {', '.join(extra)} for {op}; accepted: {accepted}", rid
+            "invalid_argument",
+            f"unexpected field(s) {', '.join(extra)} for {op}; accepted: {accepted}",
+            request_id,
         )
     out: dict[str, Any] = {}
     try:
@@ -483,8 +492,8 @@ def parse_request(raw: str | bytes, extra_ops: Collection[str] = ()) -> Request:
                 continue
             out[a.name] = _validate(a, value)
     except ApiError as e:
-        raise RequestError(e.code, e.message, rid) from None
-    return Request(rid, op, out)
+        raise RequestError(e.code, e.message, request_id) from None
+    return Request(request_id, op, out)
 
 
 # --------------------------------------------------------------------------- execution

@@ -1,10 +1,12 @@
 """WebSocket front end of the command protocol, on its own asyncio loop in a daemon thread.
 
 Threading: the dynamics server steps the :class:`~droneulator.sim.simulator.Simulator` in its main
-thread while holding ``lock``. Commands run one at a time in a worker thread of this server, holding
-the same lock, so they never interleave with a physics step and never stall the event loop; ``ping``
-and subscriptions are answered on the loop without the lock. The stepping loop pushes data with the
-thread-safe :meth:`ApiServer.publish_state` and :meth:`ApiServer.publish_event`.
+thread while holding the simulation lock. Commands go through the one
+:class:`~droneulator.api.commands.CommandPath` (validation, flight lock, simulation lock), one at a
+time in a worker thread of this server, so they never interleave with a physics step and never stall
+the event loop; ``ping`` and subscriptions are answered on the loop without the lock. The stepping
+loop pushes data with the thread-safe :meth:`ApiServer.publish_state` and
+:meth:`ApiServer.publish_event`.
 
 Message size has two tiers. A message up to ``max_message_bytes`` is processed. A longer one, up to
 :attr:`ApiServer.transport_limit` (16 x ``max_message_bytes``, at least 1 MiB), is read, discarded and
@@ -24,13 +26,13 @@ import queue
 import threading
 from collections import deque
 from collections.abc import Callable, Coroutine, Mapping
-from contextlib import AbstractContextManager
 from typing import TYPE_CHECKING, Any
 
 from websockets.asyncio.server import ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 from websockets.frames import CloseCode
 
+from droneulator.api.commands import CommandPath
 from droneulator.api.protocol import (
     OPS,
     STREAMS,
@@ -39,13 +41,12 @@ from droneulator.api.protocol import (
     RequestError,
     encode,
     error_reply,
-    execute,
     ok_reply,
     parse_request,
 )
 
 if TYPE_CHECKING:
-    from droneulator.sim.simulator import Simulator
+    from droneulator.sim.simulator import VehicleState
 
 log = logging.getLogger(__name__)
 
@@ -127,8 +128,7 @@ class ApiServer:
 
     def __init__(
         self,
-        sim: Simulator,
-        lock: AbstractContextManager[Any],
+        commands: CommandPath,
         host: str = "127.0.0.1",
         port: int = 8765,
         max_message_bytes: int = 65536,
@@ -142,8 +142,7 @@ class ApiServer:
         lo, hi = OPS["subscribe"].args[1].bounds or (0.0, 0.0)
         if not lo <= state_rate_hz <= hi:
             raise ValueError(f"state_rate_hz must lie in [{lo:g}, {hi:g}]")
-        self.sim = sim
-        self.lock = lock
+        self.commands = commands
         self.host = host
         self.port = port
         self.max_message_bytes = max_message_bytes
@@ -154,10 +153,9 @@ class ApiServer:
         self._extra_ops: dict[str, ExtraOp] = {}
         for name, fn in (extra_ops or {}).items():
             self.add_op(name, fn)
-        self._flight_locked: str | None = None
         self._state_lock = threading.Lock()
         self._state_seq = 0
-        self._state: dict[str, Any] | None = None
+        self._state: VehicleState | None = None
         self._state_cache: tuple[int, str | None] = (0, None)
         self._state_wake_pending = False
         self._n_state_subscribers = 0
@@ -186,20 +184,6 @@ class ApiServer:
         if name in OPS:
             raise ValueError(f"extra op {name!r} would shadow a built-in op")
         self._extra_ops = {**self._extra_ops, name: fn}  # copy on write: readers never see a mutation
-
-    def refuse_flight(self, reason: str) -> None:
-        """Answer every flight command with ``flight_locked`` and ``reason`` until :meth:`allow_flight`."""
-        if not reason:
-            raise ValueError("refuse_flight needs a reason for the clients")
-        self._flight_locked = reason
-
-    def allow_flight(self) -> None:
-        self._flight_locked = None
-
-    @property
-    def flight_locked(self) -> str | None:
-        """The reason flight commands are refused, or None."""
-        return self._flight_locked
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> ApiServer:
@@ -280,10 +264,11 @@ class ApiServer:
         log.info("API server on %s stopped", self.url)
 
     # ------------------------------------------------------------------ publishing (any thread)
-    def publish_state(self, state: dict[str, Any]) -> None:
+    def publish_state(self, state: VehicleState) -> None:
         """Offer the latest vehicle state; subscribers get it at their rate (older values are skipped).
 
-        Thread-safe and cheap. The dict is serialised later on the server thread: do not mutate it.
+        Thread-safe and cheap: the state is converted and serialised later, on the server thread, and
+        only when a subscriber is due (do not mutate it).
         """
         with self._state_lock:
             self._state_seq += 1
@@ -344,7 +329,7 @@ class ApiServer:
         if self._state_cache[0] != seq:
             text = None
             try:
-                text = encode({"type": "state", "state": state})
+                text = encode({"type": "state", "state": state.to_dict()})
             except (TypeError, ValueError):
                 log.exception("state is not JSON serialisable; not sent")
             self._state_cache = (seq, text)
@@ -399,7 +384,7 @@ class ApiServer:
         if req.op in _SERVER_OPS:
             return self._subscription(session, req)
         if req.op in OPS and not OPS[req.op].locked:
-            return execute(self.sim, req), None
+            return self.commands.execute(req), None
         assert self._worker is not None and self._stop_fut is not None
         fut = self._worker.submit(
             asyncio.get_running_loop(), functools.partial(self._run_command, req, extra)
@@ -411,13 +396,8 @@ class ApiServer:
         return fut.result(), None
 
     def _run_command(self, req: Request, extra: Mapping[str, ExtraOp]) -> dict[str, Any]:
-        """Worker thread: extra ops without the lock, simulator ops under it (not once stopping)."""
-        if req.op in extra:
-            return execute(None, req, extra)
-        with self.lock:
-            if self._closing.is_set():
-                return error_reply(req.id, "internal_error", "the server is shutting down")
-            return execute(self.sim, req, flight_locked=self._flight_locked)
+        """Worker thread: the command path (extra ops without the lock), never once stopping."""
+        return self.commands.execute(req, extra, self._closing)
 
     # ------------------------------------------------------------------ subscriptions
     def _subscription(self, s: _Session, req: Request) -> tuple[dict[str, Any], Callable[[], None] | None]:

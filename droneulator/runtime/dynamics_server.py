@@ -1,11 +1,19 @@
-"""The dynamics server: owns the simulation clock and the flight, serves the WebSocket API, and
-is the hub the render server and the bridge connect to.
+"""The dynamics server: owns the simulation clock and the flight, serves the WebSocket API, publishes
+the vehicle state to ROS 2 itself, and is the hub the render server and the bridge connect to.
 
 Lockstep: a control step is taken only while fewer than ``frame_slots - 1`` frames are in flight
 (requested from the render server and not yet published by the bridge), so sim time advances
-exactly as fast as the slowest consumer and no frame is skipped. Realtime: steps follow the wall
-clock (times ``runtime.speed``); a camera instant is sent to the render server only when it is
-free, so it draws the latest state at whatever rate it manages, stamped with that state's time.
+exactly as fast as the slowest consumer and no frame is skipped; the bridge publishes images with
+Zenoh's ``BLOCK`` policy, so a slow subscriber slows the clock instead of losing images. Realtime:
+steps follow the wall clock (times ``runtime.speed``); a camera instant is sent to the render server
+only when it is free, so it draws the latest state at whatever rate it manages, and images are
+published with ``DROP``.
+
+Odometry, TF and ``/clock`` leave from here, right after the physics step that produced the state
+(no process hop). ROS commands (``cmd_vel``, ``goal_pose``) arrive here too and go through the same
+:class:`~droneulator.api.commands.CommandPath` as WebSocket commands. The Zenoh session of this
+process is the run's hub on Zenoh as well: by default a router listening on ``bridge.listen``, which
+the bridge process reaches over a private Unix socket.
 """
 
 from __future__ import annotations
@@ -18,54 +26,79 @@ import signal
 import threading
 import time
 from multiprocessing.connection import Connection, Listener, wait
-from typing import Any
+from pathlib import Path
+from typing import IO
 
+from droneulator.api.commands import CommandPath
 from droneulator.api.server import ApiServer
 from droneulator.config import SimConfig, from_dict
-from droneulator.runtime.ipc import ENV_ADDRESS, ENV_AUTHKEY, ENV_CONFIG, PROTOCOL_VERSION
-from droneulator.sim.simulator import NS, CommandError, Simulator, StepResult, VehicleState
+from droneulator.ros.publishers import StatePublisher, subscribe_commands
+from droneulator.ros.zenoh_node import RosZenohNode
+from droneulator.runtime.ipc import (
+    ENV_ADDRESS,
+    ENV_AUTHKEY,
+    ENV_CONFIG,
+    ENV_ZENOH,
+    PROTOCOL_VERSION,
+    Hello,
+    HubMessage,
+    LoadScene,
+    Publish,
+    Published,
+    Refused,
+    Render,
+    Rendered,
+    Welcome,
+)
+from droneulator.sim.simulator import NS, Simulator, StepResult, VehicleState
 
 log = logging.getLogger("droneulator.dynamics")
 ROLES = ("renderer", "bridge")
+STATIC_TF_PERIOD_S = 1.0
 
 
-def state_payload(st: VehicleState) -> dict[str, Any]:
-    """The state fields the render server and the bridge need (plain lists, picklable)."""
-    return {
-        "t_ns": st.t_ns,
-        "position": st.position.tolist(),
-        "quaternion": st.quaternion.tolist(),
-        "velocity": st.velocity.tolist(),
-        "angular_velocity": st.angular_velocity.tolist(),
-        "mode": st.mode,
-    }
+def open_zenoh_hub(cfg: SimConfig, private_endpoint: str | None) -> RosZenohNode:
+    """The run's main Zenoh session: the user's settings, plus the private endpoint the bridge connects to."""
+    if private_endpoint and cfg.bridge.mode != "client":
+        return RosZenohNode.from_config(cfg.bridge, listen=(*cfg.bridge.listen, private_endpoint))
+    return RosZenohNode.from_config(cfg.bridge)
 
 
 class DynamicsServer:
-    def __init__(self, cfg: SimConfig, address: str, authkey: bytes) -> None:
+    def __init__(
+        self, cfg: SimConfig, address: str, authkey: bytes, zenoh_endpoint: str | None = None
+    ) -> None:
         if cfg.render.camera_hz > cfg.vehicle.control_hz:
             raise ValueError("render.camera_hz must not exceed vehicle.control_hz")
         self.cfg = cfg
         self.sim = Simulator(config=cfg, render=False, external_cameras=True)
-        self.lock = threading.Lock()
+        self.commands = CommandPath(self.sim)
         rt = cfg.runtime
         self.api = ApiServer(
-            self.sim,
-            self.lock,
+            self.commands,
             host=rt.api_host,
             port=rt.api_port,
             max_message_bytes=rt.api_max_message_bytes,
             state_rate_hz=rt.state_hz,
         )
+        self.node = open_zenoh_hub(cfg, zenoh_endpoint)
+        self.ros = StatePublisher(self.node, cfg)
+        subscribe_commands(self.node, cfg, self.commands)
+        self._latency: IO[str] | None = None
+        if cfg.bridge.latency_log:
+            Path(cfg.bridge.latency_log).parent.mkdir(parents=True, exist_ok=True)
+            self._latency = open(cfg.bridge.latency_log, "a", buffering=1)  # noqa: SIM115  (one write a line)
         self.listener = Listener(address, family="AF_UNIX", authkey=authkey)
         self.peers: dict[str, Connection] = {}
         self._new_peers: queue.Queue[tuple[str, Connection]] = queue.Queue()
         self.seq = 0
-        #: seq -> [stage ("render" | "publish"), state payload]
-        self.in_flight: dict[int, list[Any]] = {}
+        #: seq -> (stage "render" | "publish", state): frames requested and not yet published
+        self.in_flight: dict[int, tuple[str, VehicleState]] = {}
         self.window = rt.frame_slots - 1
         self.state_period_ns = round(NS / rt.state_hz)
         self._next_state_ns = 0
+        self._last_t_ns = 0
+        self._last_static = -float("inf")
         self._scene_key = (cfg.scene, cfg.seed)
         self.stopping = threading.Event()
         self.dropped_frames = 0
@@ -86,13 +119,12 @@ class DynamicsServer:
                     return
                 log.warning("a process failed the hub handshake", exc_info=True)
                 continue
-            role = hello.get("hello") if isinstance(hello, dict) else None
-            if role not in ROLES or hello.get("version") != PROTOCOL_VERSION:
-                conn.send({"error": f"unknown role or protocol version: {hello!r}"})
+            if not isinstance(hello, Hello) or hello.role not in ROLES or hello.version != PROTOCOL_VERSION:
+                conn.send(Refused(f"unknown role or protocol version: {hello!r}"))
                 conn.close()
                 continue
-            conn.send({"welcome": role, "scene": self.cfg.scene, "seed": self.cfg.seed})
-            self._new_peers.put((role, conn))
+            conn.send(Welcome(hello.role, self.cfg.scene, self.cfg.seed))
+            self._new_peers.put((hello.role, conn))
 
     def _take_new_peers(self) -> None:
         while True:
@@ -106,13 +138,13 @@ class DynamicsServer:
             log.info("%s connected", role)
             scene = (self.sim.config.scene, self.sim.config.seed)
             if scene != (self.cfg.scene, self.cfg.seed):
-                self._send(role, ("scene", *scene))
+                self._send(role, LoadScene(*scene))
             stage = "render" if role == "renderer" else "publish"
-            for seq, (st, payload) in sorted(self.in_flight.items()):
+            for seq, (st, state) in sorted(self.in_flight.items()):
                 if st == stage:  # work the previous instance never finished
-                    self._send(role, ("render" if role == "renderer" else "frame", seq, payload))
+                    self._send(role, Render(seq, state) if role == "renderer" else Publish(seq, state))
 
-    def _send(self, role: str, msg: tuple) -> None:
+    def _send(self, role: str, msg: HubMessage) -> None:
         conn = self.peers.get(role)
         if conn is None:
             return
@@ -142,62 +174,64 @@ class DynamicsServer:
                 continue
             self._handle(role, msg)
 
-    def _handle(self, role: str, msg: tuple) -> None:
-        kind = msg[0]
-        if kind == "rendered":
-            item = self.in_flight.get(msg[1])
-            if item is not None:
-                item[0] = "publish"
-                self._send("bridge", ("frame", msg[1], item[1]))
-        elif kind == "published":
-            self.in_flight.pop(msg[1], None)
-        elif kind == "command":
-            self._command(msg[1], msg[2])
-        else:
-            log.error("unexpected message from %s: %r", role, kind)
-
-    def _command(self, op: str, args: dict[str, Any]) -> None:
-        """A flight command from ROS (cmd_vel, goal_pose) relayed by the bridge."""
-        try:
-            with self.lock:
-                getattr(self.sim, op)(**args)
-        except CommandError as exc:
-            log.warning("ROS %s command rejected (%s): %s", op, exc.code, exc.message)
-        except (TypeError, AttributeError) as exc:
-            log.error("bad ROS command %s %r: %s", op, args, exc)
+    def _handle(self, role: str, msg: HubMessage) -> None:
+        match msg:
+            case Rendered(seq):
+                item = self.in_flight.get(seq)
+                if item is not None:
+                    self.in_flight[seq] = ("publish", item[1])
+                    self._send("bridge", Publish(seq, item[1]))
+            case Published(seq):
+                self.in_flight.pop(seq, None)
+            case _:
+                log.error("unexpected message from %s: %r", role, msg)
 
     # ------------------------------------------------------------------ stepping
+    @property
+    def lock(self) -> threading.Lock:
+        """The simulation lock (the command path's): held for every physics step and every command."""
+        return self.commands.lock  # type: ignore[return-value]
+
     def _step(self, realtime: bool) -> None:
         with self.lock:
             res = self.sim.step()
-        self._after_step(res, realtime)
+        self._after_step(res, realtime, time.time_ns())
 
-    def _after_step(self, res: StepResult, realtime: bool) -> None:
-        """Send camera instants to the render server, events and states to their consumers."""
-        scene = (self.sim.config.scene, self.sim.config.seed)
+    def _after_step(self, res: StepResult, realtime: bool, stepped_wall_ns: int) -> None:
+        """Publish the state (ROS first: lowest latency), send camera instants to the render server,
+        events and states to the API. ``stepped_wall_ns``: when the step that produced them ended."""
+        with self.lock:  # a command may reset the simulation between the step and here
+            st = self.sim.state
+            scene = (self.sim.config.scene, self.sim.config.seed)
+        if st.t_ns < self._last_t_ns:  # reset through the API: re-send the static TF at once
+            self._last_static = -float("inf")
+            self._next_state_ns = 0
+        self._last_t_ns = st.t_ns
+        if st.stamp_ns >= self._next_state_ns:
+            self._next_state_ns = st.stamp_ns + self.state_period_ns
+            if self._latency is not None:
+                self._latency.write(f"odom {st.stamp_ns} {stepped_wall_ns}\n")
+            self.ros.publish(st)
+            self.api.publish_state(st)
+            now = time.monotonic()
+            if now - self._last_static > STATIC_TF_PERIOD_S:
+                self._last_static = now
+                self.ros.publish_static(st.stamp_ns)
         if scene != self._scene_key:  # reset to another scene through the API
             self._scene_key = scene
             self.in_flight.clear()
             for role in ROLES:
-                self._send(role, ("scene", *scene))
-        for st in res.camera_states:
+                self._send(role, LoadScene(*scene))
+        for cam_state in res.camera_states:
             ready = "renderer" in self.peers and len(self.in_flight) < self.window
             if realtime and (not ready or any(v[0] == "render" for v in self.in_flight.values())):
                 self.dropped_frames += 1
                 continue
             self.seq += 1
-            payload = state_payload(st)
-            self.in_flight[self.seq] = ["render", payload]
-            self._send("renderer", ("render", self.seq, payload))
+            self.in_flight[self.seq] = ("render", cam_state)
+            self._send("renderer", Render(self.seq, cam_state))
         for e in res.events:
             self.api.publish_event(e.to_dict())
-        if self.sim.t_ns < self._next_state_ns - self.state_period_ns:  # the clock was reset
-            self._next_state_ns = 0
-        if self.sim.t_ns >= self._next_state_ns:
-            self._next_state_ns = self.sim.t_ns + self.state_period_ns
-            st = self.sim.state
-            self._send("bridge", ("state", state_payload(st)))
-            self.api.publish_state({**st.to_dict(), "t_ns": st.t_ns})
 
     def _px4_turn(self) -> bool:
         """While PX4 is connected its actuator messages drive the clock (lockstep with PX4 and with
@@ -210,10 +244,11 @@ class DynamicsServer:
             if ready or not connected
             else None
         )
+        stepped_wall_ns = time.time_ns()
         if self.px4.connected != self._px4_in_control:
             self._px4_in_control = self.px4.connected
             if self._px4_in_control:
-                self.api.refuse_flight("PX4 SITL is in control; flight commands come from PX4")
+                self.commands.refuse_flight("PX4 SITL is in control; flight commands come from PX4")
                 log.info("PX4 connected: it now drives the simulation clock")
             else:
                 with self.lock:  # the internal controller takes over: hover in place, or rest
@@ -221,10 +256,10 @@ class DynamicsServer:
                         self.sim.hold()
                     else:
                         self.sim.motors_off()
-                self.api.allow_flight()
+                self.commands.allow_flight()
                 log.warning("PX4 disconnected: holding position until it reconnects")
         if res is not None:
-            self._after_step(res, realtime=False)
+            self._after_step(res, False, stepped_wall_ns)
         if self._px4_in_control:
             self._poll(0 if ready else 0.05)
         return self._px4_in_control
@@ -277,6 +312,9 @@ class DynamicsServer:
         if self.px4 is not None:
             self.px4.close()
         self.api.stop()
+        self.node.close()
+        if self._latency is not None:
+            self._latency.close()
         for conn in self.peers.values():
             conn.close()
         self.peers.clear()
@@ -286,7 +324,9 @@ class DynamicsServer:
 def main() -> None:
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
     cfg = from_dict(SimConfig, json.loads(os.environ[ENV_CONFIG]))
-    server = DynamicsServer(cfg, os.environ[ENV_ADDRESS], bytes.fromhex(os.environ[ENV_AUTHKEY]))
+    server = DynamicsServer(
+        cfg, os.environ[ENV_ADDRESS], bytes.fromhex(os.environ[ENV_AUTHKEY]), os.environ.get(ENV_ZENOH)
+    )
     signal.signal(signal.SIGTERM, lambda *_: server.stopping.set())
     signal.signal(signal.SIGINT, lambda *_: server.stopping.set())
     try:

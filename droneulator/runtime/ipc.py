@@ -2,8 +2,12 @@
 
 * **Control**: the dynamics server is the hub. The render server and the bridge connect to it
   over a local ``multiprocessing.connection`` socket (authenticated with a per-run key) and open
-  with a handshake ``{"hello": role, "pid": ...}``; it answers ``{"welcome": role, ...}``. After that
-  small messages (tuples) flow: render requests, acknowledgements, states, commands.
+  with a handshake (:class:`Hello`, answered by :class:`Welcome` or :class:`Refused`). After that
+  only the typed messages below flow, each a small frozen dataclass: :class:`Render` ->
+  :class:`Rendered` (render server), :class:`Publish` -> :class:`Published` (bridge), and
+  :class:`LoadScene` to both. States travel as :class:`~droneulator.sim.simulator.VehicleState`.
+  Odometry, TF, ``/clock`` and ROS commands do not pass through here: the dynamics server, which
+  owns the state, publishes and receives them on Zenoh itself.
 * **Images**: a ring of frame slots in shared memory, created by the supervisor. The render server
   writes slot ``seq % slots``; the bridge reads it after the hub forwards the acknowledgement. The hub
   never has more than ``slots - 1`` frames in flight, so a slot is never rewritten while being read.
@@ -17,17 +21,88 @@ from dataclasses import dataclass
 from multiprocessing import resource_tracker
 from multiprocessing.connection import Client, Connection
 from multiprocessing.shared_memory import SharedMemory
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from droneulator.config import CameraConfig
 
+if TYPE_CHECKING:
+    from droneulator.sim.simulator import VehicleState
+
 ENV_ADDRESS = "DRONEULATOR_HUB_ADDRESS"
 ENV_AUTHKEY = "DRONEULATOR_HUB_AUTHKEY"
 ENV_RING = "DRONEULATOR_FRAME_RING"
 ENV_CONFIG = "DRONEULATOR_CONFIG_JSON"
-PROTOCOL_VERSION = 1
+ENV_ZENOH = "DRONEULATOR_ZENOH_ENDPOINT"
+PROTOCOL_VERSION = 2
+
+
+# --------------------------------------------------------------------------- typed messages
+@dataclass(frozen=True)
+class Hello:
+    """First message of a process connecting to the hub."""
+
+    role: str
+    pid: int
+    version: int = PROTOCOL_VERSION
+
+
+@dataclass(frozen=True)
+class Welcome:
+    """The hub's answer to a valid :class:`Hello`: the scene to load."""
+
+    role: str
+    scene: str
+    seed: int
+
+
+@dataclass(frozen=True)
+class Refused:
+    """The hub's answer to an invalid :class:`Hello`; the connection is closed after it."""
+
+    reason: str
+
+
+@dataclass(frozen=True)
+class Render:
+    """Hub -> render server: draw every camera at ``state`` into frame slot ``seq``."""
+
+    seq: int
+    state: VehicleState
+
+
+@dataclass(frozen=True)
+class Rendered:
+    """Render server -> hub: slot ``seq`` holds the images."""
+
+    seq: int
+
+
+@dataclass(frozen=True)
+class Publish:
+    """Hub -> bridge: publish the images in slot ``seq``, rendered at ``state``."""
+
+    seq: int
+    state: VehicleState
+
+
+@dataclass(frozen=True)
+class Published:
+    """Bridge -> hub: slot ``seq`` is published and free again."""
+
+    seq: int
+
+
+@dataclass(frozen=True)
+class LoadScene:
+    """Hub -> both: the API reset the simulation into another scene or seed."""
+
+    scene: str
+    seed: int
+
+
+HubMessage = Render | Rendered | Publish | Published | LoadScene
 
 
 @dataclass
@@ -90,14 +165,15 @@ class FrameRing:
 
 def hub_connect(
     role: str, address: str | None = None, authkey: bytes | None = None
-) -> tuple[Connection, dict]:
+) -> tuple[Connection, Welcome]:
     """Connect to the dynamics server hub and complete the handshake; returns (connection, welcome)."""
     address = address or os.environ[ENV_ADDRESS]
     authkey = authkey or bytes.fromhex(os.environ[ENV_AUTHKEY])
     conn = Client(address, family="AF_UNIX", authkey=authkey)
-    conn.send({"hello": role, "pid": os.getpid(), "version": PROTOCOL_VERSION})
-    welcome: dict[str, Any] = conn.recv()
-    if welcome.get("welcome") != role:
+    conn.send(Hello(role, os.getpid()))
+    welcome = conn.recv()
+    if not isinstance(welcome, Welcome) or welcome.role != role:
         conn.close()
-        raise ConnectionRefusedError(f"hub refused {role}: {welcome.get('error', welcome)}")
+        reason = welcome.reason if isinstance(welcome, Refused) else repr(welcome)
+        raise ConnectionRefusedError(f"hub refused {role}: {reason}")
     return conn, welcome

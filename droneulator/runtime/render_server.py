@@ -17,7 +17,7 @@ import numpy as np
 from droneulator.config import SimConfig, from_dict
 from droneulator.frames import transform_from_pose
 from droneulator.render import Renderer
-from droneulator.runtime.ipc import ENV_CONFIG, ENV_RING, FrameRing, hub_connect
+from droneulator.runtime.ipc import ENV_CONFIG, ENV_RING, FrameRing, LoadScene, Render, Rendered, hub_connect
 from droneulator.scenes import get_scene
 
 log = logging.getLogger("droneulator.render")
@@ -33,10 +33,10 @@ def serve(cfg: SimConfig) -> None:
             get_scene(scene, seed), rc.cameras, shadows=rc.shadows, shadow_map_size=rc.shadow_map_size
         )
 
-    renderer = make(welcome["scene"], welcome["seed"])
+    renderer = make(welcome.scene, welcome.seed)
     log.info(
         "render server ready: %s, %s",
-        welcome["scene"],
+        welcome.scene,
         ", ".join(f"{c.name} {c.width}x{c.height}" for c in rc.cameras),
     )
     try:
@@ -45,24 +45,22 @@ def serve(cfg: SimConfig) -> None:
                 msg = conn.recv()
             except (EOFError, OSError):
                 return  # the dynamics server went away: the run is over
-            if msg[0] == "render":
-                _, seq, st = msg
-                frames = renderer.render(
-                    transform_from_pose(np.array(st["position"]), np.array(st["quaternion"]))
-                )
-                slot = ring.slot(seq)
-                for name, f in frames.items():
-                    np.copyto(slot[name].rgb, f.rgb)
-                    np.copyto(slot[name].depth, f.depth)
-                    np.copyto(slot[name].seg, f.seg)
-                try:
-                    conn.send(("rendered", seq))
-                except OSError:
-                    return
-            elif msg[0] == "scene":
-                renderer.close()
-                renderer = make(msg[1], msg[2])
-                log.info("scene changed to %s (seed %d)", msg[1], msg[2])
+            match msg:
+                case Render(seq, st):
+                    frames = renderer.render(transform_from_pose(st.position, st.quaternion))
+                    slot = ring.slot(seq)
+                    for name, f in frames.items():
+                        np.copyto(slot[name].rgb, f.rgb)
+                        np.copyto(slot[name].depth, f.depth)
+                        np.copyto(slot[name].seg, f.seg)
+                    try:
+                        conn.send(Rendered(seq))
+                    except OSError:
+                        return
+                case LoadScene(scene, seed):
+                    renderer.close()
+                    renderer = make(scene, seed)
+                    log.info("scene changed to %s (seed %d)", scene, seed)
     finally:
         renderer.close()
         ring.close()

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from droneulator.config import SimConfig, to_dict
-from droneulator.runtime.ipc import ENV_ADDRESS, ENV_AUTHKEY, ENV_CONFIG, ENV_RING, FrameRing
+from droneulator.runtime.ipc import ENV_ADDRESS, ENV_AUTHKEY, ENV_CONFIG, ENV_RING, ENV_ZENOH, FrameRing
 
 log = logging.getLogger("droneulator.run")
 
@@ -62,6 +62,8 @@ class Supervisor:
         self.echo = echo
         self.tmp = tempfile.TemporaryDirectory(prefix="droneulator-")
         self.address = str(Path(self.tmp.name) / "hub.sock")
+        #: the dynamics server's Zenoh session listens here for the bridge (private to this run)
+        self.zenoh_endpoint = f"unixsock-stream/{Path(self.tmp.name) / 'zenoh.sock'}"
         self.authkey = secrets.token_hex(16)
         self.ring = FrameRing(FrameRing.new_name(), cfg.render.cameras, cfg.runtime.frame_slots, create=True)
         self.children = {n: Child(n, m) for n, m in CHILDREN.items()}
@@ -77,6 +79,7 @@ class Supervisor:
             ENV_ADDRESS: self.address,
             ENV_AUTHKEY: self.authkey,
             ENV_RING: self.ring.shm.name,
+            ENV_ZENOH: self.zenoh_endpoint,
             ENV_CONFIG: json.dumps(to_dict(self.cfg)),
             "PYTHONUNBUFFERED": "1",
         }

@@ -38,9 +38,15 @@ class CommandError(ValueError):
 
 @dataclass
 class VehicleState:
-    """Ground-truth vehicle state in the Z-up world (body FLU, quaternion [x, y, z, w])."""
+    """Ground-truth vehicle state in the Z-up world (body FLU, quaternion [x, y, z, w]).
+
+    ``t_ns`` is sim time since the last reset (the API's episode clock); ``stamp_ns`` is the simulator's
+    monotonic clock, which keeps counting across resets and stamps everything published to ROS.
+    This one object is the state message between the processes (picklable, no list round trips).
+    """
 
     t_ns: int
+    stamp_ns: int
     position: np.ndarray
     velocity: np.ndarray
     quaternion: np.ndarray
@@ -62,8 +68,11 @@ class VehicleState:
         return transform_from_pose(self.position, self.quaternion)
 
     def to_dict(self) -> dict[str, Any]:
+        """The API's state object (``state`` op, state stream, ``reset`` result): plain JSON values."""
         return {
             "t": self.t,
+            "t_ns": int(self.t_ns),
+            "stamp_ns": int(self.stamp_ns),
             "position": self.position.tolist(),
             "velocity": self.velocity.tolist(),
             "quaternion": self.quaternion.tolist(),
@@ -168,6 +177,8 @@ class Simulator:
         if not math.isfinite(yaw_):
             raise CommandError("invalid_argument", "reset yaw must be finite")
         self._check_position(pos, allow_ground=True)
+        # the ROS clock never runs backwards: a reset continues it one control period after the last stamp
+        self._stamp_base_ns = self.stamp_ns + self.control_period_ns if hasattr(self, "t_ns") else 0
         self.wind = make_wind(self.config.vehicle, self.config.seed, 1.0 / self.config.vehicle.control_hz)
         self.t_ns = 0
         self._next_frame_ns = self.camera_period_ns
@@ -193,6 +204,11 @@ class Simulator:
         return self.t_ns / NS
 
     @property
+    def stamp_ns(self) -> int:
+        """The monotonic sim clock (ns): ``t_ns`` plus the time of every earlier episode."""
+        return self._stamp_base_ns + self.t_ns
+
+    @property
     def mode(self) -> Mode:
         return self.flight.mode
 
@@ -207,6 +223,7 @@ class Simulator:
         s = self.s
         return VehicleState(
             self.t_ns,
+            self.stamp_ns,
             s[STATE.x].copy(),
             s[STATE.v].copy(),
             s[STATE.q].copy(),

@@ -1,0 +1,151 @@
+"""What the simulator publishes to ROS 2 and what it takes from it, one class per concern.
+
+* :class:`StatePublisher`: ``/clock``, ``/<ns>/odom``, ``/tf`` and ``/tf_static``. It runs in the process
+  that owns the vehicle state (the dynamics server), right after the physics step that produced the
+  state, so odometry never waits for another process.
+* :class:`FramePublisher`: every camera's images and camera_info (the bridge process).
+* :func:`subscribe_commands`: ``/<ns>/cmd_vel`` and ``/<ns>/goal_pose`` into the one
+  :class:`~droneulator.api.commands.CommandPath`, with the WebSocket API's validation and flight lock.
+
+Everything is stamped with the simulator's monotonic clock (:attr:`VehicleState.stamp_ns`), which
+never runs backwards, not even across a reset.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from droneulator.frames import T_link_optical, camera_mount, pose_from_transform, world_to_body, yaw_of
+from droneulator.imaging import encode_jpeg, encode_png
+from droneulator.ros import messages as M
+from droneulator.ros.topics import BASE_FRAME, MAP_FRAME, ODOM_FRAME, TYPES, optical_frame, topic_names
+from droneulator.ros.topics import vehicle_topics as _vehicle_topics
+from droneulator.sensors.camera import intrinsics
+
+if TYPE_CHECKING:
+    import zenoh
+
+    from droneulator.api.commands import CommandPath
+    from droneulator.config import CameraConfig, SimConfig
+    from droneulator.ros.zenoh_node import RosZenohNode
+    from droneulator.runtime.ipc import CameraImages
+    from droneulator.sim.simulator import VehicleState
+
+_IDENTITY_Q = np.array([0.0, 0.0, 0.0, 1.0])
+_IMAGES = ("rgb", "depth", "seg")
+
+
+def static_transforms(cameras: list[CameraConfig]) -> list[Any]:
+    """map -> odom (identity) and, per camera, base_link -> <cam>_link -> <cam>_optical_frame."""
+    tfs = [M.transform_stamped(0, MAP_FRAME, ODOM_FRAME, np.zeros(3), _IDENTITY_Q)]
+    for cam in cameras:
+        link = f"{cam.name}_link"
+        p, q = pose_from_transform(camera_mount(np.array(cam.position), cam.rpy))
+        tfs.append(M.transform_stamped(0, BASE_FRAME, link, p, q))
+        p, q = pose_from_transform(T_link_optical())
+        tfs.append(M.transform_stamped(0, link, optical_frame(cam.name), p, q))
+    return tfs
+
+
+class StatePublisher:
+    """``/clock``, odometry (odom -> base_link, twist in base_link), TF, and the latched static TF."""
+
+    def __init__(self, node: RosZenohNode, cfg: SimConfig) -> None:
+        topics = _vehicle_topics(cfg.bridge.namespace)
+        self.clock = node.publisher(topics["clock"], TYPES["clock"])
+        self.odom = node.publisher(topics["odom"], TYPES["odom"])
+        self.tf = node.publisher(topics["tf"], TYPES["tf"])
+        self.tf_static = node.publisher(topics["tf_static"], TYPES["tf_static"])
+        self._static = static_transforms(cfg.render.cameras)
+
+    def publish(self, st: VehicleState) -> None:
+        """Publish one state: clock first (ROS nodes with use_sim_time advance on it), then odom and TF."""
+        t = st.stamp_ns
+        self.clock.publish(M.serialize(M.clock(t)), t)
+        v_body = world_to_body(st.quaternion, st.velocity)
+        odom = M.odometry(t, ODOM_FRAME, BASE_FRAME, st.position, st.quaternion, v_body, st.angular_velocity)
+        self.odom.publish(M.serialize(odom), t)
+        tf = M.transform_stamped(t, ODOM_FRAME, BASE_FRAME, st.position, st.quaternion)
+        self.tf.publish(M.serialize(M.tf_message([tf])), t)
+
+    def publish_static(self, stamp_ns: int) -> None:
+        """The static transforms (re-sent periodically and on every reset for late or reset listeners)."""
+        self.tf_static.publish(M.serialize(M.tf_message(self._static)), stamp_ns)
+
+
+class FramePublisher:
+    """Every camera's JPEG colour, 32FC1 depth, PNG segmentation and their camera_info.
+
+    ``congestion_control`` is the Zenoh policy for the images: ``BLOCK`` in lockstep (nothing a
+    subscriber asked for is lost; the simulation clock waits for the slowest one), ``DROP`` in real
+    time (a slow subscriber never holds the simulation back).
+    """
+
+    def __init__(
+        self,
+        node: RosZenohNode,
+        cfg: SimConfig,
+        congestion_control: zenoh.CongestionControl,
+    ) -> None:
+        self.jpeg_quality = cfg.bridge.jpeg_quality
+        policy = congestion_control
+        self.cams = []
+        for cam in cfg.render.cameras:
+            names = topic_names(cfg.bridge.namespace, cam.name)
+            pubs = {
+                k: node.publisher(names[k], TYPES[k], congestion_control=policy if k in _IMAGES else None)
+                for k in names
+            }
+            self.cams.append((cam, optical_frame(cam.name), intrinsics(cam), pubs))
+
+    def publish(self, st: VehicleState, images: dict[str, CameraImages], mark: Any = None) -> None:
+        """Publish one frame set, every image stamped ``st.stamp_ns`` with its optical frame id.
+
+        ``mark(stream, stamp_ns)``, if given, is called just before each image is encoded (latency logs).
+        """
+        t = st.stamp_ns
+        for cam, frame_id, K, pubs in self.cams:
+            im = images[cam.name]
+            info = M.serialize(M.camera_info(t, frame_id, cam.width, cam.height, K))
+            for key in ("info_rgb", "info_depth", "info_seg"):
+                pubs[key].publish(info, t)
+            if mark is not None:
+                mark("rgb", t)
+            jpeg = encode_jpeg(im.rgb, self.jpeg_quality)
+            pubs["rgb"].publish(M.serialize(M.compressed_image(t, frame_id, "jpeg", jpeg)), t)
+            if mark is not None:
+                mark("depth", t)
+            pubs["depth"].publish(M.serialize(M.image(t, frame_id, im.depth)), t)
+            png = encode_png(im.seg)
+            pubs["seg"].publish(M.serialize(M.compressed_image(t, frame_id, "png", png)), t)
+
+
+def subscribe_commands(node: RosZenohNode, cfg: SimConfig, commands: CommandPath) -> None:
+    """``cmd_vel`` -> ``velocity`` and ``goal_pose`` -> ``goto``, through the one command path.
+
+    Values are passed on unchecked: the command path validates them exactly as it validates a
+    WebSocket request (NaN, ranges, bounds, flight lock), and logs a rejection once per burst.
+    """
+    topics = _vehicle_topics(cfg.bridge.namespace)
+    src_vel, src_goal = f"ROS {topics['cmd_vel']}", f"ROS {topics['goal_pose']}"
+
+    def on_cmd_vel(msg: Any) -> None:
+        args = {"forward": float(msg.linear.x), "yaw_rate": float(msg.angular.z)}
+        commands.submit(src_vel, "velocity", args)
+
+    def on_goal_pose(msg: Any) -> None:
+        frame = msg.header.frame_id
+        if frame not in ("", MAP_FRAME, ODOM_FRAME):
+            commands.reject(src_goal, "goto", "invalid_argument", f"goal in frame {frame!r}: only map/odom")
+            return
+        p, q = msg.pose.position, msg.pose.orientation
+        quat = np.array([q.x, q.y, q.z, q.w], dtype=float)
+        norm = float(np.linalg.norm(quat))
+        yaw = yaw_of(quat) if math.isfinite(norm) and norm > 1e-6 else math.nan  # nan: rejected as invalid
+        commands.submit(src_goal, "goto", {"position": [float(p.x), float(p.y), float(p.z)], "yaw": yaw})
+
+    node.subscribe(topics["cmd_vel"], TYPES["cmd_vel"], on_cmd_vel)
+    node.subscribe(topics["goal_pose"], TYPES["goal_pose"], on_goal_pose)
