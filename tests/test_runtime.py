@@ -11,9 +11,7 @@ import json
 import math
 import os
 import signal
-import socket
 import subprocess
-import sys
 import threading
 import time
 from collections import defaultdict
@@ -25,9 +23,10 @@ from PIL import Image as PILImage
 from rosbags.typesys import Stores, get_typestore
 from websockets.sync.client import connect
 
-from droneulator.api.client import ApiError, DroneulatorClient
-from droneulator.config import CameraConfig
+from droneulator.api.client import ApiError
+from droneulator.config import CameraConfig, load_config
 from droneulator.frames import camera_mount, quat_from_yaw, quat_to_matrix
+from droneulator.runtime.launch import free_port, launch_run
 from droneulator.scenes import get_scene
 from droneulator.sensors.camera import intrinsics
 
@@ -47,10 +46,20 @@ TOPICS = {
 }
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def subscriber_config(endpoint: str) -> zenoh.Config:
+    """A plain Zenoh peer connecting to the run's endpoint (what a user's subscriber opens)."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return conf
+
+
+def twist_cdr(forward: float, yaw_rate: float = 0.0) -> bytes:
+    vec = TS.types["geometry_msgs/msg/Vector3"]
+    linear, angular = vec(x=forward, y=0.0, z=0.0), vec(x=0.0, y=0.0, z=yaw_rate)
+    msg = TS.types["geometry_msgs/msg/Twist"](linear=linear, angular=angular)
+    return bytes(TS.serialize_cdr(msg, "geometry_msgs/msg/Twist"))
 
 
 def stamp_ns(msg) -> int:
@@ -58,55 +67,25 @@ def stamp_ns(msg) -> int:
 
 
 class Run:
-    """A ``droneulator run`` subprocess plus a Zenoh subscriber recording every topic."""
+    """A ``droneulator run`` subprocess (:func:`launch_run`) plus a Zenoh subscriber recording every topic."""
 
-    def __init__(self, scene: str, extra: tuple[str, ...] = ()) -> None:
-        self.api_port, self.zenoh_port = free_port(), free_port()
-        cmd = [
-            sys.executable,
-            "-m",
-            "droneulator.cli",
-            "run",
-            "--scene",
-            scene,
-            "--api-port",
-            str(self.api_port),
-            "--set",
-            f'bridge.listen=["tcp/127.0.0.1:{self.zenoh_port}"]',
-            "--set",
-            f'render.cameras=[{{"name": "front", "width": {CAM.width}, "height": {CAM.height}}}]',
-            "--set",
-            "render.shadow_map_size=1024",
-            *extra,
-        ]
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        self.log: list[str] = []
-        threading.Thread(target=self._pump, daemon=True).start()
-        self.url = f"ws://127.0.0.1:{self.api_port}"
-        self.client = self._connect()
-        conf = zenoh.Config()
-        conf.insert_json5("mode", '"peer"')
-        conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{self.zenoh_port}"]')
-        conf.insert_json5("scouting/multicast/enabled", "false")
-        self.session = zenoh.open(conf)
+    def __init__(self, scene: str, extra: tuple[str, ...] = (), cam: CameraConfig = CAM) -> None:
+        cfg = load_config(scene=scene)
+        cfg.render.cameras = [CameraConfig(name="front", width=cam.width, height=cam.height)]
+        cfg.render.shadow_map_size = 1024
+        self.launched = launch_run(cfg, extra)
+        self.proc = self.launched.proc
+        self.url = self.launched.url
+        self.client = self.launched.client()
+        self.session = zenoh.open(subscriber_config(self.launched.zenoh_endpoint))
         self.lock = threading.Lock()
         self.msgs: dict[str, list] = defaultdict(list)
         self.subs = [self.session.declare_subscriber(k, self._on_sample(k, t)) for k, t in TOPICS.items()]
         self.wait_for(lambda: all(self.msgs[k] for k in TOPICS), 60, "every topic to arrive")
 
-    def _pump(self) -> None:
-        for line in self.proc.stdout:
-            self.log.append(line.rstrip())
-
-    def _connect(self) -> DroneulatorClient:
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                return DroneulatorClient(self.url, timeout=30)
-            except OSError:
-                if time.monotonic() > deadline or self.proc.poll() is not None:
-                    raise RuntimeError("runtime did not start:\n" + "\n".join(self.log)) from None
-                time.sleep(0.2)
+    @property
+    def log(self) -> list[str]:
+        return self.launched.log.lines()
 
     def _on_sample(self, key: str, typename: str):
         def cb(sample: zenoh.Sample) -> None:
@@ -148,9 +127,7 @@ class Run:
             s.undeclare()
         self.session.close()
         self.client.close()
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            self.proc.wait(10)
+        self.launched.stop()
 
 
 @pytest.fixture(scope="module")
@@ -275,12 +252,9 @@ def test_twist_and_pose_on_zenoh_move_the_vehicle(run):
     c = run.client
     c.reset(position=[0.0, -8.0, 2.0], yaw=0.0)
     p0 = np.array(c.state()["position"])
-    twist_t = TS.types["geometry_msgs/msg/Twist"]
-    vec = TS.types["geometry_msgs/msg/Vector3"]
-    twist = twist_t(linear=vec(x=1.0, y=0.0, z=0.0), angular=vec(x=0.0, y=0.0, z=0.0))
     pub = run.session.declare_publisher("droneulator/cmd_vel")
     t0 = c.state()["t"]
-    pub.put(bytes(TS.serialize_cdr(twist, "geometry_msgs/msg/Twist")))
+    pub.put(twist_cdr(1.0))
     run.wait_for(lambda: c.state()["t"] > t0 + 3.0, 30, "3 s of sim time")
     st = c.state()
     assert st["mode"] == "velocity" and st["position"][0] > p0[0] + 1.0
@@ -304,6 +278,31 @@ def test_twist_and_pose_on_zenoh_move_the_vehicle(run):
     ev = c.wait_for_event("arrived", timeout=60)
     assert np.linalg.norm(np.array(ev["position"]) - goal) < 0.05
     assert abs(math.remainder(c.state()["yaw"] - math.pi / 2, 2 * math.pi)) < 0.05
+
+
+def test_ros_clock_never_runs_backwards_across_resets(run):
+    """Resets restart the API's episode clock at 0, but /clock, odometry and TF stamps keep increasing,
+    and the static TF is re-sent at once with the reset's stamp."""
+    c = run.client
+    run.clear()
+    for x in (0.0, 1.0):
+        time.sleep(0.3)
+        state = c.reset(position=[x, -8.0, 2.0], yaw=0.0)["state"]
+        assert state["t_ns"] == 0
+        reset_stamp = state["stamp_ns"]
+        def resent(s: int = reset_stamp) -> bool:
+            return any(s <= stamp_ns(m.transforms[0]) < s + 100_000_000 for _, m in run.msgs["tf_static"])
+
+        run.wait_for(resent, 10, "the static TF re-sent at the reset")
+    odom_after = reset_stamp + 300_000_000
+    run.wait_for(lambda: stamp_ns(run.msgs["droneulator/odom"][-1][1]) > odom_after, 20, "odometry")
+    with run.lock:
+        clock = [m.clock.sec * 1_000_000_000 + m.clock.nanosec for _, m in run.msgs["clock"]]
+        odom = [stamp_ns(m) for _, m in run.msgs["droneulator/odom"]]
+        tf = [stamp_ns(m.transforms[0]) for _, m in run.msgs["tf"]]
+    for name, stamps in (("clock", clock), ("odom", odom), ("tf", tf)):
+        assert len(stamps) > 30, name
+        assert np.all(np.diff(stamps) > 0), f"{name} stamps run backwards"
 
 
 def test_bad_input_gets_errors_and_the_simulation_keeps_running(run):
@@ -341,6 +340,50 @@ def test_killed_render_server_is_restarted_and_the_flight_goes_on(run):
     st = c.state()
     assert np.linalg.norm(np.array(st["position"]) - before) < 0.05  # flight state kept: still hovering there
     assert run.proc.poll() is None
+
+
+def test_lockstep_loses_no_image_to_a_slow_subscriber():
+    """10 s of lockstep at 640x480 with a subscriber that spends 40 ms on every depth image (slower than
+    the 30 Hz camera): the clock waits for it, and every colour, depth and segmentation image arrives,
+    stamps contiguous at the camera rate."""
+    r = Run("orchard", cam=CameraConfig(name="front", width=640, height=480))
+    images = [k for k, t in TOPICS.items() if t.endswith("Image")]
+    stamps: dict[str, list[int]] = defaultdict(list)
+    lock = threading.Lock()
+
+    def slow(key: str):
+        def cb(sample: zenoh.Sample) -> None:
+            msg = TS.deserialize_cdr(sample.payload.to_bytes(), TOPICS[key])
+            with lock:
+                stamps[key].append(stamp_ns(msg))
+            if key.endswith("depth/image_raw"):
+                time.sleep(0.04)
+
+        return cb
+
+    session = zenoh.open(subscriber_config(r.launched.zenoh_endpoint))
+    try:
+        subs = [session.declare_subscriber(k, slow(k)) for k in images]
+        c = r.client
+        t_end = c.state()["t"] + 10.0
+        wall0 = time.monotonic()
+        r.wait_for(lambda: c.state()["t"] >= t_end, 120, "10 s of sim time")
+        wall = time.monotonic() - wall0
+        last = c.state()["stamp_ns"] - 100_000_000
+        r.wait_for(lambda: all(stamps[k] and stamps[k][-1] >= last for k in images), 60, "the subscriber")
+        for sub in subs:
+            sub.undeclare()
+    finally:
+        session.close()
+        r.close()
+    period = round(1e9 / 30)
+    for k in images:
+        got = np.array(stamps[k])
+        assert len(got) >= 300, k
+        gaps = np.diff(got)
+        bad = gaps[gaps != period]
+        assert bad.size == 0, f"{k}: {bad.size} gaps in the stamps, e.g. {bad[:5]} ns"
+    assert wall >= 0.9 * 300 * 0.04  # the clock waited for the subscriber
 
 
 def test_sigterm_stops_everything_within_2s():
@@ -399,6 +442,19 @@ def test_px4_drives_the_clock_and_websocket_flight_is_refused():
             peer.step(u, armed=True)
         st = c.state()
         assert st["mode"] == "external" and st["position"][2] > 0.3  # it climbs
+        # a ROS Twist goes through the same rules as a WebSocket command: refused while PX4 flies,
+        # logged once for the whole burst with its error code, and the flight mode is untouched
+        pub = r.session.declare_publisher("droneulator/cmd_vel")
+        for _ in range(20):
+            pub.put(twist_cdr(1.0, 0.2))
+        refused = "/droneulator/cmd_vel velocity command rejected (flight_locked)"
+        r.wait_for(lambda: any(refused in line for line in r.log), 10, "the refused Twist to be logged")
+        time.sleep(0.5)
+        for _ in range(10):
+            peer.step(u, armed=True)
+        assert c.state()["mode"] == "external"
+        assert sum(refused in line for line in r.log) == 1
+        pub.undeclare()
         peer.close()  # PX4 goes away mid-flight: the simulator holds position and accepts commands again
         r.wait_for(lambda: c.state()["mode"] == "hold", 10, "the vehicle to hold after PX4 left")
         c.goto([1.0, 1.0, 2.0])

@@ -109,32 +109,37 @@ class Op:
     locked: bool = True
 
 
+def _when(sim: Simulator) -> dict[str, Any]:
+    """When a command was accepted: episode time ``t`` (s) and the ROS clock ``stamp_ns``."""
+    return {"t": sim.t, "stamp_ns": sim.stamp_ns}
+
+
 def _takeoff(sim: Simulator, a: dict[str, Any]) -> dict[str, Any]:
-    return {"duration": float(sim.takeoff(a.get("altitude"))), "t": sim.t}
+    return {"duration": float(sim.takeoff(a.get("altitude"))), **_when(sim)}
 
 
 def _land(sim: Simulator, a: dict[str, Any]) -> dict[str, Any]:
-    return {"duration": float(sim.land()), "t": sim.t}
+    return {"duration": float(sim.land()), **_when(sim)}
 
 
 def _goto(sim: Simulator, a: dict[str, Any]) -> dict[str, Any]:
     duration = sim.goto(a["position"], a.get("yaw"), a.get("speed"), a.get("duration"))
-    return {"duration": float(duration), "t": sim.t}
+    return {"duration": float(duration), **_when(sim)}
 
 
 def _velocity(sim: Simulator, a: dict[str, Any]) -> dict[str, Any]:
     sim.velocity(a["forward"], a["yaw_rate"])
-    return {"t": sim.t}
+    return _when(sim)
 
 
 def _hold(sim: Simulator, a: dict[str, Any]) -> dict[str, Any]:
     sim.hold()
-    return {"t": sim.t}
+    return _when(sim)
 
 
 def _motors_off(sim: Simulator, a: dict[str, Any]) -> dict[str, Any]:
     sim.motors_off()
-    return {"t": sim.t}
+    return _when(sim)
 
 
 def _reset(sim: Simulator, a: dict[str, Any]) -> dict[str, Any]:
@@ -186,7 +191,10 @@ def _scene_info(sim: Simulator, a: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-_T = "sim time (s) when the command was accepted"
+_T = (
+    "sim time (s) when the command was accepted; `stamp_ns`: the same instant on the ROS clock (integer ns), "
+    "so a client can wait for the first image stamped after it"
+)
 
 OPS: dict[str, Op] = {
     op.name: op

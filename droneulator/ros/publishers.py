@@ -38,15 +38,14 @@ _IDENTITY_Q = np.array([0.0, 0.0, 0.0, 1.0])
 _IMAGES = ("rgb", "depth", "seg")
 
 
-def static_transforms(cameras: list[CameraConfig]) -> list[Any]:
-    """map -> odom (identity) and, per camera, base_link -> <cam>_link -> <cam>_optical_frame."""
-    tfs = [M.transform_stamped(0, MAP_FRAME, ODOM_FRAME, np.zeros(3), _IDENTITY_Q)]
+def static_transforms(cameras: list[CameraConfig]) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
+    """(parent, child, translation, quaternion): map -> odom (identity) and, per camera,
+    base_link -> <cam>_link -> <cam>_optical_frame."""
+    tfs = [(MAP_FRAME, ODOM_FRAME, np.zeros(3), _IDENTITY_Q)]
     for cam in cameras:
         link = f"{cam.name}_link"
-        p, q = pose_from_transform(camera_mount(np.array(cam.position), cam.rpy))
-        tfs.append(M.transform_stamped(0, BASE_FRAME, link, p, q))
-        p, q = pose_from_transform(T_link_optical())
-        tfs.append(M.transform_stamped(0, link, optical_frame(cam.name), p, q))
+        tfs.append((BASE_FRAME, link, *pose_from_transform(camera_mount(np.array(cam.position), cam.rpy))))
+        tfs.append((link, optical_frame(cam.name), *pose_from_transform(T_link_optical())))
     return tfs
 
 
@@ -72,8 +71,9 @@ class StatePublisher:
         self.tf.publish(M.serialize(M.tf_message([tf])), t)
 
     def publish_static(self, stamp_ns: int) -> None:
-        """The static transforms (re-sent periodically and on every reset for late or reset listeners)."""
-        self.tf_static.publish(M.serialize(M.tf_message(self._static)), stamp_ns)
+        """The static transforms stamped ``stamp_ns`` (re-sent periodically and at every reset)."""
+        tfs = [M.transform_stamped(stamp_ns, parent, child, p, q) for parent, child, p, q in self._static]
+        self.tf_static.publish(M.serialize(M.tf_message(tfs)), stamp_ns)
 
 
 class FramePublisher:

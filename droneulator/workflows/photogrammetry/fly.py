@@ -91,7 +91,7 @@ class Flyer:
         """Fly one min-snap leg to ``goal``; returns its tracking statistics and the settle stamp (ns)."""
         start = self.commanded if self.commanded is not None else self.topics.latest_odom().position
         reply = self.client.goto(goal.tolist(), yaw=yaw, speed=self.cap.speed)
-        t0 = seconds_to_ns(reply["t"])
+        t0 = int(reply["stamp_ns"])  # the ROS clock, which the odometry stamps use
         stats = LegStats(kind, gotos=1)
         self.commanded = goal.copy()
         deadline = time.monotonic() + self.cap.leg_timeout_s

@@ -25,7 +25,7 @@ import numpy as np
 
 from droneulator.api.client import DroneulatorClient
 from droneulator.config import SimConfig
-from droneulator.ros.topics import decode_depth, header_ns, seconds_to_ns, topic_names
+from droneulator.ros.topics import decode_depth, header_ns, topic_names
 from droneulator.ros.zenoh_node import RosZenohNode
 from droneulator.scenes import get_scene
 from droneulator.workflows.rl.backend import CAMERA_NAME, SCENE, Kinematics
@@ -67,7 +67,7 @@ class RemoteBackend:
             self._cond.notify_all()
 
     def _frame_after(self, t_ns: int) -> np.ndarray:
-        """The newest depth image stamped at or after ``t_ns`` (sim time), waiting for it."""
+        """The newest depth image stamped at or after ``t_ns`` (the ROS clock), waiting for it."""
         deadline = time.monotonic() + self.timeout
         with self._cond:
             while self._frame is None or self._frame[0] < t_ns:
@@ -94,18 +94,18 @@ class RemoteBackend:
     def reset(self, position: np.ndarray, yaw: float) -> tuple[np.ndarray, Kinematics]:
         self.client.reset(position=[float(v) for v in position], yaw=float(yaw), airborne=True)
         deadline = time.monotonic() + self.timeout
-        while (t := float(self.client.state()["t"])) < RESET_SETTLE_S:
+        while (state := self.client.state())["t"] < RESET_SETTLE_S:
             if time.monotonic() > deadline:
                 raise TimeoutError("the remote simulation clock does not advance after the reset")
             time.sleep(0.005)
         with self._cond:
             self._frame = None
-        depth = self._frame_after(seconds_to_ns(t))
+        depth = self._frame_after(int(state["stamp_ns"]))
         return depth, Kinematics.from_dict(self.client.state())
 
     def step(self, forward: float, yaw_rate: float) -> tuple[np.ndarray, Kinematics, bool]:
         accepted = self.client.velocity(forward, yaw_rate)
-        depth = self._frame_after(seconds_to_ns(accepted["t"]) + 1)
+        depth = self._frame_after(int(accepted["stamp_ns"]) + 1)
         kin = Kinematics.from_dict(self.client.state())
         return depth, kin, kin.mode == "collided"
 
