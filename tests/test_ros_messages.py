@@ -258,3 +258,23 @@ def test_pose_stamped_to_goal() -> None:
         M.pose_stamped_to_goal(pose_stamped("map", (0, 0, 0), (0, 0, 0, 0)))
     with pytest.raises(ValueError):
         M.pose_stamped_to_goal(pose_stamped("map", (math.nan, 0, 0), (0, 0, 0, 1)))
+
+
+@pytest.mark.parametrize("frames", [("odom", "base_link"), ("map", "uav1/base_link_with_a_long_name")])
+def test_state_packer_is_byte_identical_to_rosbags(frames):
+    """The fast fixed-layout packer writes exactly what rosbags serialises, for any values and stamp."""
+    rng = np.random.default_rng(3)
+    packer = M.StatePacker(*frames)
+    for t_ns in (0, 1, 33_333_333, 12_345_678_901, 2**31 * 1_000_000_000 - 1):
+        p, v, w = rng.normal(size=3) * 100, rng.normal(size=3), rng.normal(size=3)
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        odom_ref = M.serialize(M.odometry(t_ns, *frames, p, q, v, w))
+        assert bytes(packer.odometry(t_ns, p, q, v, w)) == bytes(odom_ref)
+        tf = M.tf_message([M.transform_stamped(t_ns, *frames, p, q)])
+        assert bytes(packer.transform(t_ns, p, q)) == bytes(M.serialize(tf))
+        assert packer.clock(t_ns) == bytes(M.serialize(M.clock(t_ns)))
+        odom = REF.deserialize_cdr(bytes(packer.odometry(t_ns, p, q, v, w)), "nav_msgs/msg/Odometry")
+        assert odom.child_frame_id == frames[1] and odom.pose.pose.position.x == p[0]
+    with pytest.raises(ValueError):
+        packer.clock(2**31 * 1_000_000_000)

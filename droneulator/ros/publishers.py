@@ -18,7 +18,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from droneulator.frames import T_link_optical, camera_mount, pose_from_transform, world_to_body, yaw_of
+from droneulator.frames import T_link_optical, camera_mount, pose_from_transform, yaw_of
+from droneulator.frames_numba import world_to_body
 from droneulator.imaging import encode_jpeg, encode_png
 from droneulator.ros import messages as M
 from droneulator.ros.topics import BASE_FRAME, MAP_FRAME, ODOM_FRAME, TYPES, optical_frame, topic_names
@@ -59,16 +60,18 @@ class StatePublisher:
         self.tf = node.publisher(topics["tf"], TYPES["tf"])
         self.tf_static = node.publisher(topics["tf_static"], TYPES["tf_static"])
         self._static = static_transforms(cfg.render.cameras)
+        self._pack = M.StatePacker(ODOM_FRAME, BASE_FRAME)
 
     def publish(self, st: VehicleState) -> None:
-        """Publish one state: clock first (ROS nodes with use_sim_time advance on it), then odom and TF."""
-        t = st.stamp_ns
-        self.clock.publish(M.serialize(M.clock(t)), t)
-        v_body = world_to_body(st.quaternion, st.velocity)
-        odom = M.odometry(t, ODOM_FRAME, BASE_FRAME, st.position, st.quaternion, v_body, st.angular_velocity)
-        self.odom.publish(M.serialize(odom), t)
-        tf = M.transform_stamped(t, ODOM_FRAME, BASE_FRAME, st.position, st.quaternion)
-        self.tf.publish(M.serialize(M.tf_message([tf])), t)
+        """Publish one state: odometry first (the latency-critical stream), then ``/clock`` and TF.
+
+        The fixed-layout packer makes this a few microseconds (rosbags' generic serialiser takes ~0.1 ms).
+        """
+        t, p, q = st.stamp_ns, st.position, st.quaternion
+        v_body = world_to_body(q, st.velocity)
+        self.odom.publish(self._pack.odometry(t, p, q, v_body, st.angular_velocity), t)
+        self.clock.publish(self._pack.clock(t), t)
+        self.tf.publish(self._pack.transform(t, p, q), t)
 
     def publish_static(self, stamp_ns: int) -> None:
         """The static transforms stamped ``stamp_ns`` (re-sent periodically and at every reset)."""
