@@ -21,7 +21,7 @@ from rotorpy.vehicles.multirotor import Multirotor
 from droneulator.controllers.se3 import FastSE3Control
 from droneulator.sim.simulator import Simulator
 from droneulator.trajectories.minsnap import PolyTrajectory
-from droneulator.vehicles.dynamics import FastMultirotor, pack_state
+from droneulator.vehicles.dynamics import STATE, FastMultirotor, pack_state
 from droneulator.vehicles.params import get_params
 
 WAYPOINTS = np.array([[0, 0, 1.0], [3, 2, 2.5], [5, -1, 1.5], [1, 1, 1.0]])
@@ -62,7 +62,7 @@ def droneulator_loop(
         s = pack_state(initial())
         for i in range(steps):
             vehicle.step(s, ctrl.motor_speeds(s, ref.flat(i * dt)), dt)
-            xs[i] = s[0:3]
+            xs[i] = s[STATE.x]
     return (time.perf_counter() - t0) / repeats, xs
 
 

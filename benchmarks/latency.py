@@ -2,15 +2,19 @@
 real-time factor.
 
 1. ``droneulator run --realtime`` on a scene (default ``default``) with the 640x480 rig at 30 Hz and
-   odometry at 30 Hz, while the vehicle flies; the bridge logs the wall-clock time of each publish
-   call, taken *before* serialisation and encoding (``bridge.latency_log``).
+   odometry at 30 Hz, while the vehicle flies (``bridge.latency_log``). Odometry is timed from where
+   a user's latency starts: the end of the physics step that produced the state (logged by the
+   dynamics server, which publishes it). Images are timed from the bridge's publish call, before
+   encoding and serialisation (as before, so the figures compare).
 2. A subscriber in a separate process (this script with ``--subscriber``) connects over Zenoh,
    deserialises every odometry, JPEG RGB and raw float32 depth message with rosbags, and logs the
    wall-clock time once each is decoded.
-3. Latency = decoded time - publish-call time, matched by stream and stamp: mean, std, p50, p99, n,
-   over the window after a warm-up (``--warmup``, default 1 s: the first large samples set up
-   Zenoh's shared-memory pool).
-4. Then ``droneulator run`` in lockstep for ``--rtf-seconds`` wall seconds: real-time factor =
+3. Latency = decoded time - start time, matched by stream and stamp: mean, std, p50, p99, n, over
+   the window after a warm-up (``--warmup``, default 1 s: the first large samples set up Zenoh's
+   shared-memory pool).
+4. Where the floor is: the same run with no camera load (one 8x6 camera at 1 Hz), and Zenoh alone
+   (a router process publishing odometry-sized samples at 30 Hz to the same subscriber, no simulator).
+5. Then ``droneulator run`` in lockstep for ``--rtf-seconds`` wall seconds: real-time factor =
    sim seconds advanced / wall seconds, read from the WebSocket state.
 """
 
@@ -67,6 +71,28 @@ def subscriber(endpoint: str, out: str, seconds: float) -> None:
     Path(out).write_text("".join(rows))
 
 
+def zenoh_publisher(endpoint: str, out: str, seconds: float) -> None:
+    """Separate process: a Zenoh router publishing packed odometry at 30 Hz, logging each put's time."""
+    import numpy as np
+
+    from droneulator.ros.messages import StatePacker
+    from droneulator.ros.zenoh_node import RosZenohNode, ZenohNodeConfig
+
+    packer, rows = StatePacker("odom", "base_link"), []
+    p, q, v = np.array([1.0, 2.0, 3.0]), np.array([0.0, 0.0, 0.0, 1.0]), np.zeros(3)
+    with RosZenohNode(ZenohNodeConfig(mode="router", listen=(endpoint,))) as node:
+        pub = node.publisher(_NAMES["odom"], TYPES["odom"])
+        t_end = time.monotonic() + seconds
+        k = 0
+        while time.monotonic() < t_end:
+            k += 1
+            stamp = k * 33_333_333
+            rows.append(f"odom {stamp} {time.time_ns()}\n")
+            pub.publish(packer.odometry(stamp, p, q, v, v), stamp)
+            time.sleep(1 / 30)
+    Path(out).write_text("".join(rows))
+
+
 def read_log(path: Path) -> dict[tuple[str, int], int]:
     out = {}
     for line in path.read_text().splitlines():
@@ -85,32 +111,20 @@ def take_off_and_circle(run: LaunchedRun) -> DroneulatorClient:
     return client
 
 
-def measure_latency(args: argparse.Namespace) -> dict:
-    tmp = Path(tempfile.mkdtemp(prefix="droneulator-latency-"))
-    pub_log, sub_log = tmp / "publish.log", tmp / "decoded.log"
-    extra = ["--realtime", "--set", f"bridge.latency_log={pub_log}", "--set", "runtime.state_hz=30"]
-    with launch_run(load_config(scene=args.scene), extra) as run:
-        client = take_off_and_circle(run)
-        sub = subprocess.Popen(
-            [
-                sys.executable,
-                __file__,
-                "--subscriber",
-                run.zenoh_endpoint,
-                "--sub-out",
-                str(sub_log),
-                "--seconds",
-                str(args.seconds),
-            ]
-        )
-        sub.wait(args.seconds + 60)
-        client.close()
+def _subscribe(args: argparse.Namespace, endpoint: str, out: Path) -> subprocess.Popen:
+    cmd = [sys.executable, __file__, "--subscriber", endpoint, "--sub-out", str(out)]
+    return subprocess.Popen([*cmd, "--seconds", str(args.seconds)])
+
+
+def _statistics(pub_log: Path, sub_log: Path, warmup: float) -> dict:
     published, decoded = read_log(pub_log), read_log(sub_log)
     res = {}
     for stream in STREAMS:
-        lat = np.array(
-            [(decoded[k] - published[k]) / 1e6 for k in decoded if k[0] == stream and k in published]
-        )
+        pairs = [(published[k], decoded[k]) for k in decoded if k[0] == stream and k in published]
+        if not pairs:
+            continue
+        start = min(p for p, _ in pairs) + warmup * 1e9
+        lat = np.array([(d - p) / 1e6 for p, d in pairs if p >= start])
         res[stream] = {
             "n": int(lat.size),
             "mean_ms": float(lat.mean()),
@@ -120,6 +134,45 @@ def measure_latency(args: argparse.Namespace) -> dict:
             "paper_mean_ms": PAPER_MS[stream],
         }
     return res
+
+
+def measure_latency(args: argparse.Namespace, cameras: str | None = None) -> dict:
+    """The run's latency; ``cameras`` (a JSON list for ``render.cameras``) replaces the 640x480 rig."""
+    tmp = Path(tempfile.mkdtemp(prefix="droneulator-latency-"))
+    pub_log, sub_log = tmp / "publish.log", tmp / "decoded.log"
+    extra = ["--realtime", "--set", f"bridge.latency_log={pub_log}", "--set", "runtime.state_hz=30"]
+    if cameras is not None:
+        extra += ["--set", f"render.cameras={cameras}", "--set", "render.camera_hz=1"]
+    with launch_run(load_config(scene=args.scene), extra) as run:
+        client = take_off_and_circle(run)
+        _subscribe(args, run.zenoh_endpoint, sub_log).wait(args.seconds + 60)
+        client.close()
+    return _statistics(pub_log, sub_log, args.warmup)
+
+
+def measure_zenoh_floor(args: argparse.Namespace) -> dict:
+    """Zenoh alone: a router process publishing odometry, the same subscriber, no simulator."""
+    from droneulator.runtime.launch import free_port
+
+    tmp = Path(tempfile.mkdtemp(prefix="droneulator-latency-"))
+    pub_log, sub_log = tmp / "publish.log", tmp / "decoded.log"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    cmd = [sys.executable, __file__, "--publisher", endpoint, "--sub-out", str(pub_log)]
+    pub = subprocess.Popen([*cmd, "--seconds", str(args.seconds + 3)])
+    time.sleep(1.5)
+    _subscribe(args, endpoint, sub_log).wait(args.seconds + 60)
+    pub.wait(30)
+    return _statistics(pub_log, sub_log, args.warmup)
+
+
+def _table(title: str, lat: dict) -> None:
+    print(title)
+    print(f"{'stream':8s} {'n':>6s} {'mean':>8s} {'std':>8s} {'p50':>8s} {'p99':>8s}   paper mean (ms)")
+    for name, r in lat.items():
+        print(
+            f"{name:8s} {r['n']:6d} {r['mean_ms']:8.2f} {r['std_ms']:8.2f} "
+            f"{r['p50_ms']:8.2f} {r['p99_ms']:8.2f}   {r['paper_mean_ms']:.2f}"
+        )
 
 
 def measure_lockstep(args: argparse.Namespace) -> dict:
@@ -139,32 +192,34 @@ def main() -> None:
     ap.add_argument("--warmup", type=float, default=1.0, help="seconds dropped at the start (default 1)")
     ap.add_argument("--rtf-seconds", type=float, default=20.0, help="lockstep timing window (default 20)")
     ap.add_argument("--json", default=None, help="output path (default benchmarks/results/latency.json)")
+    ap.add_argument("--no-floor", action="store_true", help="skip the two floor measurements")
     ap.add_argument("--subscriber", metavar="ENDPOINT", help=argparse.SUPPRESS)
+    ap.add_argument("--publisher", metavar="ENDPOINT", help=argparse.SUPPRESS)
     ap.add_argument("--sub-out", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.subscriber:
         subscriber(args.subscriber, args.sub_out, args.seconds)
         return
+    if args.publisher:
+        zenoh_publisher(args.publisher, args.sub_out, args.seconds)
+        return
     os.environ.setdefault("PYTHONUNBUFFERED", "1")
     lat = measure_latency(args)
-    print(
-        f"end-to-end latency, {args.scene}, 640x480 at 30 Hz, {args.seconds:g} s, "
-        "subscriber in another process"
-    )
-    print(f"{'stream':8s} {'n':>6s} {'mean':>8s} {'std':>8s} {'p50':>8s} {'p99':>8s}   paper mean (ms)")
-    for name, r in lat.items():
-        print(
-            f"{name:8s} {r['n']:6d} {r['mean_ms']:8.2f} {r['std_ms']:8.2f} "
-            f"{r['p50_ms']:8.2f} {r['p99_ms']:8.2f}"
-            f"   {r['paper_mean_ms']:.2f}"
-        )
+    what = f"{args.scene}, 640x480 at 30 Hz, {args.seconds:g} s, subscriber in another process"
+    _table(f"end-to-end latency, {what}", lat)
+    floor = {}
+    if not args.no_floor:
+        floor["no_cameras"] = measure_latency(args, '[{"name": "front", "width": 8, "height": 6}]')
+        _table("the same, without camera load (one 8x6 camera at 1 Hz)", floor["no_cameras"])
+        floor["zenoh_only"] = measure_zenoh_floor(args)
+        _table("Zenoh alone: a router publishing odometry at 30 Hz, no simulator", floor["zenoh_only"])
     rtf = measure_lockstep(args)
     print(
         f"lockstep, all three processes, 640x480 at 30 Hz on {args.scene}: "
         f"{rtf['sim_seconds']:.1f} s simulated in {rtf['wall_seconds']:.1f} s -> real-time factor "
         f"{rtf['real_time_factor']:.2f}"
     )
-    write("latency", {"scene": args.scene, "latency": lat, "lockstep": rtf}, args.json)
+    write("latency", {"scene": args.scene, "latency": lat, "floor": floor, "lockstep": rtf}, args.json)
 
 
 if __name__ == "__main__":
