@@ -318,3 +318,25 @@ def test_supervisor_start_failure_is_one_line(capsys: pytest.CaptureFixture[str]
         log_file.unlink()
     assert "Traceback" not in capsys.readouterr().out
     assert sup.children["render"].proc is None and sup.children["bridge"].proc is None
+
+
+def test_a_port_taken_after_the_checks_is_still_one_line() -> None:
+    """The race preflight cannot close (the API port taken between the check and the bind): the
+    dynamics server binds every port before its hub socket appears, so the supervisor still reports
+    one line and never starts the render server or the bridge."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        cfg = load_config(None, [f"runtime.api_port={port}", 'bridge.listen=["tcp/127.0.0.1:0"]'])
+        sup = Supervisor(cfg)
+        try:
+            with pytest.raises(RuntimeError) as err:
+                sup.start()
+        finally:
+            sup.stop()
+    message = str(err.value)
+    assert "\n" not in message and "the dynamics server stopped while starting" in message
+    assert "address already in use" in message.lower() or str(port) in message
+    Path(message.rsplit("its full output: ", 1)[1]).unlink(missing_ok=True)
+    assert sup.children["render"].proc is None and sup.children["bridge"].proc is None

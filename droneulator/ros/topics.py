@@ -1,7 +1,7 @@
 """What a subscriber of the simulator's ROS 2 topics needs: their names and types, stamp conversion, and
 decoding of the published images into numpy arrays.
 
-The bridge publishes under these names, and every client (capture, the RL remote backend, the demo
+The simulator publishes under these names, and every client (capture, the RL remote backend, the demo
 client, the benchmarks) finds them here instead of spelling them out itself::
 
     /clock                                           rosgraph_msgs/Clock
@@ -13,8 +13,9 @@ client, the benchmarks) finds them here instead of spelling them out itself::
     /<ns>/<cam>/depth/image_raw                      sensor_msgs/Image (32FC1, metres, NaN = no return)
     /<ns>/<cam>/segmentation/image_raw/compressed    sensor_msgs/CompressedImage (png, class ids)
 
-Stamps are ``builtin_interfaces/Time`` (``sec``, ``nanosec``); the simulator's own clock is integer
-nanoseconds since the last reset, so the helpers here convert between the two without floats.
+Stamps are ``builtin_interfaces/Time`` (``sec``, ``nanosec``) of the simulator's monotonic clock
+(integer nanoseconds, the API's ``stamp_ns``, which keeps counting across resets); the helpers here
+convert between the two without floats.
 """
 
 from __future__ import annotations

@@ -88,7 +88,8 @@ class DynamicsServer:
         if cfg.bridge.latency_log:
             Path(cfg.bridge.latency_log).parent.mkdir(parents=True, exist_ok=True)
             self._latency = open(cfg.bridge.latency_log, "a", buffering=1)  # noqa: SIM115  (one write a line)
-        self.listener = Listener(address, family="AF_UNIX", authkey=authkey)
+        self._hub_address, self._authkey = address, authkey
+        self.listener: Listener | None = None
         self.peers: dict[str, Connection] = {}
         self._new_peers: queue.Queue[tuple[str, Connection]] = queue.Queue()
         self.seq = 0
@@ -110,6 +111,7 @@ class DynamicsServer:
 
     # ------------------------------------------------------------------ peers
     def _accept_loop(self) -> None:
+        assert self.listener is not None
         while not self.stopping.is_set():
             try:
                 conn = self.listener.accept()
@@ -265,12 +267,14 @@ class DynamicsServer:
         return self._px4_in_control
 
     def run(self) -> None:
-        threading.Thread(target=self._accept_loop, name="hub-accept", daemon=True).start()
         self._px4_in_control = False
         if self.px4 is not None:
             self.px4.start()
             log.info("waiting for PX4 SITL on tcp://%s:%d", self.cfg.px4.host, self.px4.port)
         self.api.start()
+        # the hub socket last: it is the supervisor's sign that every port is bound and the run is up
+        self.listener = Listener(self._hub_address, family="AF_UNIX", authkey=self._authkey)
+        threading.Thread(target=self._accept_loop, name="hub-accept", daemon=True).start()
         log.info(
             "dynamics server ready: scene %s, %s mode, API ws://%s:%d",
             self.cfg.scene,
@@ -318,7 +322,8 @@ class DynamicsServer:
         for conn in self.peers.values():
             conn.close()
         self.peers.clear()
-        self.listener.close()
+        if self.listener is not None:
+            self.listener.close()
 
 
 def main() -> None:
