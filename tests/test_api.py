@@ -55,7 +55,7 @@ def test_handle_request_runs_every_op(bare_sim):
     json.dumps(info, allow_nan=False)
     assert handle_request(sim, '{"op": "state"}')["result"]["mode"] == "idle"
     r = handle_request(sim, '{"id": 2, "op": "takeoff", "altitude": 1.5}')
-    assert r == {"id": 2, "ok": True, "result": {"duration": pytest.approx(3.28125), "t": 0.0}}
+    assert r == {"id": 2, "ok": True, "result": {"duration": pytest.approx(3.28125), "t": 0.0, "stamp_ns": 0}}
     sim.run(1.0)
     r = handle_request(sim, '{"op": "goto", "position": [1, 2, 3], "yaw": 0.5, "speed": null}')
     assert r["ok"] and r["result"]["duration"] > 1.0

@@ -61,6 +61,10 @@ def test_a_run_serves_its_api_and_topics_on_the_chosen_ports_and_stops_cleanly(t
             node.subscribe(vehicle_topics("droneulator")["clock"], TYPES["clock"], on_clock)
             assert arrived.wait(30), "no /clock from the run's Zenoh endpoint"
         assert run.running() and got[0] >= 0
+        deadline = time.monotonic() + 30  # the API answers first; the render server and bridge follow
+        while "bridge ready" not in run.log.tail(200):
+            assert time.monotonic() < deadline, "the bridge never started"
+            time.sleep(0.1)
     assert run.proc.returncode == 0  # SIGTERM: an orderly shutdown
     assert ps("-g", str(run.pid)) == []  # the whole group (dynamics, render, bridge) is gone
     assert "bridge ready" in (tmp_path / "run.log").read_text()

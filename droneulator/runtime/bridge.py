@@ -16,6 +16,7 @@ import json
 import logging
 import os
 import signal
+import sys
 import time
 from multiprocessing.connection import Connection
 from typing import IO
@@ -30,6 +31,7 @@ from droneulator.runtime.ipc import (
     ENV_RING,
     ENV_ZENOH,
     FrameRing,
+    HubGoneError,
     Publish,
     Published,
     hub_connect,
@@ -93,7 +95,11 @@ def main() -> None:
     signal.signal(signal.SIGTERM, lambda *_: os._exit(0))
     signal.signal(signal.SIGINT, lambda *_: os._exit(0))
     cfg = from_dict(SimConfig, json.loads(os.environ[ENV_CONFIG]))
-    conn, _ = hub_connect("bridge")
+    try:
+        conn, _ = hub_connect("bridge")
+    except HubGoneError as e:
+        log.error("%s; exiting", e)
+        sys.exit(1)
     ring = FrameRing(os.environ[ENV_RING], cfg.render.cameras, cfg.runtime.frame_slots)
     with open_bridge_node(cfg, os.environ.get(ENV_ZENOH)) as node:
         bridge = Bridge(cfg, node, ring, conn)

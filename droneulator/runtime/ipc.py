@@ -163,13 +163,20 @@ class FrameRing:
             self.shm.unlink()
 
 
+class HubGoneError(ConnectionError):
+    """The dynamics server's hub is not there (it stopped, or the run is shutting down)."""
+
+
 def hub_connect(
     role: str, address: str | None = None, authkey: bytes | None = None
 ) -> tuple[Connection, Welcome]:
     """Connect to the dynamics server hub and complete the handshake; returns (connection, welcome)."""
     address = address or os.environ[ENV_ADDRESS]
     authkey = authkey or bytes.fromhex(os.environ[ENV_AUTHKEY])
-    conn = Client(address, family="AF_UNIX", authkey=authkey)
+    try:
+        conn = Client(address, family="AF_UNIX", authkey=authkey)
+    except (FileNotFoundError, ConnectionRefusedError) as e:
+        raise HubGoneError(f"the dynamics server is not running (hub {address}: {e.strerror})") from None
     conn.send(Hello(role, os.getpid()))
     welcome = conn.recv()
     if not isinstance(welcome, Welcome) or welcome.role != role:

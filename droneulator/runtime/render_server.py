@@ -11,13 +11,23 @@ import json
 import logging
 import os
 import signal
+import sys
 
 import numpy as np
 
 from droneulator.config import SimConfig, from_dict
 from droneulator.frames import transform_from_pose
 from droneulator.render import Renderer
-from droneulator.runtime.ipc import ENV_CONFIG, ENV_RING, FrameRing, LoadScene, Render, Rendered, hub_connect
+from droneulator.runtime.ipc import (
+    ENV_CONFIG,
+    ENV_RING,
+    FrameRing,
+    HubGoneError,
+    LoadScene,
+    Render,
+    Rendered,
+    hub_connect,
+)
 from droneulator.scenes import get_scene
 
 log = logging.getLogger("droneulator.render")
@@ -71,7 +81,11 @@ def main() -> None:
     logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
     signal.signal(signal.SIGTERM, lambda *_: os._exit(0))
     signal.signal(signal.SIGINT, lambda *_: os._exit(0))
-    serve(from_dict(SimConfig, json.loads(os.environ[ENV_CONFIG])))
+    try:
+        serve(from_dict(SimConfig, json.loads(os.environ[ENV_CONFIG])))
+    except HubGoneError as e:
+        log.error("%s; exiting", e)
+        sys.exit(1)
 
 
 if __name__ == "__main__":
