@@ -148,7 +148,8 @@ class BridgeConfig:
     #: bridge started with it routes the simulator's topics
     ros2dds_namespace: str = "/"
     jpeg_quality: int = 90
-    #: append "stream stamp_ns publish_wall_ns" per published message here (latency benchmark)
+    #: append "stream stamp_ns wall_ns" here per message (latency benchmark): odometry at the end of the
+    #: physics step that produced it, images at the bridge's publish call
     latency_log: str = ""
 
     def __post_init__(self) -> None:

@@ -295,13 +295,9 @@ def test_zenoh_config_file_endpoints_are_checked(tmp_path: Path, taken_port: int
 
 
 # --------------------------------------------------------------------------- the supervisor's own start-up
-def test_supervisor_start_failure_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
-    """A dynamics server that dies while starting (here: a parameter set preflight would have refused)
-    gives one line naming its error; its traceback goes to the log file the line names."""
-    cfg = load_config(
-        None, ["vehicle.params=zeppelin", "runtime.api_port=0", 'bridge.listen=["tcp/127.0.0.1:0"]']
-    )
-    sup = Supervisor(cfg)
+def failed_start(overrides: list[str]) -> tuple[str, Supervisor]:
+    """Start a Supervisor that must fail; its one-line message (checked) and the supervisor."""
+    sup = Supervisor(load_config(None, [*overrides, 'bridge.listen=["tcp/127.0.0.1:0"]']))
     try:
         with pytest.raises(RuntimeError) as err:
             sup.start()
@@ -309,6 +305,14 @@ def test_supervisor_start_failure_is_one_line(capsys: pytest.CaptureFixture[str]
         sup.stop()
     message = str(err.value)
     assert "\n" not in message and "Traceback" not in message
+    assert sup.children["render"].proc is None and sup.children["bridge"].proc is None
+    return message, sup
+
+
+def test_supervisor_start_failure_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    """A dynamics server that dies while starting (here: a parameter set preflight would have refused)
+    gives one line naming its error; its traceback goes to the log file the line names."""
+    message, _ = failed_start(["vehicle.params=zeppelin", "runtime.api_port=0"])
     assert "the dynamics server stopped while starting (exit code 1)" in message
     assert "unknown vehicle parameter set 'zeppelin'" in message
     log_file = Path(message.rsplit("its full output: ", 1)[1])
@@ -317,7 +321,6 @@ def test_supervisor_start_failure_is_one_line(capsys: pytest.CaptureFixture[str]
     finally:
         log_file.unlink()
     assert "Traceback" not in capsys.readouterr().out
-    assert sup.children["render"].proc is None and sup.children["bridge"].proc is None
 
 
 def test_a_port_taken_after_the_checks_is_still_one_line() -> None:
@@ -328,15 +331,7 @@ def test_a_port_taken_after_the_checks_is_still_one_line() -> None:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
-        cfg = load_config(None, [f"runtime.api_port={port}", 'bridge.listen=["tcp/127.0.0.1:0"]'])
-        sup = Supervisor(cfg)
-        try:
-            with pytest.raises(RuntimeError) as err:
-                sup.start()
-        finally:
-            sup.stop()
-    message = str(err.value)
-    assert "\n" not in message and "the dynamics server stopped while starting" in message
-    assert "address already in use" in message.lower() or str(port) in message
+        message, _ = failed_start([f"runtime.api_port={port}"])
+    assert "the dynamics server stopped while starting" in message
+    assert "address already in use" in message.lower() and str(port) in message
     Path(message.rsplit("its full output: ", 1)[1]).unlink(missing_ok=True)
-    assert sup.children["render"].proc is None and sup.children["bridge"].proc is None
