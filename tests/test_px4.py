@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import logging
 import math
 import socket
@@ -17,7 +18,14 @@ from pymavlink.dialects.v20 import common as mavlink
 from droneulator import frames as F
 from droneulator.config import PX4Config, load_config
 from droneulator.px4 import MotorMap, PX4Link, px4_rotor_order
-from droneulator.px4.link import BOOT_GRACE_S, SENSOR_ACCEL, SENSOR_BARO, SENSOR_GYRO, SENSOR_MAG
+from droneulator.px4.link import (
+    BOOT_GRACE_S,
+    LINK_SILENCE_S,
+    SENSOR_ACCEL,
+    SENSOR_BARO,
+    SENSOR_GYRO,
+    SENSOR_MAG,
+)
 from droneulator.sensors import SensorSuite, Truth
 from droneulator.sim.simulator import Simulator
 from droneulator.vehicles.params import get_params
@@ -420,12 +428,125 @@ def test_dropped_connection_resumes_where_it_stopped(served, sim):
     assert again.time_usec == last.time_usec and again.fields_updated == ALL_FIELDS
     for k in range(20):
         assert peer.step(armed=False)[-1].time_usec == last.time_usec + STEP_US * (k + 1)
-    newer = Peer(served.link.port)  # a restarted PX4 replaces a stale connection
-    assert newer.next()[-1].time_usec == sim.t_ns // 1000
-    assert newer.step(armed=False)[-1].time_usec == sim.t_ns // 1000
-    with pytest.raises((ConnectionError, OSError)):
-        peer.next(timeout=1.0)
+    peer.close()
+
+
+def test_a_second_client_is_refused_while_the_first_streams_and_replaces_it_once_silent(served, sim, caplog):
+    caplog.set_level(logging.INFO, logger="droneulator.px4")
+    first = Peer(served.link.port)
+    first.hello()
+    t = first.next()[-1].time_usec
+    intruder = Peer(served.link.port)  # connects while the first PX4 is stepping
+    for k in range(100):
+        assert first.step(armed=False)[-1].time_usec == t + STEP_US * (k + 1)
+    with pytest.raises(ConnectionError):  # closed by the simulator, without a byte
+        intruder.next(timeout=2.0)
+    assert "refused a PX4 connection" in caplog.text and served.link.connected
+    t = first.step(armed=False)[-1].time_usec  # the first PX4 keeps the link and the clock
+    assert t * 1000 == sim.t_ns
+    time.sleep(LINK_SILENCE_S + 0.3)  # the first PX4 hangs: no answer to its last sensor data
+    newer = Peer(served.link.port)
+    assert newer.next()[-1].time_usec == t
+    assert newer.step(armed=False)[-1].time_usec == t + STEP_US
+    with pytest.raises(ConnectionError):
+        first.next(timeout=2.0)
+    assert "silent for" in caplog.text
+    kinds = [(e.type, e.data.get("holding")) for e in served.link.take_events()]
+    assert kinds == [("px4_connected", False), ("px4_disconnected", None), ("px4_connected", False)]
     newer.close()
+    intruder.close()
+    first.close()
+
+
+def test_a_quiet_link_is_kept_while_the_simulator_is_the_one_that_waits(served, sim):
+    """PX4 owes nothing while no sensor data was sent since its last message (the simulator paused,
+    e.g. for a slow renderer): however long that lasts, a newcomer does not take the link."""
+    first = Peer(served.link.port)
+    first.next()
+    with served.lock:  # the simulator stalls before sending the next data; PX4's reply is queued
+        first.actuators([0.0] * 4, armed=False)
+        time.sleep(LINK_SILENCE_S + 0.3)
+        intruder = Peer(served.link.port)
+        time.sleep(0.1)
+    with pytest.raises(ConnectionError):
+        intruder.next(timeout=2.0)
+    assert first.next()[-1].time_usec * 1000 == sim.t_ns and served.link.connected
+    intruder.close()
+    first.close()
+
+
+def test_a_restarted_px4_does_not_drop_the_vehicle_until_it_arms(served, sim, caplog):
+    """A PX4 that connects while the vehicle is airborne (the last one hung mid-air) boots disarmed:
+    the simulator holds the vehicle, still in lockstep with the new PX4, until it arms."""
+    caplog.set_level(logging.INFO, logger="droneulator.px4")
+    start = sim.scene.spawn_position + [0.0, 0.0, 3.0]
+    served.reset(position=start, airborne=True)  # hovering under the simulator's own controller
+    u = float(served.link.motor_map.speed_to_output(sim.vehicle.hover_speed))
+    first = Peer(served.link.port)
+    first.next()
+    assert served.link.holding and not served.link.in_control
+    for _ in range(100):
+        first.step([u] * 4)  # PX4 arms: its outputs fly the vehicle
+    assert served.link.in_control and sim.mode.value == "external"
+    time.sleep(LINK_SILENCE_S + 0.3)  # PX4 hangs mid-air (lockstep: time stops with it) and restarts
+    z0 = sim.state.position[2]
+    restarted = Peer(served.link.port)
+    restarted.hello()
+    t = restarted.next()[-1].time_usec
+    assert served.link.holding and sim.mode.value == "hold"
+    zs = []
+    for k in range(500):  # 2 s of sim time, disarmed: zero outputs are not applied
+        assert restarted.step(armed=False)[-1].time_usec == t + STEP_US * (k + 1)
+        zs.append(sim.state.position[2])
+    assert sim.mode.value == "hold" and max(abs(z - z0) for z in zs) < 0.1
+    climb = float(served.link.motor_map.speed_to_output(sim.vehicle.hover_speed * math.sqrt(1.15)))
+    for _ in range(250):  # armed, 15 % over hover thrust: PX4 takes over and climbs
+        restarted.step([climb] * 4)
+    assert served.link.in_control and sim.mode.value == "external"
+    assert sim.state.position[2] > z0 + 0.3
+    assert "takes over from the simulator's hold" in caplog.text
+    kinds = [(e.type, e.data.get("holding")) for e in served.link.take_events()]
+    assert kinds == [
+        ("px4_connected", True),
+        ("px4_armed", None),
+        ("px4_disconnected", None),
+        ("px4_connected", True),
+        ("px4_armed", None),
+    ]
+    restarted.close()
+    first.close()
+
+
+def test_on_the_ground_a_disarmed_px4_replacing_an_armed_one_stops_the_motors(served, sim):
+    first = Peer(served.link.port)
+    first.next()
+    for _ in range(20):
+        first.step([0.2] * 4)  # armed on the ground, motors turning below hover thrust
+    spinning = sim.state.rotor_speeds
+    assert sim.mode.value == "external" and np.all(spinning > 100.0)
+    first.close()
+    wait_until(lambda: not served.link.connected)
+    restarted = Peer(served.link.port)
+    restarted.next()
+    assert served.link.in_control
+    for _ in range(50):
+        restarted.step(armed=False)
+    assert sim.mode.value == "idle" and sim.state.position[2] == pytest.approx(0.0, abs=0.01)
+    assert np.all(sim.state.rotor_speeds < 0.05 * spinning)  # spun down (motor lag)
+    restarted.close()
+
+
+def test_start_on_a_taken_port_fails_and_listens_nowhere(sim):
+    with socket.socket() as taken:
+        taken.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        link = PX4Link(sim, px4_cfg(host="127.0.0.1", base_port=taken.getsockname()[1]))
+        with pytest.raises(OSError) as err:
+            link.start()
+        assert err.value.errno == errno.EADDRINUSE
+        with pytest.raises(RuntimeError, match="not listening"):
+            _ = link.port
 
 
 def test_garbage_and_bad_actuator_values_are_rejected_and_the_link_keeps_working(served, sim, caplog):

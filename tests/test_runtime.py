@@ -460,3 +460,92 @@ def test_px4_drives_the_clock_and_websocket_flight_is_refused():
         c.goto([1.0, 1.0, 2.0])
     finally:
         r.close()
+
+
+def test_px4_restart_mid_hover_keeps_the_altitude_until_the_new_px4_arms():
+    """PX4 dies mid-hover and a restarted PX4 connects disarmed: the simulator holds the vehicle,
+    still stepped by PX4 (lockstep), until PX4 arms; a second client never takes a live link; the
+    connection and arming changes arrive as events, in order."""
+    from test_px4 import Peer
+
+    from droneulator.px4.mixing import MotorMap
+    from droneulator.vehicles.params import get_params
+
+    port = free_port()
+    r = Run("default", extra=("--px4", "--set", f"px4.base_port={port}"))
+    listener = r.launched.client()
+    try:
+        c = r.client
+        listener.subscribe(["events"])
+        c.takeoff(altitude=2.0)  # no PX4 yet: the simulator's own controller flies
+        listener.wait_for_event("arrived", 60)
+        qp = get_params("px4_quadx")
+        hover = np.sqrt(qp["mass"] * 9.81 / (4 * qp["k_eta"]))
+        u_hover = [float(MotorMap(qp, 0.0).speed_to_output(hover))] * 4
+        u_climb = [float(MotorMap(qp, 0.0).speed_to_output(hover * np.sqrt(1.15)))] * 4
+
+        first = Peer(port)
+        first.hello()
+        first.next()
+        assert c.state()["mode"] == "hold"  # connected over a hovering vehicle: held until PX4 arms
+        for _ in range(100):
+            first.step(u_hover, armed=True)
+        r.wait_for(lambda: c.state()["mode"] == "external", 10, "PX4 to take over when it arms")
+        with pytest.raises(ApiError) as e:
+            c.hold()
+        assert e.value.code == "flight_locked"
+        intruder = Peer(port)  # a second client while PX4 flies: closed at once
+        for _ in range(25):
+            first.step(u_hover, armed=True)
+        with pytest.raises(ConnectionError):
+            intruder.next(timeout=5.0)
+        intruder.close()
+
+        first.close()  # PX4 dies mid-hover
+        r.wait_for(lambda: c.state()["mode"] == "hold", 10, "the vehicle to hold after PX4 left")
+        z0 = c.state()["position"][2]
+        assert abs(z0 - 2.0) < 0.2
+        restarted = Peer(port)  # boots disarmed: zero outputs, which must not stop the motors
+        restarted.hello()
+        t0 = restarted.next()[-1].time_usec
+        zs = []
+        for k in range(1, 501):  # 2 s of sim time, one step per actuator message
+            assert restarted.step((0.0,) * 4, armed=False)[-1].time_usec == t0 + 4000 * k
+            if k % 25 == 0:
+                st = c.state()
+                zs.append(st["position"][2])
+                assert st["mode"] == "hold"
+        assert max(abs(z - z0) for z in zs) < 0.1, zs
+        t_held = c.state()["t_ns"]
+        time.sleep(0.3)
+        assert c.state()["t_ns"] == t_held  # the clock is still PX4's: no message, no time
+        c.hold()  # the simulator flies: flight commands are accepted
+        for _ in range(250):
+            restarted.step(u_climb, armed=True)  # PX4 arms and takes over
+        st = c.state()
+        assert st["mode"] == "external" and st["position"][2] > z0 + 0.3
+        with pytest.raises(ApiError) as e:
+            c.hold()
+        assert e.value.code == "flight_locked"
+        restarted.close()
+        r.wait_for(lambda: c.state()["mode"] == "hold", 10, "the vehicle to hold after PX4 left again")
+
+        events = []
+        while (msg := listener.next_message(timeout=2.0)) is not None:
+            if msg.get("type") == "event" and msg["event"]["type"].startswith("px4_"):
+                events.append(msg["event"])
+        assert [(e["type"], e.get("holding")) for e in events] == [
+            ("px4_connected", True),
+            ("px4_armed", None),
+            ("px4_disconnected", None),
+            ("px4_connected", True),
+            ("px4_armed", None),
+            ("px4_disconnected", None),
+        ]
+        assert np.all(np.diff([e["t"] for e in events]) >= 0)
+        assert events[2]["reason"] == "PX4 closed the connection"
+        assert any("refused a PX4 connection" in line for line in r.log)
+        assert any("takes over from the simulator's hold" in line for line in r.log)
+    finally:
+        listener.close()
+        r.close()

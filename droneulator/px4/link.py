@@ -17,6 +17,17 @@ Before PX4's first lockstep HIL_ACTUATOR_CONTROLS on a connection the link free-
 does until its first actuator message): PX4 can only boot, and so only start sending actuator
 outputs, while sensor time advances. After that each HIL_ACTUATOR_CONTROLS advances the simulation
 by exactly one control period, and without one simulation time stops.
+
+One PX4 at a time: while the connected PX4 is alive (it sent data within ``LINK_SILENCE_S``, or owes
+no answer because the simulator has sent it nothing since its last message) a new connection to the
+port is closed at once, so a second client cannot take the vehicle from it. Once the old connection
+closed or went silent, the next one replaces it.
+
+A PX4 that connects while the simulator's own controller flies the vehicle (after the previous PX4
+died mid-air, the simulator holds) boots disarmed: its zero outputs are not applied, and the
+simulator keeps flying, until PX4 arms and takes over. On the ground a disarmed PX4 keeps the motors
+off. Connections, disconnections, arming and disarming are logged and queued as events
+(:meth:`PX4Link.take_events`: ``px4_connected``, ``px4_disconnected``, ``px4_armed``, ``px4_disarmed``).
 """
 
 from __future__ import annotations
@@ -34,7 +45,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from droneulator.config import PX4Config
-from droneulator.controllers.flight import Mode
+from droneulator.controllers.flight import Event, Mode
 from droneulator.frames import enu_to_geodetic, enu_to_ned, xyzw_to_wxyz
 from droneulator.px4.mixing import LogThrottle, MotorMap
 from droneulator.sensors import SensorSuite, Truth
@@ -67,6 +78,10 @@ SIM_COMPONENT_ID = mavlink.MAV_COMP_ID_IMU
 ACTUATOR_TIMEOUT_NS = 200_000_000
 #: wall time a new connection has to answer the first HIL_SENSOR before the link free-runs
 BOOT_GRACE_S = 0.1
+#: a connection whose PX4 left sensor data unanswered this long (wall time) may be replaced by a new one
+LINK_SILENCE_S = 1.0
+#: above this height (m, world z) a vehicle the simulator flies is held when a disarmed PX4 connects
+AIRBORNE_Z_M = 0.05
 #: falling further behind the wall clock than this restarts the pacing instead of catching up
 MAX_LAG_S = 0.25
 SEND_TIMEOUT_S = 5.0
@@ -117,6 +132,8 @@ class PX4Link:
         self._tx = mavlink.MAVLink(None, SIM_SYSTEM_ID, SIM_COMPONENT_ID)
         self._listener: socket.socket | None = None
         self._conn: socket.socket | None = None
+        self._peer = ""
+        self._events: deque[Event] = deque()
         self._errors = LogThrottle(log)
         self._rx = bytearray()
         #: lockstep actuator commands not stepped yet: (armed, rotor speeds in RotorPy order)
@@ -190,6 +207,27 @@ class PX4Link:
         """Armed state in PX4's last HIL_ACTUATOR_CONTROLS on this connection."""
         return self._armed
 
+    @property
+    def holding(self) -> bool:
+        """True while a connected PX4 has not armed since it connected over a vehicle the simulator
+        was flying: the simulator's controller keeps flying it, PX4's outputs are not applied."""
+        return self._conn is not None and self._holding
+
+    @property
+    def in_control(self) -> bool:
+        """True while a connected PX4's actuator outputs drive the vehicle (connected, not holding)."""
+        return self._conn is not None and not self._holding
+
+    def take_events(self) -> list[Event]:
+        """The link's events since the last call, oldest first (``px4_connected`` with ``address`` and
+        ``holding``, ``px4_disconnected`` with ``reason``, ``px4_armed``, ``px4_disarmed``)."""
+        out = list(self._events)
+        self._events.clear()
+        return out
+
+    def _event(self, kind: str, **data: Any) -> None:
+        self._events.append(Event(kind, self.sim.t, data))
+
     # ------------------------------------------------------------------ the loop
     def serve_once(self, timeout: float, lock: threading.Lock | None = None) -> StepResult | None:
         """Accept PX4 and handle its messages for up to ``timeout`` s; step at most once.
@@ -260,6 +298,9 @@ class PX4Link:
         self._force_step = False
         self._heartbeat_seen = False
         self._timeout_logged = False
+        self._holding = False
+        #: wall time of the first batch sent since PX4's last data (None: PX4 owes no answer)
+        self._unanswered_since: float | None = None
         self._next_ns: dict[str, int] = {}
         self._last_t_ns: int | None = None
         self._pace_wall = time.monotonic()
@@ -271,22 +312,56 @@ class PX4Link:
             conn, addr = self._listener.accept()
         except OSError:
             return
+        address = f"{addr[0]}:{addr[1]}"
         if self._conn is not None:
-            log.warning("a new PX4 connection from %s:%d replaces the current one", *addr[:2])
-            self._drop("replaced by a new connection")
+            silent = self._silence()
+            if silent <= LINK_SILENCE_S:
+                with contextlib.suppress(OSError):
+                    conn.close()
+                log.warning(
+                    "refused a PX4 connection from %s: PX4 at %s is connected and alive (silent %.2f s)",
+                    address,
+                    self._peer,
+                    silent,
+                )
+                return
+            self._drop(f"silent for {silent:.1f} s; the new connection from {address} replaces it")
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         conn.settimeout(SEND_TIMEOUT_S)
-        self._conn = conn
+        self._conn, self._peer = conn, address
         self._reset_connection()
-        log.info("PX4 connected from %s:%d at t=%.3f s", addr[0], addr[1], self.sim.t)
-        if self.sim.t_ns == 0:
+        with guard:
+            self._holding = self._hold_for_arming()
+            t_ns = self.sim.t_ns
+            truth = Truth.from_sim(self.sim) if t_ns else None
+        log.info(
+            "PX4 connected from %s at t=%.3f s%s",
+            address,
+            t_ns / NS,
+            ": the vehicle is airborne, the simulator holds it until PX4 arms" if self._holding else "",
+        )
+        self._event("px4_connected", address=address, holding=self._holding)
+        if truth is None:
             # PX4 treats timestamp 0 as "never": its clock starts from the first step instead
             self._force_step = True
             return
-        with guard:
-            truth = Truth.from_sim(self.sim)
         self._send_batch(truth)
         self._start_boot_grace()
+
+    def _hold_for_arming(self) -> bool:
+        """On a new connection (under the lock): True when the vehicle is in the air under the
+        simulator's controller, or under the outputs of a PX4 that is gone (the simulator then takes
+        over and holds), so a booting, disarmed PX4 does not stop its motors."""
+        if self.sim.mode == Mode.IDLE or self.sim.state.position[2] <= AIRBORNE_Z_M:
+            return False
+        if self.sim.mode == Mode.EXTERNAL:
+            self.sim.hold()
+        return True
+
+    def _silence(self) -> float:
+        """Wall seconds the connected PX4 has left sensor data unanswered (0 while it owes nothing)."""
+        since = self._unanswered_since
+        return 0.0 if since is None else time.monotonic() - since
 
     def _start_boot_grace(self) -> None:
         """Give PX4 BOOT_GRACE_S of wall time to answer the first batch before free-running."""
@@ -297,9 +372,9 @@ class PX4Link:
         if conn is not None:
             with contextlib.suppress(OSError):
                 conn.close()
-            log.warning(
-                "PX4 disconnected (%s) at t=%.3f s: simulation time waits for PX4", reason, self.sim.t
-            )
+            log.warning("PX4 at %s disconnected (%s) at t=%.3f s", self._peer, reason, self.sim.t)
+            self._event("px4_disconnected", reason=reason)
+        self._peer = ""
         self._reset_connection()
 
     def _receive(self, conn: socket.socket) -> None:
@@ -313,6 +388,7 @@ class PX4Link:
         if not data:
             self._drop("PX4 closed the connection")
             return
+        self._unanswered_since = None
         self._rx += data
         for msg in self._extract():
             self._handle(msg)
@@ -361,6 +437,7 @@ class PX4Link:
             speeds = self.motor_map.rotor_speeds(msg.controls[:4]) if armed else None
             if armed != self._armed:
                 log.info("PX4 %s at t=%.3f s", "armed" if armed else "disarmed", self.sim.t)
+                self._event("px4_armed" if armed else "px4_disarmed")
                 self._armed = armed
             if msg.flags & LOCKSTEP_FLAG:
                 if not self._lockstep:
@@ -402,12 +479,15 @@ class PX4Link:
             if cmd is not None:
                 armed, speeds = cmd
                 if armed and speeds is not None:
+                    if self._holding:
+                        self._holding = False
+                        log.info("PX4 armed at t=%.3f s: it takes over from the simulator's hold", self.sim.t)
                     self.sim.set_rotor_speeds(speeds)
-                else:
+                elif not self._holding:
                     self.sim.motors_off()
                 if lockstep_cmd is not None:
                     self._last_cmd_t_ns = t_ns
-            elif self.sim.mode == Mode.EXTERNAL and not self._fresh(t_ns):
+            elif not self._holding and self.sim.mode == Mode.EXTERNAL and not self._fresh(t_ns):
                 self.sim.motors_off()
                 if not self._timeout_logged:
                     self._timeout_logged = True
@@ -519,3 +599,6 @@ class PX4Link:
             self._conn.sendall(data)
         except OSError as exc:
             self._drop(f"send failed: {exc}")
+            return
+        if self._unanswered_since is None:
+            self._unanswered_since = time.monotonic()

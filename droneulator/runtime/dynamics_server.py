@@ -32,6 +32,7 @@ from typing import IO
 from droneulator.api.commands import CommandPath
 from droneulator.api.server import ApiServer
 from droneulator.config import SimConfig, from_dict
+from droneulator.controllers.flight import Mode
 from droneulator.ros.publishers import StatePublisher, subscribe_commands
 from droneulator.ros.zenoh_node import RosZenohNode
 from droneulator.runtime.ipc import (
@@ -237,7 +238,9 @@ class DynamicsServer:
 
     def _px4_turn(self) -> bool:
         """While PX4 is connected its actuator messages drive the clock (lockstep with PX4 and with
-        every consumer); WebSocket flight commands are refused meanwhile. True if PX4 is in control."""
+        every consumer); True then. While PX4 is in control WebSocket flight commands are refused; a PX4
+        that connected over a vehicle the simulator was flying is not in control until it arms (the
+        simulator holds meanwhile). PX4's connection and arming changes are published as API events."""
         assert self.px4 is not None
         connected = self.px4.connected
         ready = all(r in self.peers for r in ROLES) and len(self.in_flight) < self.window
@@ -247,24 +250,32 @@ class DynamicsServer:
             else None
         )
         stepped_wall_ns = time.time_ns()
-        if self.px4.connected != self._px4_in_control:
-            self._px4_in_control = self.px4.connected
+        for event in self.px4.take_events():
+            self.api.publish_event(event.to_dict())
+        if self.px4.in_control != self._px4_in_control:
+            self._px4_in_control = self.px4.in_control
             if self._px4_in_control:
                 self.commands.refuse_flight("PX4 SITL is in control; flight commands come from PX4")
-                log.info("PX4 connected: it now drives the simulation clock")
+                log.info("PX4 is in control: it flies the vehicle and drives the simulation clock")
             else:
-                with self.lock:  # the internal controller takes over: hover in place, or rest
-                    if self.sim.state.position[2] > 0.05:
-                        self.sim.hold()
-                    else:
-                        self.sim.motors_off()
+                if not self.px4.connected:
+                    from droneulator.px4.link import AIRBORNE_Z_M
+
+                    with self.lock:  # the internal controller takes over: hover in place, or rest
+                        if self.sim.mode != Mode.IDLE and self.sim.state.position[2] > AIRBORNE_Z_M:
+                            self.sim.hold()
+                        else:
+                            self.sim.motors_off()
                 self.commands.allow_flight()
-                log.warning("PX4 disconnected: holding position until it reconnects")
+                log.warning(
+                    "PX4 is not in control: the simulator %s until a PX4 connects and arms",
+                    "holds position" if self.sim.mode == Mode.HOLD else "rests on the ground",
+                )
         if res is not None:
             self._after_step(res, False, stepped_wall_ns)
-        if self._px4_in_control:
+        if self.px4.connected:
             self._poll(0 if ready else 0.05)
-        return self._px4_in_control
+        return self.px4.connected
 
     def run(self) -> None:
         self._px4_in_control = False
@@ -289,7 +300,7 @@ class DynamicsServer:
         while not self.stopping.is_set():
             self._take_new_peers()
             if self.px4 is not None and self._px4_turn():
-                pass
+                wall0, sim0 = time.monotonic(), self.sim.t  # realtime pacing restarts here when PX4 leaves
             elif realtime:
                 lag = (time.monotonic() - wall0) * self.cfg.runtime.speed - (self.sim.t - sim0)
                 if self.sim.t < sim0:  # reset through the API
