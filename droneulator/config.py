@@ -179,11 +179,15 @@ class PX4Config:
     instance: int = 0
     host: str = "127.0.0.1"
     base_port: int = 4560
-    #: home position (WGS84) of the world origin, and the local magnetic field (gauss, NED)
+    #: home position (WGS84) of the world origin; the magnetic field is the World Magnetic Model's there
     home_lat_deg: float = 53.2281
     home_lon_deg: float = -0.5470
     home_alt_m: float = 10.0
-    mag_field_ned_gauss: tuple[float, float, float] = (0.19, -0.005, 0.45)
+    #: decimal year the World Magnetic Model (WMM2025, valid 2025.0-2029.99) is evaluated at; fixed so
+    #: a run is reproducible (the declination at the default home grows by about 0.18 deg a year)
+    mag_wmm_year: float = 2025.0
+    #: explicit Earth field (gauss, NED) replacing the WMM's, e.g. to test PX4's magnetometer checks
+    mag_field_ned_gauss: tuple[float, float, float] | None = None
     gps_hz: float = 10.0
     #: sensor noise (1-sigma) and constant biases
     accel_noise: float = 0.02
@@ -192,14 +196,24 @@ class PX4Config:
     gyro_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
     mag_noise: float = 0.002
     baro_noise_hpa: float = 0.01
+    #: GPS position error: a first-order Gauss-Markov process per axis with this stationary 1-sigma
+    #: (horizontal per axis / vertical, m) and correlation time, plus white per-fix jitter; the fix
+    #: reports eph = sqrt(gps_noise_m^2 + gps_jitter_m^2) and epv likewise (what EKF2 takes as 1-sigma)
     gps_noise_m: float = 0.3
+    gps_vertical_noise_m: float = 0.5
+    gps_correlation_time_s: float = 60.0
+    gps_jitter_m: float = 0.02
+    #: GPS velocity noise (white per fix, 1-sigma m/s): horizontal per axis, vertical
     gps_vel_noise: float = 0.05
-    #: magnetometer bias (gauss, body FRD), barometer bias (hPa), GPS position bias (m, NED)
+    gps_vel_vertical_noise: float = 0.1
+    #: age of each GPS fix when it is sent (s): PX4 SITL's start script tells EKF2 10 ms
+    #: (EKF2_GPS_DELAY / SENS_GPS0_DELAY 10); a real receiver is ~0.11 s (PX4's hardware default)
+    gps_delay_s: float = 0.01
+    #: magnetometer bias (gauss, body FRD), barometer bias (hPa), GPS position offset (m, NED; not in eph)
     mag_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
     baro_bias_hpa: float = 0.0
     gps_bias_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    #: GPS vertical noise (1-sigma, m) and satellites reported
-    gps_vertical_noise_m: float = 0.5
+    #: satellites reported
     gps_satellites: int = 10
     #: magnetometer and barometer sample rates in HIL_SENSOR (sim time; PX4's Gazebo Iris: 100 / 50 Hz)
     mag_hz: float = 100.0
@@ -221,6 +235,29 @@ class PX4Config:
             raise ValueError("px4.instance and px4.base_port must give a TCP port in [0, 65535]")
         if not -90.0 <= self.home_lat_deg <= 90.0 or not -180.0 <= self.home_lon_deg <= 180.0:
             raise ValueError("px4.home_lat_deg / home_lon_deg must be a valid WGS84 position")
+        gps_sigmas = (
+            "gps_noise_m",
+            "gps_vertical_noise_m",
+            "gps_jitter_m",
+            "gps_vel_noise",
+            "gps_vel_vertical_noise",
+            "gps_delay_s",
+        )
+        for name in gps_sigmas:
+            if not math.isfinite(getattr(self, name)) or getattr(self, name) < 0:
+                raise ValueError(f"px4.{name} must be a finite number >= 0")
+        if not math.isfinite(self.gps_correlation_time_s) or self.gps_correlation_time_s <= 0:
+            raise ValueError("px4.gps_correlation_time_s must be a positive time in seconds")
+        if not math.isfinite(self.mag_wmm_year):
+            raise ValueError("px4.mag_wmm_year must be a decimal year, e.g. 2025.5")
+        if self.mag_field_ned_gauss is not None:
+            field_ = self.mag_field_ned_gauss
+            numbers = isinstance(field_, list | tuple) and all(
+                isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in field_
+            )
+            if not numbers or len(field_) != 3:
+                raise ValueError(f"px4.mag_field_ned_gauss must be three finite numbers (G), got {field_!r}")
+            self.mag_field_ned_gauss = (float(field_[0]), float(field_[1]), float(field_[2]))
 
 
 @dataclass

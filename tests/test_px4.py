@@ -217,7 +217,7 @@ def test_sensor_models_in_px4_frames():
     cfg = PX4Config(
         accel_noise=0, gyro_noise=0, mag_noise=0, baro_noise_hpa=0, gps_noise_m=0, gps_vel_noise=0
     )
-    cfg.gps_vertical_noise_m = 0.0
+    cfg.gps_vertical_noise_m = cfg.gps_jitter_m = cfg.gps_vel_vertical_noise = 0.0
     sensors = SensorSuite(cfg)
     z3 = np.zeros(3)
     north_level = F.quat_from_yaw(math.pi / 2)  # nose north: FRD body axes = NED axes
@@ -225,7 +225,7 @@ def test_sensor_models_in_px4_frames():
     accel, gyro = sensors.imu(t)
     np.testing.assert_allclose(accel, [0, 0, -9.81], atol=1e-12)
     np.testing.assert_allclose(gyro, [0.1, -0.2, -0.3], atol=1e-12)
-    np.testing.assert_allclose(sensors.mag(t), cfg.mag_field_ned_gauss, atol=1e-12)
+    np.testing.assert_allclose(sensors.mag(t), sensors.models["mag"].field_ned, atol=1e-12)
     g = sensors.gps(t)  # flying north and climbing
     np.testing.assert_allclose(g.vel_ned, [2.0, 0.0, 0.5], atol=1e-12)
     assert g.course_deg == pytest.approx(0.0) and g.ground_speed == pytest.approx(2.0)
@@ -256,7 +256,7 @@ def test_connection_sends_every_sensor_then_rests_on_ground_in_lockstep(served, 
     assert np.std(np.array(accels)[:, 2]) == pytest.approx(0.02, rel=0.3)  # PX4Config.accel_noise
     # the magnetometer reads the NED field rotated into the body (FRD)
     R = F.quat_to_matrix(F.quat_enu_flu_to_ned_frd(sim.state.quaternion))
-    mag = R.T @ np.array(served.link.cfg.mag_field_ned_gauss)
+    mag = R.T @ served.link.sensors.models["mag"].field_ned
     np.testing.assert_allclose([sensor.xmag, sensor.ymag, sensor.zmag], mag, atol=0.01)
     assert sim.mode.value == "idle" and sim.state.position[2] == 0.0  # disarmed: motors off
     peer.close()

@@ -1,7 +1,17 @@
-"""Magnetometer: a constant NED Earth field seen from PX4's FRD body frame, with bias and noise."""
+"""Magnetometer: the World Magnetic Model's Earth field at home, seen from PX4's FRD body frame.
+
+PX4 checks the measured field against its own World Magnetic Model tables at the GPS position
+(declination for the heading, inclination and strength in its arming checks), so the default
+field is NOAA's WMM2025 (the ``wmm-calculator`` package, coefficients shipped with it, no network)
+at ``px4.home_lat_deg`` / ``home_lon_deg`` / ``home_alt_m`` on the decimal year ``px4.mag_wmm_year``.
+``px4.mag_field_ned_gauss`` replaces it with an explicit field. The field is computed once: over
+a flight of a few kilometres the WMM changes by hundredths of a degree.
+"""
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -10,15 +20,70 @@ from droneulator.frames import quat_to_matrix
 from droneulator.sensors.registry import register
 from droneulator.sensors.truth import Truth
 
+#: gauss per nanotesla
+GAUSS_PER_NT = 1e-5
+
+
+@dataclass(frozen=True)
+class FieldElements:
+    """What PX4 compares: declination (deg, east of true north), inclination (deg, down positive)
+    and total strength (gauss)."""
+
+    declination_deg: float
+    inclination_deg: float
+    strength_gauss: float
+
+
+def wmm_field_ned_gauss(lat_deg: float, lon_deg: float, alt_m: float, year: float) -> np.ndarray:
+    """The WMM2025 main field (gauss, north/east/down) at a WGS84 position and decimal year.
+
+    ``alt_m`` is the height above the WGS84 ellipsoid (the ~50 m geoid separation changes the field
+    by well under a nanotesla). A year outside the model's validity is a :class:`ValueError`.
+    """
+    from wmm import wmm_calc  # imported here: only a run without an explicit field needs it
+
+    model = wmm_calc()
+    try:
+        model.setup_time(dyear=float(year))
+    except ValueError as exc:
+        raise ValueError(f"px4.mag_wmm_year={year}: {exc}") from None
+    model.setup_env(float(lat_deg), float(lon_deg), float(alt_m), unit="m")
+    out = model.get_all()
+    return np.array([float(out[k][0]) for k in ("x", "y", "z")]) * GAUSS_PER_NT
+
+
+def field_elements(field_ned: Any) -> FieldElements:
+    """Declination, inclination and strength of a NED field vector given in gauss."""
+    n, e, d = (float(v) for v in np.asarray(field_ned, dtype=float))
+    horizontal = math.hypot(n, e)
+    return FieldElements(
+        math.degrees(math.atan2(e, n)), math.degrees(math.atan2(d, horizontal)), math.hypot(horizontal, d)
+    )
+
+
+def earth_field_ned(cfg: Any) -> np.ndarray:
+    """The Earth field the magnetometer measures (gauss, NED): ``cfg.mag_field_ned_gauss`` when
+    set, else the WMM at the configured home and year."""
+    if cfg.mag_field_ned_gauss is not None:
+        return np.array(cfg.mag_field_ned_gauss, dtype=float)
+    return wmm_field_ned_gauss(cfg.home_lat_deg, cfg.home_lon_deg, cfg.home_alt_m, cfg.mag_wmm_year)
+
 
 @register("mag")
 class Magnetometer:
-    """Field in gauss; ``cfg`` gives ``mag_field_ned_gauss``, ``mag_bias`` and ``mag_noise``."""
+    """Field in gauss; ``cfg`` gives the home position, ``mag_wmm_year`` or ``mag_field_ned_gauss``,
+    ``mag_bias`` and ``mag_noise``."""
 
     def __init__(self, cfg: Any, rng: np.random.Generator) -> None:
         self.cfg = cfg
         self.rng = rng
-        self.field_ned = np.array(cfg.mag_field_ned_gauss, dtype=float)
+        #: the Earth field (gauss, NED)
+        self.field_ned = earth_field_ned(cfg)
+
+    @property
+    def elements(self) -> FieldElements:
+        """Declination, inclination and strength of :attr:`field_ned`."""
+        return field_elements(self.field_ned)
 
     def sample(self, truth: Truth) -> np.ndarray:
         """Magnetic field in the FRD body frame (gauss): the NED field rotated into the body."""
