@@ -73,7 +73,7 @@ class VehicleConfig:
     #: sphere radius used for collision with the scene, metres
     collision_radius: float = 0.25
     control_hz: float = 100.0
-    #: fixed RK4 sub-steps per control period (the ground contact needs sub-steps of 1 ms or less)
+    #: fixed RK4 sub-steps per control period
     substeps: int = 10
     #: ground contact (droneulator.vehicles.dynamics.GroundContact): natural frequency of the vehicle
     #: bouncing on its four spring-damper legs (Hz; the legs compress g / (2 pi f)^2 under the weight),

@@ -11,7 +11,7 @@ On the ground it differs from RotorPy on purpose. RotorPy clamps the vehicle to 
 its vertical velocity in one step, which an accelerometer sees as a spike of tens of g. Here four
 feet under the rotors (:class:`GroundContact`) press on the plane z = 0 through stiff springs with
 asymmetric dampers and regularised Coulomb friction, so a touchdown decelerates over many RK4
-sub-steps. Their forces are exactly zero while every foot is above the ground.
+sub-steps. Their forces are exactly zero while every foot and hub is above the ground.
 
 State vector layout (RotorPy's ``_pack_state``): ``x[0:3] v[3:6] q[6:10] (x,y,z,w) w[10:13]
 wind[13:16] rotor_speeds[16:20]``. Code outside :mod:`droneulator.vehicles` names these fields
@@ -106,7 +106,8 @@ OUTPUT_SIZE = _OUT_TD_X + 3
 class GroundContact:
     """Four feet under the rotor hubs on spring-damper legs, with friction against the ground.
 
-    Four more contact points, mirrored above the feet, catch a vehicle that lands upside down.
+    The rotor hubs touch too, so a vehicle that tips over rests on them (flat, not on its side)
+    and one upside down rests with its origin g / (2 pi f)^2 below the plane.
 
     The legs are sized from the vehicle's mass so every parameter set behaves alike:
     ``frequency_hz`` is the natural frequency of the vehicle bouncing on its four legs
@@ -284,8 +285,8 @@ def _contact(
 ) -> None:
     """Add the ground forces of the contact points (body frame) to ``F`` and their moments to ``M``.
 
-    The points are the four feet under the rotor hubs and, mirrored above them, four top points
-    that catch an upside-down vehicle. Each point below z = 0 gets a normal force from its spring
+    The points are the four feet under the rotor hubs and the four hubs themselves, which catch a
+    vehicle that tips over or lands upside down. Each point below z = 0 gets a normal force from its spring
     and damper (never pulling) and a friction force against its sliding velocity, Coulomb above the
     slip speed, viscous below it. The spring force is written as the leg's share of the weight plus
     the change from the rest compression, and summed in pairs, so that a level vehicle at rest at
@@ -297,7 +298,7 @@ def _contact(
     fb = np.zeros(3)  # points 1, 3, 5, 7
     for k in range(8):
         bx, by = geom[k % 4, 0], geom[k % 4, 1]
-        bz = -p[_FOOT] if k < 4 else p[_FOOT]
+        bz = -p[_FOOT] if k < 4 else 0.0
         depth = -(s[2] + R[2, 0] * bx + R[2, 1] * by + R[2, 2] * bz)
         if depth <= 0.0:
             continue
@@ -354,7 +355,7 @@ def specific_force(
 
 @numba.njit(cache=True)
 def _touching(s: np.ndarray, p: np.ndarray, geom: np.ndarray) -> bool:
-    """True if any contact point (feet or top points) is below the ground plane."""
+    """True if any contact point (feet or hubs) is below the ground plane."""
     if p[_GROUND] < 0.5 or s[2] >= p[_REACH]:
         return False
     qx, qy, qz, qw = s[6], s[7], s[8], s[9]
@@ -364,7 +365,7 @@ def _touching(s: np.ndarray, p: np.ndarray, geom: np.ndarray) -> bool:
     r22 = 1.0 - 2.0 * (qx * qx + qy * qy) / n2
     lowest = s[2]
     for i in range(4):
-        lowest = min(lowest, s[2] + r20 * geom[i, 0] + r21 * geom[i, 1] - abs(r22) * p[_FOOT])
+        lowest = min(lowest, s[2] + r20 * geom[i, 0] + r21 * geom[i, 1] - max(r22, 0.0) * p[_FOOT])
     return lowest < 0.0
 
 
