@@ -294,8 +294,8 @@ def _contact(
     """
     wx, wy, wz = s[10], s[11], s[12]
     share = 0.25 * (p[_MASS] * p[_G])
-    fa = np.zeros(3)  # points 0, 2, 4, 6
-    fb = np.zeros(3)  # points 1, 3, 5, 7
+    ax = ay = az = 0.0  # points 0, 2, 4, 6
+    bx_ = by_ = bz_ = 0.0  # points 1, 3, 5, 7
     for k in range(8):
         bx, by = geom[k % 4, 0], geom[k % 4, 1]
         bz = -p[_FOOT] if k < 4 else 0.0
@@ -320,16 +320,20 @@ def _contact(
         gx = R[0, 0] * fx + R[1, 0] * fy + R[2, 0] * n
         gy = R[0, 1] * fx + R[1, 1] * fy + R[2, 1] * n
         gz = R[0, 2] * fx + R[1, 2] * fy + R[2, 2] * n
-        acc = fa if k % 2 == 0 else fb
-        acc[0] += gx
-        acc[1] += gy
-        acc[2] += gz
+        if k % 2 == 0:
+            ax += gx
+            ay += gy
+            az += gz
+        else:
+            bx_ += gx
+            by_ += gy
+            bz_ += gz
         M[0] += by * gz - bz * gy
         M[1] += bz * gx - bx * gz
         M[2] += bx * gy - by * gx
-    F[0] += fa[0] + fb[0]
-    F[1] += fa[1] + fb[1]
-    F[2] += fa[2] + fb[2]
+    F[0] += ax + bx_
+    F[1] += ay + by_
+    F[2] += az + bz_
 
 
 @numba.njit(cache=True)
