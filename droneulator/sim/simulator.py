@@ -209,7 +209,7 @@ class Simulator:
         self.collisions = 0
         #: world-frame acceleration, mean over the last control period (m/s^2)
         self.acceleration = np.zeros(3)
-        # at rest on the ground and hovering alike, the thrust or the legs carry the weight
+        # until the first step: what a vehicle at rest on its legs or hovering measures
         self._specific_force = self._holding_force()
         fly = pos[2] > 0.05 if airborne is None else airborne
         if fly:

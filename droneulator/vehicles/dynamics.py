@@ -347,17 +347,6 @@ def state_derivative(
 
 
 @numba.njit(cache=True)
-def specific_force(
-    s: np.ndarray, cmd: np.ndarray, p: np.ndarray, geom: np.ndarray, dirs: np.ndarray
-) -> np.ndarray:
-    """What an ideal accelerometer at the CoM reads in state ``s``: body-frame (FLU) force per unit
-    mass from thrust, drag and ground contact, gravity excluded (m/s^2)."""
-    fb = np.empty(3)
-    _derivative(s, cmd, p, geom, dirs, np.empty(STATE_SIZE), fb)
-    return fb
-
-
-@numba.njit(cache=True)
 def _touching(s: np.ndarray, p: np.ndarray, geom: np.ndarray) -> bool:
     """True if any contact point (feet or hubs) is below the ground plane."""
     if p[_GROUND] < 0.5 or s[2] >= p[_REACH]:
@@ -479,13 +468,6 @@ class FastMultirotor:
     def hover_speed(self) -> float:
         """Rotor speed (rad/s) that balances the weight."""
         return math.sqrt(self.params[_MASS] * self.params[_G] / (4 * self.params[_KETA]))
-
-    def specific_force(self, s: np.ndarray, cmd_motor_speeds: np.ndarray | None = None) -> np.ndarray:
-        """Instantaneous body-frame (FLU) specific force in state ``s`` (m/s^2), gravity excluded."""
-        cmd = s[STATE.rotor_speeds] if cmd_motor_speeds is None else cmd_motor_speeds
-        return specific_force(
-            s, np.asarray(cmd, dtype=np.float64), self.params, self.geometry, self.directions
-        )
 
     def step(
         self, s: np.ndarray, cmd_motor_speeds: np.ndarray, dt: float, out: np.ndarray | None = None
