@@ -75,10 +75,33 @@ class VehicleConfig:
     control_hz: float = 100.0
     #: fixed RK4 sub-steps per control period
     substeps: int = 10
+    #: ground contact (droneulator.vehicles.dynamics.GroundContact): natural frequency of the vehicle
+    #: bouncing on its four spring-damper legs (Hz; the legs compress g / (2 pi f)^2 under the weight),
+    #: damping ratio while they compress and while they extend, Coulomb friction coefficient, and the
+    #: slip speed (m/s) below which friction turns viscous
+    contact_frequency_hz: float = 3.0
+    contact_damping_ratio: float = 1.0
+    contact_rebound_damping_ratio: float = 3.0
+    ground_friction: float = 0.5
+    friction_slip_speed: float = 0.05
+    #: a touchdown faster than this (m/s, downward) raises an "impact" event
+    impact_speed: float = 1.5
 
     def __post_init__(self) -> None:
         if self.wind not in WIND_MODELS:
             raise ValueError(f"vehicle.wind must be one of {', '.join(WIND_MODELS)}; got {self.wind!r}")
+        for name in (
+            "contact_frequency_hz",
+            "contact_damping_ratio",
+            "contact_rebound_damping_ratio",
+            "friction_slip_speed",
+            "impact_speed",
+        ):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"vehicle.{name} must be a positive number, got {value!r}")
+        if not (math.isfinite(self.ground_friction) and self.ground_friction >= 0):
+            raise ValueError(f"vehicle.ground_friction must be >= 0, got {self.ground_friction!r}")
 
 
 @dataclass

@@ -15,9 +15,10 @@ rng = np.random.default_rng(1)
 
 
 def random_state(hover: float) -> dict:
+    """A random airborne state (on the ground the contact model departs from RotorPy's on purpose)."""
     q = rng.normal(size=4)
     return {
-        "x": rng.normal(size=3) + [0, 0, 2],
+        "x": rng.normal(size=3) * [1, 1, 0.3] + [0, 0, 2],
         "v": rng.normal(size=3),
         "q": q / np.linalg.norm(q),
         "w": rng.normal(size=3),
@@ -40,21 +41,34 @@ def test_state_derivative_equals_rotorpy(name, aero):
         np.testing.assert_allclose(got, expect, rtol=1e-9, atol=1e-9)
 
 
-def test_ground_reaction_matches_rotorpy():
+def test_contact_forces_vanish_above_the_ground():
+    """Feet 0.1 mm above the ground: no contact force at all (the derivative is the ground-free
+    model's bit for bit, and RotorPy's); 1 mm below: the legs push and friction acts."""
     qp = get_params("hummingbird")
     ref = Multirotor(qp, enable_ground=True)
-    fast = FastMultirotor(qp)
+    fast, free = FastMultirotor(qp), FastMultirotor(qp, enable_ground=False)
+    depth = fast.contact.foot_depth
     st = {
-        "x": np.zeros(3),
-        "v": np.zeros(3),
+        "x": np.array([0.0, 0.0, depth + 1e-4]),
+        "v": np.array([0.3, 0.0, -0.5]),
         "q": np.array([0, 0, 0, 1.0]),
         "w": np.zeros(3),
         "wind": np.zeros(3),
         "rotor_speeds": np.full(4, 300.0),
-    }  # thrust below weight
+    }  # thrust below weight, descending
     got = state_derivative(pack_state(st), np.zeros(4), fast.params, fast.geometry, fast.directions)
+    np.testing.assert_array_equal(
+        got, state_derivative(pack_state(st), np.zeros(4), free.params, free.geometry, free.directions)
+    )
     np.testing.assert_allclose(got, ref._s_dot_fn(0, Multirotor._pack_state(st), np.zeros(4)), atol=1e-12)
-    assert got[5] == 0.0  # no net downward acceleration on the ground
+    assert got[5] < -5.0  # falling
+    st["x"][2] = depth - 1e-3
+    below = state_derivative(pack_state(st), np.zeros(4), fast.params, fast.geometry, fast.directions)
+    # four legs of stiffness m w^2 / 4 compressed 1 mm, plus the compression damping against 0.5 m/s
+    w = 2 * np.pi * fast.contact.frequency_hz
+    push = w**2 * 1e-3 + 2 * fast.contact.damping_ratio * w * 0.5
+    assert below[5] - got[5] == pytest.approx(push, rel=1e-9)
+    assert below[3] - got[3] < 0  # friction opposes the sliding
 
 
 @pytest.mark.parametrize("name", ["hummingbird", "crazyflie"])
@@ -137,6 +151,8 @@ def test_closed_loop_matches_rotorpy_integration_within_1cm():
 
 
 def test_motors_off_rests_on_ground():
+    """Dropped from 1 m with the motors off: the legs stop it within a few cm, it settles level at
+    z = 0 (the legs carry exactly the weight there) and does not move afterwards."""
     qp = get_params("hummingbird")
     fast = FastMultirotor(qp)
     s = pack_state(
@@ -152,5 +168,12 @@ def test_motors_off_rests_on_ground():
     for _ in range(300):
         fast.step(s, np.zeros(4), 0.01)
         zs.append(s[2])
-    assert min(zs) >= 0.0
-    assert s[STATE.x][2] == 0.0 and np.allclose(s[STATE.v], 0.0, atol=1e-9)
+    assert -0.06 < min(zs) < -0.02  # the legs compress a few cm under a 4.4 m/s touchdown
+    assert max(zs[zs.index(min(zs)) :]) <= 1e-4  # and never throw it back up
+    assert abs(s[STATE.x][2]) < 1e-4 and np.allclose(s[STATE.v], 0.0, atol=1e-4)
+    rest = s.copy()
+    for _ in range(100):
+        fast.step(s, np.zeros(4), 0.01)
+    np.testing.assert_array_equal(s[STATE.x][:2], rest[STATE.x][:2])  # no sliding
+    assert abs(s[STATE.x][2]) <= abs(rest[STATE.x][2])  # no sinking: the last 0.02 mm creep back
+    np.testing.assert_allclose(s[STATE.q], [0, 0, 0, 1.0], atol=1e-9)

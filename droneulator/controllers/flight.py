@@ -42,7 +42,8 @@ class Mode(StrEnum):
 
 @dataclass
 class Event:
-    """Something that happened at sim time ``t`` (seconds): ``arrived``, ``landed`` or ``collision``."""
+    """Something that happened at sim time ``t`` (seconds): ``arrived``, ``landed``, ``collision`` or
+    ``impact`` (a hard touchdown, raised by the simulator)."""
 
     type: str
     t: float

@@ -23,10 +23,13 @@ class Truth:
     velocity: np.ndarray
     quaternion: np.ndarray
     angular_velocity: np.ndarray
-    #: world-frame acceleration over the last step (m/s^2); zero at rest on the ground
+    #: world-frame acceleration, mean over the last step (m/s^2); zero at rest on the ground
     acceleration: np.ndarray
     #: wind velocity in the world frame (m/s)
     wind: np.ndarray
+    #: body-frame (FLU) specific force from the forces acting (thrust, drag, ground contact), mean
+    #: over the last step (m/s^2); None derives it from ``acceleration`` and the attitude instead
+    specific_force: np.ndarray | None = None
 
     @classmethod
     def from_sim(cls, sim: Any) -> Truth:
@@ -40,6 +43,7 @@ class Truth:
             st.angular_velocity,
             np.array(sim.acceleration, dtype=float),
             np.array(sim.wind_velocity, dtype=float),
+            np.array(sim.specific_force, dtype=float),
         )
 
     @cached_property
@@ -57,7 +61,10 @@ class Truth:
 
     @property
     def specific_force_frd(self) -> np.ndarray:
-        """What an ideal accelerometer reads: R^T (a - g), in the FRD body frame (m/s^2)."""
+        """What an ideal accelerometer reads, in the FRD body frame (m/s^2): the simulator's
+        specific force when given, else R^T (a - g) from the mean acceleration."""
+        if self.specific_force is not None:
+            return flu_to_frd(np.asarray(self.specific_force, dtype=float))
         return flu_to_frd(self.R_world_body.T @ (self.acceleration - GRAVITY_ENU))
 
     @property

@@ -18,9 +18,18 @@ import numpy as np
 from droneulator.config import SimConfig, load_config
 from droneulator.controllers.flight import Event, FlightController, Mode
 from droneulator.frames import quat_from_yaw, transform_from_pose, yaw_of
+from droneulator.frames_numba import world_to_body
 from droneulator.scenes import get_scene
 from droneulator.scenes.base import Scene
-from droneulator.vehicles.dynamics import STATE, STATE_SIZE, FastMultirotor
+from droneulator.vehicles.dynamics import (
+    GRAVITY,
+    OUTPUT,
+    OUTPUT_SIZE,
+    STATE,
+    STATE_SIZE,
+    FastMultirotor,
+    GroundContact,
+)
 from droneulator.vehicles.params import get_params
 from droneulator.wind import make_wind
 
@@ -127,7 +136,15 @@ class Simulator:
             aero=vcfg.aero,
             enable_ground=True,
             substep=1.0 / (vcfg.control_hz * vcfg.substeps),
+            contact=GroundContact(
+                vcfg.contact_frequency_hz,
+                vcfg.contact_damping_ratio,
+                vcfg.contact_rebound_damping_ratio,
+                vcfg.ground_friction,
+                vcfg.friction_slip_speed,
+            ),
         )
+        self._out = np.zeros(OUTPUT_SIZE)
         self.flight = FlightController(self.quad_params, self.config.flight)
         self.control_period_ns = round(NS / vcfg.control_hz)
         self.camera_period_ns = round(NS / self.config.render.camera_hz)
@@ -190,8 +207,10 @@ class Simulator:
         self.flight.motors_off()
         self._reference: np.ndarray | None = None
         self.collisions = 0
-        #: world-frame acceleration over the last control step (m/s^2), for IMU models
+        #: world-frame acceleration, mean over the last control period (m/s^2)
         self.acceleration = np.zeros(3)
+        # until the first step: what a vehicle at rest on its legs or hovering measures
+        self._specific_force = self._holding_force()
         fly = pos[2] > 0.05 if airborne is None else airborne
         if fly:
             s[STATE.rotor_speeds] = self.vehicle.hover_speed
@@ -211,6 +230,13 @@ class Simulator:
     @property
     def mode(self) -> Mode:
         return self.flight.mode
+
+    @property
+    def specific_force(self) -> np.ndarray:
+        """What the IMU's accelerometer measures (body FLU, m/s^2): the force per unit mass from
+        thrust, drag and ground contact, gravity excluded, averaged over the last control period
+        like an IMU's output filter. 9.81 up in hover and at rest on the ground, ~0 in free fall."""
+        return self._specific_force.copy()
 
     @property
     def wind_velocity(self) -> np.ndarray:
@@ -325,12 +351,14 @@ class Simulator:
             self._reference = ref
             out.events.extend(events)
             self.s[STATE.wind] = self.wind.update(self.t, self.s[STATE.x])
-            v_before = self.s[STATE.v].copy()
+            imu = self._out
+            imu[:] = 0.0
+            t_start = self.t
             t_end = self.t_ns + self.control_period_ns
             while self.t_ns < t_end:
                 t_next = min(t_end, self._next_frame_ns) if self.camera_schedule else t_end
                 if self.flight.mode != Mode.COLLIDED and self.vehicle.step(
-                    self.s, cmd, (t_next - self.t_ns) / NS
+                    self.s, cmd, (t_next - self.t_ns) / NS, imu
                 ):
                     out.events.append(self._on_collision())
                 self.t_ns = t_next
@@ -341,8 +369,30 @@ class Simulator:
                         out.camera_states.append(self.state)
                     self.frame_count += 1
                     self._next_frame_ns += self.camera_period_ns
-            self.acceleration = (self.s[STATE.v] - v_before) / dt
+            self._finish_period(imu, dt, t_start, out.events)
         return out
+
+    def _finish_period(self, imu: np.ndarray, dt: float, t_start: float, events: list[Event]) -> None:
+        """IMU means over the period just stepped, and an ``impact`` event for a hard touchdown."""
+        sf = imu[OUTPUT.specific_force] / dt
+        held = dt - imu[OUTPUT.elapsed]
+        if held > 1e-12:  # time not integrated (stopped against the scene) is spent held by the obstacle
+            sf += (held / dt) * self._holding_force()
+        self._specific_force = sf
+        self.acceleration = imu[OUTPUT.delta_v] / dt
+        speed = float(imu[OUTPUT.touchdown_speed])
+        if speed > self.config.vehicle.impact_speed:
+            events.append(
+                Event(
+                    "impact",
+                    t_start + float(imu[OUTPUT.touchdown_time]),
+                    {"position": imu[OUTPUT.touchdown_position].tolist(), "speed": speed},
+                )
+            )
+
+    def _holding_force(self) -> np.ndarray:
+        """Specific force of the vehicle held still against gravity, in the body frame."""
+        return world_to_body(self.s[STATE.q], np.array([0.0, 0.0, GRAVITY]))
 
     def run(self, seconds: float) -> StepResult:
         """Step for ``seconds`` of simulated time, collecting frames and events."""

@@ -1,35 +1,50 @@
-"""RotorPy's multirotor model, integrated fast.
+"""RotorPy's multirotor model, integrated fast, with spring-damper ground contact.
 
 ``rotorpy.vehicles.multirotor.Multirotor`` integrates each control period with SciPy's adaptive
 RK45 and rebuilds dicts and SciPy rotations at every derivative call (~5x real time at 100 Hz
-here). :class:`FastMultirotor` evaluates the same equations of motion — rotor thrust and yaw
-moments, motor lag, parasitic drag, rotor drag, induced inflow, translational lift, flapping,
-ground reaction and ground contact — compiled with numba and integrated with fixed-step RK4.
-Its trajectories are checked against RotorPy's own integration in the tests and benchmarks.
+here). :class:`FastMultirotor` evaluates the same equations of motion in the air — rotor thrust and
+yaw moments, motor lag, parasitic drag, rotor drag, induced inflow, translational lift, flapping —
+compiled with numba and integrated with fixed-step RK4. Its trajectories are checked against
+RotorPy's own integration in the tests and benchmarks.
+
+On the ground it differs from RotorPy on purpose. RotorPy clamps the vehicle to z = 0 and zeroes
+its vertical velocity in one step, which an accelerometer sees as a spike of tens of g. Here four
+feet under the rotors (:class:`GroundContact`) press on the plane z = 0 through stiff springs with
+asymmetric dampers and regularised Coulomb friction, so a touchdown decelerates over many RK4
+sub-steps. Their forces are exactly zero while every foot and hub is above the ground.
 
 State vector layout (RotorPy's ``_pack_state``): ``x[0:3] v[3:6] q[6:10] (x,y,z,w) w[10:13]
 wind[13:16] rotor_speeds[16:20]``. Code outside :mod:`droneulator.vehicles` names these fields
 through :data:`STATE` (``s[STATE.q]``) instead of writing the slices; the compiled kernels below
-index the vector directly.
+index the vector directly. Each step also accumulates the IMU quantities and touchdowns into an
+output vector laid out as :data:`OUTPUT`.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import numba
 import numpy as np
 
-from droneulator.frames_numba import quat_to_matrix, set_quat_from_yaw, yaw_of
+from droneulator.frames_numba import quat_to_matrix
 from droneulator.scenes.collision import sdf_lookup
 
+#: gravity of the model (m/s^2), as in RotorPy
+GRAVITY = 9.81
+
 # Layout of the packed parameter vector.
-_MASS, _G, _KETA, _KM, _KD, _KZ, _KH, _KFLAP, _TAU, _WMIN, _WMAX, _AERO, _GROUND, _BETA = range(14)
-_CD = 14  # 3 drag coefficients
-_INERTIA = 17  # 9 entries, row-major
-_INV_INERTIA = 26  # 9 entries
-_N_PARAMS = 35
+_MASS, _G, _KETA, _KM, _KD, _KZ, _KH, _KFLAP, _TAU, _WMIN, _WMAX, _AERO, _GROUND = range(13)
+# ground contact, per foot: stiffness (N/m), compression and rebound damping (N s/m), friction
+# coefficient, slip speed of the friction regularisation (m/s), foot depth below the body origin
+# (m), and the largest distance of a foot from the body origin (m)
+_CK, _CCOMP, _CREB, _MU, _VSLIP, _FOOT, _REACH = range(13, 20)
+_CD = 20  # 3 drag coefficients
+_INERTIA = 23  # 9 entries, row-major
+_INV_INERTIA = 32  # 9 entries
+_N_PARAMS = 41
 
 
 class StateLayout(NamedTuple):
@@ -59,16 +74,89 @@ class StateLayout(NamedTuple):
 STATE = StateLayout()
 STATE_SIZE = STATE.size
 
+# Layout of the step output vector (sums over the integrated time since the caller zeroed it).
+_OUT_SF, _OUT_ACC, _OUT_T, _OUT_TD_SPEED, _OUT_TD_T, _OUT_TD_X = 0, 3, 6, 7, 8, 9
+
+
+class OutputLayout(NamedTuple):
+    """Named parts of the vector :meth:`FastMultirotor.step` accumulates into.
+
+    ``specific_force``: integral over time of the body-frame (FLU) specific force, i.e. the
+    non-gravitational force per unit mass (m/s); ``delta_v``: integral of the world acceleration
+    (m/s); ``elapsed``: time integrated (s; less than the step when a scene collision stopped it);
+    ``touchdown_speed``: the largest downward speed (m/s) at which the feet touched the ground
+    (0 if they did not); ``touchdown_time``: when, in integrated time; ``touchdown_position``:
+    where the body origin was then (world, m).
+    """
+
+    specific_force: slice = slice(_OUT_SF, _OUT_SF + 3)
+    delta_v: slice = slice(_OUT_ACC, _OUT_ACC + 3)
+    elapsed: int = _OUT_T
+    touchdown_speed: int = _OUT_TD_SPEED
+    touchdown_time: int = _OUT_TD_T
+    touchdown_position: slice = slice(_OUT_TD_X, _OUT_TD_X + 3)
+
+
+#: the step output's layout
+OUTPUT = OutputLayout()
+OUTPUT_SIZE = _OUT_TD_X + 3
+
+
+@dataclass(frozen=True)
+class GroundContact:
+    """Four feet under the rotor hubs on spring-damper legs, with friction against the ground.
+
+    The rotor hubs touch too, so a vehicle that tips over rests on them (flat, not on its side)
+    and one upside down rests with its origin g / (2 pi f)^2 below the plane.
+
+    The legs are sized from the vehicle's mass so every parameter set behaves alike:
+    ``frequency_hz`` is the natural frequency of the vehicle bouncing on its four legs
+    (stiffness ``m (2 pi f)^2`` in total), ``damping_ratio`` the damping while a leg compresses
+    and ``rebound_damping_ratio`` while it extends (higher, like a shock absorber, so a touchdown
+    at hover thrust does not throw the vehicle back up). The feet sit ``g / (2 pi f)^2`` below the
+    rotor plane, so the vehicle rests with its body origin exactly at z = 0 under its own weight.
+    Friction is Coulomb with coefficient ``friction``, smoothed below ``slip_speed`` (m/s) into a
+    viscous law so that the stiff stick phase stays stable for RK4.
+    """
+
+    frequency_hz: float = 3.0
+    damping_ratio: float = 1.0
+    rebound_damping_ratio: float = 3.0
+    friction: float = 0.5
+    slip_speed: float = 0.05
+
+    def __post_init__(self) -> None:
+        for name in ("frequency_hz", "damping_ratio", "rebound_damping_ratio", "slip_speed"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"ground contact {name} must be a positive number, got {value!r}")
+        if not (math.isfinite(self.friction) and self.friction >= 0):
+            raise ValueError(f"ground contact friction must be >= 0, got {self.friction!r}")
+
+    @property
+    def omega(self) -> float:
+        return 2.0 * math.pi * self.frequency_hz
+
+    @property
+    def foot_depth(self) -> float:
+        """Distance of the feet below the rotor plane (m): the legs' compression under the weight."""
+        return GRAVITY / self.omega**2
+
 
 def pack_params(
-    quad_params: dict[str, Any], aero: bool = True, ground: bool = True
+    quad_params: dict[str, Any],
+    aero: bool = True,
+    ground: bool = True,
+    contact: GroundContact | None = None,
 ) -> tuple[np.ndarray, ...]:
     """Pack a RotorPy parameter dict into (scalars, rotor_geometry (4,3), rotor_directions (4,))."""
     if quad_params["num_rotors"] != 4:
         raise ValueError("only quadrotors are supported")
+    contact = contact or GroundContact()
+    mass = float(quad_params["mass"])
     p = np.zeros(_N_PARAMS)
-    p[_MASS] = quad_params["mass"]
-    p[_G] = 9.81
+    p[_MASS] = mass
+    p[_G] = GRAVITY
     p[_KETA] = quad_params["k_eta"]
     p[_KM] = quad_params["k_m"]
     p[_KD] = quad_params.get("k_d", 0.0)
@@ -80,7 +168,12 @@ def pack_params(
     p[_WMAX] = quad_params["rotor_speed_max"]
     p[_AERO] = 1.0 if aero else 0.0
     p[_GROUND] = 1.0 if ground else 0.0
-    p[_BETA] = min(0.5, max(0.1, float(quad_params.get("ground_friction_beta", 0.3))))
+    p[_CK] = mass * contact.omega**2 / 4.0
+    p[_CCOMP] = 2.0 * contact.damping_ratio * mass * contact.omega / 4.0
+    p[_CREB] = 2.0 * contact.rebound_damping_ratio * mass * contact.omega / 4.0
+    p[_MU] = contact.friction
+    p[_VSLIP] = contact.slip_speed
+    p[_FOOT] = contact.foot_depth
     p[_CD : _CD + 3] = [
         quad_params.get("c_Dx", 0.0),
         quad_params.get("c_Dy", 0.0),
@@ -97,26 +190,37 @@ def pack_params(
     p[_INV_INERTIA : _INV_INERTIA + 9] = np.linalg.inv(inertia).ravel()
     geometry = np.array([quad_params["rotor_pos"][k] for k in quad_params["rotor_pos"]], dtype=float)
     directions = np.asarray(quad_params["rotor_directions"], dtype=float)
+    p[_REACH] = float(np.max(np.hypot(np.hypot(geometry[:, 0], geometry[:, 1]), p[_FOOT])))
     return p, geometry, directions
 
 
 @numba.njit(cache=True)
-def state_derivative(
-    s: np.ndarray, cmd: np.ndarray, p: np.ndarray, geom: np.ndarray, dirs: np.ndarray
-) -> np.ndarray:
-    """d/dt of the packed state for constant commanded rotor speeds (RotorPy ``_s_dot_fn``)."""
-    ds = np.zeros(STATE_SIZE)
+def _derivative(
+    s: np.ndarray,
+    cmd: np.ndarray,
+    p: np.ndarray,
+    geom: np.ndarray,
+    dirs: np.ndarray,
+    ds: np.ndarray,
+    fb: np.ndarray,
+) -> None:
+    """Write d/dt of the packed state into ``ds`` and the body specific force (m/s^2) into ``fb``."""
     R = quat_to_matrix(s[6:10])
     qx, qy, qz, qw = s[6], s[7], s[8], s[9]
     wx, wy, wz = s[10], s[11], s[12]
     mass = p[_MASS]
 
     # position and quaternion kinematics (Graf's G matrix, unnormalised as in RotorPy)
-    ds[0:3] = s[3:6]
+    ds[0] = s[3]
+    ds[1] = s[4]
+    ds[2] = s[5]
     ds[6] = 0.5 * (qw * wx - qz * wy + qy * wz)
     ds[7] = 0.5 * (qz * wx + qw * wy - qx * wz)
     ds[8] = 0.5 * (-qy * wx + qx * wy + qw * wz)
     ds[9] = 0.5 * (-qx * wx - qy * wy - qz * wz)
+    ds[13] = 0.0
+    ds[14] = 0.0
+    ds[15] = 0.0
     # first-order motor lag
     for i in range(4):
         ds[16 + i] = (cmd[i] - s[16 + i]) / p[_TAU]
@@ -157,10 +261,14 @@ def state_derivative(
         M[1] += rz * fx - rx * fz
         M[2] += rx * fy - ry * fx + dirs[i] * p[_KM] * om * om
 
+    if p[_GROUND] > 0.5 and s[2] < p[_REACH]:
+        _contact(s, R, p, geom, F, M)
+
+    fb[0] = F[0] / mass
+    fb[1] = F[1] / mass
+    fb[2] = F[2] / mass
     Fw = R @ F
     Fw[2] -= mass * p[_G]
-    if p[_GROUND] > 0.5 and s[2] <= 0.001 and Fw[2] < 0.0:
-        Fw[2] = 0.0  # ground reaction cancels any net downward force
     ds[3:6] = Fw / mass
 
     J = p[_INERTIA : _INERTIA + 9].reshape(3, 3)
@@ -169,21 +277,89 @@ def state_derivative(
     Jw = J @ w
     gyro = np.array([wy * Jw[2] - wz * Jw[1], wz * Jw[0] - wx * Jw[2], wx * Jw[1] - wy * Jw[0]])
     ds[10:13] = Jinv @ (M - gyro)
+
+
+@numba.njit(cache=True)
+def _contact(
+    s: np.ndarray, R: np.ndarray, p: np.ndarray, geom: np.ndarray, F: np.ndarray, M: np.ndarray
+) -> None:
+    """Add the ground forces of the contact points (body frame) to ``F`` and their moments to ``M``.
+
+    The points are the four feet under the rotor hubs and the four hubs themselves, which catch a
+    vehicle that tips over or lands upside down. Each point below z = 0 gets a normal force from its spring
+    and damper (never pulling) and a friction force against its sliding velocity, Coulomb above the
+    slip speed, viscous below it. The spring force is written as the leg's share of the weight plus
+    the change from the rest compression, and summed in pairs, so that a level vehicle at rest at
+    z = 0 feels exactly its weight (no drift from rounding).
+    """
+    wx, wy, wz = s[10], s[11], s[12]
+    share = 0.25 * (p[_MASS] * p[_G])
+    ax = ay = az = 0.0  # points 0, 2, 4, 6
+    bx_ = by_ = bz_ = 0.0  # points 1, 3, 5, 7
+    for k in range(8):
+        bx, by = geom[k % 4, 0], geom[k % 4, 1]
+        bz = -p[_FOOT] if k < 4 else 0.0
+        depth = -(s[2] + R[2, 0] * bx + R[2, 1] * by + R[2, 2] * bz)
+        if depth <= 0.0:
+            continue
+        # the point's velocity in the world: v + R (w x b)
+        ux = wy * bz - wz * by
+        uy = wz * bx - wx * bz
+        uz = wx * by - wy * bx
+        vx = s[3] + R[0, 0] * ux + R[0, 1] * uy + R[0, 2] * uz
+        vy = s[4] + R[1, 0] * ux + R[1, 1] * uy + R[1, 2] * uz
+        vz = s[5] + R[2, 0] * ux + R[2, 1] * uy + R[2, 2] * uz
+        damping = p[_CCOMP] if vz < 0.0 else p[_CREB]
+        n = share + p[_CK] * (depth - p[_FOOT]) - damping * vz  # = k depth - c vz
+        if n <= 0.0:
+            continue
+        slip = math.sqrt(vx * vx + vy * vy + p[_VSLIP] * p[_VSLIP])
+        fx = -p[_MU] * n * vx / slip
+        fy = -p[_MU] * n * vy / slip
+        # the world force in the body frame: R^T f
+        gx = R[0, 0] * fx + R[1, 0] * fy + R[2, 0] * n
+        gy = R[0, 1] * fx + R[1, 1] * fy + R[2, 1] * n
+        gz = R[0, 2] * fx + R[1, 2] * fy + R[2, 2] * n
+        if k % 2 == 0:
+            ax += gx
+            ay += gy
+            az += gz
+        else:
+            bx_ += gx
+            by_ += gy
+            bz_ += gz
+        M[0] += by * gz - bz * gy
+        M[1] += bz * gx - bx * gz
+        M[2] += bx * gy - by * gx
+    F[0] += ax + bx_
+    F[1] += ay + by_
+    F[2] += az + bz_
+
+
+@numba.njit(cache=True)
+def state_derivative(
+    s: np.ndarray, cmd: np.ndarray, p: np.ndarray, geom: np.ndarray, dirs: np.ndarray
+) -> np.ndarray:
+    """d/dt of the packed state for constant commanded rotor speeds (RotorPy ``_s_dot_fn`` in the air)."""
+    ds = np.empty(STATE_SIZE)
+    _derivative(s, cmd, p, geom, dirs, ds, np.empty(3))
     return ds
 
 
 @numba.njit(cache=True)
-def _ground_contact(s: np.ndarray, p: np.ndarray) -> None:
-    """RotorPy's ground handling: clamp to z=0, no sinking, friction, level attitude (yaw kept)."""
-    s[2] = 0.0
-    if s[5] < 0.0:
-        s[5] = 0.0
-    s[3] *= 1.0 - p[_BETA]
-    s[4] *= 1.0 - p[_BETA]
-    s[10] = 0.0
-    s[11] = 0.0
-    s[12] = 0.0
-    set_quat_from_yaw(s[6:10], yaw_of(s[6:10]))
+def _touching(s: np.ndarray, p: np.ndarray, geom: np.ndarray) -> bool:
+    """True if any contact point (feet or hubs) is below the ground plane."""
+    if p[_GROUND] < 0.5 or s[2] >= p[_REACH]:
+        return False
+    qx, qy, qz, qw = s[6], s[7], s[8], s[9]
+    n2 = qx * qx + qy * qy + qz * qz + qw * qw
+    r20 = 2.0 * (qx * qz - qy * qw) / n2
+    r21 = 2.0 * (qy * qz + qx * qw) / n2
+    r22 = 1.0 - 2.0 * (qx * qx + qy * qy) / n2
+    lowest = s[2]
+    for i in range(4):
+        lowest = min(lowest, s[2] + r20 * geom[i, 0] + r21 * geom[i, 1] - max(r22, 0.0) * p[_FOOT])
+    return lowest < 0.0
 
 
 @numba.njit(cache=True)
@@ -199,31 +375,56 @@ def integrate(
     origin: np.ndarray,
     res: float,
     radius: float,
+    out: np.ndarray,
 ) -> bool:
     """Advance ``s`` in place by ``dt`` with ``n_sub`` RK4 steps under constant rotor commands.
 
     The collision model is queried after every sub-step; on contact the state is rolled back to
-    the last collision-free sub-step and True is returned.
+    the last collision-free sub-step and True is returned. ``out`` (:data:`OUTPUT` layout)
+    accumulates the RK4-weighted specific force and velocity change of every completed sub-step and
+    records the fastest touchdown of the feet on the ground.
     """
     cmd = np.empty(4)
     for i in range(4):
         cmd[i] = min(max(cmd_in[i], p[_WMIN]), p[_WMAX])
     h = dt / n_sub
     check = sdf.shape[0] > 1
+    n = STATE_SIZE
+    k1, k2, k3, k4 = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    f1, f2, f3, f4 = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    tmp = np.empty(n)
+    prev = np.empty(n)
+    touching = _touching(s, p, geom)
     for _ in range(n_sub):
-        prev = s.copy()
-        k1 = state_derivative(s, cmd, p, geom, dirs)
-        k2 = state_derivative(s + 0.5 * h * k1, cmd, p, geom, dirs)
-        k3 = state_derivative(s + 0.5 * h * k2, cmd, p, geom, dirs)
-        k4 = state_derivative(s + h * k3, cmd, p, geom, dirs)
-        s += (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+        prev[:] = s
+        _derivative(s, cmd, p, geom, dirs, k1, f1)
+        for j in range(n):
+            tmp[j] = s[j] + 0.5 * h * k1[j]
+        _derivative(tmp, cmd, p, geom, dirs, k2, f2)
+        for j in range(n):
+            tmp[j] = s[j] + 0.5 * h * k2[j]
+        _derivative(tmp, cmd, p, geom, dirs, k3, f3)
+        for j in range(n):
+            tmp[j] = s[j] + h * k3[j]
+        _derivative(tmp, cmd, p, geom, dirs, k4, f4)
+        for j in range(n):
+            s[j] += (h / 6.0) * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j])
         if check and sdf_lookup(sdf, origin, res, s[0:3]) < radius:
             s[:] = prev
             return True
-    n = math.sqrt(s[6] * s[6] + s[7] * s[7] + s[8] * s[8] + s[9] * s[9])
-    s[6:10] /= n
-    if p[_GROUND] > 0.5 and s[2] <= 0.001:
-        _ground_contact(s, p)
+        for j in range(3):
+            out[_OUT_SF + j] += (h / 6.0) * (f1[j] + 2.0 * f2[j] + 2.0 * f3[j] + f4[j])
+            out[_OUT_ACC + j] += s[3 + j] - prev[3 + j]
+        now = _touching(s, p, geom)
+        if now and not touching and -prev[5] > out[_OUT_TD_SPEED]:
+            out[_OUT_TD_SPEED] = -prev[5]
+            out[_OUT_TD_T] = out[_OUT_T] + h
+            for j in range(3):
+                out[_OUT_TD_X + j] = s[j]
+        touching = now
+        out[_OUT_T] += h
+    qn = math.sqrt(s[6] * s[6] + s[7] * s[7] + s[8] * s[8] + s[9] * s[9])
+    s[6:10] /= qn
     for i in range(4):
         s[16 + i] = min(max(s[16 + i], p[_WMIN]), p[_WMAX])
     return False
@@ -233,7 +434,8 @@ _NO_SDF = np.ones((1, 1, 1), dtype=np.float32)
 
 
 class FastMultirotor:
-    """RotorPy's ``Multirotor`` (``cmd_motor_speeds`` abstraction) with a compiled RK4 integrator."""
+    """RotorPy's ``Multirotor`` (``cmd_motor_speeds`` abstraction) with a compiled RK4 integrator
+    and spring-damper ground contact (:class:`GroundContact`; ``enable_ground=False``: no ground)."""
 
     def __init__(
         self,
@@ -241,14 +443,19 @@ class FastMultirotor:
         aero: bool = True,
         enable_ground: bool = True,
         substep: float = 1e-3,
+        contact: GroundContact | None = None,
     ) -> None:
         self.quad_params = quad_params
-        self.params, self.geometry, self.directions = pack_params(quad_params, aero, enable_ground)
+        self.contact = contact or GroundContact()
+        self.params, self.geometry, self.directions = pack_params(
+            quad_params, aero, enable_ground, self.contact
+        )
         self.substep = substep
         self._sdf = _NO_SDF
         self._origin = np.zeros(3)
         self._res = 1.0
         self._radius = 0.0
+        self._scratch = np.zeros(OUTPUT_SIZE)
 
     def set_collision(self, sdf: np.ndarray, origin: np.ndarray, resolution: float, radius: float) -> None:
         """Query this signed distance grid after every sub-step (sphere of ``radius``)."""
@@ -262,8 +469,19 @@ class FastMultirotor:
         """Rotor speed (rad/s) that balances the weight."""
         return math.sqrt(self.params[_MASS] * self.params[_G] / (4 * self.params[_KETA]))
 
-    def step(self, s: np.ndarray, cmd_motor_speeds: np.ndarray, dt: float) -> bool:
-        """Integrate state vector ``s`` in place; True if the vehicle touched the scene."""
+    def step(
+        self, s: np.ndarray, cmd_motor_speeds: np.ndarray, dt: float, out: np.ndarray | None = None
+    ) -> bool:
+        """Integrate state vector ``s`` in place; True if the vehicle touched the scene.
+
+        ``out`` (float64, :data:`OUTPUT` layout), when given, accumulates the step's specific force
+        and velocity change integrals and its touchdown; the caller zeroes it when a period starts.
+        """
+        if out is None:
+            out = self._scratch
+            out[:] = 0.0
+        elif out.shape != (OUTPUT_SIZE,) or out.dtype != np.float64:
+            raise ValueError(f"out must be a float64 vector of {OUTPUT_SIZE} (OUTPUT layout)")
         n_sub = max(1, math.ceil(dt / self.substep - 1e-9))
         return integrate(
             s,
@@ -277,6 +495,7 @@ class FastMultirotor:
             self._origin,
             self._res,
             self._radius,
+            out,
         )
 
 
