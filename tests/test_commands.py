@@ -143,6 +143,23 @@ def test_goals_in_other_frames_or_with_a_zero_quaternion_are_refused(rig, caplog
     wait(lambda: rig.sim.mode.value == "goto", "the valid goal to be flown")
 
 
+def test_the_flight_lock_can_cover_chosen_ops():
+    sim = Simulator(scene="default", render=False)
+    path = CommandPath(sim)
+    path.refuse_flight("a PX4 is connected", ops=("reset",))
+    assert path.execute(make_request("reset", {}))["error"]["code"] == "flight_locked"
+    assert path.execute(make_request("takeoff", {}))["ok"]
+    path.refuse_flight("PX4 flies")
+    refused = path.execute(make_request("hold", {}))["error"]
+    assert refused == {"code": "flight_locked", "message": "PX4 flies"}
+    assert path.execute(make_request("state", {}))["ok"]
+    path.allow_flight()
+    assert path.execute(make_request("hold", {}))["ok"]
+    with pytest.raises(ValueError):
+        path.refuse_flight("x", ops=("state",))
+    sim.close()
+
+
 def test_commands_never_interleave_with_a_step():
     """A command from any source waits for the simulation lock held by the stepping loop."""
     sim = Simulator(scene="default", render=False)

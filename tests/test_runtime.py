@@ -520,6 +520,9 @@ def test_px4_restart_mid_hover_keeps_the_altitude_until_the_new_px4_arms():
         time.sleep(0.3)
         assert c.state()["t_ns"] == t_held  # the clock is still PX4's: no message, no time
         c.hold()  # the simulator flies: flight commands are accepted
+        with pytest.raises(ApiError) as e:
+            c.reset()  # but not a reset: it would turn the connected PX4's lockstep clock back
+        assert e.value.code == "flight_locked" and "clock back" in e.value.message
         for _ in range(250):
             restarted.step(u_climb, armed=True)  # PX4 arms and takes over
         st = c.state()

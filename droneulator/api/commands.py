@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from contextlib import AbstractContextManager
 from typing import TYPE_CHECKING, Any
 
@@ -77,17 +77,24 @@ class CommandPath:
         self.sim = sim
         self.lock = lock if lock is not None else threading.Lock()
         self._flight_locked: str | None = None
+        self._locked_ops: frozenset[str] | None = None  # None: every flight op
         self._rejections = _RejectionLog()
 
     # ------------------------------------------------------------------ flight lock
-    def refuse_flight(self, reason: str) -> None:
-        """Answer every flight command with ``flight_locked`` and ``reason`` until :meth:`allow_flight`."""
+    def refuse_flight(self, reason: str, ops: Collection[str] | None = None) -> None:
+        """Answer flight commands (all, or only ``ops``) with ``flight_locked`` and ``reason`` until
+        :meth:`allow_flight`."""
         if not reason:
             raise ValueError("refuse_flight needs a reason for the clients")
+        unknown = set(ops or ()) - {name for name, op in OPS.items() if op.flight}
+        if unknown:
+            raise ValueError(f"not flight ops: {', '.join(sorted(unknown))}")
         self._flight_locked = reason
+        self._locked_ops = None if ops is None else frozenset(ops)
 
     def allow_flight(self) -> None:
         self._flight_locked = None
+        self._locked_ops = None
 
     @property
     def flight_locked(self) -> str | None:
@@ -113,7 +120,8 @@ class CommandPath:
         with self.lock:
             if closing is not None and closing.is_set():
                 return error_reply(request.id, "internal_error", "the server is shutting down")
-            return execute(self.sim, request, flight_locked=self._flight_locked)
+            locked = self._locked_ops is None or request.op in self._locked_ops
+            return execute(self.sim, request, flight_locked=self._flight_locked if locked else None)
 
     def submit(self, source: str, op: str, args: Mapping[str, Any]) -> dict[str, Any]:
         """Validate and run ``op`` from a source that has no client to answer (e.g. ``"ROS cmd_vel"``).

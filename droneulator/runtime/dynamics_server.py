@@ -252,6 +252,12 @@ class DynamicsServer:
         stepped_wall_ns = time.time_ns()
         for event in self.px4.take_events():
             self.api.publish_event(event.to_dict())
+        if self.px4.connected and not self.px4.in_control and self.commands.flight_locked is None:
+            # a PX4 that is connected but not flying (booting over a held vehicle) keeps the clock:
+            # resetting would turn its lockstep clock back
+            self.commands.refuse_flight("a PX4 is connected: reset would turn its clock back", ops=("reset",))
+        elif not self.px4.connected and not self._px4_in_control and self.commands.flight_locked is not None:
+            self.commands.allow_flight()
         if self.px4.in_control != self._px4_in_control:
             self._px4_in_control = self.px4.in_control
             if self._px4_in_control:
