@@ -240,7 +240,7 @@ def test_position_commands_over_zenoh_fly_droneulator_run_and_the_camera_pose_is
                 )
                 for m in odom
             ]
-            assert len(errors) > 200 and max(errors) < 0.08, max(errors)
+            assert len(errors) > 200 and max(errors) < 0.06, max(errors)
             assert client.state()["mode"] == "hold"
             assert np.linalg.norm(np.array(client.state()["position"]) - start - [1.5, 0, 0]) < 0.05
 
