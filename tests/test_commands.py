@@ -15,6 +15,7 @@ from rosbags.typesys import Stores, get_typestore
 from droneulator.api.commands import CommandPath
 from droneulator.api.protocol import make_request
 from droneulator.config import load_config
+from droneulator.ros import messages as M
 from droneulator.ros.publishers import subscribe_commands
 from droneulator.ros.zenoh_node import RosZenohNode, ZenohNodeConfig
 from droneulator.runtime.launch import free_port
@@ -58,6 +59,7 @@ class Rig:
         self.peer = zenoh.open(conf)
         self.cmd_vel = self.peer.declare_publisher("droneulator/cmd_vel")
         self.goal_pose = self.peer.declare_publisher("droneulator/goal_pose")
+        self.position_cmd = self.peer.declare_publisher("droneulator/position_cmd")
         deadline = time.monotonic() + 10
         while not self.cmd_vel.matching_status.matching:
             assert time.monotonic() < deadline, "the command subscriptions never matched"
@@ -158,6 +160,50 @@ def test_the_flight_lock_can_cover_chosen_ops():
     with pytest.raises(ValueError):
         path.refuse_flight("x", ops=("state",))
     sim.close()
+
+
+def setpoint(frame: str, xyz: tuple[float, float, float], yaw: float = 0.0) -> bytes:
+    return bytes(M.serialize(M.position_command(0, frame, xyz, (0.2, 0.0, 0.0), (0.0, 0.0, 0.1), yaw, 0.1)))
+
+
+def test_position_commands_follow_the_api_rules_and_the_flight_lock(rig, caplog):
+    caplog.set_level(logging.WARNING, logger="droneulator.commands")
+    rig.position_cmd.put(setpoint("world", (0.0, 0.0, 2.0)))
+    wait(lambda: rejections(caplog), "the setpoint on the ground to be refused")
+    assert "/droneulator/position_cmd track command rejected (not_airborne)" in rejections(caplog)[0]
+
+    with rig.commands.lock:
+        rig.sim.takeoff(2.0)
+    rig.commands.refuse_flight("PX4 SITL is in control")
+    caplog.clear()
+    for _ in range(20):
+        rig.position_cmd.put(setpoint("world", (0.5, 0.0, 2.0)))
+    wait(lambda: rejections(caplog), "the locked setpoints to be refused")
+    time.sleep(0.3)
+    refused = "position_cmd track command rejected (flight_locked): PX4 SITL is in control"
+    assert sum(refused in m for m in rejections(caplog)) == 1  # once per burst
+    assert rig.sim.mode.value == "takeoff"
+
+    rig.commands.allow_flight()
+    caplog.clear()
+    rig.position_cmd.put(setpoint("base_link", (0.5, 0.0, 2.0)))
+    rig.position_cmd.put(setpoint("odom", (0.5, 0.0, 500.0)))
+    rig.position_cmd.put(setpoint("map", (0.5, 0.0, 2.0), yaw=math.nan))
+    wait(lambda: len(rejections(caplog)) >= 4, "the burst summary and the three bad setpoints")
+    summary, *msgs = rejections(caplog)
+    assert summary == "19 more ROS /droneulator/position_cmd track commands rejected (flight_locked)"
+    assert "setpoint in frame 'base_link': only world/map/odom" in msgs[0]
+    assert "rejected (out_of_bounds)" in msgs[1]
+    assert "`yaw` must be a finite number" in msgs[2]
+    assert rig.sim.mode.value == "takeoff"
+
+    rig.position_cmd.put(setpoint("world", (0.5, 0.25, 2.0), yaw=0.5))
+    wait(lambda: rig.sim.mode.value == "track", "the setpoint to be tracked")
+    with rig.commands.lock:
+        rig.sim.step()  # the first control tick after the setpoint: its reference is the setpoint itself
+        ref = rig.sim.state.reference
+    assert ref[0:3].tolist() == [0.5, 0.25, 2.0] and ref[3:6].tolist() == [0.2, 0.0, 0.0]
+    assert ref[6:9].tolist() == [0.0, 0.0, 0.1] and (ref[9], ref[10]) == (0.5, 0.1)
 
 
 def test_commands_never_interleave_with_a_step():

@@ -28,12 +28,14 @@ def test_names_and_types_are_the_documented_ones():
         "odom": "/uav1/odom",
         "cmd_vel": "/uav1/cmd_vel",
         "goal_pose": "/uav1/goal_pose",
+        "position_cmd": "/uav1/position_cmd",
         "rgb": "/uav1/down/color/image_raw/compressed",
         "depth": "/uav1/down/depth/image_raw",
         "seg": "/uav1/down/segmentation/image_raw/compressed",
         "info_rgb": "/uav1/down/color/camera_info",
         "info_depth": "/uav1/down/depth/camera_info",
         "info_seg": "/uav1/down/segmentation/camera_info",
+        "pose": "/uav1/down/pose",
     }
     assert set(T.TYPES) == set(names)
     for typename in T.TYPES.values():

@@ -39,7 +39,7 @@ ERROR_CODES: dict[str, str] = {
     "rate_hz); the message gives the range",
     "below_ground": "a target altitude is not above the ground (z <= 0; a reset position may be z = 0)",
     "out_of_bounds": "a target lies outside the scene's flyable bounds (see `scene_info`)",
-    "not_airborne": "`velocity`, `hold` or `land` while the motors are off: take off first",
+    "not_airborne": "`velocity`, `track`, `hold` or `land` while the motors are off: take off first",
     "flight_locked": "flight commands are refused because another controller (e.g. PX4) is in control; "
     "the message says why",
     "message_too_large": "the message is longer than the server's limit (64 KiB by default); it is "
@@ -129,6 +129,11 @@ def _goto(sim: Simulator, a: dict[str, Any]) -> dict[str, Any]:
 
 def _velocity(sim: Simulator, a: dict[str, Any]) -> dict[str, Any]:
     sim.velocity(a["forward"], a["yaw_rate"])
+    return _when(sim)
+
+
+def _track(sim: Simulator, a: dict[str, Any]) -> dict[str, Any]:
+    sim.track(a["position"], a.get("velocity"), a.get("acceleration"), a.get("yaw"), a.get("yaw_rate", 0.0))
     return _when(sim)
 
 
@@ -248,6 +253,24 @@ OPS: dict[str, Op] = {
             flight=True,
         ),
         Op(
+            "track",
+            "Track one setpoint of a stream (e.g. a planner's, like EGO-Planner's PositionCommand on "
+            "`/<ns>/position_cmd`): the SE(3) controller takes it as its reference, propagated with "
+            "constant acceleration and yaw rate until the next one. Send them at 20 Hz or more: after "
+            "0.5 s of sim time without one the vehicle holds where it is and a `track_timeout` event "
+            "follows. Needs the vehicle airborne.",
+            f"`t`: {_T}",
+            (
+                Arg("position", "vec3", "reference [x, y, z] in the world frame (ENU, z up), m", True),
+                Arg("velocity", "vec3", "velocity feed-forward, m/s, world, norm <= max_speed (default 0)"),
+                Arg("acceleration", "vec3", "acceleration feed-forward, m/s^2, world, |a| <= 10 (default 0)"),
+                Arg("yaw", "number", "heading, rad about +z, 0 = +x, CCW positive (default: kept)"),
+                Arg("yaw_rate", "number", "heading rate feed-forward, rad/s, |yaw_rate| <= pi (default 0)"),
+            ),
+            _track,
+            flight=True,
+        ),
+        Op(
             "hold",
             "Hover at the current position and heading.",
             f"`t`: {_T}",
@@ -285,8 +308,8 @@ OPS: dict[str, Op] = {
             "simulator's monotonic clock, which keeps counting across resets and stamps every ROS message "
             "(equal to `t_ns` before the first reset); `position` [x, y, z] (m, world); "
             "`velocity` (m/s, world); `quaternion` [x, y, z, w] (body FLU to world); `angular_velocity` "
-            "(rad/s, body); `yaw` (rad); `mode` (`idle`, `takeoff`, `goto`, `hold`, `velocity`, `land`, "
-            "`collided`)",
+            "(rad/s, body); `yaw` (rad); `mode` (`idle`, `takeoff`, `goto`, `hold`, `velocity`, `track`, "
+            "`land`, `collided`)",
             (),
             _state,
         ),

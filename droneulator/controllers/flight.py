@@ -3,6 +3,9 @@
 * ``goto``/``takeoff``/``land``: a minimum-snap reference from the current state to the target;
 * ``velocity``: the unicycle velocity mode of :mod:`droneulator.controllers.velocity`;
 * ``hold``: a constant reference at the current position and heading;
+* ``track``: an external setpoint stream (position, velocity, acceleration feed-forward, yaw, yaw rate;
+  e.g. EGO-Planner's ``PositionCommand``) fed straight to the SE(3) controller as its flat output; when
+  no setpoint arrives for :data:`TRACK_TIMEOUT` s of sim time the vehicle holds where it is;
 * ``idle``: motors off (rests on the ground);
 * ``collided``: the vehicle stopped against the scene until the next command;
 * ``external``: rotor speeds set directly by an autopilot (PX4 SITL), no controller in the loop.
@@ -10,6 +13,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -18,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from droneulator.config import FlightConfig
-from droneulator.controllers.se3 import FastSE3Control
+from droneulator.controllers.se3 import FLAT_SIZE, FastSE3Control
 from droneulator.controllers.velocity import VelocityReference
 from droneulator.frames import yaw_of
 from droneulator.trajectories.minsnap import PolyTrajectory, goto_trajectory, hold_trajectory
@@ -26,6 +30,12 @@ from droneulator.vehicles.dynamics import STATE
 
 LAND_SPEED = 0.6
 TOUCHDOWN_ALTITUDE = 0.03
+#: sim seconds without a ``track`` setpoint after which the vehicle holds (raising ``track_timeout``)
+TRACK_TIMEOUT = 0.5
+#: largest ``track`` acceleration feed-forward, m/s^2 (about what the default airframe's thrust margin allows)
+TRACK_MAX_ACCEL = 10.0
+
+log = logging.getLogger("droneulator.flight")
 
 
 class Mode(StrEnum):
@@ -34,6 +44,7 @@ class Mode(StrEnum):
     GOTO = "goto"
     HOLD = "hold"
     VELOCITY = "velocity"
+    TRACK = "track"
     LAND = "land"
     COLLIDED = "collided"
     #: rotor speeds commanded from outside (PX4 SITL actuator outputs)
@@ -42,8 +53,9 @@ class Mode(StrEnum):
 
 @dataclass
 class Event:
-    """Something that happened at sim time ``t`` (seconds): ``arrived``, ``landed``, ``collision`` or
-    ``impact`` (a hard touchdown, raised by the simulator)."""
+    """Something that happened at sim time ``t`` (seconds): ``arrived``, ``landed``, ``collision``,
+    ``track_timeout`` (setpoints stopped, now holding) or ``impact`` (a hard touchdown, raised by the
+    simulator)."""
 
     type: str
     t: float
@@ -66,10 +78,13 @@ class FlightController:
         self.target_yaw = 0.0
         self._zero = np.zeros(4)
         self._external = np.zeros(4)
+        self._setpoint = np.zeros(FLAT_SIZE)  # the latest track setpoint, packed like a flat output
+        self._setpoint_t = 0.0
+        self._track_flat = np.zeros(FLAT_SIZE)
 
     @property
     def airborne_modes(self) -> tuple[Mode, ...]:
-        return (Mode.TAKEOFF, Mode.GOTO, Mode.HOLD, Mode.VELOCITY, Mode.LAND, Mode.COLLIDED)
+        return (Mode.TAKEOFF, Mode.GOTO, Mode.HOLD, Mode.VELOCITY, Mode.TRACK, Mode.LAND, Mode.COLLIDED)
 
     # ------------------------------------------------------------------ commands
     def motors_off(self) -> None:
@@ -139,6 +154,39 @@ class FlightController:
         self.trajectory, self.target = None, None
         self.mode = Mode.VELOCITY
 
+    def track(
+        self,
+        t: float,
+        position: np.ndarray,
+        velocity: np.ndarray,
+        acceleration: np.ndarray,
+        yaw: float,
+        yaw_rate: float,
+    ) -> None:
+        """Take one setpoint received at sim time ``t`` as the SE(3) reference (world frame, ENU).
+
+        Between setpoints the reference is propagated with constant acceleration and yaw rate from the
+        latest one (a 100 Hz planner and a faster control loop stay smooth); after
+        :data:`TRACK_TIMEOUT` s without a new one, :meth:`update` switches to ``hold``.
+        """
+        f = self._setpoint
+        f[0:3], f[3:6], f[6:9] = position, velocity, acceleration
+        f[9], f[10] = yaw, yaw_rate
+        self._setpoint_t = float(t)
+        self.trajectory, self.velocity_ref = None, None
+        self.target, self.target_yaw = np.array(position, dtype=float), float(yaw)
+        self.mode = Mode.TRACK
+
+    def _track_reference(self, t: float) -> np.ndarray:
+        tau = max(0.0, t - self._setpoint_t)
+        sp, f = self._setpoint, self._track_flat
+        f[0:3] = sp[0:3] + sp[3:6] * tau + 0.5 * sp[6:9] * tau * tau
+        f[3:6] = sp[3:6] + sp[6:9] * tau
+        f[6:9] = sp[6:9]
+        f[9] = sp[9] + sp[10] * tau
+        f[10] = sp[10]
+        return f
+
     def external(self, rotor_speeds: np.ndarray) -> None:
         """Hand the rotors to an external controller: these speeds (rad/s, RotorPy order) until changed."""
         self._external[:] = rotor_speeds
@@ -155,9 +203,17 @@ class FlightController:
             return self._zero, None, events
         if self.mode == Mode.EXTERNAL:
             return self._external, None, events
+        if self.mode == Mode.TRACK and t - self._setpoint_t > TRACK_TIMEOUT:
+            age = t - self._setpoint_t
+            self.hold(s, t)
+            log.warning("no track setpoint for %.2f s of sim time: holding at %s", age,
+                        np.round(s[STATE.x], 3).tolist())
+            events.append(Event("track_timeout", t, {"position": s[STATE.x].tolist(), "age": age}))
         if self.mode == Mode.VELOCITY:
             assert self.velocity_ref is not None
             flat = self.velocity_ref.update(dt, s[STATE.x])
+        elif self.mode == Mode.TRACK:
+            flat = self._track_reference(t)
         else:
             assert self.trajectory is not None
             flat = self.trajectory.flat(t)

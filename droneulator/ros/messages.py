@@ -26,11 +26,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 from rosbags.serde import SerdeError
-from rosbags.typesys import Stores, get_typestore
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from droneulator.frames import yaw_of
 
 __all__ = [
+    "POSITION_COMMAND",
+    "POSITION_COMMAND_MSG",
     "TYPESTORE",
     "CdrBytes",
     "SerdeError",
@@ -42,6 +44,8 @@ __all__ = [
     "header",
     "image",
     "odometry",
+    "pose_stamped",
+    "position_command",
     "pose_stamped_to_goal",
     "serialize",
     "stamp",
@@ -53,6 +57,38 @@ __all__ = [
 
 #: the one typestore every builder and decoder uses (ROS 2 Jazzy definitions and RIHS01 hashes)
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+
+#: ``quadrotor_msgs/msg/PositionCommand``, the trajectory server output of ZJU-FAST-Lab's EGO-Planner,
+#: field for field as in ZJU-FAST-Lab/ego-planner-swarm
+#: ``src/uav_simulator/Utils/quadrotor_msgs/msg/PositionCommand.msg`` (the misspelt ``TRAJECTROY`` is
+#: theirs). Positions, velocities and accelerations are world-frame (ENU) values, yaw in rad about +z.
+POSITION_COMMAND = "quadrotor_msgs/msg/PositionCommand"
+POSITION_COMMAND_MSG = """\
+std_msgs/Header header
+geometry_msgs/Point position
+geometry_msgs/Vector3 velocity
+geometry_msgs/Vector3 acceleration
+float64 yaw
+float64 yaw_dot
+float64[3] kx
+float64[3] kv
+
+uint32 trajectory_id
+
+uint8 TRAJECTORY_STATUS_EMPTY = 0
+uint8 TRAJECTORY_STATUS_READY = 1
+uint8 TRAJECTORY_STATUS_COMPLETED = 3
+uint8 TRAJECTROY_STATUS_ABORT = 4
+uint8 TRAJECTORY_STATUS_ILLEGAL_START = 5
+uint8 TRAJECTORY_STATUS_ILLEGAL_FINAL = 6
+uint8 TRAJECTORY_STATUS_IMPOSSIBLE = 7
+
+uint8 trajectory_flag
+"""
+# Registered like any Jazzy type: builders, decode() and the Zenoh node (which keys topics by the
+# RIHS01 hash) handle it the same way. rosbags hashes a registered type from its field descriptions
+# exactly as rosidl does (REP 2011: fields and nested types, no constants or comments).
+TYPESTORE.register(get_types_from_msg(POSITION_COMMAND_MSG, POSITION_COMMAND))
 
 #: a serialised sample: ``bytes`` or the ``bytearray`` rosbags serialised into (Zenoh takes both)
 CdrBytes = bytes | bytearray
@@ -76,6 +112,8 @@ _CameraInfo = _T["sensor_msgs/msg/CameraInfo"]
 _RegionOfInterest = _T["sensor_msgs/msg/RegionOfInterest"]
 _CompressedImage = _T["sensor_msgs/msg/CompressedImage"]
 _Image = _T["sensor_msgs/msg/Image"]
+_PoseStamped = _T["geometry_msgs/msg/PoseStamped"]
+_PositionCommand = _T[POSITION_COMMAND]
 
 _NS_PER_S = 1_000_000_000
 
@@ -210,6 +248,48 @@ def camera_info(t_ns: int, frame_id: str, width: int, height: int, K: ArrayLike)
         binning_x=0,
         binning_y=0,
         roi=_RegionOfInterest(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
+    )
+
+
+def pose_stamped(t_ns: int, frame_id: str, position: ArrayLike, quat_xyzw: ArrayLike) -> Any:
+    """geometry_msgs/PoseStamped: a pose in ``frame_id`` (e.g. a camera's optical frame in odom)."""
+    px, py, pz = _vec3(position, "position")
+    pose = _Pose(position=_Point(x=px, y=py, z=pz), orientation=_quat(quat_xyzw))
+    return _PoseStamped(header=header(t_ns, frame_id), pose=pose)
+
+
+def position_command(
+    t_ns: int,
+    frame_id: str,
+    position: ArrayLike,
+    velocity: ArrayLike = (0.0, 0.0, 0.0),
+    acceleration: ArrayLike = (0.0, 0.0, 0.0),
+    yaw: float = 0.0,
+    yaw_dot: float = 0.0,
+    trajectory_id: int = 0,
+    trajectory_flag: int = 1,
+    kx: ArrayLike = (0.0, 0.0, 0.0),
+    kv: ArrayLike = (0.0, 0.0, 0.0),
+) -> Any:
+    """quadrotor_msgs/PositionCommand (EGO-Planner's): a flat-output setpoint in ``frame_id``.
+
+    ``trajectory_flag`` defaults to ``TRAJECTORY_STATUS_READY`` (1); ``kx``/``kv`` are the optional
+    per-axis gains EGO's ``so3_control`` reads, zero meaning "use your own".
+    """
+    px, py, pz = _vec3(position, "position")
+    vx, vy, vz = _vec3(velocity, "velocity")
+    ax, ay, az = _vec3(acceleration, "acceleration")
+    return _PositionCommand(
+        header=header(t_ns, frame_id),
+        position=_Point(x=px, y=py, z=pz),
+        velocity=_Vector3(x=vx, y=vy, z=vz),
+        acceleration=_Vector3(x=ax, y=ay, z=az),
+        yaw=float(yaw),
+        yaw_dot=float(yaw_dot),
+        kx=np.array(_vec3(kx, "kx"), dtype=np.float64),
+        kv=np.array(_vec3(kv, "kv"), dtype=np.float64),
+        trajectory_id=int(trajectory_id),
+        trajectory_flag=int(trajectory_flag),
     )
 
 

@@ -3,9 +3,9 @@
 * :class:`StatePublisher`: ``/clock``, ``/<ns>/odom``, ``/tf`` and ``/tf_static``. It runs in the process
   that owns the vehicle state (the dynamics server), right after the physics step that produced the
   state, so odometry never waits for another process.
-* :class:`FramePublisher`: every camera's images and camera_info (the bridge process).
-* :func:`subscribe_commands`: ``/<ns>/cmd_vel`` and ``/<ns>/goal_pose`` into the one
-  :class:`~droneulator.api.commands.CommandPath`, with the WebSocket API's validation and flight lock.
+* :class:`FramePublisher`: every camera's images, camera_info and optical-frame pose (the bridge process).
+* :func:`subscribe_commands`: ``/<ns>/cmd_vel``, ``/<ns>/goal_pose`` and ``/<ns>/position_cmd`` into the
+  one :class:`~droneulator.api.commands.CommandPath`, with the WebSocket API's validation and flight lock.
 
 Everything is stamped with the simulator's monotonic clock (:attr:`VehicleState.stamp_ns`), which
 never runs backwards, not even across a reset.
@@ -18,7 +18,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from droneulator.frames import T_link_optical, camera_mount, pose_from_transform, yaw_of
+from droneulator.frames import (
+    T_link_optical,
+    T_world_optical,
+    camera_mount,
+    pose_from_transform,
+    transform_from_pose,
+    yaw_of,
+)
 from droneulator.frames_numba import world_to_body
 from droneulator.imaging import encode_jpeg, encode_png
 from droneulator.ros import messages as M
@@ -80,7 +87,9 @@ class StatePublisher:
 
 
 class FramePublisher:
-    """Every camera's JPEG colour, 32FC1 depth, PNG segmentation and their camera_info.
+    """Every camera's JPEG colour, 32FC1 depth, PNG segmentation, their camera_info, and the pose of its
+    optical frame in ``odom`` (``geometry_msgs/PoseStamped`` on ``/<ns>/<cam>/pose``, what EGO-Planner's
+    grid map takes with ``pose_type`` 1), all stamped with the same instant.
 
     ``congestion_control`` is the Zenoh policy for the images: ``BLOCK`` in lockstep (nothing a
     subscriber asked for is lost; the simulation clock waits for the slowest one), ``DROP`` in real
@@ -102,7 +111,8 @@ class FramePublisher:
                 k: node.publisher(names[k], TYPES[k], congestion_control=policy if k in _IMAGES else None)
                 for k in names
             }
-            self.cams.append((cam, optical_frame(cam.name), intrinsics(cam), pubs))
+            mount = camera_mount(np.array(cam.position), cam.rpy)
+            self.cams.append((cam, optical_frame(cam.name), intrinsics(cam), mount, pubs))
 
     def publish(self, st: VehicleState, images: dict[str, CameraImages], mark: Any = None) -> None:
         """Publish one frame set, every image stamped ``st.stamp_ns`` with its optical frame id.
@@ -110,11 +120,14 @@ class FramePublisher:
         ``mark(stream, stamp_ns)``, if given, is called just before each image is encoded (latency logs).
         """
         t = st.stamp_ns
-        for cam, frame_id, K, pubs in self.cams:
+        T_world_body = transform_from_pose(st.position, st.quaternion)
+        for cam, frame_id, K, mount, pubs in self.cams:
             im = images[cam.name]
             info = M.serialize(M.camera_info(t, frame_id, cam.width, cam.height, K))
             for key in ("info_rgb", "info_depth", "info_seg"):
                 pubs[key].publish(info, t)
+            cam_p, cam_q = pose_from_transform(T_world_optical(T_world_body, mount))
+            pubs["pose"].publish(M.serialize(M.pose_stamped(t, ODOM_FRAME, cam_p, cam_q)), t)
             if mark is not None:
                 mark("rgb", t)
             jpeg = encode_jpeg(im.rgb, self.jpeg_quality)
@@ -127,13 +140,19 @@ class FramePublisher:
 
 
 def subscribe_commands(node: RosZenohNode, cfg: SimConfig, commands: CommandPath) -> None:
-    """``cmd_vel`` -> ``velocity`` and ``goal_pose`` -> ``goto``, through the one command path.
+    """``cmd_vel`` -> ``velocity``, ``goal_pose`` -> ``goto`` and ``position_cmd`` -> ``track``, through
+    the one command path.
+
+    A PositionCommand's ``kx``/``kv`` gains, ``trajectory_id`` and ``trajectory_flag`` are not used: the
+    simulator's SE(3) gains apply. Its frame may be ``world`` (EGO-Planner's name for it), ``map``,
+    ``odom`` or empty: all are the simulator's world frame.
 
     Values are passed on unchecked: the command path validates them exactly as it validates a
     WebSocket request (NaN, ranges, bounds, flight lock), and logs a rejection once per burst.
     """
     topics = _vehicle_topics(cfg.bridge.namespace)
     src_vel, src_goal = f"ROS {topics['cmd_vel']}", f"ROS {topics['goal_pose']}"
+    src_track = f"ROS {topics['position_cmd']}"
 
     def on_cmd_vel(msg: Any) -> None:
         args = {"forward": float(msg.linear.x), "yaw_rate": float(msg.angular.z)}
@@ -150,5 +169,23 @@ def subscribe_commands(node: RosZenohNode, cfg: SimConfig, commands: CommandPath
         yaw = yaw_of(quat) if math.isfinite(norm) and norm > 1e-6 else math.nan  # nan: rejected as invalid
         commands.submit(src_goal, "goto", {"position": [float(p.x), float(p.y), float(p.z)], "yaw": yaw})
 
+    def on_position_cmd(msg: Any) -> None:
+        frame = msg.header.frame_id
+        if frame not in ("", "world", MAP_FRAME, ODOM_FRAME):
+            commands.reject(
+                src_track, "track", "invalid_argument", f"setpoint in frame {frame!r}: only world/map/odom"
+            )
+            return
+        p, v, a = msg.position, msg.velocity, msg.acceleration
+        args = {
+            "position": [float(p.x), float(p.y), float(p.z)],
+            "velocity": [float(v.x), float(v.y), float(v.z)],
+            "acceleration": [float(a.x), float(a.y), float(a.z)],
+            "yaw": float(msg.yaw),
+            "yaw_rate": float(msg.yaw_dot),
+        }
+        commands.submit(src_track, "track", args)
+
     node.subscribe(topics["cmd_vel"], TYPES["cmd_vel"], on_cmd_vel)
     node.subscribe(topics["goal_pose"], TYPES["goal_pose"], on_goal_pose)
+    node.subscribe(topics["position_cmd"], TYPES["position_cmd"], on_position_cmd)

@@ -8,6 +8,8 @@ client, the benchmarks) finds them here instead of spelling them out itself::
     /tf, /tf_static                                  tf2_msgs/TFMessage
     /<ns>/odom                                       nav_msgs/Odometry
     /<ns>/cmd_vel, /<ns>/goal_pose       (in)        geometry_msgs/Twist, geometry_msgs/PoseStamped
+    /<ns>/position_cmd                   (in)        quadrotor_msgs/PositionCommand (EGO-Planner's)
+    /<ns>/<cam>/pose                                 geometry_msgs/PoseStamped (optical frame in odom)
     /<ns>/<cam>/{color,depth,segmentation}/camera_info   sensor_msgs/CameraInfo
     /<ns>/<cam>/color/image_raw/compressed           sensor_msgs/CompressedImage (jpeg)
     /<ns>/<cam>/depth/image_raw                      sensor_msgs/Image (32FC1, metres, NaN = no return)
@@ -45,6 +47,8 @@ TYPES: dict[str, str] = {
     "odom": "nav_msgs/msg/Odometry",
     "cmd_vel": "geometry_msgs/msg/Twist",
     "goal_pose": "geometry_msgs/msg/PoseStamped",
+    "position_cmd": "quadrotor_msgs/msg/PositionCommand",
+    "pose": "geometry_msgs/msg/PoseStamped",
     "rgb": "sensor_msgs/msg/CompressedImage",
     "depth": "sensor_msgs/msg/Image",
     "seg": "sensor_msgs/msg/CompressedImage",
@@ -60,7 +64,11 @@ def _check_name(what: str, name: str) -> None:
 
 
 def topic_names(ns: str, cam: str) -> dict[str, str]:
-    """Image and camera_info topics of camera ``cam`` under namespace ``ns`` (keys as in :data:`TYPES`)."""
+    """Image, camera_info and pose topics of camera ``cam`` under namespace ``ns`` (keys as in :data:`TYPES`).
+
+    ``pose`` is the optical frame's pose in ``odom``, stamped like the images (EGO-Planner's grid map
+    input with ``pose_type`` 1).
+    """
     _check_name("namespace", ns)
     _check_name("camera name", cam)
     base = f"/{ns}/{cam}"
@@ -71,6 +79,7 @@ def topic_names(ns: str, cam: str) -> dict[str, str]:
         "info_rgb": f"{base}/color/camera_info",
         "info_depth": f"{base}/depth/camera_info",
         "info_seg": f"{base}/segmentation/camera_info",
+        "pose": f"{base}/pose",
     }
 
 
@@ -89,6 +98,7 @@ def vehicle_topics(ns: str) -> dict[str, str]:
         "odom": f"/{ns}/odom",
         "cmd_vel": f"/{ns}/cmd_vel",
         "goal_pose": f"/{ns}/goal_pose",
+        "position_cmd": f"/{ns}/position_cmd",
     }
 
 

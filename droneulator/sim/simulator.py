@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from droneulator.config import SimConfig, load_config
-from droneulator.controllers.flight import Event, FlightController, Mode
+from droneulator.controllers.flight import TRACK_MAX_ACCEL, Event, FlightController, Mode
 from droneulator.frames import quat_from_yaw, transform_from_pose, yaw_of
 from droneulator.frames_numba import world_to_body
 from droneulator.scenes import get_scene
@@ -317,6 +317,48 @@ class Simulator:
             raise CommandError("out_of_range", f"need |forward| <= {lim} m/s and |yaw_rate| <= pi rad/s")
         self._require_airborne("velocity")
         self.flight.velocity(self.s, self.t, float(forward), float(yaw_rate))
+
+    def track(
+        self,
+        position: Any,
+        velocity: Any = None,
+        acceleration: Any = None,
+        yaw: float | None = None,
+        yaw_rate: float = 0.0,
+    ) -> None:
+        """Track mode: one setpoint (position, velocity and acceleration feed-forward, yaw, yaw rate;
+        world frame) for the SE(3) controller, e.g. from a planner's PositionCommand stream.
+
+        ``yaw`` None keeps the current heading. A stream must keep coming: after
+        :data:`~droneulator.controllers.flight.TRACK_TIMEOUT` s of sim time without one the vehicle holds.
+        """
+        vecs = []
+        for name, v in (("position", position), ("velocity", velocity), ("acceleration", acceleration)):
+            try:
+                a = np.zeros(3) if v is None and name != "position" else np.asarray(v, dtype=float)
+            except (TypeError, ValueError):
+                raise CommandError("invalid_argument", f"{name} must be three numbers [x, y, z]") from None
+            if a.shape != (3,) or not np.all(np.isfinite(a)):
+                raise CommandError("invalid_argument", f"{name} must be three finite numbers [x, y, z]")
+            vecs.append(a)
+        p, v, acc = vecs
+        self._finite("yaw/yaw_rate", yaw, yaw_rate)
+        lim = self.config.flight.max_speed
+        if float(np.linalg.norm(v)) > lim:
+            raise CommandError(
+                "out_of_range", f"track velocity {np.linalg.norm(v):.3f} m/s exceeds {lim} m/s"
+            )
+        if float(np.linalg.norm(acc)) > TRACK_MAX_ACCEL:
+            raise CommandError(
+                "out_of_range",
+                f"track acceleration {np.linalg.norm(acc):.3f} m/s^2 exceeds {TRACK_MAX_ACCEL} m/s^2",
+            )
+        if abs(yaw_rate) > math.pi:
+            raise CommandError("out_of_range", "need |yaw_rate| <= pi rad/s")
+        self._check_position(p)
+        self._require_airborne("track")
+        heading = yaw_of(self.s[STATE.q]) if yaw is None else float(yaw)
+        self.flight.track(self.t, p, v, acc, heading, float(yaw_rate))
 
     def hold(self) -> None:
         self._require_airborne("hold")
