@@ -11,8 +11,11 @@ from droneulator import frames
 from droneulator.config import CameraConfig
 from droneulator.render import Renderer
 from droneulator.scenes.base import CollisionModel, MeshPart, Scene, SemanticClass
+from droneulator.workflows.planning.astar import astar
+from droneulator.workflows.planning.bspline import straight_line
 from droneulator.workflows.planning.config import PlannerConfig
 from droneulator.workflows.planning.mapping import LocalMap
+from droneulator.workflows.planning.planner import Planner
 
 WALL_X = 4.0
 
@@ -133,3 +136,98 @@ def test_map_update_time_640x480(wall) -> None:
         times.append(time.perf_counter() - t0)
     print(f"map update 640x480, skip 4: median {1e3 * np.median(times):.2f} ms")
     assert np.median(times) < 0.2
+
+
+COLUMN = np.array([3.0, 0.0])
+COLUMN_R = 0.3
+
+
+def column_map(cfg: PlannerConfig) -> LocalMap:
+    """A vertical column of radius COLUMN_R at COLUMN, 0..6 m high, as surface points."""
+    m = LocalMap(cfg, centre=np.array([3.0, 0.0, 1.5]))
+    ang = np.linspace(0, 2 * np.pi, 200, endpoint=False)
+    z = np.arange(-1.5, 4.5, 0.05)
+    a, zz = np.meshgrid(ang, z)
+    x, y = COLUMN[0] + COLUMN_R * np.cos(a), COLUMN[1] + COLUMN_R * np.sin(a)
+    m.insert_points(np.stack([x, y, zz], -1).reshape(-1, 3))
+    return m
+
+
+def test_astar_goes_round_a_column() -> None:
+    cfg = PlannerConfig()
+    m = column_map(cfg)
+    blocked = m.inflated_grid()
+    start, goal = m.index([0.5, 0.0, 1.5]), m.index([5.5, 0.0, 1.5])
+    path = astar(blocked, start, goal)
+    assert len(path) > 2 and (path[0] == start).all() and (path[-1] == goal).all()
+    assert not blocked[path[:, 0], path[:, 1], path[:, 2]].any()
+    assert np.abs(np.diff(path, axis=0)).max() == 1  # 26-connected steps
+    pts = m.point(path)
+    clearance = np.hypot(pts[:, 0] - COLUMN[0], pts[:, 1] - COLUMN[1]) - COLUMN_R
+    assert clearance.min() >= cfg.inflation - cfg.resolution
+    length = np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()
+    assert length < 6.5  # goes round, not far away
+    walled = blocked.copy()
+    walled[m.index([2.0, 0, 0])[0], :, :] = True  # a full wall across the grid
+    assert len(astar(walled, start, goal)) == 0
+    with pytest.raises(ValueError, match="occupied"):
+        astar(blocked, m.index([3.0, 0.0, 1.5]), goal)
+
+
+def test_bspline_optimiser_pushes_line_out_of_column_within_limits() -> None:
+    cfg = PlannerConfig(max_vel=2.0, max_acc=3.0)
+    planner = Planner(cfg)
+    planner.map = column_map(cfg)
+    start, goal = np.array([0.5, 0.0, 1.5]), np.array([5.5, 0.0, 1.5])
+    line = straight_line(start, np.zeros(3), np.zeros(3), goal, cfg.ctrl_spacing, cfg.max_vel)
+    t = line.sample(0.01)
+    p = line.position(t)
+    assert (np.hypot(p[:, 0] - COLUMN[0], p[:, 1] - COLUMN[1]) < COLUMN_R).any()  # the line goes through it
+    t0 = time.perf_counter()
+    traj = planner.plan(start, np.zeros(3), np.zeros(3), goal)
+    print(f"plan round a column: {1e3 * (time.perf_counter() - t0):.1f} ms (incl. first-call compile)")
+    assert traj is not None, planner.reason
+    t = traj.sample(0.005)
+    p = traj.position(t)
+    np.testing.assert_allclose(p[0], start, atol=1e-9)
+    np.testing.assert_allclose(p[-1], goal, atol=1e-9)
+    np.testing.assert_allclose(traj.velocity(0.0), 0, atol=1e-9)
+    clearance = np.hypot(p[:, 0] - COLUMN[0], p[:, 1] - COLUMN[1]) - COLUMN_R
+    assert clearance.min() >= cfg.inflation, clearance.min()
+    speed = np.linalg.norm(traj.velocity(t), axis=1)
+    acc = np.linalg.norm(traj.acceleration(t), axis=1)
+    assert speed.max() <= cfg.max_vel + 1e-9 and acc.max() <= cfg.max_acc + 1e-9
+    assert speed.max() > 0.5 * cfg.max_vel  # not trivially slow
+    assert not planner.needs_replan(traj)
+    times = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        planner.plan(start, np.zeros(3), np.zeros(3), goal)
+        times.append(time.perf_counter() - t0)
+    print(f"plan round a column: median {1e3 * np.median(times):.1f} ms")
+
+
+def test_planner_reports_why_it_fails(wall) -> None:
+    cfg = PlannerConfig()
+    planner = Planner(cfg, centre=np.array([0.0, 0.0, 1.5]))
+    zero = np.zeros(3)
+    start = np.array([0.0, 0.0, 1.5])
+    assert planner.plan(start, zero, zero, np.array([50.0, 0.0, 1.5])) is None
+    assert "outside the local map" in planner.reason
+    # a wall across the whole map between start and goal: no gap
+    ys, zs = np.meshgrid(np.arange(-10, 10, 0.05), np.arange(-1.5, 4.5, 0.05))
+    planner.map.insert_points(np.stack([np.full(ys.size, 2.0), ys.ravel(), zs.ravel()], 1))
+    assert planner.plan(start, zero, zero, np.array([2.1, 0.0, 1.5])) is None
+    assert "occupied" in planner.reason
+    assert planner.plan(start, zero, zero, np.array([5.0, 0.0, 1.5])) is None
+    assert "no path" in planner.reason
+    # a trajectory planned before the wall was seen now needs replanning
+    fresh = Planner(cfg, centre=np.array([0.0, 0.0, 1.5]))
+    traj = fresh.plan(start, zero, zero, np.array([5.0, 0.0, 1.5]))
+    assert traj is not None and not fresh.needs_replan(traj)
+    assert planner.needs_replan(traj)
+    # the rendered wall, seen through depth, blocks the straight line too
+    depth, T_wo, K = wall
+    fresh.update_map(depth, T_wo, K)
+    fresh.update_map(depth, T_wo, K)
+    assert fresh.needs_replan(traj)

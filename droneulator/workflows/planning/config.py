@@ -43,7 +43,7 @@ class PlannerConfig:
     #: extra distance control points must keep beyond the inflated surface (the curve cuts corners)
     safety_extra: float = 0.15
     lambda_smooth: float = 1.0
-    lambda_collision: float = 10.0
+    lambda_collision: float = 1000.0
     lambda_feasibility: float = 0.1
     #: A* gives up after this many node expansions
     astar_max_expansions: int = 200_000

@@ -254,6 +254,13 @@ class LocalMap:
             raise ValueError(f"camera at {cam} is outside the local map {self.bounds}")
         return n
 
+    def insert_points(self, points: np.ndarray) -> None:
+        """Mark world points (e.g. a point cloud or a known obstacle) as certainly occupied."""
+        idx = self.index(np.atleast_2d(points))
+        idx = idx[np.all((idx >= 0) & (idx < np.array(self.shape)), axis=1)]
+        self.logodds[idx[:, 0], idx[:, 1], idx[:, 2]] = self.l_max
+        _rebuild_inflation(self.logodds, self.count, self.l_occ, self.offsets)
+
     # ----------------------------------------------------------------------------- queries
     def occupied_grid(self) -> np.ndarray:
         """Boolean array of occupied voxels (no inflation)."""

@@ -1,0 +1,119 @@
+"""26-connected 3-D A* on the inflated occupancy grid: the guide path of the B-spline optimiser."""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True)
+def _push(heap_f: np.ndarray, heap_n: np.ndarray, size: int, f: float, node: int) -> int:
+    i = size
+    heap_f[i] = f
+    heap_n[i] = node
+    while i > 0:
+        p = (i - 1) // 2
+        if heap_f[p] <= heap_f[i]:
+            break
+        heap_f[p], heap_f[i] = heap_f[i], heap_f[p]
+        heap_n[p], heap_n[i] = heap_n[i], heap_n[p]
+        i = p
+    return size + 1
+
+
+@numba.njit(cache=True)
+def _pop(heap_f: np.ndarray, heap_n: np.ndarray, size: int) -> tuple[int, int]:
+    node = heap_n[0]
+    size -= 1
+    heap_f[0] = heap_f[size]
+    heap_n[0] = heap_n[size]
+    i = 0
+    while True:
+        a, b, m = 2 * i + 1, 2 * i + 2, i
+        if a < size and heap_f[a] < heap_f[m]:
+            m = a
+        if b < size and heap_f[b] < heap_f[m]:
+            m = b
+        if m == i:
+            break
+        heap_f[m], heap_f[i] = heap_f[i], heap_f[m]
+        heap_n[m], heap_n[i] = heap_n[i], heap_n[m]
+        i = m
+    return node, size
+
+
+@numba.njit(cache=True)
+def _astar(blocked: np.ndarray, start: np.ndarray, goal: np.ndarray, max_expansions: int) -> np.ndarray:
+    nx, ny, nz = blocked.shape
+    n = nx * ny * nz
+    g = np.full(n, np.inf)
+    parent = np.full(n, -1, dtype=np.int64)
+    closed = np.zeros(n, dtype=np.bool_)
+    cap = 8 * max_expansions + 27  # a full heap drops pushes (the path may then be missed)
+    heap_f = np.empty(cap)
+    heap_n = np.empty(cap, dtype=np.int64)
+    s = (start[0] * ny + start[1]) * nz + start[2]
+    t = (goal[0] * ny + goal[1]) * nz + goal[2]
+    g[s] = 0.0
+    size = _push(heap_f, heap_n, 0, 0.0, s)
+    expansions = 0
+    while size > 0 and expansions < max_expansions:
+        node, size = _pop(heap_f, heap_n, size)
+        if closed[node]:
+            continue
+        if node == t:
+            break
+        closed[node] = True
+        expansions += 1
+        i, j, k = node // (ny * nz), (node // nz) % ny, node % nz
+        for di in range(-1, 2):
+            for dj in range(-1, 2):
+                for dk in range(-1, 2):
+                    if di == 0 and dj == 0 and dk == 0:
+                        continue
+                    a, b, c = i + di, j + dj, k + dk
+                    if not (0 <= a < nx and 0 <= b < ny and 0 <= c < nz) or blocked[a, b, c]:
+                        continue
+                    m = (a * ny + b) * nz + c
+                    if closed[m] or size >= cap:
+                        continue
+                    ng = g[node] + math.sqrt(di * di + dj * dj + dk * dk)
+                    if ng < g[m]:
+                        g[m] = ng
+                        parent[m] = node
+                        h = math.sqrt((a - goal[0]) ** 2 + (b - goal[1]) ** 2 + (c - goal[2]) ** 2)
+                        size = _push(heap_f, heap_n, size, ng + 1.0001 * h, m)
+    if parent[t] < 0 and s != t:
+        return np.empty((0, 3), dtype=np.int64)
+    count = 1
+    m = t
+    while m != s:
+        m = parent[m]
+        count += 1
+    out = np.empty((count, 3), dtype=np.int64)
+    m = t
+    for q in range(count - 1, -1, -1):
+        out[q, 0], out[q, 1], out[q, 2] = m // (ny * nz), (m // nz) % ny, m % nz
+        if q > 0:
+            m = parent[m]
+    return out
+
+
+def astar(
+    blocked: np.ndarray, start: np.ndarray, goal: np.ndarray, max_expansions: int = 200_000
+) -> np.ndarray:
+    """Shortest 26-connected voxel path from ``start`` to ``goal`` (grid indices) through free voxels.
+
+    Returns the (N, 3) index path including both ends, or an empty array when there is none within
+    ``max_expansions``. ``start`` and ``goal`` must be inside the grid and free.
+    """
+    blocked = np.ascontiguousarray(blocked, dtype=np.bool_)
+    start, goal = np.asarray(start, dtype=np.int64), np.asarray(goal, dtype=np.int64)
+    for name, p in (("start", start), ("goal", goal)):
+        if p.shape != (3,) or np.any(p < 0) or np.any(p >= np.array(blocked.shape)):
+            raise ValueError(f"A* {name} {p} is outside the grid {blocked.shape}")
+        if blocked[tuple(p)]:
+            raise ValueError(f"A* {name} {p} is occupied")
+    return _astar(blocked, start, goal, int(max_expansions))

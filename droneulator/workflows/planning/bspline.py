@@ -1,0 +1,193 @@
+"""Uniform cubic B-spline trajectories and their EGO-Planner-style optimisation (Zhou et al. 2021).
+
+Control points ``Q`` (N x 3) with knot interval ``dt`` give N - 3 polynomial segments. The first
+three control points encode the start position/velocity/acceleration and the last three the goal
+at rest, so only the middle ones are optimised. Cost = smoothness (squared jerk control points) +
+collision (EGO's {p, v} pairs: each colliding control point is pushed along v, the direction from
+the obstacle surface p towards the A* guide path, until it is ``safety`` beyond p) + feasibility
+(velocity and acceleration control points beyond the limits; the convex hull property makes these
+bounds hold along the whole curve). L-BFGS with analytic gradients, then time re-allocation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import minimize
+
+_M = np.array([[1, 4, 1, 0], [-3, 0, 3, 0], [3, -6, 3, 0], [-1, 3, -3, 1]], dtype=float) / 6.0
+
+
+@dataclass
+class BSpline:
+    """A uniform cubic B-spline in the world frame, starting at time 0."""
+
+    ctrl: np.ndarray  # (N, 3)
+    dt: float
+
+    def __post_init__(self) -> None:
+        self.ctrl = np.asarray(self.ctrl, dtype=float)
+        if self.ctrl.ndim != 2 or self.ctrl.shape[1] != 3 or len(self.ctrl) < 4:
+            raise ValueError("a cubic B-spline needs at least 4 control points of shape (N, 3)")
+        if self.dt <= 0:
+            raise ValueError("dt must be positive")
+
+    @property
+    def duration(self) -> float:
+        return (len(self.ctrl) - 3) * self.dt
+
+    def _eval(self, t: float | np.ndarray, order: int) -> np.ndarray:
+        t = np.clip(np.asarray(t, dtype=float), 0.0, self.duration)
+        seg = np.minimum((t / self.dt).astype(int), len(self.ctrl) - 4)
+        u = t / self.dt - seg
+        if order == 0:
+            basis = np.stack([np.ones_like(u), u, u**2, u**3], -1)
+        elif order == 1:
+            basis = np.stack([np.zeros_like(u), np.ones_like(u), 2 * u, 3 * u**2], -1) / self.dt
+        else:
+            z = np.zeros_like(u)
+            basis = np.stack([z, z, 2 + z, 6 * u], -1) / self.dt**2
+        w = basis @ _M  # (..., 4)
+        pts = self.ctrl[seg[..., None] + np.arange(4)]  # (..., 4, 3)
+        return np.einsum("...k,...kd->...d", w, pts)
+
+    def position(self, t: float | np.ndarray) -> np.ndarray:
+        return self._eval(t, 0)
+
+    def velocity(self, t: float | np.ndarray) -> np.ndarray:
+        return self._eval(t, 1)
+
+    def acceleration(self, t: float | np.ndarray) -> np.ndarray:
+        return self._eval(t, 2)
+
+    def yaw(self, t: float, fallback: float = 0.0) -> float:
+        """Heading along the horizontal velocity; ``fallback`` when nearly hovering."""
+        v = self.velocity(t)
+        return float(math.atan2(v[1], v[0])) if math.hypot(v[0], v[1]) > 0.1 else fallback
+
+    def sample(self, step: float = 0.02) -> np.ndarray:
+        """Times 0..duration every ``step`` (duration included)."""
+        return np.append(np.arange(0.0, self.duration, step), self.duration)
+
+    def max_vel_acc(self) -> tuple[float, float]:
+        """Largest control-point speed and acceleration: upper bounds along the whole curve."""
+        v = np.diff(self.ctrl, axis=0) / self.dt
+        a = np.diff(self.ctrl, 2, axis=0) / self.dt**2
+        return float(np.linalg.norm(v, axis=1).max()), float(np.linalg.norm(a, axis=1).max())
+
+
+def start_points(p: np.ndarray, v: np.ndarray, a: np.ndarray, dt: float) -> np.ndarray:
+    """The three control points that give position ``p``, velocity ``v``, acceleration ``a`` at t = 0."""
+    q1 = p - a * dt**2 / 6.0
+    return np.stack([q1 - v * dt + a * dt**2 / 2.0, q1, q1 + v * dt + a * dt**2 / 2.0])
+
+
+def straight_line(p0: np.ndarray, v0: np.ndarray, a0: np.ndarray, goal: np.ndarray, spacing: float,
+                  max_vel: float) -> BSpline:  # fmt: skip
+    """Initial trajectory: control points evenly along start -> goal, ending at rest on the goal."""
+    p0, goal = np.asarray(p0, float), np.asarray(goal, float)
+    length = float(np.linalg.norm(goal - p0))
+    n = max(int(math.ceil(length / spacing)), 1)
+    dt = max(length / n, 1e-3) / max_vel
+    inner = p0 + np.outer(np.linspace(0.0, 1.0, n + 1)[1:-1], goal - p0)
+    ctrl = np.concatenate([start_points(p0, np.asarray(v0, float), np.asarray(a0, float), dt), inner,
+                           np.tile(goal, (3, 1))])  # fmt: skip
+    return BSpline(ctrl, dt)
+
+
+@dataclass
+class Weights:
+    smooth: float = 1.0
+    collision: float = 1000.0
+    feasibility: float = 0.1
+
+
+@dataclass
+class Pairs:
+    """EGO's {p, v} anchors per control point: stay at least ``safety`` beyond p along unit v."""
+
+    p: dict[int, list[np.ndarray]] = field(default_factory=dict)
+    v: dict[int, list[np.ndarray]] = field(default_factory=dict)
+
+    def add(self, i: int, p: np.ndarray, v: np.ndarray) -> None:
+        self.p.setdefault(i, []).append(np.asarray(p, float))
+        self.v.setdefault(i, []).append(np.asarray(v, float) / np.linalg.norm(v))
+
+
+def cost(x: np.ndarray, fixed_head: np.ndarray, fixed_tail: np.ndarray, dt: float, pairs: Pairs,
+         safety: float, max_vel: float, max_acc: float, w: Weights) -> tuple[float, np.ndarray]:  # fmt: skip
+    """Total cost and gradient over the free control points ``x`` (flattened M x 3)."""
+    free = x.reshape(-1, 3)
+    Q = np.concatenate([fixed_head, free, fixed_tail])
+    G = np.zeros_like(Q)
+    # smoothness: squared jerk control points (EGO uses the unscaled finite differences)
+    J = Q[3:] - 3 * Q[2:-1] + 3 * Q[1:-2] - Q[:-3]
+    f = w.smooth * float((J**2).sum())
+    gJ = 2 * w.smooth * J
+    G[3:] += gJ
+    G[2:-1] -= 3 * gJ
+    G[1:-2] += 3 * gJ
+    G[:-3] -= gJ
+    # feasibility: squared excess of |V|^2 and |A|^2 over the limits (control points, so hull-bounded)
+    V = (Q[1:] - Q[:-1]) / dt
+    ev = (V**2).sum(1) - (0.95 * max_vel) ** 2
+    m = ev > 0
+    f += w.feasibility * float((ev[m] ** 2).sum())
+    gV = np.zeros_like(V)
+    gV[m] = w.feasibility * 4 * ev[m, None] * V[m] / dt
+    G[1:] += gV
+    G[:-1] -= gV
+    A = (Q[2:] - 2 * Q[1:-1] + Q[:-2]) / dt**2
+    ea = (A**2).sum(1) - (0.95 * max_acc) ** 2
+    m = ea > 0
+    f += w.feasibility * float((ea[m] ** 2).sum())
+    gA = np.zeros_like(A)
+    gA[m] = w.feasibility * 4 * ea[m, None] * A[m] / dt**2
+    G[2:] += gA
+    G[1:-1] -= 2 * gA
+    G[:-2] += gA
+    # collision: quadratic penalty while a control point is less than `safety` beyond its anchor
+    for i, ps in pairs.p.items():
+        for p, v in zip(ps, pairs.v[i], strict=True):
+            err = safety - float((Q[i] - p) @ v)
+            if err > 0:
+                f += w.collision * err**2
+                G[i] -= w.collision * 2 * err * v
+    return f, G[len(fixed_head) : len(Q) - len(fixed_tail)].ravel()
+
+
+def optimize(traj: BSpline, pairs: Pairs, safety: float, max_vel: float, max_acc: float,
+             w: Weights, iters: int = 200) -> BSpline:  # fmt: skip
+    """L-BFGS over the middle control points; start (3 points) and goal (3 points) stay fixed."""
+    Q = traj.ctrl
+    if len(Q) <= 6:
+        return traj
+    head, tail = Q[:3], Q[-3:]
+    res = minimize(
+        cost, Q[3:-3].ravel(), jac=True, method="L-BFGS-B",
+        args=(head, tail, traj.dt, pairs, safety, max_vel, max_acc, w), options={"maxiter": iters},
+    )  # fmt: skip
+    return BSpline(np.concatenate([head, res.x.reshape(-1, 3), tail]), traj.dt)
+
+
+def reallocate_time(traj: BSpline, p0: np.ndarray, v0: np.ndarray, a0: np.ndarray, max_vel: float,
+                    max_acc: float) -> BSpline:  # fmt: skip
+    """Stretch ``dt`` until velocity and acceleration control points are within the limits.
+
+    Stretching keeps the path; the three start control points are recomputed so the start state
+    is kept exactly (EGO re-fits the curve instead; here the start points move by O(v dt)).
+    """
+    out = traj
+    for _ in range(20):
+        vmax, amax = out.max_vel_acc()
+        ratio = max(vmax / max_vel, math.sqrt(amax / max_acc))
+        if ratio <= 1.0:
+            return out
+        dt = out.dt * min(ratio * 1.02, 2.0)
+        ctrl = out.ctrl.copy()
+        ctrl[:3] = start_points(np.asarray(p0, float), np.asarray(v0, float), np.asarray(a0, float), dt)
+        out = BSpline(ctrl, dt)
+    return out
+

@@ -1,0 +1,137 @@
+"""The local planner: depth images into the rolling map, A*-guided B-spline plans, replanning checks."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from droneulator.workflows.planning.astar import astar
+from droneulator.workflows.planning.bspline import (
+    BSpline,
+    Pairs,
+    Weights,
+    optimize,
+    reallocate_time,
+    straight_line,
+)
+from droneulator.workflows.planning.config import PlannerConfig
+from droneulator.workflows.planning.mapping import LocalMap
+
+
+class Planner:
+    """Maps from depth alone and plans EGO-style B-splines in the map; ``reason`` says why a plan failed."""
+
+    def __init__(self, config: PlannerConfig | None = None, centre: np.ndarray | None = None) -> None:
+        self.cfg = config or PlannerConfig()
+        self.map = LocalMap(self.cfg, centre)
+        self.weights = Weights(self.cfg.lambda_smooth, self.cfg.lambda_collision, self.cfg.lambda_feasibility)
+        self.reason = ""
+        self.goal: np.ndarray | None = None
+
+    def update_map(self, depth: np.ndarray, T_world_optical: np.ndarray, K: np.ndarray) -> int:
+        """Integrate one depth image (32FC1 metres, NaN = no return); returns the voxel updates."""
+        return self.map.update(depth, T_world_optical, K)
+
+    def _fail(self, reason: str) -> None:
+        self.reason = reason
+        return None
+
+    def _colliding(self, traj: BSpline) -> np.ndarray:
+        t = traj.sample(0.5 * self.cfg.resolution / self.cfg.max_vel)
+        return t[self.map.is_occupied(traj.position(t))]
+
+    def _anchor(self, q: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """EGO's {p, v}: v from q towards the guide path, p where that line leaves the inflated obstacle."""
+        v = target - q
+        dist = float(np.linalg.norm(v))
+        if dist < 1e-6:
+            return None
+        v /= dist
+        step = 0.5 * self.cfg.resolution
+        if self.map.is_occupied(q):
+            s = np.arange(0.0, dist + step, step)
+            free = ~self.map.is_occupied(q + s[:, None] * v)
+            if not free.any():
+                return None
+            return q + s[np.argmax(free)] * v, v
+        s = np.arange(0.0, 2 * self.cfg.inflation + step, step)
+        occ = self.map.is_occupied(q - s[:, None] * v)
+        if not occ.any():
+            return None
+        return q - s[max(np.argmax(occ) - 1, 0)] * v, v
+
+    def _add_pairs(self, traj: BSpline, times: np.ndarray, pairs: Pairs) -> bool:
+        """A* round the colliding stretch, then anchors for its control points; False if no path."""
+        n = len(traj.ctrl)
+        seg = np.minimum((times / traj.dt).astype(int), n - 4)
+        idx = sorted({int(i) for s in seg for i in range(s, s + 4) if 3 <= i < n - 3})
+        if not idx:
+            return True
+        t_all = traj.sample(0.5 * self.cfg.resolution / self.cfg.max_vel)
+        before = t_all[t_all < times.min()]
+        after = t_all[t_all > times.max()]
+        a = traj.position(before[-1] if len(before) else 0.0)
+        b = traj.position(after[0] if len(after) else traj.duration)
+        ia, ib = self.map.index(a), self.map.index(b)
+        blocked = self.map.inflated_grid()
+        if not (self.map.inside(a) and self.map.inside(b)) or blocked[tuple(ia)] or blocked[tuple(ib)]:
+            return False
+        path = astar(blocked, ia, ib, self.cfg.astar_max_expansions)
+        if len(path) == 0:
+            return False
+        guide = self.map.point(path)
+        for i in idx:
+            q = traj.ctrl[i]
+            tangent = traj.ctrl[i + 1] - traj.ctrl[i - 1]
+            tn = np.linalg.norm(tangent)
+            if tn < 1e-9:
+                continue
+            d = (guide - q) @ (tangent / tn)  # signed distance of guide points from q's normal plane
+            k = int(np.argmin(np.abs(d) + 1e-3 * np.linalg.norm(guide - q, axis=1)))
+            anchor = self._anchor(q, guide[k])
+            if anchor is not None:
+                pairs.add(i, *anchor)
+        return True
+
+    def plan(self, start_p: np.ndarray, start_v: np.ndarray, start_a: np.ndarray,
+             goal: np.ndarray) -> BSpline | None:  # fmt: skip
+        """A collision-free, feasible B-spline from the start state to ``goal`` (at rest), or None.
+
+        On None, :attr:`reason` says why: goal outside the map, goal or start occupied, no path
+        round the obstacles, or an optimised trajectory that still collides.
+        """
+        p0, v0, a0, goal = (np.asarray(x, dtype=float).reshape(3) for x in (start_p, start_v, start_a, goal))
+        self.reason = ""
+        self.goal = goal
+        if not self.map.inside(goal):
+            lo, hi = self.map.bounds
+            return self._fail(f"goal {goal.round(2)} is outside the local map [{lo.round(2)}, {hi.round(2)}]")
+        if not self.map.inside(p0):
+            return self._fail(f"start {p0.round(2)} is outside the local map")
+        near = f"within {self.cfg.inflation} m of an obstacle"
+        if self.map.is_occupied(goal):
+            return self._fail(f"goal {goal.round(2)} is occupied ({near})")
+        if self.map.is_occupied(p0):
+            return self._fail(f"start {p0.round(2)} is occupied ({near})")
+        safety = self.cfg.safety_extra
+        traj = straight_line(p0, v0, a0, goal, self.cfg.ctrl_spacing, self.cfg.max_vel)
+        pairs = Pairs()
+        for _ in range(5):
+            hits = self._colliding(traj)
+            if len(hits) == 0:
+                break
+            if not self._add_pairs(traj, hits, pairs):
+                return self._fail(f"no path from {p0.round(2)} to {goal.round(2)} round the obstacles")
+            traj = optimize(traj, pairs, safety, self.cfg.max_vel, self.cfg.max_acc, self.weights)
+        traj = optimize(traj, pairs, safety, self.cfg.max_vel, self.cfg.max_acc, self.weights)
+        traj = reallocate_time(traj, p0, v0, a0, self.cfg.max_vel, self.cfg.max_acc)
+        if len(self._colliding(traj)):
+            return self._fail("the optimised trajectory still meets obstacles")
+        return traj
+
+    def needs_replan(self, trajectory: BSpline | None, t_now: float = 0.0) -> bool:
+        """True when the rest of ``trajectory`` meets newly seen obstacles or leaves the local map."""
+        if trajectory is None:
+            return True
+        t = trajectory.sample(0.5 * self.cfg.resolution / self.cfg.max_vel)
+        rest = trajectory.position(t[t >= t_now])
+        return bool(self.map.is_occupied(rest).any() or not self.map.inside(rest).all())
