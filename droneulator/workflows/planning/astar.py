@@ -45,8 +45,11 @@ def _pop(heap_f: np.ndarray, heap_n: np.ndarray, size: int) -> tuple[int, int]:
 
 
 @numba.njit(cache=True)
-def _astar(blocked: np.ndarray, start: np.ndarray, goal: np.ndarray, max_expansions: int) -> np.ndarray:
-    nx, ny, nz = blocked.shape
+def _astar(blocked: np.ndarray, start: np.ndarray, goal: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+           max_expansions: int) -> np.ndarray:  # fmt: skip
+    """A* restricted to the index box [lo, hi) of ``blocked``: work arrays are the box's size only."""
+    li, lj, lk = lo[0], lo[1], lo[2]
+    nx, ny, nz = hi[0] - li, hi[1] - lj, hi[2] - lk
     n = nx * ny * nz
     g = np.full(n, np.inf)
     parent = np.full(n, -1, dtype=np.int64)
@@ -54,8 +57,9 @@ def _astar(blocked: np.ndarray, start: np.ndarray, goal: np.ndarray, max_expansi
     cap = 8 * max_expansions + 27  # a full heap drops pushes (the path may then be missed)
     heap_f = np.empty(cap)
     heap_n = np.empty(cap, dtype=np.int64)
-    s = (start[0] * ny + start[1]) * nz + start[2]
-    t = (goal[0] * ny + goal[1]) * nz + goal[2]
+    gi, gj, gk = goal[0] - lo[0], goal[1] - lo[1], goal[2] - lo[2]
+    s = ((start[0] - lo[0]) * ny + start[1] - lo[1]) * nz + start[2] - lo[2]
+    t = (gi * ny + gj) * nz + gk
     g[s] = 0.0
     size = _push(heap_f, heap_n, 0, 0.0, s)
     expansions = 0
@@ -74,7 +78,7 @@ def _astar(blocked: np.ndarray, start: np.ndarray, goal: np.ndarray, max_expansi
                     if di == 0 and dj == 0 and dk == 0:
                         continue
                     a, b, c = i + di, j + dj, k + dk
-                    if not (0 <= a < nx and 0 <= b < ny and 0 <= c < nz) or blocked[a, b, c]:
+                    if not (0 <= a < nx and 0 <= b < ny and 0 <= c < nz) or blocked[a + li, b + lj, c + lk]:
                         continue
                     m = (a * ny + b) * nz + c
                     if closed[m] or size >= cap:
@@ -83,7 +87,7 @@ def _astar(blocked: np.ndarray, start: np.ndarray, goal: np.ndarray, max_expansi
                     if ng < g[m]:
                         g[m] = ng
                         parent[m] = node
-                        h = math.sqrt((a - goal[0]) ** 2 + (b - goal[1]) ** 2 + (c - goal[2]) ** 2)
+                        h = math.sqrt((a - gi) ** 2 + (b - gj) ** 2 + (c - gk) ** 2)
                         size = _push(heap_f, heap_n, size, ng + 1.0001 * h, m)
     if parent[t] < 0 and s != t:
         return np.empty((0, 3), dtype=np.int64)
@@ -95,25 +99,43 @@ def _astar(blocked: np.ndarray, start: np.ndarray, goal: np.ndarray, max_expansi
     out = np.empty((count, 3), dtype=np.int64)
     m = t
     for q in range(count - 1, -1, -1):
-        out[q, 0], out[q, 1], out[q, 2] = m // (ny * nz), (m // nz) % ny, m % nz
+        out[q, 0], out[q, 1], out[q, 2] = m // (ny * nz) + lo[0], (m // nz) % ny + lo[1], m % nz + lo[2]
         if q > 0:
             m = parent[m]
     return out
 
 
 def astar(
-    blocked: np.ndarray, start: np.ndarray, goal: np.ndarray, max_expansions: int = 200_000
+    blocked: np.ndarray,
+    start: np.ndarray,
+    goal: np.ndarray,
+    max_expansions: int = 200_000,
+    margin: int | None = None,
 ) -> np.ndarray:
     """Shortest 26-connected voxel path from ``start`` to ``goal`` (grid indices) through free voxels.
 
     Returns the (N, 3) index path including both ends, or an empty array when there is none within
-    ``max_expansions``. ``start`` and ``goal`` must be inside the grid and free.
+    ``max_expansions``. ``start`` and ``goal`` must be inside the grid and free. With ``margin``
+    (voxels), the search first runs in the box spanned by start and goal grown by ``margin`` on
+    every side (its work arrays are the box's size, not the grid's: the cost of a replanning
+    cycle), and only falls back to the whole grid when the box holds no path.
     """
     blocked = np.ascontiguousarray(blocked, dtype=np.bool_)
     start, goal = np.asarray(start, dtype=np.int64), np.asarray(goal, dtype=np.int64)
+    shape = np.array(blocked.shape, dtype=np.int64)
     for name, p in (("start", start), ("goal", goal)):
-        if p.shape != (3,) or np.any(p < 0) or np.any(p >= np.array(blocked.shape)):
+        if p.shape != (3,) or np.any(p < 0) or np.any(p >= shape):
             raise ValueError(f"A* {name} {p} is outside the grid {blocked.shape}")
         if blocked[tuple(p)]:
             raise ValueError(f"A* {name} {p} is occupied")
-    return _astar(blocked, start, goal, int(max_expansions))
+    if margin is not None and margin < 0:
+        raise ValueError(f"A* margin {margin} must be >= 0")
+    zero = np.zeros(3, dtype=np.int64)
+    if margin is not None:
+        lo = np.maximum(np.minimum(start, goal) - margin, 0)
+        hi = np.minimum(np.maximum(start, goal) + margin + 1, shape)
+        if np.any(lo > 0) or np.any(hi < shape):
+            path = _astar(blocked, start, goal, lo, hi, int(max_expansions))
+            if len(path):
+                return path
+    return _astar(blocked, start, goal, zero, shape, int(max_expansions))

@@ -47,6 +47,8 @@ class PlannerConfig:
     lambda_feasibility: float = 0.1
     #: A* gives up after this many node expansions
     astar_max_expansions: int = 200_000
+    #: A* first searches the box round the colliding stretch grown by this much (metres), then the whole map
+    astar_margin: float = 2.0
     #: planning horizon: goals further than this are approached through a local goal on the way
     horizon: float = 7.5
 
@@ -67,6 +69,8 @@ class PlannerConfig:
             raise ValueError("vehicle_radius and inflation_margin must be >= 0")
         if self.max_vel <= 0 or self.max_acc <= 0:
             raise ValueError("max_vel and max_acc must be positive")
+        if self.astar_margin < 0:
+            raise ValueError("astar_margin must be >= 0")
         if self.ctrl_spacing <= 0:
             raise ValueError("ctrl_spacing must be positive")
 

@@ -75,7 +75,8 @@ class Planner:
         blocked = self.map.inflated_grid()
         if not (self.map.inside(a) and self.map.inside(b)) or blocked[tuple(ia)] or blocked[tuple(ib)]:
             return False
-        path = astar(blocked, ia, ib, self.cfg.astar_max_expansions)
+        margin = int(np.ceil(self.cfg.astar_margin / self.cfg.resolution))
+        path = astar(blocked, ia, ib, self.cfg.astar_max_expansions, margin)
         if len(path) == 0:
             return False
         guide = self.map.point(path)
