@@ -12,7 +12,7 @@ from droneulator.config import CameraConfig
 from droneulator.render import Renderer
 from droneulator.scenes.base import CollisionModel, MeshPart, Scene, SemanticClass
 from droneulator.workflows.planning.astar import astar
-from droneulator.workflows.planning.bspline import straight_line
+from droneulator.workflows.planning.bspline import Pairs, Weights, compiled_cost, cost, straight_line
 from droneulator.workflows.planning.config import PlannerConfig
 from droneulator.workflows.planning.mapping import LocalMap
 from droneulator.workflows.planning.planner import Planner
@@ -192,6 +192,32 @@ def test_astar_box_search_matches_full_grid_and_falls_back() -> None:
     assert m.point(path)[:, 1].max() > 3.5  # it went through the far gap
     with pytest.raises(ValueError, match="margin"):
         astar(blocked, start, goal, margin=-1)
+
+
+def test_compiled_cost_matches_reference_cost_and_its_gradient() -> None:
+    rng = np.random.default_rng(3)
+    line = straight_line(np.zeros(3), np.array([1.0, 0, 0]), np.zeros(3), np.array([4.0, 1.0, 0.5]), 0.4, 2.0)
+    Q = line.ctrl + rng.normal(0, 0.3, line.ctrl.shape)  # rough: the feasibility terms are active
+    pairs = Pairs()
+    for i in (4, 5, 6):
+        pairs.add(i, Q[i] + rng.normal(0, 0.2, 3), rng.normal(size=3))
+    head, tail, x = Q[:3], Q[-3:], Q[3:-3].ravel()
+    w = Weights()
+    args = (0.5 * line.dt, 0.15, 2.0, 3.0)
+    f_ref, g_ref = cost(x, head, tail, args[0], pairs, args[1], args[2], args[3], w)
+    pidx, P, V = pairs.arrays()
+
+    def fast(xx: np.ndarray) -> tuple[float, np.ndarray]:
+        weights = (w.smooth, w.collision, w.feasibility)
+        return compiled_cost(xx, head, tail, args[0], pidx, P, V, *args[1:], *weights)
+
+    f, g = fast(x)
+    assert f_ref > 0 and f == pytest.approx(f_ref, rel=1e-12)
+    np.testing.assert_allclose(g, g_ref, rtol=1e-10, atol=1e-9 * np.abs(g_ref).max())
+    e = np.zeros_like(x)
+    e[7] = 1e-6
+    f_plus, f_minus = fast(x + e)[0], fast(x - e)[0]
+    assert (f_plus - f_minus) / 2e-6 == pytest.approx(g[7], rel=1e-4)
 
 
 def test_bspline_optimiser_pushes_line_out_of_column_within_limits() -> None:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 from scipy.optimize import minimize
 
@@ -115,6 +116,72 @@ class Pairs:
         self.p.setdefault(i, []).append(np.asarray(p, float))
         self.v.setdefault(i, []).append(np.asarray(v, float) / np.linalg.norm(v))
 
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The anchors as flat arrays (control-point index, p, unit v) for the compiled cost."""
+        idx = [i for i, ps in self.p.items() for _ in ps]
+        if not idx:
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros((0, 3))
+        p = np.array([p for ps in self.p.values() for p in ps], dtype=float)
+        v = np.array([v for vs in self.v.values() for v in vs], dtype=float)
+        return np.array(idx, dtype=np.int64), p, v
+
+
+@numba.njit(cache=True)
+def compiled_cost(x: np.ndarray, head: np.ndarray, tail: np.ndarray, dt: float, pidx: np.ndarray,
+                  P: np.ndarray, V: np.ndarray, safety: float, max_vel: float, max_acc: float,
+                  ws: float, wc: float, wf: float) -> tuple[float, np.ndarray]:  # fmt: skip
+    """Compiled cost and gradient (see :func:`cost`): one pass over the control points, no temporaries."""
+    nh, m = head.shape[0], x.shape[0] // 3
+    n = nh + m + tail.shape[0]
+    Q = np.empty((n, 3))
+    Q[:nh] = head
+    Q[nh : nh + m] = x.reshape(m, 3)
+    Q[nh + m :] = tail
+    G = np.zeros((n, 3))
+    f = 0.0
+    for i in range(n - 3):  # smoothness: squared jerk control points
+        for d in range(3):
+            j = Q[i + 3, d] - 3.0 * Q[i + 2, d] + 3.0 * Q[i + 1, d] - Q[i, d]
+            f += ws * j * j
+            gj = 2.0 * ws * j
+            G[i + 3, d] += gj
+            G[i + 2, d] -= 3.0 * gj
+            G[i + 1, d] += 3.0 * gj
+            G[i, d] -= gj
+    vlim = (0.95 * max_vel) ** 2
+    for i in range(n - 1):  # feasibility: velocity control points
+        v0, v1, v2 = (Q[i + 1, 0] - Q[i, 0]) / dt, (Q[i + 1, 1] - Q[i, 1]) / dt, (Q[i + 1, 2] - Q[i, 2]) / dt
+        e = v0 * v0 + v1 * v1 + v2 * v2 - vlim
+        if e > 0:
+            f += wf * e * e
+            c = wf * 4.0 * e / dt
+            for d, vd in ((0, v0), (1, v1), (2, v2)):
+                G[i + 1, d] += c * vd
+                G[i, d] -= c * vd
+    alim = (0.95 * max_acc) ** 2
+    dt2 = dt * dt
+    for i in range(n - 2):  # feasibility: acceleration control points
+        a0 = (Q[i + 2, 0] - 2.0 * Q[i + 1, 0] + Q[i, 0]) / dt2
+        a1 = (Q[i + 2, 1] - 2.0 * Q[i + 1, 1] + Q[i, 1]) / dt2
+        a2 = (Q[i + 2, 2] - 2.0 * Q[i + 1, 2] + Q[i, 2]) / dt2
+        e = a0 * a0 + a1 * a1 + a2 * a2 - alim
+        if e > 0:
+            f += wf * e * e
+            c = wf * 4.0 * e / dt2
+            for d, ad in ((0, a0), (1, a1), (2, a2)):
+                G[i + 2, d] += c * ad
+                G[i + 1, d] -= 2.0 * c * ad
+                G[i, d] += c * ad
+    for k in range(pidx.shape[0]):  # collision: each {p, v} pair
+        i = pidx[k]
+        err = safety - ((Q[i, 0] - P[k, 0]) * V[k, 0] + (Q[i, 1] - P[k, 1]) * V[k, 1]
+                        + (Q[i, 2] - P[k, 2]) * V[k, 2])  # fmt: skip
+        if err > 0:
+            f += wc * err * err
+            for d in range(3):
+                G[i, d] -= wc * 2.0 * err * V[k, d]
+    return f, G[nh : nh + m].copy().reshape(-1)
+
 
 def cost(x: np.ndarray, fixed_head: np.ndarray, fixed_tail: np.ndarray, dt: float, pairs: Pairs,
          safety: float, max_vel: float, max_acc: float, w: Weights) -> tuple[float, np.ndarray]:  # fmt: skip
@@ -164,10 +231,12 @@ def optimize(traj: BSpline, pairs: Pairs, safety: float, max_vel: float, max_acc
     Q = traj.ctrl
     if len(Q) <= 6:
         return traj
-    head, tail = Q[:3], Q[-3:]
+    head, tail = np.ascontiguousarray(Q[:3]), np.ascontiguousarray(Q[-3:])
+    pidx, P, V = pairs.arrays()
     res = minimize(
-        cost, Q[3:-3].ravel(), jac=True, method="L-BFGS-B",
-        args=(head, tail, traj.dt, pairs, safety, max_vel, max_acc, w), options={"maxiter": iters},
+        compiled_cost, Q[3:-3].ravel(), jac=True, method="L-BFGS-B", options={"maxiter": iters},
+        args=(head, tail, float(traj.dt), pidx, P, V, float(safety), float(max_vel), float(max_acc),
+              float(w.smooth), float(w.collision), float(w.feasibility)),
     )  # fmt: skip
     return BSpline(np.concatenate([head, res.x.reshape(-1, 3), tail]), traj.dt)
 
