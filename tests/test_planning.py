@@ -246,11 +246,12 @@ def test_bspline_optimiser_pushes_line_out_of_column_within_limits() -> None:
     assert speed.max() > 0.5 * cfg.max_vel  # not trivially slow
     assert not planner.needs_replan(traj)
     times = []
-    for _ in range(3):
+    for _ in range(5):
         t0 = time.perf_counter()
         planner.plan(start, np.zeros(3), np.zeros(3), goal)
         times.append(time.perf_counter() - t0)
     print(f"plan round a column: median {1e3 * np.median(times):.1f} ms")
+    assert np.median(times) < 0.05  # issue 11 targets 20 ms; 2.5x headroom for a loaded 2-core CI box
 
 
 def test_planner_reports_why_it_fails(wall) -> None:

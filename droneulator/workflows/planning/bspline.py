@@ -226,15 +226,20 @@ def cost(x: np.ndarray, fixed_head: np.ndarray, fixed_tail: np.ndarray, dt: floa
 
 
 def optimize(traj: BSpline, pairs: Pairs, safety: float, max_vel: float, max_acc: float,
-             w: Weights, iters: int = 200) -> BSpline:  # fmt: skip
-    """L-BFGS over the middle control points; start (3 points) and goal (3 points) stay fixed."""
+             w: Weights, iters: int = 200, ftol: float | None = None) -> BSpline:  # fmt: skip
+    """L-BFGS over the middle control points; start (3 points) and goal (3 points) stay fixed.
+
+    ``ftol`` is L-BFGS-B's relative cost reduction at which it stops (None: scipy's 2.2e-9); a
+    looser one ends the flat tail of the descent, where the control points move by micrometres.
+    """
     Q = traj.ctrl
     if len(Q) <= 6:
         return traj
     head, tail = np.ascontiguousarray(Q[:3]), np.ascontiguousarray(Q[-3:])
     pidx, P, V = pairs.arrays()
+    opts: dict[str, float] = {"maxiter": iters} if ftol is None else {"maxiter": iters, "ftol": ftol}
     res = minimize(
-        compiled_cost, Q[3:-3].ravel(), jac=True, method="L-BFGS-B", options={"maxiter": iters},
+        compiled_cost, Q[3:-3].ravel(), jac=True, method="L-BFGS-B", options=opts,
         args=(head, tail, float(traj.dt), pidx, P, V, float(safety), float(max_vel), float(max_acc),
               float(w.smooth), float(w.collision), float(w.feasibility)),
     )  # fmt: skip

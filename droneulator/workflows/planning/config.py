@@ -45,6 +45,9 @@ class PlannerConfig:
     lambda_smooth: float = 1.0
     lambda_collision: float = 1000.0
     lambda_feasibility: float = 0.1
+    #: L-BFGS stops when the cost falls by less than this fraction per iteration, or after opt_max_iters
+    opt_ftol: float = 1e-5
+    opt_max_iters: int = 200
     #: A* gives up after this many node expansions
     astar_max_expansions: int = 200_000
     #: A* first searches the box round the colliding stretch grown by this much (metres), then the whole map
@@ -69,6 +72,8 @@ class PlannerConfig:
             raise ValueError("vehicle_radius and inflation_margin must be >= 0")
         if self.max_vel <= 0 or self.max_acc <= 0:
             raise ValueError("max_vel and max_acc must be positive")
+        if not 0 < self.opt_ftol < 1 or self.opt_max_iters < 1:
+            raise ValueError("need 0 < opt_ftol < 1 and opt_max_iters >= 1")
         if self.astar_margin < 0:
             raise ValueError("astar_margin must be >= 0")
         if self.ctrl_spacing <= 0:

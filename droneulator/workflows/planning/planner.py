@@ -35,6 +35,12 @@ class Planner:
         self.reason = reason
         return None
 
+    def _optimize(self, traj: BSpline, pairs: Pairs) -> BSpline:
+        """One L-BFGS run with the configured limits, weights and stopping rule."""
+        c = self.cfg
+        limits = (c.safety_extra, c.max_vel, c.max_acc)
+        return optimize(traj, pairs, *limits, self.weights, c.opt_max_iters, c.opt_ftol)
+
     def _colliding(self, traj: BSpline) -> np.ndarray:
         t = traj.sample(0.5 * self.cfg.resolution / self.cfg.max_vel)
         return t[self.map.is_occupied(traj.position(t))]
@@ -113,7 +119,6 @@ class Planner:
             return self._fail(f"goal {goal.round(2)} is occupied ({near})")
         if self.map.is_occupied(p0):
             return self._fail(f"start {p0.round(2)} is occupied ({near})")
-        safety = self.cfg.safety_extra
         traj = straight_line(p0, v0, a0, goal, self.cfg.ctrl_spacing, self.cfg.max_vel)
         pairs = Pairs()
         for _ in range(5):
@@ -122,8 +127,8 @@ class Planner:
                 break
             if not self._add_pairs(traj, hits, pairs):
                 return self._fail(f"no path from {p0.round(2)} to {goal.round(2)} round the obstacles")
-            traj = optimize(traj, pairs, safety, self.cfg.max_vel, self.cfg.max_acc, self.weights)
-        traj = optimize(traj, pairs, safety, self.cfg.max_vel, self.cfg.max_acc, self.weights)
+            traj = self._optimize(traj, pairs)
+        traj = self._optimize(traj, pairs)
         traj = reallocate_time(traj, p0, v0, a0, self.cfg.max_vel, self.cfg.max_acc)
         if len(self._colliding(traj)):
             return self._fail("the optimised trajectory still meets obstacles")
