@@ -182,6 +182,9 @@ def test_astar_box_search_matches_full_grid_and_falls_back() -> None:
     full, boxed = astar(blocked, start, goal), astar(blocked, start, goal, margin=20)
     length = [np.linalg.norm(np.diff(p, axis=0), axis=1).sum() for p in (full, boxed)]
     assert length[1] == pytest.approx(length[0], rel=1e-3)  # the detour fits in the box: same cost
+    np.testing.assert_array_equal(astar(m.count, start, goal, margin=20), boxed)  # int32 count grid as is
+    with pytest.raises(ValueError, match="3-D"):
+        astar(blocked[0], start, goal)
     # a wall with its only gap 4 m to the side: no path inside a 1 m box, the whole grid has one
     walled = blocked.copy()
     gap = m.index([2.0, 4.0, 1.5])

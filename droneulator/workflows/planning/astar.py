@@ -114,13 +114,21 @@ def astar(
 ) -> np.ndarray:
     """Shortest 26-connected voxel path from ``start`` to ``goal`` (grid indices) through free voxels.
 
+    ``blocked`` is a 3-D grid, non-zero (True) where a voxel is blocked; the map's int32 inflation
+    count is searched as it is, without building a boolean copy of the whole grid.
+
     Returns the (N, 3) index path including both ends, or an empty array when there is none within
     ``max_expansions``. ``start`` and ``goal`` must be inside the grid and free. With ``margin``
     (voxels), the search first runs in the box spanned by start and goal grown by ``margin`` on
     every side (its work arrays are the box's size, not the grid's: the cost of a replanning
     cycle), and only falls back to the whole grid when the box holds no path.
     """
-    blocked = np.ascontiguousarray(blocked, dtype=np.bool_)
+    blocked = np.asarray(blocked)
+    if blocked.ndim != 3:
+        raise ValueError(f"A* needs a 3-D grid, got shape {blocked.shape}")
+    if blocked.dtype not in (np.bool_, np.int32):
+        blocked = blocked.astype(np.bool_)  # the compiled search is specialised for bool and int32 only
+    blocked = np.ascontiguousarray(blocked)
     start, goal = np.asarray(start, dtype=np.int64), np.asarray(goal, dtype=np.int64)
     shape = np.array(blocked.shape, dtype=np.int64)
     for name, p in (("start", start), ("goal", goal)):

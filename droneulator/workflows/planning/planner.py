@@ -78,7 +78,7 @@ class Planner:
         a = traj.position(before[-1] if len(before) else 0.0)
         b = traj.position(after[0] if len(after) else traj.duration)
         ia, ib = self.map.index(a), self.map.index(b)
-        blocked = self.map.inflated_grid()
+        blocked = self.map.count  # non-zero within the inflation radius; no bool copy of the grid
         if not (self.map.inside(a) and self.map.inside(b)) or blocked[tuple(ia)] or blocked[tuple(ib)]:
             return False
         margin = int(np.ceil(self.cfg.astar_margin / self.cfg.resolution))
