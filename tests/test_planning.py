@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
@@ -124,20 +122,6 @@ def test_map_rejects_bad_input(wall) -> None:
         PlannerConfig(pixel_skip=0)
 
 
-def test_map_update_time_640x480(wall) -> None:
-    """Measured, not asserted tightly (the CPU is shared): printed for the report."""
-    depth, T_wo, K = wall
-    m = LocalMap(PlannerConfig(), centre=np.array([0.0, 0.0, 1.5]))
-    m.update(depth, T_wo, K)  # compile
-    times = []
-    for _ in range(10):
-        t0 = time.perf_counter()
-        m.update(depth, T_wo, K)
-        times.append(time.perf_counter() - t0)
-    print(f"map update 640x480, skip 4: median {1e3 * np.median(times):.2f} ms")
-    assert np.median(times) < 0.2
-
-
 COLUMN = np.array([3.0, 0.0])
 COLUMN_R = 0.3
 
@@ -232,9 +216,7 @@ def test_bspline_optimiser_pushes_line_out_of_column_within_limits() -> None:
     t = line.sample(0.01)
     p = line.position(t)
     assert (np.hypot(p[:, 0] - COLUMN[0], p[:, 1] - COLUMN[1]) < COLUMN_R).any()  # the line goes through it
-    t0 = time.perf_counter()
     traj = planner.plan(start, np.zeros(3), np.zeros(3), goal)
-    print(f"plan round a column: {1e3 * (time.perf_counter() - t0):.1f} ms (incl. first-call compile)")
     assert traj is not None, planner.reason
     t = traj.sample(0.005)
     p = traj.position(t)
@@ -248,13 +230,9 @@ def test_bspline_optimiser_pushes_line_out_of_column_within_limits() -> None:
     assert speed.max() <= cfg.max_vel + 1e-9 and acc.max() <= cfg.max_acc + 1e-9
     assert speed.max() > 0.5 * cfg.max_vel  # not trivially slow
     assert not planner.needs_replan(traj)
-    times = []
-    for _ in range(5):
-        t0 = time.perf_counter()
-        planner.plan(start, np.zeros(3), np.zeros(3), goal)
-        times.append(time.perf_counter() - t0)
-    print(f"plan round a column: median {1e3 * np.median(times):.1f} ms")
-    assert np.median(times) < 0.05  # issue 11 targets 20 ms; 2.5x headroom for a loaded 2-core CI box
+    again = planner.plan(start, np.zeros(3), np.zeros(3), goal)  # speed: benchmarks/planner_cycle.py
+    assert again is not None
+    np.testing.assert_allclose(again.position(t), p, atol=1e-9)  # deterministic
 
 
 def test_planner_reports_why_it_fails(wall) -> None:
