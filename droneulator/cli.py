@@ -134,7 +134,8 @@ def cmd_plan(args: argparse.Namespace) -> int:
     from droneulator.workflows.planning.node import PlanNode, PlanNodeConfig
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    cfg = PlanNodeConfig(zenoh=args.zenoh, namespace=args.namespace, camera=args.camera)
+    bounds = None if args.bounds is None else (tuple(args.bounds[:3]), tuple(args.bounds[3:]))
+    cfg = PlanNodeConfig(zenoh=args.zenoh, namespace=args.namespace, camera=args.camera, bounds=bounds)
     done = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: done.set())
     with PlanNode(cfg) as node:
@@ -454,6 +455,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--camera", default="front", help="depth camera to map from")
     p.add_argument(
         "--goal", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"), help="first goal (odom frame)"
+    )
+    p.add_argument(
+        "--bounds",
+        type=float,
+        nargs=6,
+        default=None,
+        metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
+        help="box goals must lie in (default: the local map around the vehicle when the goal arrives)",
     )
     p.set_defaults(func=cmd_plan)
 

@@ -219,6 +219,7 @@ class PlanNode:
 
     def _plan_loop(self) -> None:
         last_plan_ns: int | None = None
+        started, warned = time.monotonic(), False
         while True:
             with self._wake:
                 self._wake.wait(timeout=0.05)
@@ -229,6 +230,9 @@ class PlanNode:
                 self._new_goal = False
                 odom, now = self._odom, self._now_ns
                 traj, t0 = self._traj, self._traj_t0_ns
+            if now is None and not warned and time.monotonic() - started > 5.0:
+                log.warning("no /clock from %s after 5 s: is `droneulator run` up there?", self.cfg.zenoh)
+                warned = True
             if frame is not None:
                 try:
                     self.planner.update_map(*frame)
