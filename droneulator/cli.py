@@ -126,6 +126,28 @@ def cmd_run(args: argparse.Namespace) -> int:
     return code
 
 
+def cmd_plan(args: argparse.Namespace) -> int:
+    import logging
+    import signal
+    import threading
+
+    from droneulator.workflows.planning.node import PlanNode, PlanNodeConfig
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    bounds = None if args.bounds is None else (tuple(args.bounds[:3]), tuple(args.bounds[3:]))
+    cfg = PlanNodeConfig(zenoh=args.zenoh, namespace=args.namespace, camera=args.camera, bounds=bounds)
+    done = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: done.set())
+    with PlanNode(cfg) as node:
+        if args.goal is not None:
+            node.set_goal(args.goal)
+        try:
+            done.wait()
+        except KeyboardInterrupt:
+            print("droneulator plan: interrupted, closing", file=sys.stderr)
+    return 0
+
+
 def cmd_config(args: argparse.Namespace) -> int:
     from droneulator.config import to_dict
 
@@ -420,6 +442,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--zenoh", default=None, help="with --url: Zenoh endpoint of its bridge")
     _add_rl_config_args(p)
     p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser(
+        "plan",
+        help="run the depth-only local planner node against a running `droneulator run`",
+        description="Map from the depth image, plan B-splines to goals taken on /<ns>/planner/goal "
+        "(geometry_msgs/PoseStamped) and publish quadrotor_msgs/PositionCommand on /<ns>/position_cmd "
+        "at 100 Hz of sim time, all over Zenoh. Never reads the scene or the WebSocket state.",
+    )
+    p.add_argument("--zenoh", default="tcp/127.0.0.1:7448", help="Zenoh endpoint of the run's bridge")
+    p.add_argument("--namespace", default="droneulator", help="the run's ROS namespace")
+    p.add_argument("--camera", default="front", help="depth camera to map from")
+    p.add_argument(
+        "--goal", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"), help="first goal (odom frame)"
+    )
+    p.add_argument(
+        "--bounds",
+        type=float,
+        nargs=6,
+        default=None,
+        metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
+        help="box goals must lie in (default: the local map around the vehicle when the goal arrives)",
+    )
+    p.set_defaults(func=cmd_plan)
 
     p = sub.add_parser("config", help="print the effective configuration as JSON")
     _add_config_args(p)

@@ -1,0 +1,365 @@
+"""``droneulator plan``: the local planner as a process that is a ROS 2 node in all but name.
+
+It talks only ROS 2 messages over Zenoh, like EGO-Planner does through a bridge: depth image, its
+camera_info, odometry and the camera pose (``/<ns>/<cam>/pose``, synchronised with the depth) in;
+goals as ``geometry_msgs/PoseStamped`` on ``/<ns>/planner/goal``; ``quadrotor_msgs/PositionCommand``
+on ``/<ns>/position_cmd`` out, at 100 Hz of sim time. The map comes from depth images alone.
+
+Two threads besides Zenoh's callbacks: the planning thread integrates the newest depth frame,
+(re)plans, and the trajectory server samples the current B-spline each time ``/clock`` has advanced
+10 ms (in lockstep the simulator waits only for its cameras, so sim time, not the wall clock, paces
+the commands). With no depth for 1 s of sim time it stops publishing, so the simulator's
+``track_timeout`` holds the vehicle.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from droneulator import frames
+from droneulator.ros import messages
+from droneulator.ros.topics import (
+    ODOM_FRAME,
+    TYPES,
+    decode_depth,
+    header_ns,
+    ns_to_seconds,
+    stamp_to_ns,
+    topic_names,
+    vehicle_topics,
+)
+from droneulator.ros.zenoh_node import RosZenohNode, ZenohNodeConfig
+from droneulator.workflows.planning.bspline import BSpline
+from droneulator.workflows.planning.config import PlannerConfig
+from droneulator.workflows.planning.planner import Planner
+
+log = logging.getLogger("droneulator.plan")
+
+GOAL_TYPE = "geometry_msgs/msg/PoseStamped"
+#: trajectory server period, sim time
+COMMAND_PERIOD_NS = 10_000_000
+
+
+@dataclass
+class PlanNodeConfig:
+    """Wiring and timing of the planner process."""
+
+    zenoh: str = "tcp/127.0.0.1:7448"
+    namespace: str = "droneulator"
+    camera: str = "front"
+    #: replan at least this often while a goal is active (sim time), besides when the map demands it
+    replan_period_s: float = 1.0
+    #: no depth image for this long (sim time) -> stop publishing, the simulator holds
+    depth_timeout_s: float = 1.0
+    #: the goal counts as reached within this distance of the odometry position
+    goal_tolerance: float = 0.1
+    #: largest yaw rate the trajectory server commands (rad/s), like EGO's traj_server
+    max_yaw_rate: float = math.pi / 2
+    #: optional box ((xmin, ymin, zmin), (xmax, ymax, zmax)) goals must lie in; without it a goal must
+    #: lie inside the local map when it arrives (goals further than the horizon are then approached in steps)
+    bounds: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+
+    def __post_init__(self) -> None:
+        if self.bounds is not None:
+            lo, hi = (np.asarray(b, dtype=float).reshape(3) for b in self.bounds)
+            if not np.all(lo < hi):
+                raise ValueError(f"bounds need min < max on every axis, got {self.bounds}")
+        if self.replan_period_s <= 0 or self.depth_timeout_s <= 0 or self.goal_tolerance <= 0:
+            raise ValueError("replan_period_s, depth_timeout_s and goal_tolerance must be positive")
+        if self.max_yaw_rate <= 0:
+            raise ValueError("max_yaw_rate must be positive")
+
+
+class PlanNode:
+    """The planner node: subscriptions, a planning thread and a 100 Hz (sim time) trajectory server."""
+
+    def __init__(self, config: PlanNodeConfig | None = None, planner: PlannerConfig | None = None) -> None:
+        self.cfg = config or PlanNodeConfig()
+        self.planner = Planner(planner)
+        ns, cam = self.cfg.namespace, self.cfg.camera
+        self.topics = {**vehicle_topics(ns), **topic_names(ns, cam), "goal": f"/{ns}/planner/goal"}
+        self.node = RosZenohNode(
+            ZenohNodeConfig(mode="peer", listen=(), connect=(self.cfg.zenoh,), node_name="droneulator_plan")
+        )
+        self._lock = threading.Lock()
+        self._wake = threading.Condition(self._lock)
+        self._stop = False
+        # inputs (guarded by _lock)
+        self._now_ns: int | None = None
+        self._odom: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None  # stamp, p, q, v_world
+        self._K: np.ndarray | None = None
+        self._poses: OrderedDict[int, np.ndarray] = OrderedDict()  # stamp -> T_world_optical
+        self._depth: tuple[int, np.ndarray] | None = None
+        self._last_depth_ns: int | None = None
+        self._goal: np.ndarray | None = None
+        self._new_goal = False
+        # output state (guarded by _lock)
+        self._traj: BSpline | None = None
+        self._traj_t0_ns = 0
+        self._traj_id = 0
+        self._hold: np.ndarray | None = None  # stop point after a failed replan
+        self._yaw: float | None = None
+        self._last_cmd_ns: int | None = None
+        self._holding_for_depth = False
+        #: counters for tests and logs
+        self.plans = 0
+        self.failures = 0
+        self.commands = 0
+        self.reached = threading.Event()
+        self.last_failure = ""
+        self.cycle_s: list[float] = []
+        self._pub = self.node.publisher(self.topics["position_cmd"], TYPES["position_cmd"])
+        t = self.topics
+        self.node.subscribe(t["clock"], TYPES["clock"], self._on_clock)
+        self.node.subscribe(t["odom"], TYPES["odom"], self._on_odom)
+        self.node.subscribe(t["info_depth"], TYPES["info_depth"], self._on_info)
+        self.node.subscribe(t["pose"], TYPES["pose"], self._on_pose)
+        self.node.subscribe(t["depth"], TYPES["depth"], self._on_depth)
+        self.node.subscribe(t["goal"], GOAL_TYPE, self._on_goal)
+        self._threads = [
+            threading.Thread(target=self._plan_loop, name="plan", daemon=True),
+            threading.Thread(target=self._server_loop, name="traj_server", daemon=True),
+        ]
+        for th in self._threads:
+            th.start()
+        log.info("planner listening on %s (camera %s, goals on %s)", self.cfg.zenoh, cam, t["goal"])
+
+    # ------------------------------------------------------------------ callbacks (Zenoh threads)
+    def _on_clock(self, msg: Any) -> None:
+        with self._wake:
+            self._now_ns = stamp_to_ns(msg.clock)
+            self._wake.notify_all()
+
+    def _on_odom(self, msg: Any) -> None:
+        p, o, v = msg.pose.pose.position, msg.pose.pose.orientation, msg.twist.twist.linear
+        q = np.array([o.x, o.y, o.z, o.w])
+        v_world = frames.body_to_world(q, np.array([v.x, v.y, v.z]))
+        with self._lock:
+            self._odom = (header_ns(msg), np.array([p.x, p.y, p.z]), q, v_world)
+
+    def _on_info(self, msg: Any) -> None:
+        K = np.asarray(msg.k, dtype=float).reshape(3, 3)
+        if K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ValueError(f"depth camera_info has no intrinsics: K = {K.ravel().tolist()}")
+        with self._lock:
+            self._K = K
+
+    def _on_pose(self, msg: Any) -> None:
+        p, o = msg.pose.position, msg.pose.orientation
+        T = frames.transform_from_pose(np.array([p.x, p.y, p.z]), np.array([o.x, o.y, o.z, o.w]))
+        with self._lock:
+            self._poses[header_ns(msg)] = T
+            while len(self._poses) > 50:
+                self._poses.popitem(last=False)
+
+    def _on_depth(self, msg: Any) -> None:
+        depth = decode_depth(msg)
+        with self._wake:
+            stamp = header_ns(msg)
+            self._depth = (stamp, depth)
+            self._last_depth_ns = stamp
+            self._wake.notify_all()
+
+    def _on_goal(self, msg: Any) -> None:
+        p = msg.pose.position
+        goal = np.array([p.x, p.y, p.z], dtype=float)
+        if not np.all(np.isfinite(goal)):
+            log.error("goal %s rejected: not finite", goal)
+            return
+        if msg.header.frame_id not in ("", ODOM_FRAME, "map", "world"):
+            log.error("goal rejected: frame %r is not odom/map/world", msg.header.frame_id)
+            return
+        log.info("new goal %s", goal.round(3))
+        with self._wake:
+            self._goal = goal
+            self._new_goal = True
+            self.reached.clear()
+            self._wake.notify_all()
+
+    # ------------------------------------------------------------------ public
+    def set_goal(self, goal: np.ndarray) -> None:
+        """Same as a goal message: plan to ``goal`` (odom frame)."""
+        msg = messages.pose_stamped(0, ODOM_FRAME, np.asarray(goal, dtype=float), (0.0, 0.0, 0.0, 1.0))
+        self._on_goal(msg)
+
+    def close(self) -> None:
+        """Stop both threads and close the Zenoh session."""
+        with self._wake:
+            self._stop = True
+            self._wake.notify_all()
+        for th in self._threads:
+            th.join(timeout=5)
+        self.node.close()
+
+    def __enter__(self) -> PlanNode:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ planning thread
+    def _take_depth(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The newest depth frame with its camera pose (same stamp) and K, or None."""
+        if self._depth is None or self._K is None:
+            return None
+        stamp, depth = self._depth
+        T = self._poses.get(stamp)
+        if T is None:
+            return None
+        self._depth = None
+        return depth, T, self._K
+
+    def _plan_loop(self) -> None:
+        last_plan_ns: int | None = None
+        started, warned = time.monotonic(), False
+        while True:
+            with self._wake:
+                self._wake.wait(timeout=0.05)
+                if self._stop:
+                    return
+                frame = self._take_depth()
+                goal, new_goal = self._goal, self._new_goal
+                self._new_goal = False
+                odom, now = self._odom, self._now_ns
+                traj, t0 = self._traj, self._traj_t0_ns
+            if now is None and not warned and time.monotonic() - started > 5.0:
+                log.warning("no /clock from %s after 5 s: is `droneulator run` up there?", self.cfg.zenoh)
+                warned = True
+            if frame is not None:
+                try:
+                    self.planner.update_map(*frame)
+                except ValueError as exc:
+                    log.error("depth frame skipped: %s", exc)
+            if goal is None or odom is None or now is None or self.reached.is_set():
+                continue
+            if new_goal and not self._goal_allowed(goal):
+                continue
+            t_rel = ns_to_seconds(now - t0)
+            due = new_goal or last_plan_ns is None or now - last_plan_ns >= self.cfg.replan_period_s * 1e9
+            if traj is not None and t_rel >= traj.duration and not new_goal:
+                if np.linalg.norm(odom[1] - goal) <= self.cfg.goal_tolerance:
+                    log.info("goal %s reached (odometry %s)", goal.round(3), odom[1].round(3))
+                    self.reached.set()
+                continue
+            if not (due or self.planner.needs_replan(traj, t_rel)):
+                continue
+            self._replan(goal, odom, now, traj, t_rel, new_goal)
+            last_plan_ns = now
+
+    def _replan(self, goal: np.ndarray, odom: tuple, now: int, traj: BSpline | None, t_rel: float,
+                new_goal: bool) -> None:  # fmt: skip
+        """Plan from the odometry state (first plan) or the current reference (replans, continuity)."""
+        if traj is None or new_goal:
+            p0, v0, a0 = odom[1], odom[3], np.zeros(3)
+        else:
+            p0, v0, a0 = traj.position(t_rel), traj.velocity(t_rel), traj.acceleration(t_rel)
+        target = self._local_goal(p0, goal)
+        t_wall = time.perf_counter()
+        plan = self.planner.plan(p0, v0, a0, target)
+        self.cycle_s.append(time.perf_counter() - t_wall)
+        with self._lock:
+            if plan is None:
+                self.failures += 1
+                self.last_failure = self.planner.reason
+                if traj is None or new_goal or self.planner.needs_replan(traj, t_rel):
+                    log.error("no motion: %s", self.planner.reason)
+                    self._traj = None
+                    self._hold = None if traj is None or new_goal else p0
+                    if new_goal:
+                        self._goal = None
+                return
+            self.plans += 1
+            self._traj, self._traj_t0_ns, self._hold = plan, now, None
+            self._traj_id += 1
+        log.debug("plan %d: %.2f s to %s in %.0f ms", self.plans, plan.duration, target.round(2),
+                  1e3 * self.cycle_s[-1])  # fmt: skip
+
+    def _goal_allowed(self, goal: np.ndarray) -> bool:
+        """Check a new goal against ``bounds`` (or the local map); log why and drop it if not."""
+        if self.cfg.bounds is not None:
+            lo, hi = (np.asarray(b, dtype=float) for b in self.cfg.bounds)
+            where = f"the bounds [{lo}, {hi}]"
+        else:
+            lo, hi = self.planner.map.bounds
+            where = f"the local map [{lo.round(2)}, {hi.round(2)}]"
+        if np.all(goal >= lo) and np.all(goal <= hi):
+            return True
+        reason = f"goal {goal.round(2)} is outside {where}"
+        log.error("no motion: %s", reason)
+        with self._lock:
+            self.failures += 1
+            self.last_failure = reason
+            if self._goal is goal:
+                self._goal = None
+        return False
+
+    def _local_goal(self, p0: np.ndarray, goal: np.ndarray) -> np.ndarray:
+        """``goal`` within the horizon, else the point on the way at the horizon, backed off until free."""
+        d = goal - p0
+        dist = float(np.linalg.norm(d))
+        horizon = self.planner.cfg.horizon
+        if dist <= horizon:
+            return goal
+        u = d / dist
+        for s in np.arange(horizon, 1.0, -self.planner.cfg.resolution):
+            q = p0 + s * u
+            if self.planner.map.inside(q) and not self.planner.map.is_occupied(q):
+                return q
+        return p0 + horizon * u
+
+    # ------------------------------------------------------------------ trajectory server
+    def _server_loop(self) -> None:
+        while True:
+            with self._wake:
+                self._wake.wait(timeout=0.1)
+                if self._stop:
+                    return
+                now = self._now_ns
+                last = self._last_cmd_ns
+                if now is None or (last is not None and now - last < COMMAND_PERIOD_NS):
+                    continue
+                cmd = self._command(now)
+                if cmd is None:
+                    continue
+                self._last_cmd_ns = now
+            self._pub.publish(messages.serialize(cmd), now)
+            self.commands += 1
+
+    def _command(self, now: int) -> Any:
+        """The PositionCommand for sim time ``now``, or None when nothing should be sent (lock held)."""
+        stale = self._last_depth_ns is None or now - self._last_depth_ns > self.cfg.depth_timeout_s * 1e9
+        if stale and (self._traj is not None or self._hold is not None):
+            if not self._holding_for_depth:
+                log.warning("no depth image for %.1f s of sim time: not commanding, the vehicle holds",
+                            self.cfg.depth_timeout_s)  # fmt: skip
+                self._holding_for_depth = True
+            return None
+        if self._holding_for_depth and not stale:
+            log.info("depth images are back: commanding again")
+            self._holding_for_depth = False
+        if self._traj is not None:
+            t = min(ns_to_seconds(now - self._traj_t0_ns), self._traj.duration)
+            p, v, a = self._traj.position(t), self._traj.velocity(t), self._traj.acceleration(t)
+        elif self._hold is not None:
+            p, v, a = self._hold, np.zeros(3), np.zeros(3)
+        else:
+            return None
+        yaw_prev = self._yaw
+        if yaw_prev is None:
+            yaw_prev = frames.yaw_of(self._odom[2]) if self._odom else 0.0
+        want = self._traj.yaw(t, yaw_prev) if self._traj is not None else yaw_prev
+        dt = COMMAND_PERIOD_NS / 1e9
+        step = float(np.clip(frames.wrap_angle(want - yaw_prev), -self.cfg.max_yaw_rate * dt,
+                             self.cfg.max_yaw_rate * dt))  # fmt: skip
+        self._yaw = frames.wrap_angle(yaw_prev + step)
+        return messages.position_command(
+            now, ODOM_FRAME, p, v, a, self._yaw, step / dt, trajectory_id=self._traj_id
+        )

@@ -1,0 +1,174 @@
+"""The planner process end to end: `droneulator run` (lockstep) + the plan node, talking only over Zenoh."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from droneulator import frames
+from droneulator.config import CameraConfig, load_config
+from droneulator.ros import messages as M
+from droneulator.ros.topics import ODOM_FRAME, TYPES, header_ns, topic_names, vehicle_topics
+from droneulator.ros.zenoh_node import RosZenohNode, ZenohNodeConfig
+from droneulator.runtime.launch import free_port, launch_run
+from droneulator.workflows.planning.node import GOAL_TYPE, PlanNode, PlanNodeConfig
+
+CAM = CameraConfig(name="front", width=320, height=240)
+
+
+def _run_config():
+    cfg = load_config(scene="tree_inspection")
+    cfg.render.cameras = [CAM]
+    cfg.render.shadow_map_size = 512
+    return cfg
+
+
+@pytest.mark.slow
+def test_plan_node_flies_to_a_goal_sent_over_zenoh_and_refuses_an_occupied_or_far_goal():
+    cfg = _run_config()
+    ns = cfg.bridge.namespace
+    with launch_run(cfg) as run:
+        client = run.client()
+        node = PlanNode(PlanNodeConfig(zenoh=run.zenoh_endpoint, namespace=ns, camera=CAM.name))
+        # a second, independent session sends the goals, like RViz through a bridge would
+        sender = RosZenohNode.from_config(run.config.bridge, listen=(), connect=(run.zenoh_endpoint,))
+        goals = sender.publisher(node.topics["goal"], GOAL_TYPE)
+        try:
+            client.reset(position=[0.0, -8.0, 0.0], yaw=0.0)
+            client.subscribe(["events"])
+            client.takeoff(altitude=2.0)
+            client.wait_for_event("arrived", timeout=60)
+            start = np.array(client.state()["position"])
+
+            # far outside the 20 m local map: refused, nothing commanded
+            goals.publish(M.serialize(M.pose_stamped(0, ODOM_FRAME, [0.0, 40.0, 2.0], [0, 0, 0, 1])))
+            deadline = time.monotonic() + 20
+            while node.failures == 0:
+                assert time.monotonic() < deadline, "the bad goal was never answered"
+                time.sleep(0.05)
+            assert "outside the local map" in node.last_failure
+
+            # on the ground the camera sees 2.7-4.6 m ahead: occupied in the depth-built map, refused
+            goals.publish(M.serialize(M.pose_stamped(0, ODOM_FRAME, start + [3.5, 0.0, -1.9], [0, 0, 0, 1])))
+            while node.failures == 1:
+                assert time.monotonic() < deadline + 20, "the occupied goal was never answered"
+                time.sleep(0.05)
+            assert "occupied" in node.last_failure, node.last_failure
+            assert node.commands == 0
+
+            goal = start + [3.0, 0.0, 0.0]
+            goals.publish(M.serialize(M.pose_stamped(0, ODOM_FRAME, goal, [0, 0, 0, 1])))
+            assert node.reached.wait(timeout=45), f"goal not reached; last failure: {node.last_failure!r}"
+            state = client.state()
+            assert np.linalg.norm(np.array(state["position"]) - goal) < 0.3
+            assert state["mode"] == "track"
+            assert node.plans >= 1 and node.commands > 100
+            collisions = [
+                m for m in client.messages(timeout=0.5)
+                if m.get("type") == "event" and m["event"].get("type") == "collision"
+            ]  # fmt: skip
+            assert not collisions
+        finally:
+            sender.close()
+            node.close()
+            client.close()
+
+
+class ScriptedSim:
+    """A stand-in for the simulator's bridge on a real Zenoh session: clock, odometry, depth, pose out."""
+
+    def __init__(self, endpoint: str, ns: str, cam: str) -> None:
+        self.node = RosZenohNode(ZenohNodeConfig(listen=(endpoint,), connect=()))
+        self.topics = {**vehicle_topics(ns), **topic_names(ns, cam), "goal": f"/{ns}/planner/goal"}
+        kinds = ("clock", "odom", "depth", "info_depth", "pose")
+        self.pubs = {k: self.node.publisher(self.topics[k], TYPES[k]) for k in kinds}
+        self.goal = self.node.publisher(self.topics["goal"], GOAL_TYPE)
+        self.cmds: list = []
+        self.lock = threading.Lock()
+        self.node.subscribe(self.topics["position_cmd"], TYPES["position_cmd"], self._on_cmd)
+        self.depth_on = True
+        self.t_ns = 1_000_000_000
+        self.last_depth_ns = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+        # yaw 90 deg, flying +x in the body frame: +y in the world frame
+        self.quat = frames.quat_from_yaw(math.pi / 2)
+        self.v_body = np.array([0.5, 0.0, 0.0])
+        self.position = np.array([0.0, 0.0, 2.0])
+
+    def _on_cmd(self, msg) -> None:
+        with self.lock:
+            self.cmds.append(msg)
+
+    def _loop(self) -> None:
+        K = np.array([[80.0, 0, 79.5], [0, 80.0, 59.5], [0, 0, 1]])
+        T = frames.make_transform(frames.quat_to_matrix(self.quat), self.position) @ frames.T_link_optical()
+        cam_p, cam_q = frames.pose_from_transform(T)
+        depth = np.full((120, 160), np.nan, dtype=np.float32)  # nothing within range: free space
+        while not self._stop.is_set():
+            t = self.t_ns
+            if t % 50_000_000 == 0 and self.depth_on:
+                info = M.camera_info(t, "front_optical_frame", 160, 120, K)
+                self.pubs["info_depth"].publish(M.serialize(info))
+                self.pubs["pose"].publish(M.serialize(M.pose_stamped(t, ODOM_FRAME, cam_p, cam_q)))
+                self.pubs["depth"].publish(M.serialize(M.image(t, "front_optical_frame", depth)))
+                self.last_depth_ns = t
+            odom = M.odometry(t, ODOM_FRAME, "base_link", self.position, self.quat, self.v_body, np.zeros(3))
+            self.pubs["odom"].publish(M.serialize(odom))
+            self.pubs["clock"].publish(M.serialize(M.clock(t)))
+            self.t_ns += 10_000_000
+            time.sleep(0.005)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+        self.node.close()
+
+
+def test_plan_node_plans_from_the_world_frame_velocity_and_stops_commanding_without_depth():
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    sim = ScriptedSim(endpoint, "droneulator", "front")
+    node = PlanNode(PlanNodeConfig(zenoh=endpoint))
+    try:
+        sim.start()
+        time.sleep(0.5)
+        sim.goal.publish(M.serialize(M.pose_stamped(0, ODOM_FRAME, [0.0, 4.0, 2.0], [0, 0, 0, 1])))
+        deadline = time.monotonic() + 20
+        while len(sim.cmds) < 50:
+            assert time.monotonic() < deadline, f"no commands; last failure {node.last_failure!r}"
+            time.sleep(0.05)
+        with sim.lock:
+            first = sim.cmds[0]
+            stamps = np.array([header_ns(m) for m in sim.cmds])
+        # the body twist (0.5, 0, 0) at yaw 90 deg is (0, 0.5, 0) in the world: the plan starts from it
+        v0 = np.array([first.velocity.x, first.velocity.y, first.velocity.z])
+        assert np.linalg.norm(v0 - [0.0, 0.5, 0.0]) < 0.1, v0
+        assert first.header.frame_id == ODOM_FRAME
+        gaps = np.diff(stamps)
+        assert np.all(gaps >= 10_000_000) and np.mean(gaps == 10_000_000) > 0.9, "one per 10 ms of sim time"
+
+        sim.depth_on = False
+        off_ns = sim.last_depth_ns
+        while sim.t_ns < off_ns + 2_000_000_000:
+            time.sleep(0.05)
+        with sim.lock:
+            last = max(header_ns(m) for m in sim.cmds)
+            n = len(sim.cmds)
+        assert off_ns + 0.95e9 <= last <= off_ns + 1.05e9, (last - off_ns) / 1e9
+        time.sleep(0.3)
+        assert len(sim.cmds) == n, "still commanding without depth"
+        sim.depth_on = True
+        deadline = time.monotonic() + 10
+        while len(sim.cmds) == n:
+            assert time.monotonic() < deadline, "commands did not resume with depth"
+            time.sleep(0.05)
+    finally:
+        node.close()
+        sim.close()
