@@ -134,6 +134,8 @@ def cmd_plan(args: argparse.Namespace) -> int:
     from droneulator.workflows.planning.node import PlanNode, PlanNodeConfig
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    if args.verbose:
+        logging.getLogger("droneulator").setLevel(logging.DEBUG)
     bounds = None if args.bounds is None else (tuple(args.bounds[:3]), tuple(args.bounds[3:]))
     cfg = PlanNodeConfig(zenoh=args.zenoh, namespace=args.namespace, camera=args.camera, bounds=bounds)
     done = threading.Event()
@@ -145,6 +147,11 @@ def cmd_plan(args: argparse.Namespace) -> int:
             done.wait()
         except KeyboardInterrupt:
             print("droneulator plan: interrupted, closing", file=sys.stderr)
+    if args.stats:
+        import json
+        from pathlib import Path
+
+        Path(args.stats).write_text(json.dumps(node.stats(), indent=1))
     return 0
 
 
@@ -464,6 +471,10 @@ def build_parser() -> argparse.ArgumentParser:
         metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
         help="box goals must lie in (default: the local map around the vehicle when the goal arrives)",
     )
+    p.add_argument(
+        "--stats", default=None, metavar="FILE", help="on exit, write plan/map-update times and counters as JSON"
+    )
+    p.add_argument("-v", "--verbose", action="store_true", help="log every plan (debug level)")
     p.set_defaults(func=cmd_plan)
 
     p = sub.add_parser("config", help="print the effective configuration as JSON")

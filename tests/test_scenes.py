@@ -21,7 +21,7 @@ from droneulator.scenes.collision import (
 )
 from droneulator.scenes.geometry import Mesh, box, cylinder, ground_grid, icosphere, tube
 
-SCENES = ("default", "orchard", "tree_inspection", "vineyard")
+SCENES = ("default", "orchard", "planning", "tree_inspection", "vineyard")
 BASE_CLASSES = {SemanticClass.GROUND, SemanticClass.TRUNK, SemanticClass.BRANCH, SemanticClass.CANOPY}
 EXTRA_CLASSES = {
     "orchard": {SemanticClass.FRUIT},

@@ -17,7 +17,7 @@ from droneulator.scenes.base import MeshPart, Scene
 
 SceneBuilder = Callable[[int], Scene]
 
-_SCENE_MODULES = ("default", "orchard", "tree_inspection", "vineyard")
+_SCENE_MODULES = ("default", "orchard", "planning", "tree_inspection", "vineyard")
 _REGISTRY: dict[str, tuple[str, SceneBuilder]] = {}
 
 #: minimum horizontal clearance (metres) between a spawn point and any obstacle

@@ -84,6 +84,7 @@ class PlanNode:
     def __init__(self, config: PlanNodeConfig | None = None, planner: PlannerConfig | None = None) -> None:
         self.cfg = config or PlanNodeConfig()
         self.planner = Planner(planner)
+        log.info("planner kernels ready in %.1f s", self.planner.warm_up())
         ns, cam = self.cfg.namespace, self.cfg.camera
         self.topics = {**vehicle_topics(ns), **topic_names(ns, cam), "goal": f"/{ns}/planner/goal"}
         self.node = RosZenohNode(
@@ -105,6 +106,7 @@ class PlanNode:
         self._traj: BSpline | None = None
         self._traj_t0_ns = 0
         self._traj_id = 0
+        self._traj_goal: np.ndarray | None = None  # the goal itself when the trajectory ends there
         self._hold: np.ndarray | None = None  # stop point after a failed replan
         self._yaw: float | None = None
         self._last_cmd_ns: int | None = None
@@ -116,6 +118,7 @@ class PlanNode:
         self.reached = threading.Event()
         self.last_failure = ""
         self.cycle_s: list[float] = []
+        self.map_s: list[float] = []
         self._pub = self.node.publisher(self.topics["position_cmd"], TYPES["position_cmd"])
         t = self.topics
         self.node.subscribe(t["clock"], TYPES["clock"], self._on_clock)
@@ -190,6 +193,17 @@ class PlanNode:
         msg = messages.pose_stamped(0, ODOM_FRAME, np.asarray(goal, dtype=float), (0.0, 0.0, 0.0, 1.0))
         self._on_goal(msg)
 
+    def stats(self) -> dict[str, Any]:
+        """Counters and the wall time of every plan and map update (seconds), for benchmarks."""
+        return {
+            "plans": self.plans,
+            "failures": self.failures,
+            "commands": self.commands,
+            "last_failure": self.last_failure,
+            "plan_s": list(self.cycle_s),
+            "map_update_s": list(self.map_s),
+        }
+
     def close(self) -> None:
         """Stop both threads and close the Zenoh session."""
         with self._wake:
@@ -234,22 +248,30 @@ class PlanNode:
                 log.warning("no /clock from %s after 5 s: is `droneulator run` up there?", self.cfg.zenoh)
                 warned = True
             if frame is not None:
+                t_map = time.perf_counter()
                 try:
-                    self.planner.update_map(*frame)
+                    updates = self.planner.update_map(*frame)
                 except ValueError as exc:
                     log.error("depth frame skipped: %s", exc)
+                else:
+                    self.map_s.append(time.perf_counter() - t_map)
+                    if len(self.map_s) == 1:
+                        log.info("first depth image integrated (%d voxel updates)", updates)
             if goal is None or odom is None or now is None or self.reached.is_set():
                 continue
             if new_goal and not self._goal_allowed(goal):
                 continue
             t_rel = ns_to_seconds(now - t0)
             due = new_goal or last_plan_ns is None or now - last_plan_ns >= self.cfg.replan_period_s * 1e9
-            if traj is not None and t_rel >= traj.duration and not new_goal:
+            ended = traj is not None and t_rel >= traj.duration and not new_goal
+            if ended and self._traj_goal is goal:
+                # the final leg is flown: wait at its end point for the odometry to converge
                 if np.linalg.norm(odom[1] - goal) <= self.cfg.goal_tolerance:
                     log.info("goal %s reached (odometry %s)", goal.round(3), odom[1].round(3))
                     self.reached.set()
                 continue
-            if not (due or self.planner.needs_replan(traj, t_rel)):
+            # a leg towards an intermediate (horizon) goal that has ended is continued at once
+            if not (due or ended or self.planner.needs_replan(traj, t_rel)):
                 continue
             self._replan(goal, odom, now, traj, t_rel, new_goal)
             last_plan_ns = now
@@ -278,6 +300,7 @@ class PlanNode:
                 return
             self.plans += 1
             self._traj, self._traj_t0_ns, self._hold = plan, now, None
+            self._traj_goal = goal if target is goal else None
             self._traj_id += 1
         log.debug("plan %d: %.2f s to %s in %.0f ms", self.plans, plan.duration, target.round(2),
                   1e3 * self.cycle_s[-1])  # fmt: skip

@@ -1,0 +1,251 @@
+"""Local planning round a tree (paper Table "Trajectory statistics for multi-goal local planning").
+
+``droneulator run --scene planning`` (lockstep, the default 640x480 camera rig) and ``droneulator plan``
+run as two processes talking only over Zenoh. For each of five goals on the far side of the central
+tree, from far left to far right, the vehicle is reset to the start, takes off to the flight altitude
+through the WebSocket API, a fresh planner process is started (an empty map) and the goal is published
+on ``/<ns>/planner/goal`` as a ``geometry_msgs/PoseStamped``, like RViz's goal tool. The benchmark
+watches the API's state stream (it never talks to the planner) and, per run, reports: flight time
+(goal sent -> first within ``--arrive`` metres of the goal, sim time), path length, goal error after
+``--settle`` s of sim time, minimum clearance from the vehicle centre to the true scene geometry
+(the scene's SDF, which only the benchmark reads), collisions, the planner's plan and map-update
+times (median, p99, from its ``--stats`` file) and the real-time factor. Writes
+``benchmarks/results/planning.json`` and a top-down figure of the five trajectories
+(``benchmarks/results/planning.png``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from _common import RESULTS, write
+
+from droneulator.config import load_config
+from droneulator.ros import messages as M
+from droneulator.ros.topics import ODOM_FRAME
+from droneulator.ros.zenoh_node import RosZenohNode
+from droneulator.runtime.launch import launch_run
+from droneulator.scenes import get_scene
+from droneulator.scenes.collision import sdf_lookup_many
+from droneulator.workflows.planning.node import GOAL_TYPE
+
+ALTITUDE = 2.5
+#: far left (+y, seen from the start facing +x) to far right
+GOALS_XY = ((7.0, 6.0), (7.5, 3.0), (8.0, 0.0), (7.5, -3.0), (7.0, -6.0))
+
+
+def _pct(values: list[float], q: float) -> float:
+    return float(np.percentile(values, q)) if values else float("nan")
+
+
+def _planner(endpoint: str, ns: str, bounds: list[float], stats: Path, log: Path) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "droneulator.cli", "plan", "--zenoh", endpoint, "--namespace", ns,
+           "--bounds", *map(str, bounds), "--stats", str(stats), "-v"]  # fmt: skip
+    out = open(log, "w")  # noqa: SIM115 (closed with the process by the OS)
+    return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+
+
+def _wait_for_line(log: Path, text: str, proc: subprocess.Popen, timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if text in log.read_text():
+            return
+        if proc.poll() is not None:
+            raise RuntimeError(f"planner exited ({proc.returncode}):\n{log.read_text()[-2000:]}")
+        time.sleep(0.1)
+    raise TimeoutError(f"planner log has no {text!r} after {timeout} s:\n{log.read_text()[-2000:]}")
+
+
+def fly_one(run, client, goal_pub, goal: np.ndarray, start: np.ndarray, bounds: list[float], workdir: Path,
+            args: argparse.Namespace, index: int) -> dict:  # fmt: skip
+    client.reset(position=[float(start[0]), float(start[1]), 0.0], yaw=0.0)
+    client.takeoff(altitude=ALTITUDE)
+    client.wait_for_event("arrived", timeout=120)
+    stats, log = workdir / f"plan_{index}.json", workdir / f"plan_{index}.log"
+    proc = _planner(run.zenoh_endpoint, run.config.bridge.namespace, bounds, stats, log)
+    try:
+        _wait_for_line(log, "first depth image integrated", proc, 120)
+        s0 = client.state()
+        wall0 = time.monotonic()
+        goal_pub.publish(M.serialize(M.pose_stamped(0, ODOM_FRAME, goal, (0.0, 0.0, 0.0, 1.0))))
+        t0 = s0["t"]
+        samples: list[tuple[float, list[float], float]] = []
+        collisions = 0
+        t_arrive = None
+        deadline_wall = wall0 + args.timeout * 4
+        while time.monotonic() < deadline_wall:
+            msg = client.next_message(timeout=5.0)
+            if msg is None:
+                continue
+            if msg.get("type") == "event":
+                if msg["event"].get("type") in ("collision", "impact"):
+                    collisions += 1
+                continue
+            if msg.get("type") != "state":
+                continue
+            st = msg["state"]
+            if st["t"] < t0:
+                continue
+            p = np.array(st["position"])
+            speed = float(np.linalg.norm(st["velocity"]))
+            samples.append((st["t"], st["position"], speed))
+            err = float(np.linalg.norm(p - goal))
+            if t_arrive is None and err <= args.arrive:
+                t_arrive = st["t"]
+            if t_arrive is not None and st["t"] - t_arrive >= args.settle:
+                break
+            if st["t"] - t0 > args.timeout:
+                break
+        wall = time.monotonic() - wall0
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    t = np.array([s[0] for s in samples])
+    pos = np.array([s[1] for s in samples])
+    end = t_arrive if t_arrive is not None else t[-1]
+    flown = pos[t <= end]
+    length = float(np.linalg.norm(np.diff(flown, axis=0), axis=1).sum()) if len(flown) > 1 else 0.0
+    col = get_scene(run.config.scene, run.config.seed).collision
+    clearance = sdf_lookup_many(col.sdf, col.origin, col.resolution, pos)
+    planner = json.loads(stats.read_text()) if stats.exists() else {}
+    plan_ms = [1e3 * x for x in planner.get("plan_s", [])]
+    map_ms = [1e3 * x for x in planner.get("map_update_s", [])]
+    return {
+        "goal": goal.tolist(),
+        "reached": t_arrive is not None,
+        "flight_time_s": None if t_arrive is None else float(t_arrive - t0),
+        "path_length_m": length,
+        "straight_line_m": float(np.linalg.norm(goal - pos[0])),
+        "goal_error_m": float(np.linalg.norm(pos[-1] - goal)),
+        "min_clearance_m": float(clearance.min()),
+        "collisions": collisions,
+        "plans": planner.get("plans"),
+        "plan_failures": planner.get("failures"),
+        "plan_ms_median": _pct(plan_ms, 50),
+        "plan_ms_p99": _pct(plan_ms, 99),
+        "map_ms_median": _pct(map_ms, 50),
+        "plan_ms": plan_ms,
+        "rtf": float((t[-1] - t0) / wall) if len(t) else float("nan"),
+        "trajectory": pos[:, :2].round(3).tolist(),
+    }
+
+
+def figure(scene_name: str, seed: int, runs: list[dict], start: np.ndarray, out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    col = get_scene(scene_name, seed).collision
+    xs, ys = np.arange(-11.0, 11.0, 0.05), np.arange(-9.0, 9.0, 0.05)
+    X, Y = np.meshgrid(xs, ys)
+    flat = np.stack([X.ravel(), Y.ravel()], 1)
+    slice_d = sdf_lookup_many(col.sdf, col.origin, col.resolution, np.c_[flat, np.full(len(flat), ALTITUDE)])
+    anywhere = np.min([sdf_lookup_many(col.sdf, col.origin, col.resolution, np.c_[flat, np.full(len(flat), z)])
+                       for z in np.arange(0.3, 6.0, 0.3)], axis=0)  # fmt: skip
+    fig, ax = plt.subplots(figsize=(9, 7.5))
+    ax.contourf(X, Y, anywhere.reshape(X.shape), levels=[-10, 0], colors=["#cfe3c6"])
+    ax.contourf(X, Y, slice_d.reshape(X.shape), levels=[-10, 0, 0.5], colors=["#2f6b2a", "#a9c9a0"])
+    colours = plt.cm.plasma(np.linspace(0.05, 0.85, len(runs)))
+    for i, (r, c) in enumerate(zip(runs, colours, strict=True)):
+        tr = np.array(r["trajectory"])
+        ok = "reached" if r["reached"] else "NOT reached"
+        ax.plot(tr[:, 0], tr[:, 1], color=c, lw=2,
+                label=f"goal {i + 1}: {ok}, {r['flight_time_s'] or float('nan'):.1f} s, "
+                      f"clearance {r['min_clearance_m']:.2f} m")  # fmt: skip
+        ax.plot(*r["goal"][:2], marker="*", ms=16, color=c, mec="k")
+    ax.plot(*start[:2], marker="o", ms=10, color="k", label="start")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(f"`{scene_name}`: five planned flights at {ALTITUDE} m (dark: obstacles at flight altitude, "
+                 "mid: their 0.5 m band, light: obstacles at any height)", fontsize=9)  # fmt: skip
+    ax.legend(loc="lower left", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out, dpi=110)
+    print(f"wrote {out}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", default="planning")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--goals", type=int, nargs="+", default=None, help="run only these goals (1-5)")
+    ap.add_argument("--arrive", type=float, default=0.1, help="arrival radius for the flight time (m)")
+    ap.add_argument("--settle", type=float, default=2.0, help="sim seconds after arrival before the goal error")
+    ap.add_argument("--timeout", type=float, default=60.0, help="sim seconds allowed per flight")
+    ap.add_argument("--logs", default=None, help="keep the planner logs and stats in this folder")
+    ap.add_argument("--output", default=None, help="JSON path (default benchmarks/results/planning.json)")
+    args = ap.parse_args()
+
+    scene = get_scene(args.scene, args.seed)
+    start = np.asarray(scene.landmarks.get("start", scene.spawn_position), dtype=float)
+    lo, hi = scene.bounds_min, scene.bounds_max
+    bounds = [lo[0], lo[1], 0.5, hi[0], hi[1], min(hi[2], 8.0)]
+    picks = args.goals or list(range(1, len(GOALS_XY) + 1))
+    cfg = load_config(scene=args.scene, seed=args.seed)
+    runs = []
+    with tempfile.TemporaryDirectory(prefix="droneulator-planning-") as tmp, launch_run(cfg) as run:
+        if args.logs:
+            tmp = args.logs
+            Path(tmp).mkdir(parents=True, exist_ok=True)
+        client = run.client(timeout=60)
+        sender = RosZenohNode.from_config(run.config.bridge, listen=(), connect=(run.zenoh_endpoint,))
+        goal_pub = sender.publisher(f"/{run.config.bridge.namespace}/planner/goal", GOAL_TYPE)
+        client.subscribe(["state", "events"], rate_hz=50)
+        try:
+            for i in picks:
+                gx, gy = GOALS_XY[i - 1]
+                goal = np.array([gx, gy, ALTITUDE])
+                r = fly_one(run, client, goal_pub, goal, start, bounds, Path(tmp), args, i)
+                runs.append(r)
+                print(f"goal {i} {goal.tolist()}: reached={r['reached']} time={r['flight_time_s']} "
+                      f"length={r['path_length_m']:.2f} error={r['goal_error_m']:.3f} "
+                      f"clearance={r['min_clearance_m']:.2f} collisions={r['collisions']} "
+                      f"plan median/p99={r['plan_ms_median']:.1f}/{r['plan_ms_p99']:.1f} ms "
+                      f"plans={r['plans']} failures={r['plan_failures']} rtf={r['rtf']:.2f}", flush=True)  # fmt: skip
+                if not r["reached"]:
+                    print((Path(tmp) / f"plan_{i}.log").read_text()[-3000:])
+        finally:
+            sender.close()
+            client.close()
+    plan_ms = [x for r in runs for x in r["plan_ms"]]
+    flights = [r["flight_time_s"] for r in runs if r["reached"]]
+    summary = {
+        "reached": f"{sum(r['reached'] for r in runs)}/{len(runs)}",
+        "collisions": int(sum(r["collisions"] for r in runs)),
+        "mean_goal_error_m": float(np.mean([r["goal_error_m"] for r in runs])),
+        "min_clearance_m": float(min(r["min_clearance_m"] for r in runs)),
+        "flight_time_s": [min(flights), max(flights)] if flights else None,
+        "plan_ms_median": _pct(plan_ms, 50),
+        "plan_ms_p99": _pct(plan_ms, 99),
+        "rtf_min": float(min(r["rtf"] for r in runs)),
+    }
+    print("\n| goal | reached | flight time (s) | path (m) | straight (m) | goal error (m) | min clearance (m) "
+          "| plan median / p99 (ms) | RTF |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|---|")
+    for i, r in zip(picks, runs, strict=True):
+        ft = "-" if r["flight_time_s"] is None else f"{r['flight_time_s']:.2f}"
+        print(f"| {i} | {'yes' if r['reached'] else 'no'} | {ft} | {r['path_length_m']:.2f} | "
+              f"{r['straight_line_m']:.2f} | {r['goal_error_m']:.3f} | {r['min_clearance_m']:.2f} | "
+              f"{r['plan_ms_median']:.1f} / {r['plan_ms_p99']:.1f} | {r['rtf']:.2f} |")  # fmt: skip
+    print(json.dumps(summary, indent=1))
+    out = write("planning", {"scene": args.scene, "seed": args.seed, "altitude": ALTITUDE, "summary": summary,
+                             "runs": runs}, args.output)  # fmt: skip
+    figure(args.scene, args.seed, runs, start, out.with_suffix(".png"))
+
+
+if __name__ == "__main__":
+    main()
