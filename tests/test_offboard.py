@@ -350,3 +350,68 @@ def test_bad_input_is_refused():
             link.setpoint(0.0, np.array([0.0, np.nan, 1.0]), np.zeros(3), np.zeros(3), 0.0, 0.0)
         with pytest.raises(ValueError, match="3-vectors"):
             link.setpoint(0.0, np.zeros(2), np.zeros(3), np.zeros(3), 0.0, 0.0)
+
+
+@pytest.mark.slow
+def test_plan_node_sends_its_trajectory_to_px4_as_ned_setpoints_on_a_real_run(caplog):
+    """The real planner on a real `droneulator run` (no PX4 there: the simulator hovers by itself),
+    its trajectory server feeding OffboardLink, and the peer checking the NED setpoints."""
+    from droneulator import frames
+    from droneulator.config import CameraConfig, load_config
+    from droneulator.runtime.launch import launch_run
+    from droneulator.workflows.planning.node import PlanNode, PlanNodeConfig
+
+    caplog.set_level(logging.INFO, logger="droneulator.plan.offboard")
+    cam = CameraConfig(name="front", width=320, height=240)
+    cfg = load_config(scene="tree_inspection")
+    cfg.render.cameras = [cam]
+    cfg.render.shadow_map_size = 512
+    origin = np.array([0.0, -8.0, 0.0])  # EKF2 started where the vehicle stood
+    with launch_run(cfg) as run:
+        client = run.client()
+        link = OffboardLink(fast_cfg())
+        peer = FakePX4(link.address[1], origin_geodetic=frames.enu_to_geodetic(origin, *HOME))
+        node_cfg = PlanNodeConfig(zenoh=run.zenoh_endpoint, namespace=cfg.bridge.namespace, camera=cam.name)
+        node = PlanNode(node_cfg, setpoint_sink=link.setpoint)
+        try:
+            client.reset(position=origin.tolist(), yaw=0.0)
+            client.subscribe(["events"])
+            client.takeoff(altitude=2.0)
+            client.wait_for_event("arrived", timeout=60)
+            start = np.array(client.state()["position"])
+            goal = start + [3.0, 0.0, 0.0]
+            node.set_goal(goal)
+            # ENU offset from the origin (e, n, u) -> NED (n, e, -u), written out
+            off = goal - origin
+            goal_ned = np.array([off[1], off[0], -off[2]])
+
+            def at_goal() -> bool:
+                sps = peer.messages("SET_POSITION_TARGET_LOCAL_NED")
+                if not sps:
+                    return False
+                m = sps[-1][0]
+                return (
+                    np.linalg.norm([m.x, m.y, m.z] - goal_ned) < 0.02
+                    and np.linalg.norm([m.vx, m.vy, m.vz]) < 0.01
+                )
+
+            wait_until(at_goal, timeout=45, what=f"setpoints at the goal; planner: {node.last_failure!r}")
+            assert link.engaged.wait(5), f"{link.error!r}; {caplog.text}"
+            assert peer.armed and peer.custom_mode == OFFBOARD
+            sps = [m for m, _, _ in peer.messages("SET_POSITION_TARGET_LOCAL_NED")]
+            off0 = start - origin
+            first = np.array([sps[0].x, sps[0].y, sps[0].z])
+            assert np.linalg.norm(first - [off0[1], off0[0], -off0[2]]) < 0.15, first
+            # flying east (ENU +x): NED velocity along +y, heading 90 deg in NED
+            mid = max(sps, key=lambda m: m.vy)
+            assert mid.vy > 0.3 and abs(mid.vx) < 0.2 * mid.vy
+            assert all(abs(m.yaw - math.pi / 2) < 0.2 for m in sps)
+            assert sps[-1].type_mask == TYPE_MASK_TRAJECTORY
+            # the setpoints went to PX4 instead of the PositionCommand topic: the simulator held where it was
+            state = client.state()
+            assert state["mode"] != "track" and np.linalg.norm(np.array(state["position"]) - start) < 0.2
+        finally:
+            node.close()
+            link.close()
+            peer.close()
+            client.close()

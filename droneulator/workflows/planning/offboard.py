@@ -75,9 +75,6 @@ TYPE_MASK_HOLD = (
     | mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
 )
 
-SetpointSink = Callable[[float, np.ndarray, np.ndarray, np.ndarray, float, float], None]
-
-
 def px4_mode_name(custom_mode: int) -> str:
     """Readable PX4 mode of a HEARTBEAT ``custom_mode`` (main mode in bits 16-23, sub mode 24-31)."""
     main, sub = (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
