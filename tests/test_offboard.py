@@ -269,6 +269,16 @@ def test_refused_arming_gives_a_clear_error(px4_pair):
     assert not link.engaged.is_set() and not peer.armed
 
 
+def test_an_airborne_armed_px4_is_switched_to_offboard_without_arming_again(px4_pair):
+    link, peer = px4_pair
+    peer.armed, peer.custom_mode = True, (4 << 16) | (3 << 24)  # took off, loitering
+    wait_until(lambda: link.connected and link.armed)
+    link.setpoint(0.0, np.array([0.0, 0.0, 2.0]), np.zeros(3), np.zeros(3), 0.0, 0.0)
+    assert link.engaged.wait(5), link.error
+    assert len(peer.commands(mavlink.MAV_CMD_DO_SET_MODE)) == 1
+    assert not peer.commands(mavlink.MAV_CMD_COMPONENT_ARM_DISARM)
+
+
 def test_unanswered_command_is_retried_then_reported(px4_pair):
     link, peer = px4_pair
     wait_until(lambda: link.origin_enu is not None)

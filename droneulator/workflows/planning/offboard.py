@@ -75,6 +75,7 @@ TYPE_MASK_HOLD = (
     | mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
 )
 
+
 def px4_mode_name(custom_mode: int) -> str:
     """Readable PX4 mode of a HEARTBEAT ``custom_mode`` (main mode in bits 16-23, sub mode 24-31)."""
     main, sub = (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
@@ -512,7 +513,11 @@ class OffboardLink:
             return
         if not self._set_mode(PX4_MAIN_MODE_OFFBOARD, 0, "OFFBOARD"):
             return
-        result = self._command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, "arm", 1.0)
+        if self.armed:
+            log.info("PX4 is already armed (took off before): not arming again")
+            result = mavlink.MAV_RESULT_ACCEPTED
+        else:
+            result = self._command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, "arm", 1.0)
         if result != mavlink.MAV_RESULT_ACCEPTED:
             if not self._stop.is_set():
                 why = "no COMMAND_ACK" if result is None else _result_name(result)
