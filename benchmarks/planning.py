@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from _common import RESULTS, write
+from _common import write
 
 from droneulator.config import load_config
 from droneulator.ros import messages as M

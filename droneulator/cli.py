@@ -127,6 +127,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_plan(args: argparse.Namespace) -> int:
+    import contextlib
     import logging
     import signal
     import threading
@@ -140,7 +141,24 @@ def cmd_plan(args: argparse.Namespace) -> int:
     cfg = PlanNodeConfig(zenoh=args.zenoh, namespace=args.namespace, camera=args.camera, bounds=bounds)
     done = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: done.set())
-    with PlanNode(cfg) as node:
+    with contextlib.ExitStack() as stack:
+        sink = None
+        if args.px4 or args.px4_instance is not None:
+            from droneulator.workflows.planning.offboard import OffboardConfig, OffboardLink
+
+            home = {}
+            if args.px4_home is not None:
+                home = dict(zip(("home_lat_deg", "home_lon_deg", "home_alt_m"), args.px4_home, strict=True))
+            origin = None if args.px4_origin is None else tuple(args.px4_origin)
+            link_cfg = OffboardConfig(
+                host=args.px4_host,
+                instance=args.px4_instance or 0,
+                on_stop=args.px4_on_stop,
+                origin_enu=origin,
+                **home,
+            )
+            sink = stack.enter_context(OffboardLink(link_cfg)).setpoint
+        node = stack.enter_context(PlanNode(cfg, setpoint_sink=sink))
         if args.goal is not None:
             node.set_goal(args.goal)
         try:
@@ -472,9 +490,42 @@ def build_parser() -> argparse.ArgumentParser:
         help="box goals must lie in (default: the local map around the vehicle when the goal arrives)",
     )
     p.add_argument(
-        "--stats", default=None, metavar="FILE", help="on exit, write plan/map-update times and counters as JSON"
+        "--stats",
+        default=None,
+        metavar="FILE",
+        help="on exit, write plan/map-update times and counters as JSON",
     )
     p.add_argument("-v", "--verbose", action="store_true", help="log every plan (debug level)")
+    p.add_argument(
+        "--px4",
+        action="store_true",
+        help="fly PX4 SITL in OFFBOARD (SET_POSITION_TARGET_LOCAL_NED on UDP 14540+N) instead of "
+        "publishing PositionCommand; see docs/planning.md",
+    )
+    p.add_argument("--px4-instance", type=int, default=None, metavar="N", help="PX4 instance (implies --px4)")
+    p.add_argument("--px4-host", default="127.0.0.1", help="address to bind PX4's offboard UDP port on")
+    p.add_argument(
+        "--px4-origin",
+        type=float,
+        nargs=3,
+        default=None,
+        metavar=("X", "Y", "Z"),
+        help="world (ENU) position of PX4's local NED origin (default: PX4's GPS_GLOBAL_ORIGIN and the home)",
+    )
+    p.add_argument(
+        "--px4-home",
+        type=float,
+        nargs=3,
+        default=None,
+        metavar=("LAT", "LON", "ALT"),
+        help="geodetic point of the run's world origin if the run changed px4.home_* (default: the defaults)",
+    )
+    p.add_argument(
+        "--px4-on-stop",
+        choices=("hold", "loiter", "land"),
+        default="hold",
+        help="when setpoints stop: keep streaming the last position (hold) or switch PX4 to AUTO.LOITER/LAND",
+    )
     p.set_defaults(func=cmd_plan)
 
     p = sub.add_parser("config", help="print the effective configuration as JSON")

@@ -9,7 +9,8 @@ Two threads besides Zenoh's callbacks: the planning thread integrates the newest
 (re)plans, and the trajectory server samples the current B-spline each time ``/clock`` has advanced
 10 ms (in lockstep the simulator waits only for its cameras, so sim time, not the wall clock, paces
 the commands). With no depth for 1 s of sim time it stops publishing, so the simulator's
-``track_timeout`` holds the vehicle.
+``track_timeout`` holds the vehicle. With a ``setpoint_sink`` (``droneulator plan --px4``: PX4 offboard,
+see :mod:`droneulator.workflows.planning.offboard`) the same samples go there instead of the topic.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import math
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -46,6 +48,8 @@ log = logging.getLogger("droneulator.plan")
 GOAL_TYPE = "geometry_msgs/msg/PoseStamped"
 #: trajectory server period, sim time
 COMMAND_PERIOD_NS = 10_000_000
+#: where setpoints go instead of PositionCommand: ``(t_s, p, v, a, yaw, yaw_rate)``, world frame, sim time
+SetpointSink = Callable[[float, np.ndarray, np.ndarray, np.ndarray, float, float], None]
 
 
 @dataclass
@@ -81,8 +85,17 @@ class PlanNodeConfig:
 class PlanNode:
     """The planner node: subscriptions, a planning thread and a 100 Hz (sim time) trajectory server."""
 
-    def __init__(self, config: PlanNodeConfig | None = None, planner: PlannerConfig | None = None) -> None:
+    def __init__(
+        self,
+        config: PlanNodeConfig | None = None,
+        planner: PlannerConfig | None = None,
+        setpoint_sink: SetpointSink | None = None,
+    ) -> None:
+        """``setpoint_sink``: receives each trajectory-server sample ``(t_s, p, v, a, yaw, yaw_rate)`` (sim
+        time, world frame) instead of the PositionCommand topic, e.g. ``OffboardLink.setpoint`` for PX4."""
         self.cfg = config or PlanNodeConfig()
+        self._sink = setpoint_sink
+        self._setpoint: tuple[np.ndarray, np.ndarray, np.ndarray, float, float] | None = None
         self.planner = Planner(planner)
         log.info("planner kernels ready in %.1f s", self.planner.warm_up())
         ns, cam = self.cfg.namespace, self.cfg.camera
@@ -353,7 +366,11 @@ class PlanNode:
                 if cmd is None:
                     continue
                 self._last_cmd_ns = now
-            self._pub.publish(messages.serialize(cmd), now)
+                setpoint = self._setpoint
+            if self._sink is not None:
+                self._sink(ns_to_seconds(now), *setpoint)
+            else:
+                self._pub.publish(messages.serialize(cmd), now)
             self.commands += 1
 
     def _command(self, now: int) -> Any:
@@ -383,6 +400,7 @@ class PlanNode:
         step = float(np.clip(frames.wrap_angle(want - yaw_prev), -self.cfg.max_yaw_rate * dt,
                              self.cfg.max_yaw_rate * dt))  # fmt: skip
         self._yaw = frames.wrap_angle(yaw_prev + step)
+        self._setpoint = (p, v, a, self._yaw, step / dt)
         return messages.position_command(
             now, ODOM_FRAME, p, v, a, self._yaw, step / dt, trajectory_id=self._traj_id
         )
