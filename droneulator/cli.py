@@ -132,6 +132,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
     import signal
     import threading
 
+    from droneulator.workflows.planning.config import PlannerConfig
     from droneulator.workflows.planning.node import PlanNode, PlanNodeConfig
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
@@ -139,6 +140,16 @@ def cmd_plan(args: argparse.Namespace) -> int:
         logging.getLogger("droneulator").setLevel(logging.DEBUG)
     bounds = None if args.bounds is None else (tuple(args.bounds[:3]), tuple(args.bounds[3:]))
     cfg = PlanNodeConfig(zenoh=args.zenoh, namespace=args.namespace, camera=args.camera, bounds=bounds)
+    try:
+        planner = PlannerConfig(
+            ceiling=args.ceiling,
+            floor=args.floor,
+            max_vel=args.max_vel,
+            max_acc=args.max_acc,
+            inflation_margin=args.margin,
+        )
+    except ValueError as exc:
+        raise SystemExit(f"droneulator: error: {exc}") from None
     done = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: done.set())
     with contextlib.ExitStack() as stack:
@@ -158,7 +169,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
                 **home,
             )
             sink = stack.enter_context(OffboardLink(link_cfg)).setpoint
-        node = stack.enter_context(PlanNode(cfg, setpoint_sink=sink))
+        node = stack.enter_context(PlanNode(cfg, planner, setpoint_sink=sink))
         if args.goal is not None:
             node.set_goal(args.goal)
         try:
@@ -489,6 +500,21 @@ def build_parser() -> argparse.ArgumentParser:
         metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
         help="box goals must lie in (default: the local map around the vehicle when the goal arrives)",
     )
+    from droneulator.workflows.planning.config import PlannerConfig
+
+    defaults = PlannerConfig()
+    p.add_argument(
+        "--ceiling", type=float, default=None, metavar="Z", help="virtual ceiling (world z, m), as EGO's"
+    )
+    p.add_argument("--floor", type=float, default=None, metavar="Z", help="virtual floor (world z, m)")
+    p.add_argument(
+        "--margin",
+        type=float,
+        default=defaults.inflation_margin,
+        help=f"obstacles are inflated by the vehicle radius ({defaults.vehicle_radius} m) plus this (m)",
+    )
+    p.add_argument("--max-vel", type=float, default=defaults.max_vel, help="planning speed limit (m/s)")
+    p.add_argument("--max-acc", type=float, default=defaults.max_acc, help="planning accel. limit (m/s²)")
     p.add_argument(
         "--stats",
         default=None,

@@ -259,3 +259,113 @@ def test_planner_reports_why_it_fails(wall) -> None:
     fresh.update_map(depth, T_wo, K)
     fresh.update_map(depth, T_wo, K)
     assert fresh.needs_replan(traj)
+
+
+def test_compiled_lbfgs_reaches_scipys_optimum() -> None:
+    """The planner's compiled L-BFGS against SciPy's L-BFGS-B (an independent implementation) on the
+    same cost: same optimum, i.e. the same cost value and control points to within millimetres."""
+    from scipy.optimize import minimize
+
+    from droneulator.workflows.planning.bspline import optimize
+
+    line = straight_line(np.zeros(3), np.array([0.5, 0, 0]), np.zeros(3), np.array([6.0, 0.0, 0.0]), 0.4, 2.0)
+    pairs = Pairs()
+    for i in range(6, 12):  # a wall of anchors pushing the middle out to y >= 0.65
+        pairs.add(i, np.array([0.4 * i, 0.5, 0.0]), np.array([0.0, 1.0, 0.0]))
+    w = Weights()
+    ours = optimize(line, pairs, 0.15, 2.0, 3.0, w, iters=500, ftol=1e-12)
+    Q = line.ctrl
+    pidx, P, V = pairs.arrays()
+    args = (Q[:3].copy(), Q[-3:].copy(), float(line.dt), pidx, P, V, 0.15, 2.0, 3.0, w.smooth, w.collision,
+            w.feasibility)  # fmt: skip
+    ref = minimize(compiled_cost, Q[3:-3].ravel(), jac=True, method="L-BFGS-B", args=args,
+                   options={"maxiter": 2000, "ftol": 1e-14, "gtol": 1e-10})  # fmt: skip
+    f_ours = compiled_cost(ours.ctrl[3:-3].ravel(), *args)[0]
+    f_start = compiled_cost(Q[3:-3].ravel(), *args)[0]
+    assert f_start > 10 * ref.fun  # the anchors really moved the curve
+    assert f_ours == pytest.approx(ref.fun, rel=1e-6)
+    np.testing.assert_allclose(ours.ctrl[3:-3].ravel(), ref.x, atol=2e-3)
+    assert ours.ctrl[8, 1] >= 0.6  # pushed past the anchors' safety distance (up to the penalty's give)
+
+
+def test_virtual_ceiling_sends_the_route_round_not_over() -> None:
+    """A column only 2.5 m tall: without a ceiling A* may pass over it; with EGO's virtual ceiling at
+    2.6 m (flight at 1.5 m) every voxel above 2.6 m minus the inflation is blocked, so it goes round."""
+    start, goal = np.array([0.5, 0.0, 1.5]), np.array([5.5, 0.0, 1.5])
+
+    def low_column(cfg: PlannerConfig) -> LocalMap:
+        m = LocalMap(cfg, centre=np.array([3.0, 0.0, 1.5]))
+        ang, z = np.meshgrid(np.linspace(0, 2 * np.pi, 200, endpoint=False), np.arange(0.0, 2.5, 0.05))
+        x, y = COLUMN[0] + COLUMN_R * np.cos(ang), COLUMN[1] + COLUMN_R * np.sin(ang)
+        m.insert_points(np.stack([x, y, z], -1).reshape(-1, 3))
+        return m
+
+    ceiled = PlannerConfig(ceiling=2.6, floor=0.0)
+    m = low_column(ceiled)
+    assert m.is_occupied(np.array([0.0, 0.0, 2.3])) and not m.is_occupied(np.array([0.0, 0.0, 1.5]))
+    assert m.is_occupied(np.array([0.0, 0.0, 0.3]))  # the floor, inflated
+    planner = Planner(ceiled)
+    planner.map = m
+    traj = planner.plan(start, np.zeros(3), np.zeros(3), goal)
+    assert traj is not None, planner.reason
+    p = traj.position(traj.sample(0.01))
+    assert p[:, 2].max() <= 2.6 - ceiled.inflation + 0.1
+    assert (np.hypot(p[:, 0] - COLUMN[0], p[:, 1] - COLUMN[1]) - COLUMN_R).min() >= ceiled.inflation
+    assert np.abs(p[:, 1]).max() > 0.5  # bent sideways
+    with pytest.raises(ValueError, match="ceiling - floor"):
+        PlannerConfig(ceiling=1.0, floor=0.5)
+
+
+def test_a_start_inside_the_inflation_is_planned_out_of() -> None:
+    """Passing close by (0.35 m beside the column, inside its 0.5 m inflation, flying past at 1 m/s)
+    the planner still plans, A* from the nearest free voxel, and the curve leaves the inflation and
+    stays out; a start inside the obstacle itself is refused."""
+    cfg = PlannerConfig()
+    planner = Planner(cfg)
+    planner.map = column_map(cfg)
+    start = np.array([COLUMN[0] - 0.3, -(COLUMN_R + 0.35), 1.5])
+    assert planner.map.is_occupied(start) and not planner.map.is_occupied(start, inflated=False)
+    traj = planner.plan(start, np.array([1.0, 0.0, 0.0]), np.zeros(3), np.array([5.5, 0.5, 1.5]))
+    assert traj is not None, planner.reason
+    p = traj.position(traj.sample(0.01))
+    clearance = np.hypot(p[:, 0] - COLUMN[0], p[:, 1] - COLUMN[1]) - COLUMN_R
+    first_out = int(np.argmax(clearance >= cfg.inflation))
+    assert first_out > 0 and clearance[first_out:].min() >= cfg.inflation - 1e-6
+    assert clearance.min() > 0.2  # never touched the column on the way out
+    assert not planner.needs_replan(traj)  # the unavoidable first stretch does not trigger replans
+    inside = np.array([COLUMN[0] - COLUMN_R + 0.05, 0.0, 1.5])
+    assert planner.plan(inside, np.zeros(3), np.zeros(3), np.array([5.5, 0.0, 1.5])) is None
+    assert "inside a mapped obstacle" in planner.reason
+
+
+def test_local_goal_is_where_the_camera_has_looked_not_behind_the_crown() -> None:
+    """`planning` scene, rendered: from 7 m before the central tree, the goal 8 m behind it. The
+    straight line at the horizon ends inside the crown; the local goal must be a point the camera
+    has seen free, clear of the true geometry (the scene's SDF), with a collision-free plan to it."""
+    from droneulator.scenes import get_scene
+    from droneulator.scenes.collision import sdf_lookup_many
+
+    scene = get_scene("planning", 0)
+    cam = CameraConfig(width=320, height=240)
+    start, goal = np.array([-7.0, 0.0, 2.5]), np.array([8.0, 0.0, 2.5])
+    cfg = PlannerConfig(ceiling=4.0, inflation_margin=0.4, pixel_skip=2)  # the 640x480 rig's ray density
+    planner = Planner(cfg, centre=start)
+    T_wb = frames.transform_from_pose(start, frames.quat_from_yaw(0.0))
+    with Renderer(scene, [cam], shadows=False) as r:
+        f = r.render(T_wb, rgb=False)[cam.name]
+    for _ in range(3):
+        planner.update_map(f.depth.copy(), f.T_world_optical, f.K)
+    col = scene.collision
+    sdf = lambda p: sdf_lookup_many(col.sdf, col.origin, col.resolution, np.atleast_2d(p))  # noqa: E731
+    on_line = start + cfg.horizon * (goal - start) / np.linalg.norm(goal - start)
+    assert sdf(on_line)[0] < 0  # the old rule's horizon point is inside the crown
+    local = planner.local_goal(start, goal)
+    assert np.linalg.norm(local - start) >= cfg.min_step
+    assert sdf(local)[0] > 0.25, (local, sdf(local))  # mapped leaves lie inside the SDF's envelope
+    assert planner.map.seen_free(planner.map.index(local))[0]
+    assert not planner.map.is_occupied(local)
+    traj = planner.plan(start, np.zeros(3), np.zeros(3), local)
+    assert traj is not None, planner.reason
+    assert sdf(traj.position(traj.sample(0.02))).min() > 0.25
+    near = start + [2.0, 0.5, 0.0]  # a free goal within the horizon is taken as it is
+    assert np.array_equal(planner.local_goal(start, near), near)

@@ -15,32 +15,39 @@ from droneulator.ros import messages as M
 from droneulator.ros.topics import ODOM_FRAME, TYPES, header_ns, topic_names, vehicle_topics
 from droneulator.ros.zenoh_node import RosZenohNode, ZenohNodeConfig
 from droneulator.runtime.launch import free_port, launch_run
+from droneulator.scenes import get_scene
+from droneulator.scenes.collision import sdf_lookup_many
+from droneulator.workflows.planning.config import PlannerConfig
 from droneulator.workflows.planning.node import GOAL_TYPE, PlanNode, PlanNodeConfig
 
 CAM = CameraConfig(name="front", width=320, height=240)
 
 
 def _run_config():
-    cfg = load_config(scene="tree_inspection")
+    cfg = load_config(scene="planning")
     cfg.render.cameras = [CAM]
     cfg.render.shadow_map_size = 512
     return cfg
 
 
 @pytest.mark.slow
-def test_plan_node_flies_to_a_goal_sent_over_zenoh_and_refuses_an_occupied_or_far_goal():
+def test_plan_node_flies_round_the_tree_and_refuses_an_occupied_or_far_goal():
+    """`planning` scene: from 5 m before the central tree to 4 m behind it, the straight line runs
+    through the crown; the node must map it from depth and go round, without a collision and with
+    clearance to the true geometry (the scene's SDF, read by the test only)."""
     cfg = _run_config()
     ns = cfg.bridge.namespace
+    planner = PlannerConfig(ceiling=4.0, inflation_margin=0.4)
     with launch_run(cfg) as run:
         client = run.client()
-        node = PlanNode(PlanNodeConfig(zenoh=run.zenoh_endpoint, namespace=ns, camera=CAM.name))
+        node = PlanNode(PlanNodeConfig(zenoh=run.zenoh_endpoint, namespace=ns, camera=CAM.name), planner)
         # a second, independent session sends the goals, like RViz through a bridge would
         sender = RosZenohNode.from_config(run.config.bridge, listen=(), connect=(run.zenoh_endpoint,))
         goals = sender.publisher(node.topics["goal"], GOAL_TYPE)
         try:
-            client.reset(position=[0.0, -8.0, 0.0], yaw=0.0)
+            client.reset(position=[-5.0, 0.0, 0.0], yaw=0.0)
             client.subscribe(["events"])
-            client.takeoff(altitude=2.0)
+            client.takeoff(altitude=2.5)
             client.wait_for_event("arrived", timeout=60)
             start = np.array(client.state()["position"])
 
@@ -52,26 +59,41 @@ def test_plan_node_flies_to_a_goal_sent_over_zenoh_and_refuses_an_occupied_or_fa
                 time.sleep(0.05)
             assert "outside the local map" in node.last_failure
 
-            # on the ground the camera sees 2.7-4.6 m ahead: occupied in the depth-built map, refused
-            goals.publish(M.serialize(M.pose_stamped(0, ODOM_FRAME, start + [3.5, 0.0, -1.9], [0, 0, 0, 1])))
+            # on the ground 3.5 m ahead, at the bottom of the view: occupied in the depth-built map, refused
+            goals.publish(M.serialize(M.pose_stamped(0, ODOM_FRAME, start + [3.5, 0.0, -2.3], [0, 0, 0, 1])))
             while node.failures == 1:
                 assert time.monotonic() < deadline + 20, "the occupied goal was never answered"
                 time.sleep(0.05)
             assert "occupied" in node.last_failure, node.last_failure
             assert node.commands == 0
 
-            goal = start + [3.0, 0.0, 0.0]
+            goal = np.array([4.0, 0.0, 2.5])
+            client.subscribe(["state", "events"], rate_hz=50)
             goals.publish(M.serialize(M.pose_stamped(0, ODOM_FRAME, goal, [0, 0, 0, 1])))
-            assert node.reached.wait(timeout=45), f"goal not reached; last failure: {node.last_failure!r}"
+            track, seen = [], []
+            deadline = time.monotonic() + 120
+            while not node.reached.is_set():
+                assert time.monotonic() < deadline, f"goal not reached; last failure: {node.last_failure!r}"
+                msg = client.next_message(timeout=1.0)
+                if msg is not None:
+                    seen.append(msg)
+                    if msg.get("type") == "state":
+                        track.append(msg["state"]["position"])
+            track = np.array(track)
+            client.unsubscribe(["state"])  # else the 50 Hz stream never lets messages() time out
             state = client.state()
             assert np.linalg.norm(np.array(state["position"]) - goal) < 0.3
             assert state["mode"] == "track"
             assert node.plans >= 1 and node.commands > 100
             collisions = [
-                m for m in client.messages(timeout=0.5)
-                if m.get("type") == "event" and m["event"].get("type") == "collision"
+                m for m in seen + list(client.messages(timeout=0.5))
+                if m.get("type") == "event" and m["event"].get("type") in ("collision", "impact")
             ]  # fmt: skip
             assert not collisions
+            col = get_scene("planning", 0).collision
+            sdf = lambda p: sdf_lookup_many(col.sdf, col.origin, col.resolution, p)  # noqa: E731
+            assert sdf(np.linspace(start, goal, 50)).min() < 0  # the straight line runs through the crown
+            assert sdf(track).min() > 0.3
         finally:
             sender.close()
             node.close()

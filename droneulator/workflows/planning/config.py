@@ -26,7 +26,7 @@ class PlannerConfig:
     #: returns nearer than this are ignored (sensor noise, propellers)
     min_depth: float = 0.2
     #: rays are cut at this range; NaN (no return) clears free space up to it
-    max_ray_length: float = 5.0
+    max_ray_length: float = 6.5
     p_hit: float = 0.70
     p_miss: float = 0.35
     p_min: float = 0.12
@@ -54,6 +54,15 @@ class PlannerConfig:
     astar_margin: float = 2.0
     #: planning horizon: goals further than this are approached through a local goal on the way
     horizon: float = 7.5
+    #: a local goal is at least this far along its guiding path (metres), seen or not
+    min_step: float = 1.5
+    #: the local goal's guiding A* first searches the box round start and target grown by this (m)
+    local_goal_margin: float = 5.0
+    #: virtual ceiling and floor (world z, metres; None = none): voxels above / below count as occupied,
+    #: like EGO-Planner's ``virtual_ceil_height`` / ``ground_height``, so routes bend round obstacles
+    #: instead of over them
+    ceiling: float | None = None
+    floor: float | None = None
 
     def __post_init__(self) -> None:
         if self.resolution <= 0:
@@ -78,6 +87,9 @@ class PlannerConfig:
             raise ValueError("astar_margin must be >= 0")
         if self.ctrl_spacing <= 0:
             raise ValueError("ctrl_spacing must be positive")
+        both = self.ceiling is not None and self.floor is not None
+        if both and self.ceiling - self.floor < 2 * self.inflation:
+            raise ValueError("need ceiling - floor >= 2 * (vehicle_radius + inflation_margin)")
 
     @property
     def inflation(self) -> float:

@@ -157,6 +157,9 @@ def _rebuild_inflation(logodds: np.ndarray, count: np.ndarray, l_occ: float, off
                     _inflate(count, i, j, k, offsets, 1)
 
 
+_NEIGHBOURS = np.mgrid[-1:2, -1:2, -1:2].reshape(3, -1).T
+
+
 def sphere_offsets(radius_voxels: float) -> np.ndarray:
     """Integer offsets of the voxels whose centres lie within ``radius_voxels`` of a voxel's centre."""
     r = int(math.ceil(radius_voxels))
@@ -226,8 +229,19 @@ class LocalMap:
             logodds[dst] = self.logodds[src]
         self.logodds = logodds
         self.origin_index = new_origin
-        _rebuild_inflation(self.logodds, self.count, self.l_occ, self.offsets)
+        self._rebuild()
         return True
+
+    def _rebuild(self) -> None:
+        """Recount the inflation from the log-odds, then block the layers beyond the ceiling and floor."""
+        _rebuild_inflation(self.logodds, self.count, self.l_occ, self.offsets)
+        z = self.origin[2] + (np.arange(self.shape[2]) + 0.5) * self.res
+        virtual = np.zeros(self.shape[2], dtype=bool)
+        if self.cfg.ceiling is not None:
+            virtual |= z > self.cfg.ceiling - self.cfg.inflation
+        if self.cfg.floor is not None:
+            virtual |= z < self.cfg.floor + self.cfg.inflation
+        self.count[:, :, virtual] += 1
 
     def update(self, depth: np.ndarray, T_world_optical: np.ndarray, K: np.ndarray) -> int:
         """Integrate one 32FC1 depth image (metres, NaN = no return) seen from ``T_world_optical``.
@@ -259,7 +273,7 @@ class LocalMap:
         idx = self.index(np.atleast_2d(points))
         idx = idx[np.all((idx >= 0) & (idx < np.array(self.shape)), axis=1)]
         self.logodds[idx[:, 0], idx[:, 1], idx[:, 2]] = self.l_max
-        _rebuild_inflation(self.logodds, self.count, self.l_occ, self.offsets)
+        self._rebuild()
 
     # ----------------------------------------------------------------------------- queries
     def occupied_grid(self) -> np.ndarray:
@@ -269,6 +283,29 @@ class LocalMap:
     def inflated_grid(self) -> np.ndarray:
         """Boolean array of voxels within the inflation radius of an occupied voxel."""
         return self.count > 0
+
+    def nearest_free(self, idx: np.ndarray, radius: float = 1.0) -> np.ndarray | None:
+        """The free (not inflated) voxel nearest to grid index ``idx`` within ``radius`` metres, or None."""
+        r = int(math.ceil(radius / self.res))
+        lo = np.maximum(np.asarray(idx) - r, 0)
+        hi = np.minimum(np.asarray(idx) + r + 1, self.shape)
+        free = np.argwhere(self.count[lo[0] : hi[0], lo[1] : hi[1], lo[2] : hi[2]] == 0) + lo
+        if len(free) == 0:
+            return None
+        d2 = ((free - idx) ** 2).sum(1)
+        best = int(np.argmin(d2))
+        return free[best] if d2[best] <= r * r else None
+
+    def seen_free(self, idx: np.ndarray) -> np.ndarray:
+        """For grid indices (N, 3): has a depth ray crossed the voxel or one of its 26 neighbours?
+        (Rays of every n-th pixel fan out and skip voxels between them at range.)"""
+        idx = np.asarray(idx, dtype=np.int64).reshape(-1, 3)
+        out = np.zeros(len(idx), dtype=bool)
+        for off in _NEIGHBOURS:
+            j = idx + off
+            ok = np.all((j >= 0) & (j < np.array(self.shape)), axis=1)
+            out[ok] |= self.logodds[j[ok, 0], j[ok, 1], j[ok, 2]] < 0.0
+        return out
 
     def is_occupied(self, p: np.ndarray, inflated: bool = True) -> np.ndarray:
         """Occupancy of world point(s) ``p``; outside the grid counts as free (unknown)."""

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from droneulator import frames
 from droneulator.ros import messages
@@ -48,6 +49,8 @@ log = logging.getLogger("droneulator.plan")
 GOAL_TYPE = "geometry_msgs/msg/PoseStamped"
 #: trajectory server period, sim time
 COMMAND_PERIOD_NS = 10_000_000
+#: after a failed plan, the next attempt waits this long (sim time)
+RETRY_PERIOD_NS = 100_000_000
 #: where setpoints go instead of PositionCommand: ``(t_s, p, v, a, yaw, yaw_rate)``, world frame, sim time
 SetpointSink = Callable[[float, np.ndarray, np.ndarray, np.ndarray, float, float], None]
 
@@ -65,6 +68,9 @@ class PlanNodeConfig:
     depth_timeout_s: float = 1.0
     #: the goal counts as reached within this distance of the odometry position
     goal_tolerance: float = 0.1
+    #: when a replan fails, the current trajectory is kept while its first collision with the
+    #: (newly seen) map is further ahead than this (sim seconds); otherwise the vehicle stops
+    stop_margin_s: float = 1.0
     #: largest yaw rate the trajectory server commands (rad/s), like EGO's traj_server
     max_yaw_rate: float = math.pi / 2
     #: optional box ((xmin, ymin, zmin), (xmax, ymax, zmax)) goals must lie in; without it a goal must
@@ -94,6 +100,8 @@ class PlanNode:
         """``setpoint_sink``: receives each trajectory-server sample ``(t_s, p, v, a, yaw, yaw_rate)`` (sim
         time, world frame) instead of the PositionCommand topic, e.g. ``OffboardLink.setpoint`` for PX4."""
         self.cfg = config or PlanNodeConfig()
+        # the optimiser's vectors are small: BLAS threads only contend with the simulator for the cores
+        self._blas_limit = threadpool_limits(limits=1, user_api="blas")
         self._sink = setpoint_sink
         self._setpoint: tuple[np.ndarray, np.ndarray, np.ndarray, float, float] | None = None
         self.planner = Planner(planner)
@@ -120,6 +128,7 @@ class PlanNode:
         self._traj_t0_ns = 0
         self._traj_id = 0
         self._traj_goal: np.ndarray | None = None  # the goal itself when the trajectory ends there
+        self._failing = False  # the last plan attempt failed
         self._hold: np.ndarray | None = None  # stop point after a failed replan
         self._yaw: float | None = None
         self._last_cmd_ns: int | None = None
@@ -225,6 +234,7 @@ class PlanNode:
         for th in self._threads:
             th.join(timeout=5)
         self.node.close()
+        self._blas_limit.restore_original_limits()
 
     def __enter__(self) -> PlanNode:
         return self
@@ -286,6 +296,8 @@ class PlanNode:
             # a leg towards an intermediate (horizon) goal that has ended is continued at once
             if not (due or ended or self.planner.needs_replan(traj, t_rel)):
                 continue
+            if not new_goal and self._failing and now - last_plan_ns < RETRY_PERIOD_NS:
+                continue  # after a failed plan, retry at most every RETRY_PERIOD_NS, not in a busy loop
             self._replan(goal, odom, now, traj, t_rel, new_goal)
             last_plan_ns = now
 
@@ -296,24 +308,35 @@ class PlanNode:
             p0, v0, a0 = odom[1], odom[3], np.zeros(3)
         else:
             p0, v0, a0 = traj.position(t_rel), traj.velocity(t_rel), traj.acceleration(t_rel)
-        target = self._local_goal(p0, goal)
+        target = self.planner.local_goal(p0, goal)
         t_wall = time.perf_counter()
         plan = self.planner.plan(p0, v0, a0, target)
         self.cycle_s.append(time.perf_counter() - t_wall)
+        reason = self.planner.reason
         with self._lock:
             if plan is None:
                 self.failures += 1
-                self.last_failure = self.planner.reason
-                if traj is None or new_goal or self.planner.needs_replan(traj, t_rel):
-                    log.error("no motion: %s", self.planner.reason)
-                    self._traj = None
-                    self._hold = None if traj is None or new_goal else p0
-                    if new_goal:
-                        self._goal = None
+                self.last_failure = reason
+                if new_goal or (traj is None and self._hold is None):
+                    log.error("no motion: %s", reason)
+                    self._traj, self._hold, self._goal = None, None, None
+                elif traj is None:
+                    if not self._failing:
+                        log.warning("still stopped at %s: %s; retrying", self._hold.round(2), reason)
+                elif self.planner.time_to_collision(traj, t_rel) > self.cfg.stop_margin_s:
+                    if not self._failing:
+                        log.warning("replan failed (%s): keeping the trajectory while it is clear", reason)
+                else:
+                    log.warning("replan failed (%s) with an obstacle close ahead: stopping", reason)
+                    self._traj, self._hold = None, p0
+                self._failing = True
                 return
+            if self._failing:
+                log.info("planning again after %d failed attempts", self.failures)
+            self._failing = False
             self.plans += 1
             self._traj, self._traj_t0_ns, self._hold = plan, now, None
-            self._traj_goal = goal if target is goal else None
+            self._traj_goal = goal if np.array_equal(target, goal) else None
             self._traj_id += 1
         log.debug("plan %d: %.2f s to %s in %.0f ms", self.plans, plan.duration, target.round(2),
                   1e3 * self.cycle_s[-1])  # fmt: skip
@@ -336,20 +359,6 @@ class PlanNode:
             if self._goal is goal:
                 self._goal = None
         return False
-
-    def _local_goal(self, p0: np.ndarray, goal: np.ndarray) -> np.ndarray:
-        """``goal`` within the horizon, else the point on the way at the horizon, backed off until free."""
-        d = goal - p0
-        dist = float(np.linalg.norm(d))
-        horizon = self.planner.cfg.horizon
-        if dist <= horizon:
-            return goal
-        u = d / dist
-        for s in np.arange(horizon, 1.0, -self.planner.cfg.resolution):
-            q = p0 + s * u
-            if self.planner.map.inside(q) and not self.planner.map.is_occupied(q):
-                return q
-        return p0 + horizon * u
 
     # ------------------------------------------------------------------ trajectory server
     def _server_loop(self) -> None:

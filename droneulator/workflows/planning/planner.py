@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -43,9 +44,21 @@ class Planner:
         limits = (c.safety_extra, c.max_vel, c.max_acc)
         return optimize(traj, pairs, *limits, self.weights, c.opt_max_iters, c.opt_ftol)
 
-    def _colliding(self, traj: BSpline) -> np.ndarray:
+    def _colliding(self, traj: BSpline, t_from: float = 0.0) -> np.ndarray:
+        """Sample times from ``t_from`` on where ``traj`` is inside the inflated map.
+
+        A start inside the inflation (after passing close by) cannot be helped: the first stretch
+        is not counted while it stays within two inflation radii of the start and out of the
+        obstacle itself, so a curve that leaves is fine and one that goes in still collides."""
         t = traj.sample(0.5 * self.cfg.resolution / self.cfg.max_vel)
-        return t[self.map.is_occupied(traj.position(t))]
+        t = t[t >= t_from]
+        pos = traj.position(t)
+        occ = self.map.is_occupied(pos)
+        if len(occ) and occ[0]:
+            near = np.linalg.norm(pos - pos[0], axis=1) <= 2 * self.cfg.inflation
+            exempt = occ & near & ~self.map.is_occupied(pos, inflated=False)
+            occ[: int(np.argmin(exempt)) if not exempt.all() else len(occ)] = False
+        return t[occ]
 
     def _anchor(self, q: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """EGO's {p, v}: v from q towards the guide path, p where that line leaves the inflated obstacle."""
@@ -79,9 +92,16 @@ class Planner:
         after = t_all[t_all > times.max()]
         a = traj.position(before[-1] if len(before) else 0.0)
         b = traj.position(after[0] if len(after) else traj.duration)
-        ia, ib = self.map.index(a), self.map.index(b)
+        if not (self.map.inside(a) and self.map.inside(b)):
+            return False
         blocked = self.map.count  # non-zero within the inflation radius; no bool copy of the grid
-        if not (self.map.inside(a) and self.map.inside(b)) or blocked[tuple(ia)] or blocked[tuple(ib)]:
+        # a start (or end) inside the inflation, e.g. after passing close by, is searched from the
+        # nearest free voxel: the optimiser then pushes the curve out of the inflation
+        reach = self.cfg.inflation + self.cfg.resolution
+        ia, ib = self.map.index(a), self.map.index(b)
+        ia = ia if not blocked[tuple(ia)] else self.map.nearest_free(ia, reach)
+        ib = ib if not blocked[tuple(ib)] else self.map.nearest_free(ib, reach)
+        if ia is None or ib is None:
             return False
         margin = int(np.ceil(self.cfg.astar_margin / self.cfg.resolution))
         path = astar(blocked, ia, ib, self.cfg.astar_max_expansions, margin)
@@ -119,8 +139,8 @@ class Planner:
         near = f"within {self.cfg.inflation} m of an obstacle"
         if self.map.is_occupied(goal):
             return self._fail(f"goal {goal.round(2)} is occupied ({near})")
-        if self.map.is_occupied(p0):
-            return self._fail(f"start {p0.round(2)} is occupied ({near})")
+        if self.map.is_occupied(p0, inflated=False):
+            return self._fail(f"start {p0.round(2)} is inside a mapped obstacle")
         traj = straight_line(p0, v0, a0, goal, self.cfg.ctrl_spacing, self.cfg.max_vel)
         pairs = Pairs()
         for _ in range(5):
@@ -136,6 +156,61 @@ class Planner:
             return self._fail("the optimised trajectory still meets obstacles")
         return traj
 
+    def local_goal(self, p0: np.ndarray, goal: np.ndarray) -> np.ndarray:
+        """Where to plan to this cycle: ``goal`` itself when it is within the horizon and free, else a
+        point on the way that the camera has seen free.
+
+        A weighted A* runs towards the goal (or where the line to it leaves the map), unknown space
+        counting as free like EGO's map, and the local goal is its farthest point within the horizon
+        and an inflation radius short of the first voxel the camera has not seen free: behind a crown
+        seen from the front, the path's hidden part is not trusted until the vehicle has looked.
+        At least ``min_step`` metres along the path are taken, so a fresh map does not stall it.
+        """
+        c, m = self.cfg, self.map
+        p0, goal = np.asarray(p0, dtype=float), np.asarray(goal, dtype=float)
+        d = goal - p0
+        dist = float(np.linalg.norm(d))
+        if dist <= c.horizon and m.inside(goal) and not m.is_occupied(goal):
+            return goal
+        straight = p0 + d * min(1.0, c.horizon / max(dist, 1e-9))
+        lo, hi = m.bounds
+        lo, hi = lo + c.inflation, hi - c.inflation
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s_out = np.where(d > 0, (hi - p0) / d, np.where(d < 0, (lo - p0) / d, np.inf))
+        target = p0 + d * float(np.clip(np.min(s_out), 0.0, 1.0))
+        blocked = m.count
+        reach = 2 * c.inflation
+        ia = m.index(p0)
+        if not m.inside(p0):
+            return straight
+        if blocked[tuple(ia)]:
+            ia = m.nearest_free(ia, reach)
+        it = m.index(target)
+        for s in np.linspace(1.0, 0.0, 50):  # back off along the line until the target is free
+            q = p0 + s * (target - p0)
+            if not m.is_occupied(q):
+                it = m.index(q)
+                break
+        if ia is None or blocked[tuple(it)]:
+            return straight
+        margin = int(c.local_goal_margin / c.resolution)
+        path = astar(blocked, ia, it, c.astar_max_expansions, margin, weight=2.0)
+        if len(path) < 2:
+            return straight
+        pts = m.point(path)
+        pts[0] = p0
+        along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+        seen = m.seen_free(path)
+        seen[0] = True
+        unseen = np.flatnonzero(~seen)
+        # stop an inflation radius short of unseen space: an obstacle may start right there
+        limit = min(c.horizon, along[unseen[0]] - c.inflation) if len(unseen) else c.horizon
+        ok = np.flatnonzero(along <= limit)
+        k = int(ok[-1]) if len(ok) else 0
+        if along[k] < c.min_step:
+            k = int(np.flatnonzero(along <= min(c.min_step, c.horizon))[-1])
+        return pts[k]
+
     def warm_up(self) -> float:
         """Compile (or load from numba's cache) every kernel on a throwaway map: a wall seen from 2 m,
         then a plan round it. Returns the wall time taken; leaves this planner's map untouched."""
@@ -146,8 +221,11 @@ class Planner:
         T[:3, :3] = [[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]  # optical axis along world +x
         depth = np.full((60, 80), np.nan, dtype=np.float32)
         depth[:, 30:50] = 2.0
-        scratch.update_map(depth, T, K)
+        for _ in range(3):  # a voxel needs two hits to count as occupied
+            scratch.update_map(depth, T, K)
+        scratch.map.recenter(np.array([0.0, 0.0, 0.05]), force=True)
         scratch.plan(np.zeros(3), np.zeros(3), np.zeros(3), np.array([4.0, 0.0, 0.0]))
+        scratch.local_goal(np.zeros(3), np.array([9.0, 0.0, 0.0]))
         return time.perf_counter() - t0
 
     def needs_replan(self, trajectory: BSpline | None, t_now: float = 0.0) -> bool:
@@ -156,4 +234,9 @@ class Planner:
             return True
         t = trajectory.sample(0.5 * self.cfg.resolution / self.cfg.max_vel)
         rest = trajectory.position(t[t >= t_now])
-        return bool(self.map.is_occupied(rest).any() or not self.map.inside(rest).all())
+        return bool(len(self._colliding(trajectory, t_now)) or not self.map.inside(rest).all())
+
+    def time_to_collision(self, trajectory: BSpline, t_now: float) -> float:
+        """Seconds from ``t_now`` until ``trajectory`` first meets the inflated map (inf if never)."""
+        hits = self._colliding(trajectory, t_now)
+        return float(hits[0] - t_now) if len(hits) else math.inf
