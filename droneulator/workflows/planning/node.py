@@ -293,6 +293,8 @@ class PlanNode:
                     log.info("goal %s reached (odometry %s)", goal.round(3), odom[1].round(3))
                     self.reached.set()
                 continue
+            if due and traj is not None and not new_goal and self._traj_goal is goal:
+                due = False  # the final leg is replanned only when it meets an obstacle, as EGO near the goal
             # a leg towards an intermediate (horizon) goal that has ended is continued at once
             if not (due or ended or self.planner.needs_replan(traj, t_rel)):
                 continue
