@@ -41,6 +41,8 @@ from droneulator.workflows.planning.node import GOAL_TYPE
 ALTITUDE = 2.5
 #: the planner's virtual ceiling (EGO-Planner's ``virtual_ceil_height``): routes go round the crown
 CEILING = 4.0
+#: and floor: under the crown (clear trunk below about 1.2 m) is not a route either
+FLOOR = 1.5
 #: inflation beyond the vehicle radius: the SDF's leaf-cluster spheres reach ~0.2 m past the leaves
 MARGIN = 0.6
 #: far left (+y, seen from the start facing +x) to far right
@@ -53,7 +55,7 @@ def _pct(values: list[float], q: float) -> float:
 
 def _planner(endpoint: str, ns: str, bounds: list[float], stats: Path, log: Path) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "droneulator.cli", "plan", "--zenoh", endpoint, "--namespace", ns,
-           "--bounds", *map(str, bounds), "--ceiling", str(CEILING), "--margin", str(MARGIN), "--stats", str(stats), "-v"]  # fmt: skip
+           "--bounds", *map(str, bounds), "--ceiling", str(CEILING), "--floor", str(FLOOR), "--margin", str(MARGIN), "--stats", str(stats), "-v"]  # fmt: skip
     out = open(log, "w")  # noqa: SIM115 (closed with the process by the OS)
     return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
 
