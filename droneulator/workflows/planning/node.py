@@ -344,16 +344,22 @@ class PlanNode:
                   1e3 * self.cycle_s[-1])  # fmt: skip
 
     def _goal_allowed(self, goal: np.ndarray) -> bool:
-        """Check a new goal against ``bounds`` (or the local map); log why and drop it if not."""
+        """Check a new goal against ``bounds`` (or the local map) and the map's occupancy; log why and
+        drop it if it fails."""
         if self.cfg.bounds is not None:
             lo, hi = (np.asarray(b, dtype=float) for b in self.cfg.bounds)
             where = f"the bounds [{lo}, {hi}]"
         else:
             lo, hi = self.planner.map.bounds
             where = f"the local map [{lo.round(2)}, {hi.round(2)}]"
-        if np.all(goal >= lo) and np.all(goal <= hi):
+        m = self.planner.map
+        if not (np.all(goal >= lo) and np.all(goal <= hi)):
+            reason = f"goal {goal.round(2)} is outside {where}"
+        elif m.inside(goal) and m.is_occupied(goal):
+            near = self.planner.cfg.inflation
+            reason = f"goal {goal.round(2)} is occupied (within {near:g} m of an obstacle)"
+        else:
             return True
-        reason = f"goal {goal.round(2)} is outside {where}"
         log.error("no motion: %s", reason)
         with self._lock:
             self.failures += 1
