@@ -23,6 +23,7 @@ and Lichtblick open it); any other path is a bag directory like ``ros2 bag recor
 from __future__ import annotations
 
 import io
+import os
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,7 +45,7 @@ from ruamel.yaml import YAML
 from droneulator.ros import messages
 from droneulator.ros.zenoh_node import QosProfile, default_qos
 
-__all__ = ["BagWriter", "Compression", "message_definition", "qos_yaml", "stamp_reader"]
+__all__ = ["BagWriter", "Compression", "check_output", "message_definition", "qos_yaml", "stamp_reader"]
 
 Compression = Literal["zstd", "lz4", "none"]
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
@@ -123,6 +124,20 @@ def read_stamp(payload: bytes, offset: int | None) -> int | None:
     return sec * 1_000_000_000 + nanosec
 
 
+def check_output(path: str | Path) -> None:
+    """Raise ``ValueError`` unless ``path`` can become a new bag: a ``.mcap`` file that does not exist in
+    an existing, writable folder, or a bag directory that does not exist yet (``ros2 bag`` refuses to
+    overwrite too)."""
+    path = Path(path)
+    if path.exists():
+        raise ValueError(f"{path} already exists; choose another name or remove it")
+    parent = path.parent
+    if not parent.is_dir():
+        raise ValueError(f"folder {parent} for {path} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ValueError(f"folder {parent} for {path} is not writable")
+
+
 @dataclass
 class _Channel:
     id: int
@@ -146,18 +161,15 @@ class BagWriter:
         if compression not in _COMPRESSION:
             raise ValueError(f"compression must be one of {sorted(_COMPRESSION)}, got {compression!r}")
         path = Path(path)
+        check_output(path)
         if path.suffix == ".mcap":
-            if path.parent and not path.parent.is_dir():
-                raise FileNotFoundError(f"folder {path.parent} does not exist")
             self.directory: Path | None = None
             self.file = path
         else:
-            if path.exists():
-                raise FileExistsError(f"bag directory {path} already exists")
-            path.mkdir(parents=True)
+            path.mkdir()
             self.directory = path
             self.file = path / f"{path.name}_0.mcap"
-        self._stream = open(self.file, "wb")  # noqa: SIM115 (closed in close())
+        self._stream = open(self.file, "xb")  # noqa: SIM115 (closed in close())
         self._writer = Writer(self._stream, chunk_size=chunk_size, compression=_COMPRESSION[compression])
         self._writer.start(profile="ros2", library=f"droneulator {_version()}")
         self._schemas: dict[str, int] = {}

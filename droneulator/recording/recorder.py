@@ -27,7 +27,6 @@ import logging
 import re
 import struct
 import threading
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,7 +38,7 @@ from droneulator.ros import messages
 from droneulator.ros.topics import TYPES, topic_names, vehicle_topics
 from droneulator.ros.zenoh_node import KeyMode, QosProfile, RosZenohNode, ZenohNodeConfig, default_qos
 
-__all__ = ["Recorder", "RecorderConfig", "RecordingStats", "topic_of_key"]
+__all__ = ["Recorder", "RecorderConfig", "RecordingStats", "run_recorder_config", "topic_of_key"]
 
 log = logging.getLogger("droneulator.recording")
 
@@ -167,6 +166,8 @@ class Recorder:
         self._seq: dict[str, int] = collections.defaultdict(int)
         self._latest_ns = 0
         self.error: BaseException | None = None
+        #: samples taken from Zenoh so far (written, queued or waiting for their type)
+        self.received = 0
         self.stats = RecordingStats(path=self.path)
 
     # ------------------------------------------------------------------ keys
@@ -201,6 +202,10 @@ class Recorder:
         return topic, typename, default_qos(topic)
 
     # ------------------------------------------------------------------ lifetime
+    @property
+    def started(self) -> bool:
+        return self._thread is not None
+
     def start(self) -> None:
         """Open the bag and the Zenoh session and subscribe; returns once the subscriptions are declared
         and a liveliness query has made a round trip through the router (so they are in place there)."""
@@ -290,6 +295,8 @@ class Recorder:
                 self._cond.wait(0.5)
             self._queue.append(item)
             self._queued_bytes += size
+            if item is not _STOP and item[0] is not _RESOLVED:
+                self.received += 1
             self._cond.notify_all()
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -371,12 +378,20 @@ class Recorder:
         self._bag.write(channel, stamp, payload, seq)
 
 
-def record_until(
-    path: str | Path, cfg: RecorderConfig, stop: threading.Event, on_start: Callable[[], None] | None = None
-) -> RecordingStats:
-    """Record until ``stop`` is set (``droneulator record``); ``on_start`` runs once subscribed."""
-    with Recorder(path, cfg) as rec:
-        if on_start is not None:
-            on_start()
-        stop.wait()
-    return rec.stats
+def run_recorder_config(
+    bridge: Any, hub_endpoint: str | None, compression: Compression = "zstd"
+) -> RecorderConfig:
+    """The recorder of a ``droneulator run`` with these ``bridge`` settings (a ``BridgeConfig``): a
+    client of the run's private Zenoh endpoint (the one its bridge process uses), or of the user's
+    router when ``bridge.mode`` is ``client``."""
+    external = bridge.mode == "client" or not hub_endpoint
+    return RecorderConfig(
+        connect=tuple(bridge.connect) if external else (hub_endpoint,),
+        namespace=bridge.namespace,
+        key_mode=bridge.key_mode,
+        domain_id=bridge.domain_id,
+        ros2dds_namespace=bridge.ros2dds_namespace,
+        zenoh_config=(bridge.zenoh_config or None) if external else None,
+        compression=compression,
+    )
+
