@@ -234,7 +234,7 @@ def test_map_click_flies_there(stack: Stack) -> None:
     stack.wait(lambda: client.state()["mode"] == "goto", 10, "the goto to start")
     state = stack.wait(lambda: (s := client.state())["mode"] == "hold" and s, 60, "the vehicle to arrive")
     assert math.dist(state["position"][:2], target) < 0.3, state["position"]
-    page.screenshot(path=str(IMG / "ui_flight.png"))
+    page.screenshot(path=str(IMG / "ui_flight.png"), full_page=True)
 
 
 @pytest.mark.slow

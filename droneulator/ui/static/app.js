@@ -225,7 +225,8 @@ function renderTelemetry() {
   const im = ui.images;
   if (im) {
     rows.push(["images shown", `${cams.count}`],
-      ["frames dropped", `${im.dropped + Math.max(0, im.received - im.encoded)}`]);
+      [`over the ${ui.config.image_hz} Hz cap`, `${Math.max(0, im.received - im.encoded)} skipped`],
+      ["frames dropped", `${im.dropped} (page too slow)`]);
   }
   const dl = $("telemetry");
   dl.replaceChildren();
