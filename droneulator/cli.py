@@ -101,6 +101,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                 cfg.bridge.listen = [f"tcp/127.0.0.1:{7448 + n}"]
             if cfg.bridge.namespace == defaults.bridge.namespace:
                 cfg.bridge.namespace = f"{defaults.bridge.namespace}{n}"
+    if args.ui_port is not None:
+        cfg.ui.port = args.ui_port
     preflight.check_run(cfg)
     if args.demo:
         preflight.check_output_dir(args.out)
@@ -126,6 +128,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         if recorder is not None and recorder.started:
             recorder.close()
         raise StartupError(str(exc)) from None
+    ui = None
+    if args.ui or args.ui_port is not None:
+        ui = _start_ui(cfg, sup)
     if args.demo:
         from droneulator.workflows.demo_client import run_demo_client
 
@@ -137,6 +142,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     finally:
         if recorder is not None:
             _report_recording(recorder.close())
+        if ui is not None:
+            ui.stop()
     if sup.failure:
         print(f"droneulator: {sup.failure}", file=sys.stderr)
     return code
@@ -226,6 +233,55 @@ def cmd_replay(args: argparse.Namespace) -> int:
     for topic, n in sorted(counts.items()):
         print(f"  {n:8d}  {topic}", flush=True)
     return 130 if stop.is_set() else 0
+
+
+def _ui_zenoh_endpoint(cfg: SimConfig) -> str:
+    """Where a UI in this process reaches the run's Zenoh router: its first TCP listen endpoint."""
+    tcp = [e for e in cfg.bridge.listen if e.startswith("tcp/")]
+    if not tcp:
+        raise StartupError(f"--ui needs a tcp/ endpoint in bridge.listen, got {cfg.bridge.listen}")
+    return tcp[0].replace("tcp/0.0.0.0:", "tcp/127.0.0.1:").replace("tcp/[::]:", "tcp/127.0.0.1:")
+
+
+def _start_ui(cfg: SimConfig, sup: object) -> object:
+    """Start the browser UI on a thread of this process, once the simulator is up; prints its URL."""
+    from droneulator.ui.server import UIServer
+
+    host = cfg.runtime.api_host if cfg.runtime.api_host not in ("0.0.0.0", "::") else "127.0.0.1"
+    server = UIServer(
+        f"ws://{host}:{cfg.runtime.api_port}",
+        _ui_zenoh_endpoint(cfg),
+        cfg.ui,
+        cfg.bridge,
+        px4=cfg.px4.enabled,
+    )
+    try:
+        url = server.start_in_thread()
+    except OSError as exc:
+        sup.stop()  # type: ignore[attr-defined]
+        raise StartupError(
+            f"cannot start the UI on {cfg.ui.host}:{cfg.ui.port}: {exc.strerror or exc}"
+        ) from None
+    print(f"UI: {url}", flush=True)
+    return server
+
+
+def cmd_ui(args: argparse.Namespace) -> int:
+    cfg = preflight.load(args.config, args.overrides)
+    if args.host is not None:
+        cfg.ui.host = args.host
+    if args.port is not None:
+        cfg.ui.port = args.port
+    cfg.ui.__post_init__()
+    from droneulator.ui.server import UIServer, run_ui
+
+    server = UIServer(args.url, args.zenoh, cfg.ui, cfg.bridge, namespace=args.namespace, px4=args.px4)
+    try:
+        return run_ui(server, lambda line: print(line, flush=True))
+    except OSError as exc:
+        raise StartupError(
+            f"cannot start the UI on {cfg.ui.host}:{cfg.ui.port}: {exc.strerror or exc}"
+        ) from None
 
 
 def cmd_plan(args: argparse.Namespace) -> int:
@@ -472,7 +528,27 @@ def build_parser() -> argparse.ArgumentParser:
         "like `ros2 bag record -o`); see docs/recording.md",
     )
     _add_compression_arg(p)
+    p.add_argument(
+        "--ui", action="store_true", help="also serve the browser UI (http://127.0.0.1:8080, see docs/ui.md)"
+    )
+    p.add_argument("--ui-port", type=int, default=None, help="browser UI port (implies --ui; default 8080)")
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser(
+        "ui",
+        help="serve the browser UI for a running simulator (http://127.0.0.1:8080)",
+        description="Level select, live camera views, a map with click-to-fly and telemetry in the browser, "
+        "for the `droneulator run` whose API is at --url and whose Zenoh router is at --zenoh.",
+    )
+    p.add_argument("--url", default="ws://127.0.0.1:8765", help="the simulator's WebSocket API")
+    p.add_argument("--zenoh", default="tcp/127.0.0.1:7448", help="Zenoh endpoint of the run's bridge")
+    p.add_argument("--namespace", default=None, help="the run's ROS namespace (default droneulator)")
+    p.add_argument("--host", default=None, help="address to serve on (default 127.0.0.1: this machine only)")
+    p.add_argument("--port", type=int, default=None, help="port to serve on (default 8080)")
+    p.add_argument("--px4", action="store_true", help="the run flies with --px4: show PX4's status")
+    _add_file_args(p, "--set ui.image_hz=5 --set bridge.key_mode=rmw_zenoh")
+    p.set_defaults(func=cmd_ui)
+
 
     p = sub.add_parser(
         "record",
