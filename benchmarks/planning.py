@@ -55,9 +55,11 @@ def _pct(values: list[float], q: float) -> float:
 
 def _planner(endpoint: str, ns: str, bounds: list[float], stats: Path, log: Path) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "droneulator.cli", "plan", "--zenoh", endpoint, "--namespace", ns,
-           "--bounds", *map(str, bounds), "--ceiling", str(CEILING), "--floor", str(FLOOR), "--margin", str(MARGIN), "--stats", str(stats), "-v"]  # fmt: skip
+           "--bounds", *map(str, bounds), "--ceiling", str(CEILING), "--floor", str(FLOOR),
+           "--margin", str(MARGIN), "--stats", str(stats), "-v"]  # fmt: skip
     out = open(log, "w")  # noqa: SIM115 (closed with the process by the OS)
-    return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env)
 
 
 def _wait_for_line(log: Path, text: str, proc: subprocess.Popen, timeout: float) -> None:
@@ -158,9 +160,11 @@ def figure(scene_name: str, seed: int, runs: list[dict], start: np.ndarray, out:
     xs, ys = np.arange(-11.0, 11.0, 0.05), np.arange(-9.0, 9.0, 0.05)
     X, Y = np.meshgrid(xs, ys)
     flat = np.stack([X.ravel(), Y.ravel()], 1)
-    slice_d = sdf_lookup_many(col.sdf, col.origin, col.resolution, np.c_[flat, np.full(len(flat), ALTITUDE)])
-    anywhere = np.min([sdf_lookup_many(col.sdf, col.origin, col.resolution, np.c_[flat, np.full(len(flat), z)])
-                       for z in np.arange(0.3, 6.0, 0.3)], axis=0)  # fmt: skip
+    def at(z: float) -> np.ndarray:
+        return sdf_lookup_many(col.sdf, col.origin, col.resolution, np.c_[flat, np.full(len(flat), z)])
+
+    slice_d = at(ALTITUDE)
+    anywhere = np.min([at(z) for z in np.arange(0.3, 6.0, 0.3)], axis=0)
     fig, ax = plt.subplots(figsize=(9, 7.5))
     ax.contourf(X, Y, anywhere.reshape(X.shape), levels=[-10, 0], colors=["#cfe3c6"])
     ax.contourf(X, Y, slice_d.reshape(X.shape), levels=[-10, 0, 0.5], colors=["#2f6b2a", "#a9c9a0"])
@@ -190,7 +194,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--goals", type=int, nargs="+", default=None, help="run only these goals (1-5)")
     ap.add_argument("--arrive", type=float, default=0.1, help="arrival radius for the flight time (m)")
-    ap.add_argument("--settle", type=float, default=2.0, help="sim seconds after arrival before the goal error")
+    ap.add_argument("--settle", type=float, default=2.0, help="sim s after arrival before the goal error")
     ap.add_argument("--timeout", type=float, default=60.0, help="sim seconds allowed per flight")
     ap.add_argument("--logs", default=None, help="keep the planner logs and stats in this folder")
     ap.add_argument("--output", default=None, help="JSON path (default benchmarks/results/planning.json)")
@@ -221,7 +225,8 @@ def main() -> None:
                       f"length={r['path_length_m']:.2f} error={r['goal_error_m']:.3f} "
                       f"clearance={r['min_clearance_m']:.2f} collisions={r['collisions']} "
                       f"plan median/p99={r['plan_ms_median']:.1f}/{r['plan_ms_p99']:.1f} ms "
-                      f"plans={r['plans']} failures={r['plan_failures']} rtf={r['rtf']:.2f}", flush=True)  # fmt: skip
+                      f"plans={r['plans']} failures={r['plan_failures']} rtf={r['rtf']:.2f}",
+                      flush=True)  # fmt: skip
                 if not r["reached"]:
                     print((Path(tmp) / f"plan_{i}.log").read_text()[-3000:])
         finally:
@@ -239,8 +244,8 @@ def main() -> None:
         "plan_ms_p99": _pct(plan_ms, 99),
         "rtf_min": float(min(r["rtf"] for r in runs)),
     }
-    print("\n| goal | reached | flight time (s) | path (m) | straight (m) | goal error (m) | min clearance (m) "
-          "| plan median / p99 (ms) | RTF |")  # fmt: skip
+    print("\n| goal | reached | flight time (s) | path (m) | straight (m) | goal error (m) "
+          "| min clearance (m) | plan median / p99 (ms) | RTF |")  # fmt: skip
     print("|---|---|---|---|---|---|---|---|---|")
     for i, r in zip(picks, runs, strict=True):
         ft = "-" if r["flight_time_s"] is None else f"{r['flight_time_s']:.2f}"

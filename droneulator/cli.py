@@ -101,29 +101,187 @@ def cmd_run(args: argparse.Namespace) -> int:
                 cfg.bridge.listen = [f"tcp/127.0.0.1:{7448 + n}"]
             if cfg.bridge.namespace == defaults.bridge.namespace:
                 cfg.bridge.namespace = f"{defaults.bridge.namespace}{n}"
+    if args.ui_port is not None:
+        cfg.ui.port = args.ui_port
     preflight.check_run(cfg)
     if args.demo:
         preflight.check_output_dir(args.out)
+    if args.record:
+        _check_bag_output(args.record, "--record")
 
     from droneulator.runtime.supervisor import Supervisor
 
     sup = Supervisor(cfg)
     sup.install_signal_handlers()
+    recorder = None
+    if args.record:
+        from droneulator.recording.recorder import Recorder, run_recorder_config
+
+        rec_cfg = run_recorder_config(cfg.bridge, sup.zenoh_endpoint, args.compression)
+        recorder = Recorder(args.record, rec_cfg)
     try:
-        sup.start()
-    except RuntimeError as exc:
+        # the recorder subscribes once the dynamics server's Zenoh session is up and before the render
+        # server and the bridge start, so it sees the first /clock of the run (the clock starts with them)
+        sup.start(on_hub_ready=recorder.start if recorder is not None else None)
+    except (RuntimeError, ConnectionError) as exc:
         sup.stop()
+        if recorder is not None and recorder.started:
+            recorder.close()
         raise StartupError(str(exc)) from None
+    ui = None
+    if args.ui or args.ui_port is not None:
+        ui = _start_ui(cfg, sup)
     if args.demo:
         from droneulator.workflows.demo_client import run_demo_client
 
         threading.Thread(
             target=run_demo_client, args=(cfg, Path(args.out), sup.stop_requested), daemon=True
         ).start()
-    code = sup.wait(args.duration)
+    try:
+        code = sup.wait(args.duration)
+    finally:
+        if recorder is not None:
+            _report_recording(recorder.close())
+        if ui is not None:
+            ui.stop()
     if sup.failure:
         print(f"droneulator: {sup.failure}", file=sys.stderr)
     return code
+
+
+def _check_bag_output(path: str, option: str) -> None:
+    from droneulator.recording.bag import check_output
+
+    try:
+        check_output(path)
+    except ValueError as exc:
+        raise StartupError(f"{option}: {exc}", preflight.USAGE) from None
+
+
+def _report_recording(stats: object) -> None:
+    from droneulator.recording.recorder import RecordingStats
+
+    assert isinstance(stats, RecordingStats)
+    total = sum(stats.written.values())
+    print(
+        f"recorded {total} messages on {len(stats.written)} topics to {stats.path} "
+        f"({stats.bytes / 1e6:.1f} MB)",
+        flush=True,
+    )
+    for topic, n in sorted(stats.written.items()):
+        print(f"  {n:8d}  {topic}", flush=True)
+    for topic, n in sorted(stats.untyped.items()):
+        print(f"  {n:8d}  {topic}  NOT RECORDED: its type was never announced", flush=True)
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    import signal
+
+    from droneulator.recording.recorder import Recorder, RecorderConfig
+
+    try:
+        cfg = RecorderConfig(
+            connect=tuple(args.zenoh),
+            namespace=args.namespace,
+            key_mode=args.key_mode,
+            domain_id=args.domain_id,
+            ros2dds_namespace=args.ros2dds_namespace,
+            compression=args.compression,
+        )
+    except ValueError as exc:
+        raise StartupError(str(exc), preflight.USAGE) from None
+    _check_bag_output(args.out, "-o")
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    recorder = Recorder(args.out, cfg)
+    try:
+        recorder.start()
+    except ConnectionError as exc:
+        raise StartupError(str(exc)) from None
+    print(f"recording {', '.join(recorder.key_expressions())} to {args.out}; Ctrl-C stops", flush=True)
+    stop.wait(args.duration)
+    _report_recording(recorder.close())
+    return 0
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    import signal
+
+    from droneulator.recording.replay import ReplayConfig, replay
+
+    cfg = ReplayConfig(
+        listen=tuple(args.zenoh),
+        connect=tuple(args.connect),
+        key_mode=args.key_mode,
+        domain_id=args.domain_id,
+        ros2dds_namespace=args.ros2dds_namespace,
+        rate=args.rate,
+        wait_subscriber_s=args.wait_subscriber,
+    )
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    where = ", ".join(cfg.listen) or "no listen endpoint"
+    print(f"replaying {args.bag} at {args.rate:g}x on {where}", flush=True)
+    try:
+        counts = replay(args.bag, cfg, stop)
+    except ConnectionError as exc:
+        raise StartupError(str(exc)) from None
+    done = "interrupted: " if stop.is_set() else ""
+    print(f"{done}published {sum(counts.values())} messages", flush=True)
+    for topic, n in sorted(counts.items()):
+        print(f"  {n:8d}  {topic}", flush=True)
+    return 130 if stop.is_set() else 0
+
+
+def _ui_zenoh_endpoint(cfg: SimConfig) -> str:
+    """Where a UI in this process reaches the run's Zenoh router: its first TCP listen endpoint."""
+    tcp = [e for e in cfg.bridge.listen if e.startswith("tcp/")]
+    if not tcp:
+        raise StartupError(f"--ui needs a tcp/ endpoint in bridge.listen, got {cfg.bridge.listen}")
+    return tcp[0].replace("tcp/0.0.0.0:", "tcp/127.0.0.1:").replace("tcp/[::]:", "tcp/127.0.0.1:")
+
+
+def _start_ui(cfg: SimConfig, sup: object) -> object:
+    """Start the browser UI on a thread of this process, once the simulator is up; prints its URL."""
+    from droneulator.ui.server import UIServer
+
+    host = cfg.runtime.api_host if cfg.runtime.api_host not in ("0.0.0.0", "::") else "127.0.0.1"
+    server = UIServer(
+        f"ws://{host}:{cfg.runtime.api_port}",
+        _ui_zenoh_endpoint(cfg),
+        cfg.ui,
+        cfg.bridge,
+        px4=cfg.px4.enabled,
+    )
+    try:
+        url = server.start_in_thread()
+    except OSError as exc:
+        sup.stop()  # type: ignore[attr-defined]
+        raise StartupError(
+            f"cannot start the UI on {cfg.ui.host}:{cfg.ui.port}: {exc.strerror or exc}"
+        ) from None
+    print(f"UI: {url}", flush=True)
+    return server
+
+
+def cmd_ui(args: argparse.Namespace) -> int:
+    cfg = preflight.load(args.config, args.overrides)
+    if args.host is not None:
+        cfg.ui.host = args.host
+    if args.port is not None:
+        cfg.ui.port = args.port
+    cfg.ui.__post_init__()
+    from droneulator.ui.server import UIServer, run_ui
+
+    server = UIServer(args.url, args.zenoh, cfg.ui, cfg.bridge, namespace=args.namespace, px4=args.px4)
+    try:
+        return run_ui(server, lambda line: print(line, flush=True))
+    except OSError as exc:
+        raise StartupError(
+            f"cannot start the UI on {cfg.ui.host}:{cfg.ui.port}: {exc.strerror or exc}"
+        ) from None
 
 
 def cmd_plan(args: argparse.Namespace) -> int:
@@ -311,6 +469,25 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_compression_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--compression",
+        choices=("zstd", "lz4", "none"),
+        default="zstd",
+        help="MCAP chunk compression of the bag (default zstd)",
+    )
+
+
+def _add_key_mode_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--key-mode", choices=("ros2dds", "rmw_zenoh"), default="ros2dds", help="the run's bridge.key_mode"
+    )
+    p.add_argument("--domain-id", type=int, default=0, help="rmw_zenoh key mode: the ROS domain id")
+    p.add_argument(
+        "--ros2dds-namespace", default="/", help="ros2dds key mode: the run's bridge.ros2dds_namespace"
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="droneulator", description="UAV simulator for agricultural robotics.")
     sub = ap.add_subparsers(dest="command", required=True)
@@ -361,7 +538,83 @@ def build_parser() -> argparse.ArgumentParser:
         "received over Zenoh to --out, then stop",
     )
     p.add_argument("--out", default="out/run", help="where --demo saves frames (default out/run)")
+    p.add_argument(
+        "--record",
+        default=None,
+        metavar="BAG",
+        help="record every ROS 2 message of the run to this MCAP bag (a .mcap file, or a bag directory "
+        "like `ros2 bag record -o`); see docs/recording.md",
+    )
+    _add_compression_arg(p)
+    p.add_argument(
+        "--ui", action="store_true", help="also serve the browser UI (http://127.0.0.1:8080, see docs/ui.md)"
+    )
+    p.add_argument("--ui-port", type=int, default=None, help="browser UI port (implies --ui; default 8080)")
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser(
+        "ui",
+        help="serve the browser UI for a running simulator (http://127.0.0.1:8080)",
+        description="Level select, live camera views, a map with click-to-fly and telemetry in the browser, "
+        "for the `droneulator run` whose API is at --url and whose Zenoh router is at --zenoh.",
+    )
+    p.add_argument("--url", default="ws://127.0.0.1:8765", help="the simulator's WebSocket API")
+    p.add_argument("--zenoh", default="tcp/127.0.0.1:7448", help="Zenoh endpoint of the run's bridge")
+    p.add_argument("--namespace", default=None, help="the run's ROS namespace (default droneulator)")
+    p.add_argument("--host", default=None, help="address to serve on (default 127.0.0.1: this machine only)")
+    p.add_argument("--port", type=int, default=None, help="port to serve on (default 8080)")
+    p.add_argument("--px4", action="store_true", help="the run flies with --px4: show PX4's status")
+    _add_file_args(p, "--set ui.image_hz=5 --set bridge.key_mode=rmw_zenoh")
+    p.set_defaults(func=cmd_ui)
+
+
+    p = sub.add_parser(
+        "record",
+        help="record a running simulator's ROS 2 topics from Zenoh to an MCAP bag (ros2 bag format)",
+        description="Subscribe to /clock, /tf, /tf_static and /<namespace>/** on Zenoh and write every "
+        "message (same CDR bytes, sim-time log times) to a ROS 2 MCAP bag until Ctrl-C.",
+    )
+    p.add_argument("-o", "--out", required=True, help="bag to write: out.mcap, or a bag directory name")
+    p.add_argument(
+        "--zenoh",
+        action="append",
+        default=None,
+        metavar="ENDPOINT",
+        help="Zenoh endpoint of the run (its bridge.listen; default tcp/127.0.0.1:7448; repeatable)",
+    )
+    _add_key_mode_args(p)
+    p.add_argument("--namespace", default="droneulator", help="the run's ROS namespace (bridge.namespace)")
+    p.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
+    _add_compression_arg(p)
+    p.set_defaults(func=cmd_record)
+
+    p = sub.add_parser(
+        "replay",
+        help="republish an MCAP bag on Zenoh at the recorded rate, in the simulator's place",
+        description="Publish every message of a ROS 2 MCAP bag on Zenoh under the keys the simulator "
+        "uses, in log-time order, paced at --rate times the recorded rate.",
+    )
+    p.add_argument("bag", help="a .mcap file or a bag directory")
+    p.add_argument("--rate", type=float, default=1.0, help="playback speed (default 1: recorded rate)")
+    p.add_argument(
+        "--zenoh",
+        action="append",
+        default=None,
+        metavar="ENDPOINT",
+        help="listen here, like the simulator (default tcp/127.0.0.1:7448; repeatable)",
+    )
+    p.add_argument(
+        "--connect", action="append", default=[], metavar="ENDPOINT", help="also connect to this endpoint"
+    )
+    _add_key_mode_args(p)
+    p.add_argument(
+        "--wait-subscriber",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="wait up to S seconds for a subscriber before the first message (default 0)",
+    )
+    p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser(
         "capture",
@@ -562,6 +815,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if getattr(args, "zenoh", "") is None and args.command in ("record", "replay"):
+        args.zenoh = ["tcp/127.0.0.1:7448"]
     try:
         return args.func(args)
     except StartupError as exc:

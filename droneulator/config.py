@@ -284,6 +284,31 @@ class PX4Config:
 
 
 @dataclass
+class UIConfig:
+    """The browser UI (``droneulator ui``, ``droneulator run --ui``; see docs/ui.md)."""
+
+    #: loopback only by default, like the API: there is no authentication
+    host: str = "127.0.0.1"
+    port: int = 8080
+    #: the most images per second forwarded to a browser, per camera stream (the newest wins)
+    image_hz: float = 10.0
+    #: JPEG quality of the forwarded depth images (RGB is forwarded as the simulator encoded it)
+    jpeg_quality: int = 80
+    #: depth colour scale: 0 m .. this many metres
+    depth_max_m: float = 20.0
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.port <= 65535:
+            raise ValueError(f"ui.port must lie in [0, 65535], got {self.port}")
+        if not 0.1 <= self.image_hz <= 60.0:
+            raise ValueError(f"ui.image_hz must lie in [0.1, 60], got {self.image_hz}")
+        if not 1 <= self.jpeg_quality <= 100:
+            raise ValueError("ui.jpeg_quality must lie in [1, 100]")
+        if not self.depth_max_m > 0:
+            raise ValueError("ui.depth_max_m must be positive")
+
+
+@dataclass
 class SimConfig:
     scene: str = "default"
     seed: int = 0
@@ -295,6 +320,7 @@ class SimConfig:
     px4: PX4Config = field(default_factory=PX4Config)
     capture: CaptureConfig = field(default_factory=CaptureConfig)
     rl: RLConfig = field(default_factory=RLConfig)
+    ui: UIConfig = field(default_factory=UIConfig)
 
 
 # --------------------------------------------------------------------------- loading & overrides

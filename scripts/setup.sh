@@ -10,6 +10,8 @@ extras="."
 [[ "${1:-}" == "--dev" ]] && extras=".[dev,colmap,rl]"
 
 debs=(python3 python3-venv python3-dev libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri)
+# --dev: the browser UI's tests drive Debian's Chromium with Playwright (tests/test_ui.py)
+[[ "${1:-}" == "--dev" ]] && debs+=(chromium)
 missing=()
 for d in "${debs[@]}"; do
     dpkg-query -W -f='${Status}' "$d" 2>/dev/null | grep -q "install ok installed" || missing+=("$d")

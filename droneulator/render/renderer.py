@@ -544,6 +544,64 @@ class Renderer:
         if "u_light" in prog:
             prog["u_light"].write(_mat(self._light))
 
+    def render_top_down(
+        self, xy_min: tuple[float, float], xy_max: tuple[float, float], width: int, height: int
+    ) -> np.ndarray:
+        """Orthographic view straight down on the world box ``xy_min`` .. ``xy_max`` (m): (H, W, 3) uint8.
+
+        North (+y) is the top row and +x points right; pixel ``(u, v)`` covers world
+        ``x = x_min + (u + 0.5) * (x_max - x_min) / W`` and ``y = y_max - (v + 0.5) * (y_max - y_min) / H``.
+        Lit and shadowed like the cameras; where no geometry is hit the sky colour shows. Used for maps.
+        """
+        if self.ctx is None:
+            raise RuntimeError("renderer is closed")
+        x0, y0 = (float(v) for v in xy_min)
+        x1, y1 = (float(v) for v in xy_max)
+        if not (x1 > x0 and y1 > y0 and width > 0 and height > 0):
+            raise ValueError(f"render_top_down needs a non-empty box and size, got {xy_min}..{xy_max}")
+        top = float(self._bounds[1, 1]) + 10.0 if self._n_triangles else 10.0  # GL y is up
+        depth = top - (float(self._bounds[0, 1]) if self._n_triangles else 0.0) + 10.0
+        R = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])  # optical axes in the world
+        T_wo = frames.make_transform(R, [(x0 + x1) / 2, (y0 + y1) / 2, top])
+        view = frames.gl_view_matrix(T_wo)
+        ortho = np.diag([2.0 / (x1 - x0), 2.0 / (y1 - y0), -2.0 / (depth - 0.1), 1.0])
+        ortho[2, 3] = -(depth + 0.1) / (depth - 0.1)
+        proj = _FLIP_Y @ ortho
+        eye = frames.zup_to_gl(T_wo[:3, 3])
+        rgb = np.empty((height, width, 3), dtype=np.uint8)
+        with self.ctx:
+            ctx = self.ctx
+            color = ctx.renderbuffer((width, height), 4)
+            seg = ctx.renderbuffer((width, height), 1, dtype="u1")
+            dist = ctx.renderbuffer((width, height), 1, dtype="f4")
+            zbuffer = ctx.depth_renderbuffer((width, height))
+            fbo = ctx.framebuffer([color, seg, dist], zbuffer)
+            try:
+                fbo.use()
+                fbo.clear(*self._zenith, 1.0, depth=1.0)
+                ctx.enable_only(moderngl.DEPTH_TEST)
+                ctx.depth_func = "<"
+                self._texture.use(0)
+                if self._shadow_map is not None:
+                    self._shadow_map.use(1)
+                if self._n_triangles:
+                    tiles = self._visible_tiles(proj @ view, eye)
+                    base = ("COLOR", "TEXCOORD") + (("SHADOWS",) if self._shadow_map is not None else ())
+                    for alpha in (False, True):
+                        vao = self._vao(_GEOMETRY_VS, _GEOMETRY_FS, base + (("ALPHA_TEST",) if alpha else ()))
+                        self._set_uniforms(vao.program, view, proj, eye)
+                        for i in tiles[self._tile_alpha[tiles] == alpha]:
+                            vao.render(
+                                moderngl.TRIANGLES,
+                                vertices=int(self._tile_count[i]),
+                                first=int(self._tile_first[i]),
+                            )
+                fbo.read_into(rgb, components=3, attachment=0)
+            finally:
+                for obj in (fbo, color, seg, dist, zbuffer):
+                    obj.release()
+        return rgb
+
     # ------------------------------------------------------------------------------------ lifetime
     def close(self) -> None:
         """Release every GL object (and the context when the renderer created it)."""

@@ -24,6 +24,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -109,9 +110,11 @@ class Supervisor:
                 elif self.echo:
                     print(f"[{child.name}] {line}", flush=True)
 
-    def start(self) -> None:
+    def start(self, on_hub_ready: Callable[[], None] | None = None) -> None:
         """Start the dynamics server, then (once it listens) the render server and the bridge.
 
+        ``on_hub_ready`` runs in between, e.g. to subscribe a recorder: the dynamics server's Zenoh session
+        is up, and in lockstep its clock has not started (it waits for the render server and the bridge).
         Raises RuntimeError with a one-line message if the dynamics server exits while starting; its
         output so far (a traceback, say) goes to a log file the message names, not to the terminal."""
         self._held = []
@@ -128,6 +131,8 @@ class Supervisor:
                 raise RuntimeError("dynamics server did not start within 30 s")
             time.sleep(0.05)
         self._release_held()
+        if on_hub_ready is not None:
+            on_hub_ready()
         self._spawn(self.children["render"])
         self._spawn(self.children["bridge"])
 

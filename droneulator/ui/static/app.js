@@ -1,0 +1,356 @@
+// Droneulator's browser UI: level select, then the flight view. Everything it does goes through the
+// simulator's WebSocket API (relayed by the UI server) and every error the API returns is shown.
+
+import { ApiError, Connection } from "./connection.js";
+import { CameraViews } from "./cameras.js";
+import { MapView } from "./map.js";
+
+const $ = (id) => document.getElementById(id);
+const KEYS = {
+  KeyW: "fwd", ArrowUp: "fwd", KeyS: "back", ArrowDown: "back",
+  KeyA: "left", ArrowLeft: "left", KeyD: "right", ArrowRight: "right",
+};
+const YAW_RATE = 0.8; // rad/s while A/D is held
+const EVENT_LOG = 60;
+const RTF_WINDOW_MS = 3000;
+
+const ui = {
+  config: null,
+  scene: null, // scene_info of the loaded scene
+  state: null,
+  locked: null, // why flight commands are refused (PX4 in control), or null
+  keys: new Set(),
+  lastVelocity: null,
+  rtfSamples: [],
+  images: null,
+};
+window.droneulatorUI = ui; // for tests and the benchmark
+
+// ------------------------------------------------------------------------------------------------ errors
+function showError(text) {
+  const div = document.createElement("div");
+  div.className = "error";
+  div.textContent = text;
+  const close = document.createElement("button");
+  close.textContent = "×";
+  close.title = "dismiss";
+  close.onclick = () => div.remove();
+  div.append(close);
+  $("errors").prepend(div);
+  while ($("errors").children.length > 4) $("errors").lastChild.remove();
+  setTimeout(() => div.remove(), 15000);
+}
+
+function describe(err) {
+  if (err instanceof ApiError) return `${err.message} (${err.code.replaceAll("_", " ")})`;
+  return String(err.message || err);
+}
+
+// Send a request; on failure tell the person what the simulator said.
+async function send(op, fields = {}, what = op) {
+  try {
+    return await conn.request(op, fields);
+  } catch (err) {
+    if (err.code === "flight_locked") setLocked(err.message);
+    showError(`${what} refused: ${describe(err)}`);
+    throw err;
+  }
+}
+
+// ------------------------------------------------------------------------------------------------ pages
+function showPage(name) {
+  $("levels").hidden = name !== "levels";
+  $("fly").hidden = name !== "fly";
+  $("nav-levels").classList.toggle("active", name === "levels");
+  $("nav-fly").classList.toggle("active", name === "fly");
+  if (location.hash !== `#${name}`) history.replaceState(null, "", `#${name}`);
+}
+
+async function buildLevels() {
+  const res = await fetch("/api/scenes");
+  const { scenes } = await res.json();
+  const cards = $("scene-cards");
+  cards.replaceChildren();
+  for (const s of scenes) {
+    const card = document.createElement("button");
+    card.className = "card";
+    card.dataset.scene = s.name;
+    card.innerHTML = `<img alt="${s.name} preview"><h3></h3><p></p>`;
+    card.querySelector("h3").textContent = s.name.replaceAll("_", " ");
+    card.querySelector("p").textContent = s.description;
+    card.querySelector("img").src = `/api/preview/${encodeURIComponent(s.name)}`;
+    card.onclick = () => chooseScene(s.name);
+    cards.append(card);
+  }
+}
+
+async function chooseScene(name) {
+  const seed = Number($("seed").value);
+  if (!Number.isInteger(seed) || seed < 0) {
+    showError(`the seed must be a whole number of 0 or more, not "${$("seed").value}"`);
+    return;
+  }
+  document.body.classList.add("loading");
+  try {
+    await send("reset", { scene: name, seed }, `loading ${name}`);
+    await loadScene();
+    showPage("fly");
+  } catch {
+    // already shown
+  } finally {
+    document.body.classList.remove("loading");
+  }
+}
+
+async function loadScene() {
+  const info = await send("scene_info", {}, "reading the scene");
+  const changed = !ui.scene || ui.scene.name !== info.name || ui.scene.seed !== info.seed;
+  ui.scene = info;
+  document.title = `Droneulator · ${info.name}`;
+  if (changed) {
+    map.setGoal(null);
+    try {
+      await map.load(info.name, info.seed);
+    } catch (err) {
+      showError(`the map of ${info.name} could not be drawn: ${describe(err)}`);
+    }
+  }
+  $("seed").value = info.seed;
+}
+
+// ------------------------------------------------------------------------------------------------ flight
+function setLocked(reason) {
+  ui.locked = reason;
+  $("lock-reason").hidden = !reason;
+  $("lock-reason").textContent = reason ? `Flight controls are off: ${reason}` : "";
+  for (const b of document.querySelectorAll("button.flight")) b.disabled = !!reason;
+}
+
+function altitude() {
+  const z = Number($("altitude").value);
+  return Number.isFinite(z) ? z : 2.0;
+}
+
+function mapClicked(x, y) {
+  if (ui.locked) {
+    showError(`not flying there: ${ui.locked}`);
+    return;
+  }
+  const airborne = ui.state && ui.state.mode !== "idle" && ui.state.position[2] > 0.3;
+  const z = airborne ? ui.state.position[2] : altitude();
+  const target = [round(x), round(y), round(z)];
+  send("goto", { position: target }, `flying to (${target[0]}, ${target[1]}, ${target[2]})`).then(
+    () => map.setGoal(target), () => {});
+}
+
+function round(v) {
+  return Math.round(v * 100) / 100;
+}
+
+function keyVelocity() {
+  const speed = Math.min(5, Math.max(0.1, Number($("kspeed").value) || 1.5));
+  const k = ui.keys;
+  const forward = (k.has("fwd") ? speed : 0) - (k.has("back") ? speed : 0);
+  const yawRate = (k.has("left") ? YAW_RATE : 0) - (k.has("right") ? YAW_RATE : 0);
+  return [forward, yawRate];
+}
+
+function keysChanged() {
+  const [forward, yawRate] = keyVelocity();
+  const key = `${forward},${yawRate}`;
+  if (key === ui.lastVelocity) return;
+  ui.lastVelocity = key;
+  if (forward === 0 && yawRate === 0) send("hold", {}, "hold").catch(() => {});
+  else {
+    map.setGoal(null);
+    send("velocity", { forward, yaw_rate: yawRate }, "keyboard flying").catch(() => {});
+  }
+}
+
+function typing(e) {
+  return ["INPUT", "TEXTAREA", "SELECT"].includes(e.target.tagName);
+}
+
+document.addEventListener("keydown", (e) => {
+  const k = KEYS[e.code];
+  if (!k || typing(e) || $("fly").hidden || ui.locked) return;
+  e.preventDefault();
+  ui.keys.add(k);
+  keysChanged();
+});
+document.addEventListener("keyup", (e) => {
+  const k = KEYS[e.code];
+  if (!k || !ui.keys.has(k)) return;
+  e.preventDefault();
+  ui.keys.delete(k);
+  keysChanged();
+});
+window.addEventListener("blur", () => {
+  if (ui.keys.size) {
+    ui.keys.clear();
+    keysChanged();
+  }
+});
+
+// ------------------------------------------------------------------------------------------------ telemetry
+function onState(state) {
+  const previous = ui.state;
+  ui.state = state;
+  if (previous && state.t < previous.t) {
+    map.clearTrail(); // a reset
+    ui.rtfSamples = [];
+  }
+  const now = performance.now();
+  ui.rtfSamples.push([now, state.t]);
+  while (ui.rtfSamples.length > 2 && now - ui.rtfSamples[0][0] > RTF_WINDOW_MS) ui.rtfSamples.shift();
+  map.setState(state);
+  renderTelemetry();
+}
+
+function renderTelemetry() {
+  const s = ui.state;
+  const rows = [];
+  if (s) {
+    const [x, y, z] = s.position;
+    const speed = Math.hypot(...s.velocity);
+    const [w0, t0] = ui.rtfSamples[0];
+    const [w1, t1] = ui.rtfSamples[ui.rtfSamples.length - 1];
+    const rtf = w1 - w0 > 500 ? (t1 - t0) / ((w1 - w0) / 1000) : null;
+    rows.push(["mode", s.mode], ["position", `${x.toFixed(2)}, ${y.toFixed(2)}, ${z.toFixed(2)} m`],
+      ["speed", `${speed.toFixed(2)} m/s`], ["altitude", `${z.toFixed(2)} m`],
+      ["heading", `${((s.yaw * 180) / Math.PI).toFixed(0)}°`], ["sim time", `${s.t.toFixed(2)} s`],
+      ["real-time factor", rtf === null ? "…" : rtf.toFixed(2)]);
+  }
+  if (ui.scene) rows.push(["scene", `${ui.scene.name} (seed ${ui.scene.seed})`]);
+  const im = ui.images;
+  if (im) {
+    rows.push(["images shown", `${cams.count}`],
+      [`over the ${ui.config.image_hz} Hz cap`, `${Math.max(0, im.received - im.encoded)} skipped`],
+      ["frames dropped", `${im.dropped} (page too slow)`]);
+  }
+  const dl = $("telemetry");
+  dl.replaceChildren();
+  for (const [k, v] of rows) {
+    const dt = document.createElement("dt");
+    dt.textContent = k;
+    const dd = document.createElement("dd");
+    dd.textContent = v;
+    dd.dataset.key = k;
+    dl.append(dt, dd);
+  }
+}
+
+function logEvent(ev) {
+  const li = document.createElement("li");
+  li.className = `event ${ev.type}`;
+  const where = ev.position ? ` at (${ev.position.map((v) => v.toFixed(1)).join(", ")})` : "";
+  const extra = ev.type === "impact" ? `, ${ev.speed.toFixed(1)} m/s`
+    : ev.type === "px4_disconnected" ? `: ${ev.reason}` : "";
+  li.textContent = `t=${(ev.t ?? 0).toFixed(2)} s  ${ev.type.replaceAll("_", " ")}${where}${extra}`;
+  $("events").prepend(li);
+  while ($("events").children.length > EVENT_LOG) $("events").lastChild.remove();
+}
+
+function onEvent(ev) {
+  logEvent(ev);
+  if (ev.type === "arrived" && ev.command === "goto") map.setGoal(null);
+  if (ev.type === "collision" || ev.type === "impact") {
+    const flash = $("flash");
+    flash.classList.remove("on");
+    void flash.offsetWidth; // restart the animation
+    flash.classList.add("on");
+  }
+  if (ev.type.startsWith("px4_")) {
+    $("px4").hidden = false;
+    const status = {
+      px4_connected: ev.holding ? "PX4 connected; the simulator holds the vehicle until PX4 arms"
+        : "PX4 connected, disarmed: the UI may fly",
+      px4_armed: "PX4 is armed and in control",
+      px4_disarmed: "PX4 disarmed: the UI may fly",
+      px4_disconnected: `PX4 disconnected (${ev.reason || "no reason given"})`,
+    }[ev.type];
+    $("px4-status").textContent = status || ev.type;
+    if (ev.type === "px4_armed") setLocked("PX4 is armed and flying the vehicle");
+    if (ev.type === "px4_disarmed" || ev.type === "px4_disconnected") setLocked(null);
+  }
+}
+
+// ------------------------------------------------------------------------------------------------ connection
+function setConnection(text, good) {
+  const badge = $("conn");
+  badge.textContent = text;
+  badge.className = `badge ${good ? "good" : "bad"}`;
+}
+
+async function onApiConnected() {
+  try {
+    await send("subscribe", { streams: ["state", "events"], rate_hz: 20 }, "subscribing to the state");
+    await loadScene();
+    if (ui.scene && location.hash !== "#fly" && !ui.started) showPage("levels");
+    ui.started = true;
+  } catch {
+    // shown already
+  }
+}
+
+function onUiMessage(msg) {
+  if (msg.api) {
+    if (msg.api.connected) {
+      setConnection(`simulator: ${msg.api.url}`, true);
+      onApiConnected();
+    } else {
+      setConnection("simulator unreachable, reconnecting…", false);
+      showError(`lost the simulator at ${msg.api.url}: ${msg.api.error || "no reason given"}; reconnecting`);
+    }
+  }
+  if (msg.images) {
+    ui.images = msg.images;
+    if (msg.images.error) setConnection(`simulator connected; ${msg.images.error}`, false);
+  }
+}
+
+const conn = new Connection({
+  onOpen: () => setConnection("waiting for the simulator…", false),
+  onClose: () => setConnection("UI server unreachable, reconnecting…", false),
+  onImage: (header, blob) => cams.show(header, blob),
+  onMessage: (msg) => {
+    if (msg.type === "state") onState(msg.state);
+    else if (msg.type === "event") onEvent(msg.event);
+    else if (msg.type === "ui") onUiMessage(msg);
+  },
+});
+ui.conn = conn;
+
+const map = new MapView($("map"), mapClicked);
+ui.map = map;
+const cams = new CameraViews($("cameras"), { depth_max_m: 20, legend: [] });
+ui.cameras = cams;
+
+async function init() {
+  const res = await fetch("/api/config");
+  ui.config = await res.json();
+  cams.config = ui.config;
+  if (ui.config.px4) $("px4").hidden = false;
+  $("nav-levels").onclick = () => showPage("levels");
+  $("nav-fly").onclick = () => showPage("fly");
+  $("btn-takeoff").onclick = () => send("takeoff", { altitude: altitude() }, "take off").catch(() => {});
+  $("btn-land").onclick = () => send("land", {}, "land").then(() => map.setGoal(null), () => {});
+  $("btn-hold").onclick = () => send("hold", {}, "hold").then(() => map.setGoal(null), () => {});
+  $("btn-reset").onclick = () => send("reset", {}, "reset").then(() => map.setGoal(null), () => {});
+  $("btn-alt").onclick = () => {
+    if (!ui.state) return;
+    const [x, y] = ui.state.position;
+    const target = [round(x), round(y), altitude()];
+    send("goto", { position: target }, `climbing to ${target[2]} m`).then(() => map.setGoal(target), () => {});
+  };
+  $("btn-yaw").onclick = () => {
+    if (!ui.state) return;
+    const yaw = (Number($("yaw").value) * Math.PI) / 180;
+    send("goto", { position: ui.state.position, yaw }, "turning").catch(() => {});
+  };
+  showPage(location.hash === "#fly" ? "fly" : "levels");
+  await buildLevels();
+}
+
+init().catch((err) => showError(`the page could not start: ${describe(err)}`));
+setInterval(renderTelemetry, 1000);

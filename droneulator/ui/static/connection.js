@@ -1,0 +1,68 @@
+// The page's one WebSocket to the UI server: the simulator's API protocol (docs/api.md) in text frames,
+// camera images in binary frames. Reconnects by itself, every second, whenever the server goes away.
+
+export class ApiError extends Error {
+  constructor(code, message) {
+    super(message);
+    this.code = code;
+  }
+}
+
+export class Connection {
+  constructor({ onMessage, onImage, onOpen, onClose }) {
+    this.handlers = { onMessage, onImage, onOpen, onClose };
+    this.pending = new Map();
+    this.nextId = 1;
+    this.ws = null;
+    this.open();
+  }
+
+  open() {
+    const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`);
+    ws.binaryType = "arraybuffer";
+    ws.onopen = () => this.handlers.onOpen();
+    ws.onmessage = (e) => this.receive(e.data);
+    ws.onclose = () => {
+      for (const { reject } of this.pending.values()) {
+        reject(new ApiError("connection_closed", "the connection to the UI server closed"));
+      }
+      this.pending.clear();
+      this.ws = null;
+      this.handlers.onClose();
+      setTimeout(() => this.open(), 1000);
+    };
+    this.ws = ws;
+  }
+
+  receive(data) {
+    if (data instanceof ArrayBuffer) {
+      const view = new DataView(data);
+      const n = view.getUint32(0);
+      const header = JSON.parse(new TextDecoder().decode(new Uint8Array(data, 4, n)));
+      this.handlers.onImage(header, new Blob([new Uint8Array(data, 4 + n)], { type: header.mime }));
+      return;
+    }
+    const msg = JSON.parse(data);
+    if ("ok" in msg) {
+      const waiter = this.pending.get(msg.id);
+      if (!waiter) return;
+      this.pending.delete(msg.id);
+      if (msg.ok) waiter.resolve(msg.result);
+      else waiter.reject(new ApiError(msg.error.code, msg.error.message));
+    } else {
+      this.handlers.onMessage(msg);
+    }
+  }
+
+  // Send one API request; resolves with its result, rejects with ApiError(code, message).
+  request(op, fields = {}) {
+    if (!this.ws || this.ws.readyState !== WebSocket.OPEN) {
+      return Promise.reject(new ApiError("not_connected", "not connected to the UI server; reconnecting"));
+    }
+    const id = this.nextId++;
+    return new Promise((resolve, reject) => {
+      this.pending.set(id, { resolve, reject });
+      this.ws.send(JSON.stringify({ id, op, ...fields }));
+    });
+  }
+}

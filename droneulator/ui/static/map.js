@@ -1,0 +1,132 @@
+// The top-down map: the renderer's orthographic picture of the scene, the flyable box, the vehicle with
+// its heading, its trail and the active goal. A click reports the world x, y under the pointer.
+
+const TRAIL_POINTS = 600;
+
+export class MapView {
+  constructor(canvas, onClick) {
+    this.canvas = canvas;
+    this.ctx = canvas.getContext("2d");
+    this.image = null;
+    this.meta = null;
+    this.trail = [];
+    this.vehicle = null;
+    this.goal = null;
+    canvas.addEventListener("click", (e) => {
+      if (!this.meta) return;
+      const r = canvas.getBoundingClientRect();
+      const [x, y] = this.toWorld(((e.clientX - r.left) * canvas.width) / r.width,
+        ((e.clientY - r.top) * canvas.height) / r.height);
+      onClick(x, y);
+    });
+  }
+
+  async load(scene, seed) {
+    const res = await fetch(`/api/map/${encodeURIComponent(scene)}?seed=${seed}`);
+    const meta = await res.json();
+    if (!res.ok) throw new Error(meta.error || `map of ${scene}: HTTP ${res.status}`);
+    const img = new Image();
+    img.src = meta.image;
+    await img.decode();
+    const [x0, y0, x1, y1] = meta.extent;
+    this.canvas.width = 400;
+    this.canvas.height = Math.round((400 * (y1 - y0)) / (x1 - x0));
+    this.image = img;
+    this.meta = meta;
+    this.trail = [];
+    this.goal = null;
+    this.draw();
+  }
+
+  toCanvas(x, y) {
+    const [x0, y0, x1, y1] = this.meta.extent;
+    return [((x - x0) / (x1 - x0)) * this.canvas.width, ((y1 - y) / (y1 - y0)) * this.canvas.height];
+  }
+
+  toWorld(u, v) {
+    const [x0, y0, x1, y1] = this.meta.extent;
+    return [x0 + (u / this.canvas.width) * (x1 - x0), y1 - (v / this.canvas.height) * (y1 - y0)];
+  }
+
+  setState(state) {
+    const [x, y] = state.position;
+    this.vehicle = { x, y, yaw: state.yaw };
+    const last = this.trail[this.trail.length - 1];
+    if (!last || Math.hypot(last[0] - x, last[1] - y) > 0.05) {
+      this.trail.push([x, y]);
+      if (this.trail.length > TRAIL_POINTS) this.trail.shift();
+    }
+    this.draw();
+  }
+
+  clearTrail() {
+    this.trail = [];
+    this.draw();
+  }
+
+  setGoal(goal) {
+    this.goal = goal;
+    this.draw();
+  }
+
+  draw() {
+    const { ctx, canvas } = this;
+    ctx.clearRect(0, 0, canvas.width, canvas.height);
+    if (!this.meta) return;
+    ctx.drawImage(this.image, 0, 0, canvas.width, canvas.height);
+    // outside the flyable box: dimmed
+    const [bx0, by1] = this.toCanvas(this.meta.bounds_min[0], this.meta.bounds_min[1]);
+    const [bx1, by0] = this.toCanvas(this.meta.bounds_max[0], this.meta.bounds_max[1]);
+    ctx.fillStyle = "rgba(0, 0, 0, 0.35)";
+    ctx.fillRect(0, 0, canvas.width, by0);
+    ctx.fillRect(0, by1, canvas.width, canvas.height - by1);
+    ctx.fillRect(0, by0, bx0, by1 - by0);
+    ctx.fillRect(bx1, by0, canvas.width - bx1, by1 - by0);
+    ctx.strokeStyle = "rgba(255, 255, 255, 0.8)";
+    ctx.setLineDash([6, 4]);
+    ctx.lineWidth = 1;
+    ctx.strokeRect(bx0, by0, bx1 - bx0, by1 - by0);
+    ctx.setLineDash([]);
+    if (this.trail.length > 1) {
+      ctx.strokeStyle = "rgba(255, 220, 60, 0.9)";
+      ctx.lineWidth = 2;
+      ctx.beginPath();
+      this.trail.forEach(([x, y], i) => {
+        const [u, v] = this.toCanvas(x, y);
+        if (i === 0) ctx.moveTo(u, v);
+        else ctx.lineTo(u, v);
+      });
+      ctx.stroke();
+    }
+    if (this.goal) {
+      const [u, v] = this.toCanvas(this.goal[0], this.goal[1]);
+      ctx.strokeStyle = "#ff4d6d";
+      ctx.lineWidth = 2;
+      ctx.beginPath();
+      ctx.arc(u, v, 7, 0, 2 * Math.PI);
+      ctx.moveTo(u - 11, v);
+      ctx.lineTo(u + 11, v);
+      ctx.moveTo(u, v - 11);
+      ctx.lineTo(u, v + 11);
+      ctx.stroke();
+    }
+    if (this.vehicle) {
+      const [u, v] = this.toCanvas(this.vehicle.x, this.vehicle.y);
+      ctx.save();
+      ctx.translate(u, v);
+      ctx.rotate(-this.vehicle.yaw); // world yaw is counter-clockwise, canvas angles clockwise
+      ctx.fillStyle = "#00e5ff";
+      ctx.strokeStyle = "#002b33";
+      ctx.lineWidth = 1.5;
+      ctx.beginPath();
+      ctx.moveTo(11, 0);
+      ctx.lineTo(-7, 6);
+      ctx.lineTo(-3, 0);
+      ctx.lineTo(-7, -6);
+      ctx.closePath();
+      ctx.fill();
+      ctx.stroke();
+      ctx.restore();
+    }
+  }
+}
