@@ -79,7 +79,7 @@ def build_planning(seed: int) -> Scene:
         START,
         0.0,
         np.array([-HALF_BOUNDS, -HALF_BOUNDS, 0.0]),
-        np.array([HALF_BOUNDS, HALF_BOUNDS, 10.0]),
+        np.array([HALF_BOUNDS, HALF_BOUNDS, 12.0]),
         landmarks={
             "tree": np.zeros(3),
             "tree_height": np.array([hero.height]),
