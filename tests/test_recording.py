@@ -219,10 +219,8 @@ def test_recorder_blocks_instead_of_dropping_when_the_writer_lags(tmp_path: Path
         block = zenoh.CongestionControl.BLOCK
         images = pub.publisher(f"/{NS}/front/depth/image_raw", TYPES["depth"], congestion_control=block)
         big = np.zeros((480, 640), np.float32)
-        t0 = time.monotonic()
         for i in range(40):  # 49 MB: three times the queue
             images.publish(bytes(M.serialize(M.image(i * 33_333_333, "front_optical_frame", big))))
-        publish_s = time.monotonic() - t0
         deadline = time.monotonic() + 30
         while rec.received < 40 and time.monotonic() < deadline:  # the last ones are still on the way
             time.sleep(0.05)
@@ -230,7 +228,7 @@ def test_recorder_blocks_instead_of_dropping_when_the_writer_lags(tmp_path: Path
     finally:
         pub.close()
     assert stats.written == {f"/{NS}/front/depth/image_raw": 40}
-    assert publish_s > 40 * 0.005 * 0.4  # the publisher was held back by the writer
+    assert rec.waits > 0  # the queue filled and the callback held Zenoh back instead of dropping
 
 
 def test_cli_record_stops_on_sigint_with_a_finalised_file(tmp_path: Path) -> None:

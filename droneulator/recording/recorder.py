@@ -168,6 +168,8 @@ class Recorder:
         self.error: BaseException | None = None
         #: samples taken from Zenoh so far (written, queued or waiting for their type)
         self.received = 0
+        #: times a Zenoh callback waited for the writer (the queue was full): back-pressure, not loss
+        self.waits = 0
         self.stats = RecordingStats(path=self.path)
 
     # ------------------------------------------------------------------ keys
@@ -291,6 +293,8 @@ class Recorder:
     # ------------------------------------------------------------------ zenoh callbacks (zenoh threads)
     def _put(self, item: Any, size: int) -> None:
         with self._cond:
+            if self._queued_bytes > self.cfg.max_queue_bytes and self._queue and self.error is None:
+                self.waits += 1
             while self._queued_bytes > self.cfg.max_queue_bytes and self._queue and self.error is None:
                 self._cond.wait(0.5)
             self._queue.append(item)
