@@ -9,11 +9,15 @@ from dataclasses import dataclass, field
 class CaptureConfig:
     """Photogrammetry capture (``droneulator capture``): rings of viewpoints around the scene's tree."""
 
+    #: views in all, shared out between the rings
     views: int = 18
-    #: orbit radius around the trunk, metres
-    radius: float = 7.0
-    #: one ring per altitude (m above the ground); the views are shared out between the rings
-    altitudes: list[float] = field(default_factory=lambda: [5.0])
+    #: orbit radius around the trunk, metres: close enough that tree_inspection's crown (about 5 m across,
+    #: 4 m tall) fills most of a 70 deg frame, and about 3 m clear of its leaf clusters
+    radius: float = 6.0
+    #: one ring per altitude (m above the ground); the views are shared out between the rings. The
+    #: default pair looks at the lower crown and trunk from 3 m and at the upper crown from 5.5 m (the
+    #: one camera pitch aims at the crown centre from their mean), staggered half a view apart
+    altitudes: list[float] = field(default_factory=lambda: [3.0, 5.5])
     #: each ring's views span this arc, degrees from azimuth 0 (360: a full circle, else both ends included)
     arc_deg: float = 360.0
     #: camera mount pitch, degrees (positive looks down); None aims at the crown centre from the mean altitude
