@@ -81,11 +81,11 @@ def _views(xs: list[float]) -> tuple[list[View], list[np.ndarray]]:
 
 def test_two_view_plane_sweep_recovers_a_rendered_textured_plane_within_1cm():
     views, depths = _views([-0.4, 0.4])
-    dm = plane_sweep(views[0], [views[1]], 2.0, 4.5, MvsOptions(neighbors=1, best_k=1, planes=512))
+    dm = plane_sweep(views[0], [views[1]], 2.0, 4.5, MvsOptions(neighbors=1, best_k=1))
     err = np.abs(dm.depth - depths[0])
     valid = np.isfinite(err)
     assert valid.mean() > 0.8  # everything both cameras see, but the borders
-    assert np.median(err[valid]) < 0.005
+    assert np.median(err[valid]) < 0.003
     assert np.percentile(err[valid], 95) < 0.01
     # a sweep that does not bracket the plane finds nothing it trusts
     far = plane_sweep(views[0], [views[1]], 6.0, 9.0, MvsOptions(neighbors=1, best_k=1))

@@ -85,7 +85,7 @@ def tree_landmarks(info: dict[str, Any]) -> tuple[np.ndarray, float]:
 def aim_pitch(cap: CaptureConfig, info: dict[str, Any]) -> float:
     """Mount pitch (deg) that points the capture camera at the crown from the mean ring altitude."""
     _, look_at_z = tree_landmarks(info)
-    return aim_pitch_deg(cap.radius, cap.altitudes, look_at_z, MOUNT)
+    return aim_pitch_deg(cap.radius, cap.ring_altitudes(), look_at_z, MOUNT)
 
 
 def run_config(cfg: SimConfig, pitch_deg: float) -> SimConfig:
@@ -173,10 +173,11 @@ def capture(
         dataset.set_camera(cam)
         write_truth(cfg, out, info)
         timings["startup_s"] = time.monotonic() - wall0
-        plan = plan_viewpoints(center, cap.radius, cap.altitudes, cap.views, cap.arc_deg)
+        plan = plan_viewpoints(center, cap.radius, cap.ring_altitudes(), cap.views, cap.arc_deg)
         log(
-            f"capture {cfg.scene} (seed {cfg.seed}): {len(plan)} views on {len(cap.altitudes)} ring(s), "
-            f"radius {cap.radius} m, altitudes {cap.altitudes} m, pitch {pitch:.1f} deg, "
+            f"capture {cfg.scene} (seed {cfg.seed}): {len(plan)} views on "
+            f"{len(cap.ring_altitudes())} ring(s), "
+            f"radius {cap.radius} m, altitudes {cap.ring_altitudes()} m, pitch {pitch:.1f} deg, "
             f"{cam['width']}x{cam['height']}, {len(plan) - len(pending_views(plan, dataset.views))} "
             f"already in {out}"
         )

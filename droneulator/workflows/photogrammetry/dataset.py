@@ -45,7 +45,7 @@ def plan_settings(cfg: SimConfig, pitch_deg: float, cam: dict[str, Any]) -> dict
         "seed": cfg.seed,
         "views": c.views,
         "radius": c.radius,
-        "altitudes": [float(a) for a in c.altitudes],
+        "altitudes": c.ring_altitudes(),
         "arc_deg": c.arc_deg,
         "pitch_deg": round(float(pitch_deg), 6),
         "width": int(cam["width"]),

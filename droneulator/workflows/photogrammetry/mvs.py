@@ -232,7 +232,8 @@ def plane_sweep(ref: View, sources: list[View], near: float, far: float, opts: M
             cov = cv2.boxFilter(r * warped, -1, win, borderType=cv2.BORDER_REFLECT) - mu_r * mu_s
             ncc = cov / np.sqrt(np.maximum(var_r * var_s, 1e-10))
             costs[s] = np.where(covered & (var_s > 1e-5), 1.0 - ncc, 2.0)
-        c = costs[0] if k == len(sources) == 1 else np.partition(costs, k - 1, axis=0)[:k].mean(axis=0)
+        # a new array: `prev` must keep this plane's costs when `costs` is refilled for the next one
+        c = costs[0].copy() if k == len(sources) == 1 else np.partition(costs, k - 1, axis=0)[:k].mean(axis=0)
         just_after = best_i == i - 1
         right[just_after] = c[just_after]
         better = c < best
