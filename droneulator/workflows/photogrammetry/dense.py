@@ -26,11 +26,15 @@ from droneulator.workflows.photogrammetry.mvs import (
     MvsOptions,
     View,
     depth_range,
+    geometric_neighbors,
+    in_frustum,
     load_view,
     plane_sweep,
     select_neighbors,
 )
 
+#: a view needs this many sparse points for its own depth range and neighbours
+MIN_SPARSE = 10
 #: segmentation class ids that are the tree (trunk, branch, canopy, fruit; see scenes.base.SemanticClass)
 TREE_CLASS_IDS = (2, 3, 4, 7)
 
@@ -107,11 +111,22 @@ def dense_cpu(
     centers = np.array([v.center for v in views])
     neighbors = select_neighbors(centers, observed, points, opts.mvs)
     fusion_nb = select_neighbors(centers, observed, points, opts.mvs, count=opts.fusion_neighbors)
+    # views that see too few sparse points: the points in their frustum for the depth range, and the
+    # camera geometry for the neighbours
+    seen = [
+        points[o] if len(o) >= MIN_SPARSE else in_frustum(v, points)
+        for v, o in zip(views, observed, strict=True)
+    ]
+    centres = [np.median(p, axis=0) if len(p) >= MIN_SPARSE else None for p in seen]
+    geometric = geometric_neighbors(views, centres, opts.mvs)
+    for i in range(len(views)):
+        for nb, count in ((neighbors, opts.mvs.neighbors), (fusion_nb, opts.fusion_neighbors)):
+            nb[i] += [j for j in geometric[i] if j not in nb[i]][: max(0, count - len(nb[i]))]
     t_load = time.perf_counter() - t0
     depths, per_view = [], []
     t0 = time.perf_counter()
     for i, v in enumerate(views):
-        rng = depth_range(v, points[observed[i]], opts.mvs.depth_margin) if len(observed[i]) else None
+        rng = depth_range(v, seen[i], opts.mvs.depth_margin)
         if rng is None or not neighbors[i] or not v.mask.any():
             depths.append(np.full(v.shape, np.nan, np.float32))
             per_view.append({"name": v.name, "pixels": 0, "skipped": True})

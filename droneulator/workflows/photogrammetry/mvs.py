@@ -168,6 +168,38 @@ def select_neighbors(
     return out
 
 
+def geometric_neighbors(
+    views: list[View], scene_points: list[np.ndarray | None], opts: MvsOptions
+) -> list[list[int]]:
+    """Neighbours from the camera geometry alone, for views that share too few sparse points: the other
+    views whose rays to the view's scene centre (``scene_points[i]``, e.g. the median of the sparse
+    points in its frustum) meet at an angle within [min_angle, max_angle], closest to 15 degrees first."""
+    lo, hi = math.radians(opts.min_angle_deg), math.radians(opts.max_angle_deg)
+    out = []
+    for i, p in enumerate(scene_points):
+        if p is None:
+            out.append([])
+            continue
+        cand = []
+        for j, v in enumerate(views):
+            if j == i:
+                continue
+            a = float(triangulation_angles(p[None, :], views[i].center, v.center)[0])
+            if lo <= a <= hi:
+                cand.append((abs(a - math.radians(15.0)), j))
+        out.append([j for _, j in sorted(cand)])
+    return out
+
+
+def in_frustum(view: View, points: np.ndarray) -> np.ndarray:
+    """The points (n, 3) that project inside ``view``'s image, in front of it."""
+    uv, z = project(view, points)
+    h, w = view.shape
+    with np.errstate(invalid="ignore"):
+        ok = (z > 1e-3) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+    return points[ok]
+
+
 def depth_range(view: View, points: np.ndarray, margin: float) -> tuple[float, float] | None:
     """Depth range of ``points`` (n, 3) in ``view`` (1st to 99th percentile, widened by ``margin``);
     None when fewer than 10 of them lie in front of it."""
