@@ -193,7 +193,7 @@ def test_capture_sparse_dense_and_score_end_to_end(tmp_path: Path):
     pts, rgb = read_ply(out / "dense" / "fused.ply")
     assert len(pts) == report["dense"]["dense_points"] > 500
     s = report["score"]
-    assert s["sparse"]["tree"]["points"] > 0.8 * s["sparse"]["points"]  # SIFT masked to the tree
+    assert s["sparse"]["tree"]["points"] > 0.5 * s["sparse"]["points"]  # SIFT masked to the tree
     assert s["dense"]["tree"]["points"] > 500
     assert s["dense"]["tree"]["accuracy_median_m"] < 0.05
     assert 0 < s["dense"]["tree"]["completeness_visible"] <= 1

@@ -43,7 +43,7 @@ class MvsOptions:
     #: a pixel's cost at a plane is the mean over its best best_k neighbours
     best_k: int = 2
     #: pixels whose aggregated NCC is below this are dropped
-    min_ncc: float = 0.6
+    min_ncc: float = 0.3
     #: neighbours whose triangulation angle with the reference is below this are weighted down, degrees
     min_angle_deg: float = 5.0
     #: neighbours seen at a wider angle than this are not used, degrees
