@@ -87,9 +87,10 @@ def test_two_view_plane_sweep_recovers_a_rendered_textured_plane_within_1cm():
     assert valid.mean() > 0.8  # everything both cameras see, but the borders
     assert np.median(err[valid]) < 0.003
     assert np.percentile(err[valid], 95) < 0.01
-    # a sweep that does not bracket the plane finds nothing it trusts
-    far = plane_sweep(views[0], [views[1]], 6.0, 9.0, MvsOptions(neighbors=1, best_k=1))
-    assert np.isfinite(far.depth).mean() < 0.1  # a few chance matches: fusion is what removes them
+    # a sweep that does not bracket the plane: at a strict NCC threshold only a few chance matches pass
+    # (at the default, looser one many do: single-pair depths are only trusted after fusion)
+    far = plane_sweep(views[0], [views[1]], 6.0, 9.0, MvsOptions(neighbors=1, best_k=1, min_ncc=0.6))
+    assert np.isfinite(far.depth).mean() < 0.1
 
 
 def test_fusion_keeps_consistent_depths_and_rejects_a_wrong_depth_map():
