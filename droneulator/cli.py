@@ -392,9 +392,16 @@ def cmd_capture(args: argparse.Namespace) -> int:
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
+    from droneulator.workflows.photogrammetry.dense import DenseOptions
+    from droneulator.workflows.photogrammetry.mvs import MvsOptions
     from droneulator.workflows.photogrammetry.reconstruct import ReconstructOptions, reconstruct
 
+    dense = DenseOptions(
+        mvs=MvsOptions(scale=args.dense_scale), mask=args.dense_mask, path="cpu" if args.cpu_dense else "auto"
+    )
     opts = ReconstructOptions(
+        mask=args.mask,
+        dense_options=dense,
         max_features=args.max_features,
         matcher=args.matcher,
         spatial_neighbors=args.neighbors,
@@ -405,6 +412,24 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     )
     report = reconstruct(Path(args.dataset), opts)
     return 0 if report["registered_images"] >= 2 else 1
+
+
+def cmd_score(args: argparse.Namespace) -> int:
+    import json
+
+    from droneulator.workflows.photogrammetry.reconstruct import report_markdown
+    from droneulator.workflows.photogrammetry.score import score, score_markdown
+
+    dataset = Path(args.dataset)
+    result = score(dataset, spacing=args.spacing, radius=args.radius)
+    report_path = dataset / "report.json"
+    if report_path.is_file():  # keep report.md whole: the reconstruction's figures and this score
+        report = json.loads(report_path.read_text())
+        report["score"] = result
+        report_path.write_text(json.dumps(report, indent=1))
+        (dataset / "report.md").write_text(report_markdown(report))
+    print(score_markdown(result))
+    return 0
 
 
 def _add_rl_config_args(p: argparse.ArgumentParser) -> None:
@@ -686,8 +711,36 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--refine-rotations", action="store_true", help="let bundle adjustment refine the camera rotations"
     )
-    p.add_argument("--no-dense", action="store_true", help="skip dense stereo even where CUDA is available")
+    p.add_argument("--no-dense", action="store_true", help="skip dense reconstruction")
+    p.add_argument(
+        "--mask",
+        choices=("tree", "none"),
+        default="tree",
+        help="SIFT on the tree's pixels only (the recorded segmentation; default) or on whole images",
+    )
+    p.add_argument(
+        "--dense-mask",
+        choices=("tree", "none"),
+        default="tree",
+        help="CPU dense stereo on the tree's pixels only (default) or on whole images",
+    )
+    p.add_argument(
+        "--dense-scale", type=float, default=0.5, help="CPU dense stereo image scale (default 0.5)"
+    )
+    p.add_argument(
+        "--cpu-dense", action="store_true", help="the CPU plane sweep even where pycolmap has CUDA"
+    )
     p.set_defaults(func=cmd_reconstruct)
+
+    p = sub.add_parser(
+        "score",
+        help="score a reconstruction against the true tree the capture recorded: accuracy (median, p90) "
+        "and completeness, sparse and dense, tree and ground",
+    )
+    p.add_argument("dataset", help="a folder written by `droneulator capture` and `droneulator reconstruct`")
+    p.add_argument("--spacing", type=float, default=0.02, help="true-surface sample spacing (m)")
+    p.add_argument("--radius", type=float, default=0.05, help="completeness radius (m)")
+    p.set_defaults(func=cmd_score)
 
     p = sub.add_parser(
         "train",

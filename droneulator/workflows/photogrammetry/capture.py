@@ -6,9 +6,11 @@ WebSocket API, and everything recorded comes back from the ROS 2 topics over Zen
 
 1. :mod:`.plan`: the viewpoints and the arcs between them (pure geometry);
 2. :mod:`.fly`: min-snap ``goto`` legs over the API, settled when the odometry says so;
-3. :mod:`.record`: the next RGB frame after settling, its camera_info and the camera pose from TF;
+3. :mod:`.record`: the next RGB frame after settling, the segmentation and depth of its stamp, its
+   camera_info and the camera pose from TF;
 4. :mod:`.dataset`: the dataset folder, written view by view; running the same command again
-   captures only the views that are missing.
+   captures only the views that are missing. The true tree and ground (:mod:`.truth`) go to
+   ``truth/mesh.npz`` for ``droneulator score``.
 
 Without ``--url`` the capture starts its own ``droneulator run`` (:func:`~droneulator.runtime.launch.
 launch_run`) with the capture camera, logging to ``simulator.log`` in the dataset folder. When the
@@ -45,9 +47,12 @@ from droneulator.workflows.photogrammetry.plan import (
     plan_viewpoints,
 )
 from droneulator.workflows.photogrammetry.record import TopicRecorder, camera_info_dict, record_view
+from droneulator.workflows.photogrammetry.truth import truth_mesh
 
 #: the capture camera's mount, as the default camera's (body FLU, m)
 MOUNT = CameraConfig().position
+#: the true ground is kept this far beyond the orbit radius (what the cameras see of it near the tree)
+TRUTH_GROUND_MARGIN_M = 5.0
 
 
 def camera_for(cap: CaptureConfig, pitch_deg: float) -> CameraConfig:
@@ -80,7 +85,7 @@ def tree_landmarks(info: dict[str, Any]) -> tuple[np.ndarray, float]:
 def aim_pitch(cap: CaptureConfig, info: dict[str, Any]) -> float:
     """Mount pitch (deg) that points the capture camera at the crown from the mean ring altitude."""
     _, look_at_z = tree_landmarks(info)
-    return aim_pitch_deg(cap.radius, cap.altitudes, look_at_z, MOUNT)
+    return aim_pitch_deg(cap.radius, cap.ring_altitudes(), look_at_z, MOUNT)
 
 
 def run_config(cfg: SimConfig, pitch_deg: float) -> SimConfig:
@@ -92,6 +97,18 @@ def run_config(cfg: SimConfig, pitch_deg: float) -> SimConfig:
     run_cfg.render.camera_hz = cap.camera_hz
     run_cfg.bridge.jpeg_quality = cap.jpeg_quality
     return run_cfg
+
+
+def write_truth(cfg: SimConfig, out: Path, info: dict[str, Any]) -> None:
+    """The true tree and the ground around it (``truth/mesh.npz``), from the scene the simulator runs
+    (rebuilt here from its name and seed, which ``scene_info`` confirmed): the scorer's reference."""
+    from droneulator.scenes import get_scene
+
+    scene = get_scene(info["name"], int(info["seed"]))
+    tree_radius = float(np.asarray(scene.landmarks.get("crown_radius", [3.0])).reshape(-1)[0]) + 1.0
+    truth_mesh(scene, tree_radius, ground_radius=cfg.capture.radius + TRUTH_GROUND_MARGIN_M).save(
+        Path(out) / "truth" / "mesh.npz"
+    )
 
 
 def probe_scene_info(cfg: SimConfig, log_path: Path) -> dict[str, Any]:
@@ -154,11 +171,13 @@ def capture(
             pitch = pitch_used
         dataset = CaptureDataset.open(out, plan_settings(cfg, pitch, cam))
         dataset.set_camera(cam)
+        write_truth(cfg, out, info)
         timings["startup_s"] = time.monotonic() - wall0
-        plan = plan_viewpoints(center, cap.radius, cap.altitudes, cap.views, cap.arc_deg)
+        plan = plan_viewpoints(center, cap.radius, cap.ring_altitudes(), cap.views, cap.arc_deg)
         log(
-            f"capture {cfg.scene} (seed {cfg.seed}): {len(plan)} views on {len(cap.altitudes)} ring(s), "
-            f"radius {cap.radius} m, altitudes {cap.altitudes} m, pitch {pitch:.1f} deg, "
+            f"capture {cfg.scene} (seed {cfg.seed}): {len(plan)} views on "
+            f"{len(cap.ring_altitudes())} ring(s), "
+            f"radius {cap.radius} m, altitudes {cap.ring_altitudes()} m, pitch {pitch:.1f} deg, "
             f"{cam['width']}x{cam['height']}, {len(plan) - len(pending_views(plan, dataset.views))} "
             f"already in {out}"
         )
@@ -225,11 +244,11 @@ def _fly_and_record(
                 stats, settled = flyer.transit(view, cap.radius)
             if settled is None:
                 raise RuntimeError(f"no leg was flown to reach view {view.name}")
-            record, jpeg = record_view(topics, view, cam, settled, stats.to_dict())
+            record, jpeg, aux = record_view(topics, view, cam, settled, stats.to_dict())
             run["captured"] += 1
             run["wall_s"] = time.monotonic() - wall0
             run["sim_s"] = ns_to_seconds(settled - t_sim0)
-            dataset.add(record, jpeg, run)
+            dataset.add(record, jpeg, run, aux)
             previous = view
             bar.set_postfix(
                 path_err=f"{stats.max_path_error_m:.3f}m", alt_err=f"{stats.max_altitude_error_m:.3f}m"

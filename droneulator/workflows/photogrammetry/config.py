@@ -2,18 +2,25 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+
+import numpy as np
 
 
 @dataclass
 class CaptureConfig:
     """Photogrammetry capture (``droneulator capture``): rings of viewpoints around the scene's tree."""
 
+    #: views in all, shared out between the rings
     views: int = 18
-    #: orbit radius around the trunk, metres
-    radius: float = 7.0
-    #: one ring per altitude (m above the ground); the views are shared out between the rings
-    altitudes: list[float] = field(default_factory=lambda: [5.0])
+    #: orbit radius around the trunk, metres: close enough that tree_inspection's crown (about 5 m across,
+    #: 4 m tall) fills most of a 70 deg frame, and about 3 m clear of its leaf clusters
+    radius: float = 6.0
+    #: one ring per altitude (m above the ground); the views are shared out between the rings. None: one
+    #: ring per 18 views (at most 3, see :meth:`ring_altitudes`), so that neighbouring views stay about
+    #: 20 degrees apart, close enough for SIFT to match them, and extra views add height rather than
+    #: crowding one ring
+    altitudes: list[float] | None = None
     #: each ring's views span this arc, degrees from azimuth 0 (360: a full circle, else both ends included)
     arc_deg: float = 360.0
     #: camera mount pitch, degrees (positive looks down); None aims at the crown centre from the mean altitude
@@ -41,9 +48,9 @@ class CaptureConfig:
     def __post_init__(self) -> None:
         if self.views < 1:
             raise ValueError("capture.views must be at least 1")
-        if not self.altitudes or min(self.altitudes) <= 0:
+        if self.altitudes is not None and (not self.altitudes or min(self.altitudes) <= 0):
             raise ValueError("capture.altitudes must hold at least one altitude above the ground")
-        if self.views < len(self.altitudes):
+        if self.views < len(self.ring_altitudes()):
             raise ValueError("capture.views must be at least the number of rings (capture.altitudes)")
         if not self.radius > 0 or not self.speed > 0 or not self.camera_hz > 0:
             raise ValueError("capture.radius, capture.speed and capture.camera_hz must be positive")
@@ -53,3 +60,12 @@ class CaptureConfig:
             raise ValueError("capture.max_leg_deg must lie in (0, 180]")
         if not 1 <= self.jpeg_quality <= 100:
             raise ValueError("capture.jpeg_quality must lie in [1, 100]")
+
+    def ring_altitudes(self) -> list[float]:
+        """The rings' altitudes: ``altitudes`` when given, else ``round(views / 18)`` rings (1 to 3)
+        spread over 3.5 to 5.5 m (a single ring at 4.5 m): from 6 m out the 70 deg camera aimed at the
+        crown centre (3.8 m on tree_inspection) sees the whole crown from each of them."""
+        if self.altitudes is not None:
+            return [float(a) for a in self.altitudes]
+        rings = min(3, max(1, round(self.views / 18)))
+        return [4.5] if rings == 1 else [float(a) for a in np.linspace(3.5, 5.5, rings)]

@@ -4,6 +4,9 @@ valid partial dataset and a second run resumes it.
 Layout::
 
     images/NNNN.jpg          JPEG bytes exactly as published
+    segmentation/NNNN.png    the segmentation image of the same stamp (class ids, as published)
+    truth/depth/NNNN.npz     its depth image (metres, float16): ground truth, for scoring only
+    truth/mesh.npz           the true tree and ground around it (:mod:`.truth`), for scoring only
     sparse_known/            COLMAP text model of the known poses (PINHOLE camera, empty points3D.txt)
     poses.json, poses.csv    stamp and pose of the optical frame and of base_link in the world (map)
     metadata.json            settings, intrinsics, tracking errors and timings
@@ -31,6 +34,7 @@ from droneulator.workflows.photogrammetry.colmap_model import (
     colmap_pinhole_params,
     write_text_model,
 )
+from droneulator.workflows.photogrammetry.record import AuxFrames
 
 
 def plan_settings(cfg: SimConfig, pitch_deg: float, cam: dict[str, Any]) -> dict[str, Any]:
@@ -41,7 +45,7 @@ def plan_settings(cfg: SimConfig, pitch_deg: float, cam: dict[str, Any]) -> dict
         "seed": cfg.seed,
         "views": c.views,
         "radius": c.radius,
-        "altitudes": [float(a) for a in c.altitudes],
+        "altitudes": c.ring_altitudes(),
         "arc_deg": c.arc_deg,
         "pitch_deg": round(float(pitch_deg), 6),
         "width": int(cam["width"]),
@@ -107,8 +111,17 @@ class CaptureDataset:
             )
         self.camera = info
 
-    def add(self, view: dict[str, Any], jpeg: bytes, run: dict[str, Any]) -> None:
-        """Store one captured view: its image first, then the files that list it."""
+    def add(
+        self, view: dict[str, Any], jpeg: bytes, run: dict[str, Any], aux: AuxFrames | None = None
+    ) -> None:
+        """Store one captured view: its segmentation and depth and its image first, then the files that
+        list it."""
+        if aux is not None:
+            stem = Path(view["name"]).stem
+            atomic_write(self.root / "segmentation" / f"{stem}.png", aux.segmentation_png)
+            buf = io.BytesIO()
+            np.savez_compressed(buf, depth=aux.depth.astype(np.float16))
+            atomic_write(self.root / "truth" / "depth" / f"{stem}.npz", buf.getvalue())
         atomic_write(self.images_dir / view["name"], jpeg)
         self.views[int(view["index"])] = view
         self.write(run)

@@ -1,10 +1,14 @@
 """Stage 3 of a capture: recording from the ROS 2 topics over Zenoh.
 
-:class:`TopicRecorder` subscribes to odometry, ``/tf``, ``/tf_static``, the colour camera and its
-camera_info, exactly as any ROS 2 client would. :class:`TfBuffer` answers pose lookups at an image's
-stamp the way tf2 does: static edges as they are, the ``odom -> base_link`` edge interpolated between
-its samples (linear in position, slerp in rotation). :func:`record_view` turns the first frame after
-the vehicle settled into the view's record: stamp, optical and base_link poses in ``map``, errors.
+:class:`TopicRecorder` subscribes to odometry, ``/tf``, ``/tf_static``, the colour camera, its
+segmentation and depth images and its camera_info, exactly as any ROS 2 client would. The
+segmentation stands in for a user's segmentation network (it masks SIFT to the tree), the depth is
+ground truth for scoring only (which true-surface samples the cameras saw).
+
+:class:`TfBuffer` answers pose lookups at an image's stamp the way tf2 does: static edges as they
+are, the ``odom -> base_link`` edge interpolated between its samples (linear in position, slerp in
+rotation). :func:`record_view` turns the first frame after the vehicle settled into the view's
+record: stamp, optical and base_link poses in ``map``, errors.
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ from droneulator.ros.topics import (
     BASE_FRAME,
     MAP_FRAME,
     TYPES,
+    decode_depth,
     header_ns,
     topic_names,
     vehicle_topics,
@@ -127,6 +132,15 @@ class Frame:
     jpeg: bytes
 
 
+@dataclass
+class AuxFrames:
+    """The segmentation (PNG of class ids, as published) and depth (metres, NaN: no return) images that
+    share a colour frame's stamp."""
+
+    segmentation_png: bytes
+    depth: np.ndarray
+
+
 class TopicRecorder:
     """Subscriptions to odometry, TF, the colour camera and its camera_info, decoded by rosbags."""
 
@@ -136,6 +150,8 @@ class TopicRecorder:
         self._odom: deque[OdomSample] = deque(maxlen=6000)
         self._infos: dict[int, Any] = {}
         self._frames: deque[Frame] = deque(maxlen=8)
+        self._seg: dict[int, bytes] = {}
+        self._depth: dict[int, Any] = {}
         names = {**vehicle_topics(namespace), **topic_names(namespace, camera)}
         handlers: dict[str, Callable[[Any], None]] = {
             "odom": self._on_odom,
@@ -143,6 +159,8 @@ class TopicRecorder:
             "tf_static": lambda m: self.tf.on_tf(m, static=True),
             "info_rgb": self._on_info,
             "rgb": self._on_rgb,
+            "seg": lambda m: self._keep(self._seg, header_ns(m), bytes(m.data)),
+            "depth": lambda m: self._keep(self._depth, header_ns(m), m),
         }
         for key, handler in handlers.items():
             node.subscribe(names[key], TYPES[key], handler)
@@ -170,6 +188,20 @@ class TopicRecorder:
                 for k in sorted(self._infos)[:-32]:
                     del self._infos[k]
             self._cond.notify_all()
+
+    def _keep(self, store: dict[int, Any], stamp: int, value: Any) -> None:
+        with self._cond:
+            store[stamp] = value
+            if len(store) > 8:
+                for k in sorted(store)[:-8]:
+                    del store[k]
+            self._cond.notify_all()
+
+    def aux_frames(self, t_ns: int, timeout: float = 10.0) -> AuxFrames:
+        """The segmentation and depth images stamped ``t_ns`` (those of the colour frame at ``t_ns``)."""
+        png = self._wait(lambda: self._seg.get(t_ns), timeout, f"segmentation image at {t_ns} ns")
+        depth = self._wait(lambda: self._depth.get(t_ns), timeout, f"depth image at {t_ns} ns")
+        return AuxFrames(png, decode_depth(depth))
 
     def _on_rgb(self, msg: Any) -> None:
         with self._cond:
@@ -234,10 +266,12 @@ def pose_dict(T: np.ndarray) -> dict[str, list[float]]:
 
 def record_view(
     topics: TopicRecorder, view: Viewpoint, cam: dict[str, Any], settled_ns: int, leg: dict[str, Any]
-) -> tuple[dict[str, Any], bytes]:
+) -> tuple[dict[str, Any], bytes, AuxFrames]:
     """The first frame after the vehicle settled at ``view``, with its camera_info and the TF poses at
-    its stamp: the view's record (``leg``: the flight statistics that brought it there) and its JPEG."""
+    its stamp: the view's record (``leg``: the flight statistics that brought it there), its JPEG and
+    the segmentation and depth images of the same stamp."""
     frame = topics.frame_after(settled_ns, timeout=30.0)
+    aux = topics.aux_frames(frame.stamp)
     info = camera_info_dict(topics.camera_info(frame.stamp))
     if info["K"] != cam["K"] or (info["width"], info["height"]) != (cam["width"], cam["height"]):
         raise RuntimeError(f"camera_info changed during the capture: {info} != {cam}")
@@ -261,4 +295,5 @@ def record_view(
             "leg": leg,
         },
         frame.jpeg,
+        aux,
     )

@@ -1,0 +1,312 @@
+"""Multi-view stereo on a CPU: one depth map per reference view by plane sweeping its neighbours.
+
+Why a plane sweep: every step is a whole-image OpenCV call (``warpPerspective``, ``boxFilter``) that
+runs at memory speed on one core, the result is deterministic, and with poses known (the sparse
+model after bundle adjustment with pose priors) it needs no rectification, so a ring's wide
+baselines (20 to 40 degrees between neighbours) work as well as narrow ones.
+
+For a reference view and a depth range (from the sparse points it sees), ``planes`` fronto-parallel
+planes are spaced evenly in inverse depth. For each plane every neighbour is warped into the
+reference view by the plane's homography and compared with it by normalised cross-correlation over
+a ``window`` x ``window`` patch (gain and offset invariant: the sun lights each side differently).
+A pixel's cost at a plane is the mean of its best ``best_k`` neighbours' ``1 - NCC`` (a neighbour
+that does not see the point, occluded or out of frame, is left out), the winning plane is refined
+to a fraction of a plane by a parabola through its two neighbours' costs, and pixels whose NCC is
+below ``min_ncc`` or whose minimum sits at the end of the range are dropped. Geometric consistency
+across views is checked afterwards, in :mod:`.fusion`.
+
+Neighbours are chosen as COLMAP does, from the sparse model: the views that share the most sparse
+points with the reference, each shared point weighted down when its triangulation angle is small.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+
+@dataclass
+class MvsOptions:
+    """Plane-sweep stereo settings (``reconstruct --set``-style names in the report)."""
+
+    #: images are resampled by this factor before stereo (0.5: a 1024x768 capture runs at 512x384)
+    scale: float = 0.5
+    #: neighbours warped into each reference view
+    neighbors: int = 5
+    #: depth hypotheses per reference view, evenly spaced in inverse depth
+    planes: int = 160
+    #: side of the NCC window, pixels (odd)
+    window: int = 9
+    #: a pixel's cost at a plane is the mean over its best best_k neighbours
+    best_k: int = 2
+    #: pixels whose aggregated NCC is below this are dropped
+    min_ncc: float = 0.3
+    #: neighbours whose triangulation angle with the reference is below this are weighted down, degrees
+    min_angle_deg: float = 5.0
+    #: neighbours seen at a wider angle than this are not used, degrees
+    max_angle_deg: float = 50.0
+    #: the sparse depths of a view (1st and 99th percentile) are widened by this fraction
+    depth_margin: float = 0.15
+
+    def __post_init__(self) -> None:
+        if not 0.1 <= self.scale <= 1.0:
+            raise ValueError(f"mvs scale must lie in [0.1, 1], got {self.scale}")
+        if self.window < 3 or self.window % 2 == 0:
+            raise ValueError(f"mvs window must be an odd number >= 3, got {self.window}")
+        if self.neighbors < 1 or not 1 <= self.best_k <= self.neighbors:
+            raise ValueError("mvs needs neighbors >= 1 and 1 <= best_k <= neighbors")
+        if self.planes < 8:
+            raise ValueError(f"mvs needs at least 8 depth planes, got {self.planes}")
+        if not -1.0 <= self.min_ncc < 1.0:
+            raise ValueError(f"mvs min_ncc must lie in [-1, 1), got {self.min_ncc}")
+
+
+@dataclass
+class View:
+    """One calibrated image: OpenCV K (pixel centres at integers), ``T_world_cam`` (optical frame, x
+    right, y down, z forward), grey levels (H, W) float32 in [0, 1], colour (H, W, 3) uint8 RGB and the
+    pixels to reconstruct (H, W) bool."""
+
+    name: str
+    K: np.ndarray
+    T_world_cam: np.ndarray
+    gray: np.ndarray
+    rgb: np.ndarray
+    mask: np.ndarray
+
+    @property
+    def center(self) -> np.ndarray:
+        return self.T_world_cam[:3, 3]
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.gray.shape[:2]
+
+    @property
+    def inside(self) -> np.ndarray:
+        """Ones over the image (float32): warped like the image, it marks where a warp sampled inside."""
+        return np.ones(self.shape, np.float32)
+
+    def scaled(self, s: float) -> View:
+        """This view resampled by ``s`` (K follows the OpenCV pixel-centre convention)."""
+        if s == 1.0:
+            return self
+        h, w = self.shape
+        size = (max(1, round(w * s)), max(1, round(h * s)))
+        sx, sy = size[0] / w, size[1] / h
+        K = self.K.copy()
+        K[0] *= sx
+        K[1] *= sy
+        K[0, 2] = (self.K[0, 2] + 0.5) * sx - 0.5
+        K[1, 2] = (self.K[1, 2] + 0.5) * sy - 0.5
+        return View(
+            self.name,
+            K,
+            self.T_world_cam,
+            cv2.resize(self.gray, size, interpolation=cv2.INTER_AREA),
+            cv2.resize(self.rgb, size, interpolation=cv2.INTER_AREA),
+            cv2.resize(self.mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0,
+        )
+
+
+def load_view(
+    name: str, image_path: str, K: np.ndarray, T_world_cam: np.ndarray, mask: np.ndarray | None
+) -> View:
+    """A view from an image file (colour, any format OpenCV reads) and an optional mask."""
+    bgr = cv2.imread(str(image_path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise FileNotFoundError(f"cannot read image {image_path}")
+    rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+    gray = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY).astype(np.float32) / 255.0
+    if mask is None:
+        mask = np.ones(gray.shape, dtype=bool)
+    elif mask.shape != gray.shape:
+        raise ValueError(f"{name}: mask {mask.shape} and image {gray.shape} differ in size")
+    return View(name, np.asarray(K, dtype=float), np.asarray(T_world_cam, dtype=float), gray, rgb, mask)
+
+
+# --------------------------------------------------------------------------- view selection
+def triangulation_angles(points: np.ndarray, c1: np.ndarray, c2: np.ndarray) -> np.ndarray:
+    """Angle (rad) at each point (n, 3) between the rays to the camera centres ``c1`` and ``c2``."""
+    a, b = c1 - points, c2 - points
+    cos = np.einsum("ij,ij->i", a, b) / np.maximum(
+        np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-12
+    )
+    return np.arccos(np.clip(cos, -1.0, 1.0))
+
+
+def select_neighbors(
+    centers: np.ndarray,
+    observed: list[np.ndarray],
+    points: np.ndarray,
+    opts: MvsOptions,
+    count: int | None = None,
+) -> list[list[int]]:
+    """For each view, the ``count`` (default ``opts.neighbors``) other views that share the most sparse
+    points with it, each shared point weighted by ``min(1, angle / min_angle)²`` and points seen at more
+    than ``max_angle`` left out. ``observed[i]``: indices into ``points`` (n, 3) that view ``i`` sees."""
+    count = opts.neighbors if count is None else count
+    n = len(centers)
+    sets = [np.unique(o) for o in observed]
+    lo, hi = math.radians(opts.min_angle_deg), math.radians(opts.max_angle_deg)
+    score = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1, n):
+            shared = np.intersect1d(sets[i], sets[j], assume_unique=True)
+            if not len(shared):
+                continue
+            ang = triangulation_angles(points[shared], centers[i], centers[j])
+            w = np.where(ang > hi, 0.0, np.minimum(1.0, ang / lo) ** 2)
+            score[i, j] = score[j, i] = float(w.sum())
+    out = []
+    for i in range(n):
+        order = [int(j) for j in np.argsort(-score[i], kind="stable") if j != i and score[i, j] > 0]
+        out.append(order[:count])
+    return out
+
+
+def geometric_neighbors(
+    views: list[View], scene_points: list[np.ndarray | None], opts: MvsOptions
+) -> list[list[int]]:
+    """Neighbours from the camera geometry alone, for views that share too few sparse points: the other
+    views whose rays to the view's scene centre (``scene_points[i]``, e.g. the median of the sparse
+    points in its frustum) meet at an angle within [min_angle, max_angle], closest to 15 degrees first."""
+    lo, hi = math.radians(opts.min_angle_deg), math.radians(opts.max_angle_deg)
+    out = []
+    for i, p in enumerate(scene_points):
+        if p is None:
+            out.append([])
+            continue
+        cand = []
+        for j, v in enumerate(views):
+            if j == i:
+                continue
+            a = float(triangulation_angles(p[None, :], views[i].center, v.center)[0])
+            if lo <= a <= hi:
+                cand.append((abs(a - math.radians(15.0)), j))
+        out.append([j for _, j in sorted(cand)])
+    return out
+
+
+def in_frustum(view: View, points: np.ndarray) -> np.ndarray:
+    """The points (n, 3) that project inside ``view``'s image, in front of it."""
+    uv, z = project(view, points)
+    h, w = view.shape
+    with np.errstate(invalid="ignore"):
+        ok = (z > 1e-3) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+    return points[ok]
+
+
+def depth_range(view: View, points: np.ndarray, margin: float) -> tuple[float, float] | None:
+    """Depth range of ``points`` (n, 3) in ``view`` (1st to 99th percentile, widened by ``margin``);
+    None when fewer than 10 of them lie in front of it."""
+    T_cam_world = np.linalg.inv(view.T_world_cam)
+    z = points @ T_cam_world[2, :3] + T_cam_world[2, 3]
+    z = z[z > 1e-3]
+    if len(z) < 10:
+        return None
+    lo, hi = np.percentile(z, [1, 99])
+    return float(lo * (1 - margin)), float(hi * (1 + margin))
+
+
+# --------------------------------------------------------------------------- plane sweep
+def plane_homography(ref: View, src: View, depth: float) -> np.ndarray:
+    """Homography taking reference pixels to source pixels through the fronto-parallel plane z = depth
+    of the reference camera."""
+    T = np.linalg.inv(src.T_world_cam) @ ref.T_world_cam  # reference optical frame -> source optical
+    R, t = T[:3, :3], T[:3, 3]
+    n = np.array([0.0, 0.0, 1.0])
+    return src.K @ (R + np.outer(t, n) / depth) @ np.linalg.inv(ref.K)
+
+
+@dataclass
+class DepthMap:
+    """Depth along the optical axis (m, NaN: none) and the aggregated NCC of the winning plane."""
+
+    depth: np.ndarray
+    ncc: np.ndarray
+
+
+def plane_sweep(ref: View, sources: list[View], near: float, far: float, opts: MvsOptions) -> DepthMap:
+    """Depth map of ``ref`` (at its own resolution) from ``sources`` between depths ``near`` and ``far``."""
+    if not 0 < near < far:
+        raise ValueError(f"plane sweep needs 0 < near < far, got {near}, {far}")
+    if not sources:
+        raise ValueError(f"{ref.name}: plane sweep needs at least one source view")
+    h, w = ref.shape
+    win = (opts.window, opts.window)
+    k = min(opts.best_k, len(sources))
+    r = ref.gray
+    mu_r = cv2.boxFilter(r, -1, win, borderType=cv2.BORDER_REFLECT)
+    var_r = np.maximum(cv2.boxFilter(r * r, -1, win, borderType=cv2.BORDER_REFLECT) - mu_r * mu_r, 0.0)
+    textured = var_r > 1e-5
+    inv = np.linspace(1.0 / near, 1.0 / far, opts.planes)
+    best = np.full((h, w), np.inf, np.float32)
+    best_i = np.full((h, w), -1, np.int32)
+    left = np.full((h, w), np.nan, np.float32)
+    right = np.full((h, w), np.nan, np.float32)
+    prev = np.full((h, w), np.nan, np.float32)
+    costs = np.empty((len(sources), h, w), np.float32)
+    for i, d_inv in enumerate(inv):
+        for s, src in enumerate(sources):
+            H = plane_homography(ref, src, 1.0 / d_inv)
+            flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+            warped = cv2.warpPerspective(src.gray, H, (w, h), flags=flags, borderMode=cv2.BORDER_CONSTANT)
+            # pixels whose whole window comes from inside the source image (box filters of NaN would
+            # spread it along the rows, so validity is a separate image)
+            inside = cv2.warpPerspective(src.inside, H, (w, h), flags=flags, borderMode=cv2.BORDER_CONSTANT)
+            covered = cv2.boxFilter(inside, -1, win, borderType=cv2.BORDER_REFLECT) > 0.999
+            mu_s = cv2.boxFilter(warped, -1, win, borderType=cv2.BORDER_REFLECT)
+            var_s = cv2.boxFilter(warped * warped, -1, win, borderType=cv2.BORDER_REFLECT) - mu_s * mu_s
+            cov = cv2.boxFilter(r * warped, -1, win, borderType=cv2.BORDER_REFLECT) - mu_r * mu_s
+            ncc = cov / np.sqrt(np.maximum(var_r * var_s, 1e-10))
+            costs[s] = np.where(covered & (var_s > 1e-5), 1.0 - ncc, 2.0)
+        # a new array: `prev` must keep this plane's costs when `costs` is refilled for the next one
+        c = costs[0].copy() if k == len(sources) == 1 else np.partition(costs, k - 1, axis=0)[:k].mean(axis=0)
+        just_after = best_i == i - 1
+        right[just_after] = c[just_after]
+        better = c < best
+        best[better] = c[better]
+        best_i[better] = i
+        left[better] = prev[better]
+        right[better] = np.nan
+        prev = c
+    # sub-plane refinement: vertex of the parabola through the winning plane and its two neighbours
+    denom = left - 2 * best + right
+    offset = np.where(denom > 1e-6, 0.5 * (left - right) / np.where(denom > 1e-6, denom, 1.0), 0.0)
+    interior = (best_i > 0) & (best_i < opts.planes - 1) & np.isfinite(left) & np.isfinite(right)
+    step = inv[1] - inv[0]
+    idx = np.clip(best_i, 0, opts.planes - 1)
+    d_inv = inv[idx] + np.clip(offset, -0.5, 0.5) * step
+    ncc = (1.0 - best).astype(np.float32)
+    ok = interior & textured & ref.mask & (ncc >= opts.min_ncc) & (d_inv > 0)
+    depth = np.where(ok, 1.0 / np.where(ok, d_inv, 1.0), np.nan).astype(np.float32)
+    return DepthMap(depth, ncc)
+
+
+def backproject(view: View, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World points (n, 3) of the valid pixels of ``depth`` (same size as ``view``), and their pixel
+    indices (n, 2) as (row, column)."""
+    rows, cols = np.nonzero(np.isfinite(depth))
+    z = depth[rows, cols].astype(np.float64)
+    K = view.K
+    x = (cols - K[0, 2]) / K[0, 0] * z
+    y = (rows - K[1, 2]) / K[1, 1] * z
+    p_cam = np.column_stack([x, y, z])
+    T = view.T_world_cam
+    return p_cam @ T[:3, :3].T + T[:3, 3], np.column_stack([rows, cols])
+
+
+def project(view: View, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV pixel coordinates (n, 2) of world points (n, 3) in ``view`` and their depth (n,)."""
+    T = np.linalg.inv(view.T_world_cam)
+    p = points @ T[:3, :3].T + T[:3, 3]
+    z = p[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = np.column_stack(
+            [view.K[0, 0] * p[:, 0] / z + view.K[0, 2], view.K[1, 1] * p[:, 1] / z + view.K[1, 2]]
+        )
+    return uv, z

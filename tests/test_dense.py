@@ -1,0 +1,203 @@
+"""Dense photogrammetry on the CPU and its scoring against the true tree.
+
+The stereo and fusion tests render a textured plane exactly (ray-plane intersection, bilinear texture
+lookup) from known cameras, so the true depth of every pixel is known; the scorer tests sample the
+real tree_inspection mesh. The slow test runs capture -> sparse -> dense -> score end to end.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+cv2 = pytest.importorskip("cv2")
+
+from droneulator.scenes import get_scene  # noqa: E402
+from droneulator.workflows.photogrammetry.fusion import FusionOptions, fuse, read_ply, write_ply  # noqa: E402
+from droneulator.workflows.photogrammetry.mvs import MvsOptions, View, plane_sweep, select_neighbors  # noqa: E402
+from droneulator.workflows.photogrammetry.truth import (  # noqa: E402
+    GROUND,
+    TREE,
+    SurfaceIndex,
+    TruthMesh,
+    sample_surface,
+    truth_mesh,
+)
+
+W, H = 400, 300
+K = np.array([[350.0, 0.0, (W - 1) / 2], [0.0, 350.0, (H - 1) / 2], [0.0, 0.0, 1.0]])
+SLANT = np.radians(25)
+P0 = np.zeros(3)
+E1 = np.array([np.cos(SLANT), 0.0, np.sin(SLANT)])
+E2 = np.array([0.0, 1.0, 0.0])
+
+
+def _texture(n: int = 1024, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    t = np.zeros((n, n), np.float32)
+    for s in (4, 16, 64):
+        t += cv2.resize(
+            rng.random((n // s, n // s)).astype(np.float32), (n, n), interpolation=cv2.INTER_CUBIC
+        )
+    return (t - t.min()) / (t.max() - t.min())
+
+
+def _look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    z = (target - eye) / np.linalg.norm(target - eye)
+    x = np.cross(z, [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+    T[:3, 3] = eye
+    return T
+
+
+def _render(T: np.ndarray, tex: np.ndarray, texel: float = 0.004) -> tuple[np.ndarray, np.ndarray]:
+    """Grey image and true depth of the plane through P0 spanned by E1, E2, textured with ``tex``."""
+    n = np.cross(E1, E2)
+    u, v = np.meshgrid(np.arange(W, dtype=float), np.arange(H, dtype=float))
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1) @ T[:3, :3].T
+    t = ((P0 - T[:3, 3]) @ n) / (rays @ n)
+    X = T[:3, 3] + t[..., None] * rays
+    a = ((X - P0) @ E1 / texel + tex.shape[1] / 2).astype(np.float32)
+    b = ((X - P0) @ E2 / texel + tex.shape[0] / 2).astype(np.float32)
+    return cv2.remap(tex, a, b, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT), t
+
+
+def _views(xs: list[float]) -> tuple[list[View], list[np.ndarray]]:
+    tex = _texture()
+    views, depths = [], []
+    for i, x in enumerate(xs):
+        T = _look_at(np.array([x, 0.3, 3.0]), np.zeros(3))
+        g, z = _render(T, tex)
+        rgb = np.repeat((g[..., None] * 255).astype(np.uint8), 3, axis=-1)
+        views.append(View(f"{i}", K, T, g.astype(np.float32), rgb, np.ones((H, W), bool)))
+        depths.append(z)
+    return views, depths
+
+
+def test_two_view_plane_sweep_recovers_a_rendered_textured_plane_within_1cm():
+    views, depths = _views([-0.4, 0.4])
+    dm = plane_sweep(views[0], [views[1]], 2.0, 4.5, MvsOptions(neighbors=1, best_k=1))
+    err = np.abs(dm.depth - depths[0])
+    valid = np.isfinite(err)
+    assert valid.mean() > 0.8  # everything both cameras see, but the borders
+    assert np.median(err[valid]) < 0.003
+    assert np.percentile(err[valid], 95) < 0.01
+    # a sweep that does not bracket the plane: at a strict NCC threshold only a few chance matches pass
+    # (at the default, looser one many do: single-pair depths are only trusted after fusion)
+    far = plane_sweep(views[0], [views[1]], 6.0, 9.0, MvsOptions(neighbors=1, best_k=1, min_ncc=0.6))
+    assert np.isfinite(far.depth).mean() < 0.1
+
+
+def test_fusion_keeps_consistent_depths_and_rejects_a_wrong_depth_map():
+    views, depths = _views([-0.5, -0.2, 0.1, 0.4])
+    wrong = depths[3] * 1.08  # a depth map 8 % off: it agrees with no other view
+    maps = [d.astype(np.float32) for d in depths[:3]] + [wrong.astype(np.float32)]
+    everyone = [[j for j in range(4) if j != i] for i in range(4)]
+    cloud = fuse(views, maps, everyone, FusionOptions(min_consistent=2))
+    assert len(cloud.points) > 0.5 * H * W
+    assert not (cloud.source == 3).any()  # nothing fused from the wrong map
+    n = np.cross(E1, E2)
+    assert np.abs((cloud.points - P0) @ n).max() < 1e-6  # every fused point lies on the plane
+    assert (cloud.support >= 2).all()
+    # with three right maps of four, demanding three agreeing views keeps nothing
+    assert len(fuse(views, maps, everyone, FusionOptions(min_consistent=3)).points) == 0
+
+
+def test_ply_round_trip(tmp_path: Path):
+    rng = np.random.default_rng(0)
+    pts, rgb = rng.normal(size=(100, 3)), rng.integers(0, 256, (100, 3)).astype(np.uint8)
+    write_ply(tmp_path / "c.ply", pts, rgb)
+    back, back_rgb = read_ply(tmp_path / "c.ply")
+    np.testing.assert_allclose(back, pts, atol=1e-6)
+    np.testing.assert_array_equal(back_rgb, rgb)
+
+
+def test_neighbours_prefer_views_sharing_points_at_a_useful_angle():
+    rng = np.random.default_rng(2)
+    points = rng.uniform(-1, 1, (200, 3))
+    centers = np.array([[6.0, 0, 0], [6.0, 0.05, 0], [5.5, 2.2, 0], [-6.0, 0, 0]])
+    seen = [np.arange(200), np.arange(200), np.arange(200), np.arange(100, 200)]
+    nb = select_neighbors(centers, seen, points, MvsOptions(neighbors=2, min_angle_deg=5, max_angle_deg=50))
+    assert nb[0][0] == 2  # 20 degrees away beats the 0.5 degree twin
+    assert 3 not in nb[0]  # the opposite view is past the largest angle
+
+
+@pytest.fixture(scope="module")
+def tree_truth() -> tuple[TruthMesh, SurfaceIndex]:
+    scene = get_scene("tree_inspection", 0)
+    mesh = truth_mesh(scene, float(scene.landmarks["crown_radius"][0]) + 1.0, 9.0)
+    return mesh, SurfaceIndex(sample_surface(mesh, spacing=0.02))
+
+
+def test_scorer_gives_zero_on_the_true_mesh_and_the_offset_for_offset_points(tree_truth):
+    mesh, index = tree_truth
+    assert {TREE, GROUND} <= set(np.unique(mesh.score_class))
+    fresh = sample_surface(mesh, spacing=0.05, seed=7)  # other samples than the index's
+    d, nearest = index.query(fresh.points)
+    assert np.median(d) < 1e-9  # on a sampled triangle's surfel: exactly on the surface
+    # curved bark and fruit, and leaf-card edges between samples, come within a fraction of the spacing
+    assert np.percentile(d, 99) < 0.25 * index.samples.spacing
+    assert (index.samples.score_class[nearest] == fresh.score_class).mean() > 0.99
+    # bark and fruit: offset along the outward... either side of a closed surface is 3 cm from it
+    solid = np.isin(fresh.semantic, (2, 7)) | (fresh.score_class == GROUND)
+    offset = fresh.points[solid] + 0.03 * fresh.normals[solid]
+    d_off, _ = index.query(offset)
+    assert np.median(np.abs(d_off - 0.03)) < 1e-3
+    # points in the air well above the ground and away from the tree are far from everything
+    d_air, _ = index.query(np.array([[8.0, 0.0, 3.0], [0.0, -8.0, 2.0]]))
+    np.testing.assert_allclose(d_air, [3.0, 2.0], atol=0.02)
+
+
+def test_leaf_cards_are_sampled_only_where_they_are_opaque(tree_truth):
+    mesh, index = tree_truth
+    s = index.samples
+    canopy = s.semantic == 4
+    cards = mesh.alpha_index >= 0
+    area = 0.5 * np.linalg.norm(
+        np.cross(mesh.triangles[:, 1] - mesh.triangles[:, 0], mesh.triangles[:, 2] - mesh.triangles[:, 0]),
+        axis=1,
+    )
+    # the leaf atlas is partly transparent: fewer samples than the cards' area would give
+    assert 0.1 < canopy.sum() * s.spacing**2 / area[cards & (mesh.semantic == 4)].sum() < 0.9
+
+
+@pytest.mark.slow
+def test_capture_sparse_dense_and_score_end_to_end(tmp_path: Path):
+    pytest.importorskip("pycolmap")
+    from droneulator.config import load_config
+    from droneulator.workflows.photogrammetry.capture import capture
+    from droneulator.workflows.photogrammetry.dense import DenseOptions
+    from droneulator.workflows.photogrammetry.mvs import MvsOptions as Mvs
+    from droneulator.workflows.photogrammetry.reconstruct import ReconstructOptions, reconstruct
+
+    out = tmp_path / "ds"
+    cfg = load_config(
+        None,
+        ["capture.views=8", "capture.width=320", "capture.height=240", "capture.arc_deg=60",
+         "capture.altitudes=[4.0]", "render.shadow_map_size=1024"],
+        scene="tree_inspection",
+    )  # fmt: skip
+    meta = capture(cfg, out, progress=False)
+    assert meta["complete"]
+    assert (out / "truth" / "mesh.npz").is_file()
+    assert len(list((out / "segmentation").glob("*.png"))) == 8
+    assert len(list((out / "truth" / "depth").glob("*.npz"))) == 8
+    opts = ReconstructOptions(max_features=2048, dense_options=DenseOptions(mvs=Mvs(scale=1.0, planes=96)))
+    report = reconstruct(out, opts)
+    assert report["sift_mask"]["mask"] == "tree" and 0.05 < report["sift_mask"]["mean_tree_share"] < 0.95
+    assert report["dense"]["ran"] and report["dense"]["path"] in ("cpu-plane-sweep", "colmap-cuda-patchmatch")
+    pts, rgb = read_ply(out / "dense" / "fused.ply")
+    assert len(pts) == report["dense"]["dense_points"] > 500
+    s = report["score"]
+    assert s["sparse"]["tree"]["points"] > 0.5 * s["sparse"]["points"]  # SIFT masked to the tree
+    assert s["dense"]["tree"]["points"] > 500
+    assert s["dense"]["tree"]["accuracy_median_m"] < 0.05
+    assert 0 < s["dense"]["tree"]["completeness_visible"] <= 1
+    assert json.loads((out / "score.json").read_text())["dense"]["points"] == len(pts)
+    assert (out / "dense_error.png").stat().st_size > 20_000
+    assert "Score against the true tree" in (out / "report.md").read_text()
