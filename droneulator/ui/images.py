@@ -9,8 +9,10 @@ sample into something a browser shows directly:
 * depth: metres colour-mapped with :func:`droneulator.imaging.depth_to_rgb` (0 .. ``depth_max_m``), JPEG,
 * segmentation: the class-id PNG re-coloured with the palette of docs/segmentation.md, PNG.
 
-Image publishers drop rather than block (``CongestionControl.DROP``), and nothing here answers the
-simulator, so however slow the browser or this process is, the simulation never waits for it.
+In lockstep the image publishers block (``CongestionControl.BLOCK``, nothing is lost), so the Zenoh
+callback here does no more than put the sample in its stream's slot; encoding and sending happen on
+another thread, and nothing here answers the simulator: however slow the browser or the encoding,
+the simulation waits at most for that hand-over.
 """
 
 from __future__ import annotations
