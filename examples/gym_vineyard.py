@@ -53,19 +53,23 @@ def run(episodes: int, steps: int, seed: int, random_actions: bool) -> list[dict
                 if terminated or truncated:
                     end = info["termination"]
                     break
-            results.append({
-                "episode": ep,
-                "seed": seed + ep,
-                "steps": n,
-                "sim_time_s": info["t"],
-                "return": total,
-                "start_path_distance_m": start_distance,
-                "path_distance_m": info["distance"],
-                "end": end,
-                "observation_shape": list(obs.shape),
-            })
-            print(f"episode {ep} (seed {seed + ep}): {n} steps, {info['t']:.1f} s sim, return {total:7.2f}, "
-                  f"path to goal {start_distance:.1f} -> {info['distance']:.1f} m, end: {end}")
+            results.append(
+                {
+                    "episode": ep,
+                    "seed": seed + ep,
+                    "steps": n,
+                    "sim_time_s": info["t"],
+                    "return": total,
+                    "start_path_distance_m": start_distance,
+                    "path_distance_m": info["distance"],
+                    "end": end,
+                    "observation_shape": list(obs.shape),
+                }
+            )
+            print(
+                f"episode {ep} (seed {seed + ep}): {n} steps, {info['t']:.1f} s sim, return {total:7.2f}, "
+                f"path to goal {start_distance:.1f} -> {info['distance']:.1f} m, end: {end}"
+            )
     finally:
         env.close()
     return results

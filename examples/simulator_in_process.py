@@ -47,16 +47,20 @@ def fly(scene: str, seed: int, out: Path, width: int, height: int) -> dict:
         result = sim.run(2.0)  # lockstep: every camera instant is rendered
         events += [e.to_dict() for e in result.events]
         frame = result.frames[-1].cameras["front"]
-        print(f"t={sim.t:5.2f} s velocity mode: {len(result.frames)} frame sets in 2 s of sim time, "
-              f"yaw now {sim.state.yaw:.2f} rad")
+        print(
+            f"t={sim.t:5.2f} s velocity mode: {len(result.frames)} frame sets in 2 s of sim time, "
+            f"yaw now {sim.state.yaw:.2f} rad"
+        )
 
         Image.fromarray(frame.rgb).save(out / "front_rgb.png")
         np.save(out / "front_depth.npy", frame.depth)
         Image.fromarray(frame.seg).save(out / "front_seg_ids.png")
         ids, counts = np.unique(frame.seg, return_counts=True)
         classes = {SemanticClass(c).name: int(n) for c, n in zip(ids, counts, strict=True)}
-        print(f"last frame {frame.rgb.shape[1]}x{frame.rgb.shape[0]}, K fx={frame.K[0, 0]:.1f}, "
-              f"depth {np.nanmin(frame.depth):.2f}..{np.nanmax(frame.depth):.2f} m, classes {classes}")
+        print(
+            f"last frame {frame.rgb.shape[1]}x{frame.rgb.shape[0]}, K fx={frame.K[0, 0]:.1f}, "
+            f"depth {np.nanmin(frame.depth):.2f}..{np.nanmax(frame.depth):.2f} m, classes {classes}"
+        )
 
         sim.land()
         landed = sim.run_until(lambda s: s.mode == "idle", timeout=20)

@@ -73,8 +73,10 @@ class Receiver:
             if t < self._next_print_ns:
                 return
             self._next_print_ns = t + 500_000_000
-        print(f"odom  t={t / 1e9:7.2f} s  {msg.header.frame_id}->{msg.child_frame_id}  "
-              f"position=({p.x:6.2f}, {p.y:6.2f}, {p.z:5.2f})  forward={v.x:5.2f} m/s")
+        print(
+            f"odom  t={t / 1e9:7.2f} s  {msg.header.frame_id}->{msg.child_frame_id}  "
+            f"position=({p.x:6.2f}, {p.y:6.2f}, {p.z:5.2f})  forward={v.x:5.2f} m/s"
+        )
 
     def on_image(self, sample: zenoh.Sample) -> None:
         msg = TYPESTORE.deserialize_cdr(sample.payload.to_bytes(), COMPRESSED)
@@ -128,8 +130,10 @@ def main() -> int:
             "saved": rx.saved,
             "last_odometry": rx.last_odom,
         }
-    print(f"received {summary['odometry']} odometry messages and {summary['images']} images; "
-          f"saved {len(summary['saved'])} JPEG files")
+    print(
+        f"received {summary['odometry']} odometry messages and {summary['images']} images; "
+        f"saved {len(summary['saved'])} JPEG files"
+    )
     if args.summary:
         Path(args.summary).write_text(json.dumps(summary, indent=2))
     return 0 if rx.odometry and rx.images else 1

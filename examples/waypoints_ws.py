@@ -115,8 +115,10 @@ def fly(url: str, waypoints: list[list[float]], speed: float, timeout: float) ->
         api = Api(ws, timeout)
         info = api.call("scene_info")
         spawn = info["spawn_position"]
-        print(f"scene {info['name']!r} (seed {info['seed']}), spawn {spawn}, bounds "
-              f"{info['bounds_min']} .. {info['bounds_max']}")
+        print(
+            f"scene {info['name']!r} (seed {info['seed']}), spawn {spawn}, bounds "
+            f"{info['bounds_min']} .. {info['bounds_max']}"
+        )
         api.call("subscribe", streams=["state", "events"], rate_hz=5)
 
         took = api.call("takeoff", altitude=waypoints[0][2])
@@ -128,8 +130,10 @@ def fly(url: str, waypoints: list[list[float]], speed: float, timeout: float) ->
             planned = api.call("goto", position=target, speed=speed)
             ev = api.wait_event("arrived", 60 + 3 * planned["duration"])
             error = math.dist(ev["position"], target)
-            print(f"t={ev['t']:6.2f} s arrived at {[round(v, 2) for v in ev['position']]} "
-                  f"(target {[round(v, 2) for v in target]}, off by {error:.3f} m)")
+            print(
+                f"t={ev['t']:6.2f} s arrived at {[round(v, 2) for v in ev['position']]} "
+                f"(target {[round(v, 2) for v in target]}, off by {error:.3f} m)"
+            )
             summary["waypoints"].append(target)
             summary["arrived"].append(ev["position"])
 
@@ -151,8 +155,12 @@ def fly(url: str, waypoints: list[list[float]], speed: float, timeout: float) ->
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--url", default="ws://127.0.0.1:8765", help="the simulator's WebSocket API")
-    ap.add_argument("--waypoints", type=parse_waypoints, default=parse_waypoints(DEFAULT_WAYPOINTS),
-                    help=f'"x,y,z x,y,z ..." relative to the spawn point (default "{DEFAULT_WAYPOINTS}")')
+    ap.add_argument(
+        "--waypoints",
+        type=parse_waypoints,
+        default=parse_waypoints(DEFAULT_WAYPOINTS),
+        help=f'"x,y,z x,y,z ..." relative to the spawn point (default "{DEFAULT_WAYPOINTS}")',
+    )
     ap.add_argument("--speed", type=float, default=1.5, help="peak speed of each leg, m/s")
     ap.add_argument("--timeout", type=float, default=30.0, help="seconds to wait for each reply")
     ap.add_argument("--summary", default=None, help="write the flight summary to this JSON file")
