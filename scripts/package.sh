@@ -31,7 +31,8 @@ version=$(cd "$root" && "$py" -c 'import tomllib; print(tomllib.load(open("pypro
 arch=$(uname -m)
 
 start=$SECONDS
-"$py" -m PyInstaller --noconfirm --clean --log-level WARN \
+rm -rf "$work"  # a fresh analysis every time; PyInstaller's own cache of binaries is kept
+"$py" -m PyInstaller --noconfirm --log-level WARN \
     --distpath "$dist" --workpath "$work" "$root/packaging/droneulator.spec"
 tarball="$dist/droneulator-$version-linux-$arch.tar.gz"
 tar -C "$dist" -czf "$tarball" droneulator
