@@ -1,13 +1,13 @@
 """Cold start of the PyInstaller bundle against the virtualenv, and the bundle's size.
 
 Cold start = wall time from starting ``droneulator run --scene default`` to the first colour image
-received on Zenoh (three processes started, scene built, numba kernels loaded or compiled, first
-frame rendered, encoded and published). Both installations run the same checkout, interleaved
-round by round (the order alternates), in two cache states:
+received on Zenoh (three processes started, scene built, first frame rendered, encoded and
+published). Both installations run the same checkout, interleaved round by round (the order
+alternates), in two numba cache states:
 
 * ``warm``: numba's cache already holds the compiled kernels (every launch after the first);
-* ``empty``: a fresh numba cache, so every ``@njit(cache=True)`` kernel is compiled (the first launch
-  after installing).
+* ``empty``: a fresh numba cache (the first launch after installing). Kernels compile when first
+  called, so only those called before the first frame count here.
 
 The bundle runs in a clean environment (``env -i``-like: HOME and PATH only); the venv runs this
 interpreter with the checkout on PYTHONPATH. A Zenoh peer listens on a free port and each run

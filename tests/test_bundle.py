@@ -1,5 +1,8 @@
 """The PyInstaller bundle: ``bash scripts/package.sh`` builds it, and it flies the demo on its own.
 
+The first tests check :mod:`droneulator.runtime.spawn`, how every process starts a child, without a
+bundle (``sys.frozen`` set by hand where the frozen branch is meant); the slow ones build the bundle.
+
 The bundle is built from this checkout into a temporary folder, then run the way a user without
 Python runs it: an empty environment (no venv on PATH, no PYTHONPATH, a fresh HOME) and only the
 system's EGL/Mesa libraries. ``droneulator run --demo`` must start its three children from the
@@ -13,6 +16,7 @@ import os
 import subprocess
 import sys
 import tarfile
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -20,7 +24,8 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
-pytestmark = pytest.mark.slow
+from droneulator.runtime import spawn
+
 ROOT = Path(__file__).resolve().parents[1]
 CHILDREN = ("dynamics_server", "render_server", "bridge")
 
@@ -28,6 +33,76 @@ CHILDREN = ("dynamics_server", "render_server", "bridge")
 def clean_env(home: Path) -> dict[str, str]:
     """What ``env -i HOME=<home> PATH=/usr/bin:/bin`` leaves."""
     return {"HOME": str(home), "PATH": "/usr/bin:/bin"}
+
+
+def test_commands_in_a_venv_run_python():
+    assert spawn.child_command("droneulator.runtime.bridge") == [
+        sys.executable,
+        "-m",
+        "droneulator.runtime.bridge",
+    ]
+    assert spawn.cli_command(["run", "--demo"]) == [sys.executable, "-m", "droneulator.cli", "run", "--demo"]
+    assert spawn.code_command("pass") == [sys.executable, "-c", "pass"]
+
+
+def test_commands_when_frozen_run_the_program_itself(monkeypatch):
+    monkeypatch.setattr(sys, "frozen", True, raising=False)
+    exe = sys.executable
+    assert spawn.child_command("droneulator.runtime.bridge", ["-v"]) == [
+        exe,
+        "_child",
+        "droneulator.runtime.bridge",
+        "-v",
+    ]
+    assert spawn.cli_command(["run", "--demo"]) == [exe, "run", "--demo"]
+    assert spawn.code_command("pass") == [exe, "_child", "-c", "pass"]
+    with pytest.raises(ValueError, match="not a module name"):
+        spawn.child_command("-m")
+
+
+def test_hidden_child_command_runs_a_module_or_code(tmp_path):
+    """``droneulator _child`` does what ``python -m`` / ``python -c`` do, exit status included."""
+    data = tmp_path / "in.json"
+    data.write_text('{"b": 1, "a": [2]}')
+    cli = [sys.executable, "-m", "droneulator.cli", "_child"]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    mod = subprocess.run(
+        [*cli, "json.tool", "--sort-keys", str(data)], env=env, capture_output=True, text=True
+    )
+    assert mod.returncode == 0 and mod.stdout.index('"a"') < mod.stdout.index('"b"')
+    bad = subprocess.run(
+        [*cli, "json.tool", str(tmp_path / "missing")], env=env, capture_output=True, text=True
+    )
+    assert bad.returncode == 2  # the module's own SystemExit
+    code = subprocess.run(
+        [*cli, "-c", "import sys; print(__name__, sys.argv); sys.exit(3)"],
+        env=env,
+        capture_output=True,
+        text=True,
+    )
+    assert code.returncode == 3 and code.stdout.strip() == "__main__ ['-c']"
+    empty = subprocess.run(cli, env=env, capture_output=True, text=True)
+    assert empty.returncode == 2 and "expected a module name" in empty.stderr
+    help_text = subprocess.run(
+        [sys.executable, "-m", "droneulator.cli", "--help"], env=env, capture_output=True, text=True
+    ).stdout
+    assert "run" in help_text and "_child" not in help_text
+
+
+def test_frozen_numba_cache_falls_back_when_unusable(monkeypatch, tmp_path, capsys):
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("")
+    monkeypatch.setattr(sys, "frozen", True, raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(blocker))  # <file>/numba cannot be created
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    spawn.configure_frozen()
+    fallback = Path(os.environ["XDG_CACHE_HOME"])
+    assert fallback == tmp_path / f"droneulator-cache-{os.getuid()}" and (fallback / "numba").is_dir()
+    assert "is unusable" in capsys.readouterr().err
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    spawn.configure_frozen()
+    assert os.environ["XDG_CACHE_HOME"] == str(tmp_path / "cache") and (tmp_path / "cache" / "numba").is_dir()
 
 
 @pytest.fixture(scope="module")
@@ -65,6 +140,7 @@ def _watch_children(pid: int, seen: dict[str, str], stop: threading.Event) -> No
         stop.wait(0.2)
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(2400)
 def test_demo_runs_from_the_bundle_in_a_clean_environment(bundle, tmp_path):
     home, out = tmp_path / "home", tmp_path / "out"
@@ -113,6 +189,7 @@ def test_demo_runs_from_the_bundle_in_a_clean_environment(bundle, tmp_path):
     assert list((home / ".cache" / "numba").rglob("*.nbi")), "no numba cache index written"
 
 
+@pytest.mark.slow
 def test_pip_only_commands_say_so(bundle, tmp_path):
     for command, extra in (("train", "rl"), ("evaluate", "rl"), ("reconstruct", "colmap")):
         args = [str(bundle), command] + (["x"] if command != "train" else [])
@@ -121,9 +198,10 @@ def test_pip_only_commands_say_so(bundle, tmp_path):
         assert "needs the pip install" in proc.stderr and f"droneulator[{extra}]" in proc.stderr, proc.stderr
 
 
+@pytest.mark.slow
 def test_bundled_commands_run(bundle, tmp_path):
-    """Commands that need no simulator answer from the bundle: the scene list, the config, and a start-up
-    error that names the setting to change."""
+    """Commands that need no simulator answer from the bundle: the scene list, the config, a start-up
+    error that names the setting to change; and the bundled data files load."""
     env = clean_env(tmp_path)
     scenes = subprocess.run([str(bundle), "scenes"], env=env, capture_output=True, text=True, timeout=120)
     assert scenes.returncode == 0
@@ -140,3 +218,12 @@ def test_bundled_commands_run(bundle, tmp_path):
         [str(bundle), "run", "--scene", "nowhere"], env=env, capture_output=True, text=True, timeout=120
     )
     assert bad.returncode == 2 and bad.stderr.startswith("droneulator: error:") and "nowhere" in bad.stderr
+    # data files collected: the WMM coefficients of wmm-calculator give the venv's field exactly
+    from droneulator.sensors.mag import wmm_field_ned_gauss
+
+    code = "from droneulator.sensors.mag import wmm_field_ned_gauss as f; print(*f(47.4, 8.5, 500.0, 2025.5))"
+    wmm = subprocess.run(
+        [str(bundle), "_child", "-c", code], env=env, capture_output=True, text=True, timeout=120
+    )
+    assert wmm.returncode == 0, wmm.stderr
+    assert [float(v) for v in wmm.stdout.split()] == wmm_field_ned_gauss(47.4, 8.5, 500.0, 2025.5).tolist()
