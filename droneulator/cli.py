@@ -17,6 +17,10 @@ from pathlib import Path
 from droneulator.config import SimConfig
 from droneulator.runtime import preflight
 from droneulator.runtime.preflight import StartupError
+from droneulator.runtime.spawn import CHILD_COMMAND, frozen, run_child
+
+#: commands the PyInstaller bundle leaves out (torch, pycolmap), with the pip extra each needs
+PIP_ONLY = {"train": "rl", "evaluate": "rl", "reconstruct": "colmap"}
 
 
 def _add_file_args(p: argparse.ArgumentParser, example: str) -> None:
@@ -867,9 +871,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == [CHILD_COMMAND]:  # hidden: how the bundle starts its child processes
+        return run_child(argv[1:])
     args = build_parser().parse_args(argv)
     if getattr(args, "zenoh", "") is None and args.command in ("record", "replay"):
         args.zenoh = ["tcp/127.0.0.1:7448"]
+    if frozen() and args.command in PIP_ONLY:
+        print(
+            f"droneulator: error: `droneulator {args.command}` is not in this bundle: it needs the pip "
+            f"install (pip install 'droneulator[{PIP_ONLY[args.command]}]', or bash scripts/setup.sh --dev)",
+            file=sys.stderr,
+        )
+        return 1
     try:
         return args.func(args)
     except StartupError as exc:

@@ -36,6 +36,7 @@ from websockets.exceptions import WebSocketException
 
 from droneulator.api.client import DroneulatorClient
 from droneulator.config import SimConfig, load_config, to_dict
+from droneulator.runtime.spawn import cli_command
 
 #: options launch_run sets itself: passing them in ``args`` would make ``url``/``zenoh_endpoint`` wrong
 _RESERVED = (
@@ -113,7 +114,7 @@ class LaunchedRun:
         )
         json.dump(to_dict(config), self._conf)
         self._conf.flush()
-        cmd = [sys.executable, "-m", "droneulator.cli", "run", "--config", self._conf.name]
+        cmd = cli_command(["run", "--config", self._conf.name])
         cmd += ["--scene", config.scene, "--seed", str(config.seed), "--api-port", str(self.api_port)]
         cmd += list(args)
         self.log = RunLog(log)

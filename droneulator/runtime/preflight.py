@@ -22,13 +22,13 @@ import re
 import signal
 import socket
 import subprocess
-import sys
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from droneulator.config import SimConfig, from_dict, load_config, to_dict
+from droneulator.runtime.spawn import code_command
 
 #: exit status for usage and configuration errors (as argparse uses), and for everything else
 USAGE, FAILURE = 2, 1
@@ -294,7 +294,7 @@ def check_egl(timeout: float = EGL_PROBE_TIMEOUT_S) -> None:
     driver cannot crash the caller and no GL state stays in it); it inherits this environment."""
     try:
         proc = subprocess.run(
-            [sys.executable, "-c", _EGL_PROBE], capture_output=True, text=True, timeout=timeout
+            code_command(_EGL_PROBE), capture_output=True, text=True, timeout=timeout
         )
     except subprocess.TimeoutExpired:
         reason = f"creating a context did not finish within {timeout:g} s"

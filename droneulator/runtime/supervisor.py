@@ -20,7 +20,6 @@ import os
 import secrets
 import signal
 import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -30,6 +29,7 @@ from pathlib import Path
 
 from droneulator.config import SimConfig, to_dict
 from droneulator.runtime.ipc import ENV_ADDRESS, ENV_AUTHKEY, ENV_CONFIG, ENV_RING, ENV_ZENOH, FrameRing
+from droneulator.runtime.spawn import child_command
 
 log = logging.getLogger("droneulator.run")
 
@@ -87,7 +87,7 @@ class Supervisor:
 
     def _spawn(self, child: Child) -> None:
         child.proc = subprocess.Popen(
-            [sys.executable, "-m", child.module],
+            child_command(child.module),
             env=self._env(),
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
