@@ -202,6 +202,16 @@ def quat_ned_frd_to_enu_flu(q: np.ndarray) -> np.ndarray:
     return (_ROT_NED_ENU.inv() * Rotation.from_quat(quat_normalize(q)) * _ROT_FRD_FLU).as_quat(canonical=True)
 
 
+def yaw_enu_to_ned(yaw_enu: float) -> float:
+    """Heading from east, counter-clockwise (ENU/FLU) -> from north, clockwise (NED/FRD)."""
+    return yaw_of(quat_enu_flu_to_ned_frd(quat_from_yaw(yaw_enu)))
+
+
+def yaw_rate_enu_to_ned(yaw_rate_enu: float) -> float:
+    """Rate about world up -> rate about world down (the z of the ENU angular velocity in NED)."""
+    return float(enu_to_ned(np.array([0.0, 0.0, yaw_rate_enu]))[2])
+
+
 def xyzw_to_wxyz(q: np.ndarray) -> np.ndarray:
     """Reorder for consumers that want the scalar first (MAVLink, some ROS tools)."""
     return np.array([q[3], q[0], q[1], q[2]], dtype=float)

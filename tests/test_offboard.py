@@ -13,13 +13,13 @@ import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
+from droneulator import frames
 from droneulator.config import PX4Config
 from droneulator.workflows.planning.offboard import (
     TYPE_MASK_HOLD,
     TYPE_MASK_TRAJECTORY,
     OffboardConfig,
     OffboardLink,
-    yaw_enu_to_ned,
 )
 
 HOME = (PX4Config.home_lat_deg, PX4Config.home_lon_deg, PX4Config.home_alt_m)
@@ -211,7 +211,7 @@ def test_setpoint_fields_are_ned_about_the_origin(px4_pair):
 def test_yaw_enu_to_ned_at_several_headings(yaw_enu: float, yaw_ned: float):
     # east (ENU 0) is NED +90 deg, north (ENU 90) is NED 0, west is NED -90, south is NED 180,
     # north-east is 45 deg in both, south-west -135 deg in both
-    got = yaw_enu_to_ned(yaw_enu)
+    got = frames.yaw_enu_to_ned(yaw_enu)
     assert math.cos(got - yaw_ned) == pytest.approx(1.0, abs=1e-12)
 
 

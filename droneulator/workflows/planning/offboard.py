@@ -82,16 +82,6 @@ def px4_mode_name(custom_mode: int) -> str:
     return _MODE_NAMES.get((main, sub if main == PX4_MAIN_MODE_AUTO else 0), f"main {main} sub {sub}")
 
 
-def yaw_enu_to_ned(yaw_enu: float) -> float:
-    """Heading from east, counter-clockwise (ENU/FLU) -> from north, clockwise (NED/FRD), via frames."""
-    return frames.yaw_of(frames.quat_enu_flu_to_ned_frd(frames.quat_from_yaw(yaw_enu)))
-
-
-def yaw_rate_enu_to_ned(yaw_rate_enu: float) -> float:
-    """Rate about world up -> rate about world down (the z of the ENU angular velocity in NED)."""
-    return float(frames.enu_to_ned(np.array([0.0, 0.0, yaw_rate_enu]))[2])
-
-
 def _result_name(result: int) -> str:
     entry = mavlink.enums["MAV_RESULT"].get(result)
     return entry.name if entry is not None else f"MAV_RESULT {result}"
@@ -386,7 +376,7 @@ class OffboardLink:
             mask, yaw_rate = TYPE_MASK_HOLD, 0.0
         else:
             v, a = frames.enu_to_ned(s.v), frames.enu_to_ned(s.a)
-            mask, yaw_rate = TYPE_MASK_TRAJECTORY, yaw_rate_enu_to_ned(s.yaw_rate)
+            mask, yaw_rate = TYPE_MASK_TRAJECTORY, frames.yaw_rate_enu_to_ned(s.yaw_rate)
         return self._mav.set_position_target_local_ned_encode(
             int(round(s.t * 1000.0)) % 2**32,
             self.sysid,
@@ -396,7 +386,7 @@ class OffboardLink:
             *(float(x) for x in p),
             *(float(x) for x in v),
             *(float(x) for x in a),
-            yaw_enu_to_ned(s.yaw),
+            frames.yaw_enu_to_ned(s.yaw),
             yaw_rate,
         )
 
