@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 
+from droneulator import frames
 from droneulator.workflows.planning.astar import astar
 from droneulator.workflows.planning.bspline import (
     BSpline,
@@ -217,8 +218,7 @@ class Planner:
         t0 = time.perf_counter()
         scratch = Planner(self.cfg, np.zeros(3))
         K = np.array([[40.0, 0.0, 40.0], [0.0, 40.0, 30.0], [0.0, 0.0, 1.0]])
-        T = np.eye(4)
-        T[:3, :3] = [[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]  # optical axis along world +x
+        T = frames.T_link_optical()  # a camera at the origin looking along world +x
         depth = np.full((60, 80), np.nan, dtype=np.float32)
         depth[:, 30:50] = 2.0
         for _ in range(3):  # a voxel needs two hits to count as occupied
