@@ -35,6 +35,7 @@ TS = get_typestore(Stores.ROS2_JAZZY)
 CAM = CameraConfig(name="front", width=320, height=240)
 TOPICS = {
     "droneulator/odom": "nav_msgs/msg/Odometry",
+    "droneulator/odom_world": "nav_msgs/msg/Odometry",
     "tf": "tf2_msgs/msg/TFMessage",
     "tf_static": "tf2_msgs/msg/TFMessage",
     "clock": "rosgraph_msgs/msg/Clock",
@@ -147,6 +148,8 @@ def test_fly_and_decode_every_topic(run):
     c.goto(target.tolist(), yaw=0.5)
     ev = c.wait_for_event("arrived", timeout=60)
     assert np.linalg.norm(np.array(ev["position"]) - target) < 0.05
+    c.velocity(forward=0.8, yaw_rate=0.4)  # moving and turning: body and world twists differ
+    run.wait_for(lambda: np.linalg.norm(c.state()["velocity"]) > 0.5, 30, "the vehicle to get going")
 
     run.clear()
     states = {}
@@ -157,6 +160,7 @@ def test_fly_and_decode_every_topic(run):
             states[m["state"]["t_ns"]] = m["state"]
     with run.lock:
         msgs = {k: list(v) for k, v in run.msgs.items()}
+    c.hold()
 
     # every payload carries the CDR little-endian encapsulation header
     assert all(h == b"\x00\x01\x00\x00" for v in msgs.values() for h, _ in v)
@@ -174,6 +178,24 @@ def test_fly_and_decode_every_topic(run):
         R = quat_to_matrix(np.array([q.x, q.y, q.z, q.w]))
         np.testing.assert_allclose(R @ [v.x, v.y, v.z], states[t]["velocity"], atol=1e-9)
         assert odom[t].header.frame_id == "odom" and odom[t].child_frame_id == "base_link"
+    # odom_world: the same odometry with the twist in the world frame (EGO-Planner's convention)
+    world = {stamp_ns(m): m for _, m in msgs["droneulator/odom_world"]}
+    both = sorted(set(world) & set(odom))
+    assert len(both) > 10
+    moving = 0
+    for t in both:
+        a, b = odom[t], world[t]
+        assert a.pose.pose == b.pose.pose
+        q = a.pose.pose.orientation
+        R = quat_to_matrix(np.array([q.x, q.y, q.z, q.w]))
+        for field in ("linear", "angular"):
+            body, wv = getattr(a.twist.twist, field), getattr(b.twist.twist, field)
+            np.testing.assert_allclose([wv.x, wv.y, wv.z], R @ [body.x, body.y, body.z], atol=1e-9)
+        v = b.twist.twist.linear
+        if t in states:
+            np.testing.assert_allclose([v.x, v.y, v.z], states[t]["velocity"], atol=1e-9)
+        moving += np.hypot(v.x, v.y) > 0.2
+    assert moving > 5  # the comparison covered a moving, turning vehicle, not only a hover
 
     # the TF chain map -> odom -> base_link -> front_link -> front_optical_frame is complete
     edges = {

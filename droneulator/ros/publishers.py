@@ -26,7 +26,7 @@ from droneulator.frames import (
     transform_from_pose,
     yaw_of,
 )
-from droneulator.frames_numba import world_to_body
+from droneulator.frames_numba import body_to_world, world_to_body
 from droneulator.imaging import encode_jpeg, encode_png
 from droneulator.ros import messages as M
 from droneulator.ros.topics import BASE_FRAME, MAP_FRAME, ODOM_FRAME, TYPES, optical_frame, topic_names
@@ -58,12 +58,15 @@ def static_transforms(cameras: list[CameraConfig]) -> list[tuple[str, str, np.nd
 
 
 class StatePublisher:
-    """``/clock``, odometry (odom -> base_link, twist in base_link), TF, and the latched static TF."""
+    """``/clock``, odometry (odom -> base_link, twist in base_link), TF, the latched static TF, and
+    ``odom_world``: the same odometry with the twist in the odom (world) frame, as EGO-Planner and
+    other planners built on its simulator read it (not REP 105, hence a topic of its own)."""
 
     def __init__(self, node: RosZenohNode, cfg: SimConfig) -> None:
         topics = _vehicle_topics(cfg.bridge.namespace)
         self.clock = node.publisher(topics["clock"], TYPES["clock"])
         self.odom = node.publisher(topics["odom"], TYPES["odom"])
+        self.odom_world = node.publisher(topics["odom_world"], TYPES["odom_world"])
         self.tf = node.publisher(topics["tf"], TYPES["tf"])
         self.tf_static = node.publisher(topics["tf_static"], TYPES["tf_static"])
         self._static = static_transforms(cfg.render.cameras)
@@ -79,6 +82,8 @@ class StatePublisher:
         self.odom.publish(self._pack.odometry(t, p, q, v_body, st.angular_velocity), t)
         self.clock.publish(self._pack.clock(t), t)
         self.tf.publish(self._pack.transform(t, p, q), t)
+        w_world = body_to_world(q, st.angular_velocity)
+        self.odom_world.publish(self._pack.odometry(t, p, q, st.velocity, w_world), t)
 
     def publish_static(self, stamp_ns: int) -> None:
         """The static transforms stamped ``stamp_ns`` (re-sent periodically and at every reset)."""

@@ -6,7 +6,8 @@ client, the benchmarks) finds them here instead of spelling them out itself::
 
     /clock                                           rosgraph_msgs/Clock
     /tf, /tf_static                                  tf2_msgs/TFMessage
-    /<ns>/odom                                       nav_msgs/Odometry
+    /<ns>/odom                                       nav_msgs/Odometry (twist in base_link, REP 105)
+    /<ns>/odom_world                                 nav_msgs/Odometry (twist in odom: EGO-Planner's)
     /<ns>/cmd_vel, /<ns>/goal_pose       (in)        geometry_msgs/Twist, geometry_msgs/PoseStamped
     /<ns>/position_cmd                   (in)        quadrotor_msgs/PositionCommand (EGO-Planner's)
     /<ns>/<cam>/pose                                 geometry_msgs/PoseStamped (optical frame in odom)
@@ -45,6 +46,7 @@ TYPES: dict[str, str] = {
     "tf": "tf2_msgs/msg/TFMessage",
     "tf_static": "tf2_msgs/msg/TFMessage",
     "odom": "nav_msgs/msg/Odometry",
+    "odom_world": "nav_msgs/msg/Odometry",
     "cmd_vel": "geometry_msgs/msg/Twist",
     "goal_pose": "geometry_msgs/msg/PoseStamped",
     "position_cmd": "quadrotor_msgs/msg/PositionCommand",
@@ -96,6 +98,7 @@ def vehicle_topics(ns: str) -> dict[str, str]:
         "tf": TF,
         "tf_static": TF_STATIC,
         "odom": f"/{ns}/odom",
+        "odom_world": f"/{ns}/odom_world",
         "cmd_vel": f"/{ns}/cmd_vel",
         "goal_pose": f"/{ns}/goal_pose",
         "position_cmd": f"/{ns}/position_cmd",
