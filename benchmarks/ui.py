@@ -63,7 +63,8 @@ def with_ui(args: argparse.Namespace, chromium: str) -> dict:
     port = free_port()
     with tempfile.TemporaryDirectory() as tmp:
         log = Path(tmp) / "latency.log"
-        cfg = load_config(scene=args.scene, overrides=[f"bridge.latency_log={log}"])
+        overrides = [f"bridge.latency_log={log}", f"ui.image_hz={args.image_hz}"]
+        cfg = load_config(scene=args.scene, overrides=overrides)
         with launch_run(cfg, ["--lockstep", "--ui-port", str(port)], start_timeout=180) as run:
             with sync_playwright() as pw:
                 browser = pw.chromium.launch(executable_path=chromium, args=["--no-sandbox"])
@@ -103,6 +104,7 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=20.0, help="wall seconds timed per window (default 20)")
     ap.add_argument("--warmup", type=float, default=3.0, help="wall seconds before timing (default 3)")
     ap.add_argument("--windows", type=int, default=2, help="windows per variant, alternating (default 2)")
+    ap.add_argument("--image-hz", type=float, default=10.0, help="UI images/s per stream (default 10)")
     ap.add_argument("--json", default=None, help="output path (default benchmarks/results/ui.json)")
     args = ap.parse_args()
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
