@@ -126,7 +126,7 @@ def dense_cpu(
     depths, per_view = [], []
     t0 = time.perf_counter()
     for i, v in enumerate(views):
-        rng = depth_range(v, seen[i], opts.mvs.depth_margin)
+        rng = depth_range(v, seen[i], opts.mvs.depth_margin, opts.mvs.subject_depth_factor)
         if rng is None or not neighbors[i] or not v.mask.any():
             depths.append(np.full(v.shape, np.nan, np.float32))
             per_view.append({"name": v.name, "pixels": 0, "skipped": True})

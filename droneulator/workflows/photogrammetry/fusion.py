@@ -23,12 +23,14 @@ from droneulator.workflows.photogrammetry.mvs import View, backproject, project
 
 @dataclass
 class FusionOptions:
-    #: least number of other views whose depth maps agree with a pixel's depth
-    min_consistent: int = 2
+    #: least number of other views whose depth maps agree with a pixel's depth: one, since much of the
+    #: crown (leaves seen between others) is seen by two cameras only; a wrong depth still finds no
+    #: other view that agrees with it
+    min_consistent: int = 1
     #: largest relative depth difference of an agreeing view
-    max_depth_error: float = 0.01
+    max_depth_error: float = 0.02
     #: largest forward-backward reprojection error of an agreeing view, pixels (at stereo resolution)
-    max_reproj_px: float = 1.0
+    max_reproj_px: float = 2.0
 
     def __post_init__(self) -> None:
         if self.min_consistent < 1 or not self.max_depth_error > 0 or not self.max_reproj_px > 0:

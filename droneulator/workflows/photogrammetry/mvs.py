@@ -8,9 +8,12 @@ baselines (20 to 40 degrees between neighbours) work as well as narrow ones.
 For a reference view and a depth range (from the sparse points it sees), ``planes`` fronto-parallel
 planes are spaced evenly in inverse depth. For each plane every neighbour is warped into the
 reference view by the plane's homography and compared with it by normalised cross-correlation over
-a ``window`` x ``window`` patch (gain and offset invariant: the sun lights each side differently).
+a small ``window`` x ``window`` patch (gain and offset invariant: the sun lights each side differently).
 A pixel's cost at a plane is the mean of its best ``best_k`` neighbours' ``1 - NCC`` (a neighbour
-that does not see the point, occluded or out of frame, is left out), the winning plane is refined
+that does not see the point, occluded or out of frame, is left out), aggregated by a guided filter
+with the reference image as guide (He et al.'s edge-preserving filter, used for stereo cost volumes by
+Hosni et al.): in a crown nearly every 9x9 window straddles leaves at different depths, and a box
+window then picks the depth of the dominant leaf for its neighbours too. The winning plane is refined
 to a fraction of a plane by a parabola through its two neighbours' costs, and pixels whose NCC is
 below ``min_ncc`` or whose minimum sits at the end of the range are dropped. Geometric consistency
 across views is checked afterwards, in :mod:`.fusion`.
@@ -38,8 +41,8 @@ class MvsOptions:
     neighbors: int = 5
     #: depth hypotheses per reference view, evenly spaced in inverse depth
     planes: int = 160
-    #: side of the NCC window, pixels (odd)
-    window: int = 9
+    #: side of the NCC window, pixels (odd): small, since the guided filter does the aggregating
+    window: int = 3
     #: a pixel's cost at a plane is the mean over its best best_k neighbours
     best_k: int = 2
     #: pixels whose aggregated NCC is below this are dropped
@@ -50,6 +53,17 @@ class MvsOptions:
     max_angle_deg: float = 50.0
     #: the sparse depths of a view (1st and 99th percentile) are widened by this fraction
     depth_margin: float = 0.15
+    #: only sparse points within this factor of the view's median sparse depth set its depth range (the
+    #: tree mask also covers the distant trees behind the subject, which would spread the planes over
+    #: 2 to 48 m instead of 2 to 10); 0: all of them
+    subject_depth_factor: float = 2.0
+    #: radius of the guided filter (guide: the reference image) that aggregates each plane's cost, pixels;
+    #: 0: off (the NCC window alone). Edge-aware: the window follows the leaf a pixel is on instead of
+    #: straddling the leaves behind it
+    guided_radius: int = 2
+    #: regularisation of the guided filter (grey levels in [0, 1], squared): edges weaker than about
+    #: its square root are smoothed over
+    guided_eps: float = 1e-4
 
     def __post_init__(self) -> None:
         if not 0.1 <= self.scale <= 1.0:
@@ -60,6 +74,10 @@ class MvsOptions:
             raise ValueError("mvs needs neighbors >= 1 and 1 <= best_k <= neighbors")
         if self.planes < 8:
             raise ValueError(f"mvs needs at least 8 depth planes, got {self.planes}")
+        if self.subject_depth_factor != 0 and not self.subject_depth_factor > 1:
+            raise ValueError(f"mvs subject_depth_factor must be 0 or > 1, got {self.subject_depth_factor}")
+        if self.guided_radius < 0 or not self.guided_eps > 0:
+            raise ValueError("mvs needs guided_radius >= 0 and guided_eps > 0")
         if not -1.0 <= self.min_ncc < 1.0:
             raise ValueError(f"mvs min_ncc must lie in [-1, 1), got {self.min_ncc}")
 
@@ -200,12 +218,18 @@ def in_frustum(view: View, points: np.ndarray) -> np.ndarray:
     return points[ok]
 
 
-def depth_range(view: View, points: np.ndarray, margin: float) -> tuple[float, float] | None:
+def depth_range(
+    view: View, points: np.ndarray, margin: float, subject_factor: float = 0.0
+) -> tuple[float, float] | None:
     """Depth range of ``points`` (n, 3) in ``view`` (1st to 99th percentile, widened by ``margin``);
-    None when fewer than 10 of them lie in front of it."""
+    None when fewer than 10 of them lie in front of it. With ``subject_factor`` > 1 only the points
+    within that factor of their median depth count: the subject, not the background behind it."""
     T_cam_world = np.linalg.inv(view.T_world_cam)
     z = points @ T_cam_world[2, :3] + T_cam_world[2, 3]
     z = z[z > 1e-3]
+    if len(z) >= 10 and subject_factor > 1.0:
+        med = float(np.median(z))
+        z = z[(z >= med / subject_factor) & (z <= med * subject_factor)]
     if len(z) < 10:
         return None
     lo, hi = np.percentile(z, [1, 99])
@@ -243,6 +267,14 @@ def plane_sweep(ref: View, sources: list[View], near: float, far: float, opts: M
     mu_r = cv2.boxFilter(r, -1, win, borderType=cv2.BORDER_REFLECT)
     var_r = np.maximum(cv2.boxFilter(r * r, -1, win, borderType=cv2.BORDER_REFLECT) - mu_r * mu_r, 0.0)
     textured = var_r > 1e-5
+    if opts.guided_radius > 0:
+        gwin = (2 * opts.guided_radius + 1,) * 2
+
+        def gmean(a: np.ndarray) -> np.ndarray:
+            return cv2.boxFilter(a, -1, gwin, borderType=cv2.BORDER_REFLECT)
+
+        mean_I = gmean(r)
+        denom_I = gmean(r * r) - mean_I * mean_I + opts.guided_eps
     inv = np.linspace(1.0 / near, 1.0 / far, opts.planes)
     best = np.full((h, w), np.inf, np.float32)
     best_i = np.full((h, w), -1, np.int32)
@@ -266,6 +298,10 @@ def plane_sweep(ref: View, sources: list[View], near: float, far: float, opts: M
             costs[s] = np.where(covered & (var_s > 1e-5), 1.0 - ncc, 2.0)
         # a new array: `prev` must keep this plane's costs when `costs` is refilled for the next one
         c = costs[0].copy() if k == len(sources) == 1 else np.partition(costs, k - 1, axis=0)[:k].mean(axis=0)
+        if opts.guided_radius > 0:
+            mean_p = gmean(c)
+            a = (gmean(r * c) - mean_I * mean_p) / denom_I
+            c = gmean(a) * r + gmean(mean_p - a * mean_I)
         just_after = best_i == i - 1
         right[just_after] = c[just_after]
         better = c < best
