@@ -296,8 +296,13 @@ class UIConfig:
     jpeg_quality: int = 80
     #: depth colour scale: 0 m .. this many metres
     depth_max_m: float = 20.0
+    #: how much lower than the simulation the UI server's threads are scheduled (nice, 0..19): the UI
+    #: takes what CPU the simulation leaves; 0 schedules them like any other thread
+    nice: int = 10
 
     def __post_init__(self) -> None:
+        if not 0 <= self.nice <= 19:
+            raise ValueError(f"ui.nice must lie in [0, 19], got {self.nice}")
         if not 0 <= self.port <= 65535:
             raise ValueError(f"ui.port must lie in [0, 65535], got {self.port}")
         if not 0.1 <= self.image_hz <= 60.0:

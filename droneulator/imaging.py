@@ -17,10 +17,8 @@ def segmentation_to_rgb(seg: np.ndarray) -> np.ndarray:
     return _LUT[seg]
 
 
-def depth_to_rgb(depth: np.ndarray, max_range: float = 30.0) -> np.ndarray:
-    """Viewable depth: near is bright yellow, far dark purple, misses (NaN) black."""
-    d = np.clip(np.nan_to_num(depth, nan=max_range) / max_range, 0.0, 1.0)
-    x = 1.0 - d
+def _depth_colours(x: np.ndarray) -> np.ndarray:
+    """Colour of nearness ``x`` in [0, 1] (1: at the camera): bright yellow to dark purple, uint8 RGB."""
     rgb = np.stack(
         [
             np.clip(1.6 * x - 0.2, 0, 1),
@@ -29,8 +27,22 @@ def depth_to_rgb(depth: np.ndarray, max_range: float = 30.0) -> np.ndarray:
         ],
         axis=-1,
     )
-    rgb[~np.isfinite(depth)] = 0.0
     return (rgb * 255).astype(np.uint8)
+
+
+#: the depth colour map on 1024 levels (finer than the 8-bit colours it produces), indexed by depth
+_DEPTH_LEVELS = 1024
+_DEPTH_LUT = _depth_colours(1.0 - np.linspace(0.0, 1.0, _DEPTH_LEVELS))
+
+
+def depth_to_rgb(depth: np.ndarray, max_range: float = 30.0) -> np.ndarray:
+    """Viewable depth: near is bright yellow, far (``max_range`` and beyond) dark purple, misses (NaN)
+    black. A table lookup: this runs on every image the UI shows."""
+    finite = np.isfinite(depth)
+    scaled = np.where(finite, depth, max_range) * ((_DEPTH_LEVELS - 1) / max_range)
+    rgb = _DEPTH_LUT[np.clip(scaled, 0, _DEPTH_LEVELS - 1).astype(np.intp)]
+    rgb[~finite] = 0
+    return rgb
 
 
 def encode_png(img: np.ndarray) -> bytes:

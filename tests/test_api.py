@@ -346,6 +346,49 @@ def test_subscriptions_deliver_state_at_the_rate_and_events_in_order(rig, client
     assert got[500]["t"] < got[501]["t"]
 
 
+def test_a_slow_state_subscriber_is_woken_only_when_a_state_is_due(bare_sim):
+    """States published at 1 kHz to a 5 Hz subscriber: the server's loop is woken for the subscriber
+    only when it waits for a newer state, not at the publishing rate; and after a pause in publishing
+    the next state still goes out at once."""
+    server = ApiServer(CommandPath(bare_sim), port=0).start()
+    wakes = 0
+    wake = server._wake_state_subscribers
+
+    def counted() -> None:
+        nonlocal wakes
+        wakes += 1
+        wake()
+
+    server._wake_state_subscribers = counted  # the loop calls the instance attribute
+    stop = threading.Event()
+
+    def publish() -> None:
+        while not stop.is_set():
+            server.publish_state(bare_sim.state)
+            time.sleep(0.001)
+
+    with DroneulatorClient(server.url, timeout=5.0) as c:
+        c.subscribe(["state"], rate_hz=5)
+        publisher = threading.Thread(target=publish, daemon=True)
+        publisher.start()
+        start = time.monotonic()
+        got = 0
+        while time.monotonic() - start < 2.0:
+            got += c.next_message(0.5) is not None
+        stop.set()
+        publisher.join()
+        assert 8 <= got <= 13, got  # 5 Hz for 2 s
+        assert wakes <= 2 * got + 2, f"{wakes} wake-ups for {got} states"
+        while c.next_message(0.3) is not None:  # drain; the subscriber now waits for a newer state
+            pass
+        time.sleep(0.5)
+        sent = time.monotonic()
+        server.publish_state(bare_sim.state)
+        assert c.next_message(2.0) is not None
+        assert time.monotonic() - sent < 0.2
+    server.stop()
+
+
 def test_two_clients_at_once_and_a_subscriber_that_never_reads(rig, client):
     client.reset(position=[0.0, 0.0, 2.0])
     errors: list[BaseException] = []

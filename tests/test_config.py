@@ -48,6 +48,8 @@ def test_toml_file(tmp_path):
         "no_equals_sign",
         "render.shadows=maybe",
         'render.cameras=[{"width": -5}]',
+        "ui.nice=20",
+        "ui.image_hz=0",
     ],
 )
 def test_bad_overrides_raise(override):

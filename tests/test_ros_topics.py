@@ -110,6 +110,10 @@ def test_depth_images_decode_to_metres_with_nan_and_padding():
         data=padded.reshape(-1),
     )
     np.testing.assert_array_equal(T.decode_depth(wire(msg)), depth)
+    # every 2nd row and column (the UI's depth view), padded rows and big-endian included
+    half = T.decode_depth(wire(msg), stride=2)
+    assert half.dtype == np.float32 and half.flags.owndata
+    np.testing.assert_array_equal(half, depth[::2, ::2])
 
     with pytest.raises(ValueError, match="not 32FC1"):
         T.decode_depth(wire(M.image(9, "cam", np.zeros((2, 2), np.uint16))))

@@ -9,19 +9,24 @@ Screenshots go to docs/img/ui_*.png.
 from __future__ import annotations
 
 import math
+import os
 import shutil
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from droneulator.config import CameraConfig, load_config
+from droneulator.imaging import depth_to_rgb
 from droneulator.runtime.launch import LaunchedRun, LaunchError, free_port, launch_run
 from droneulator.scenes import list_scenes
 from droneulator.ui.images import pack_frame, unpack_frame
+from droneulator.ui.worker import DaemonWorker
 
 playwright = pytest.importorskip("playwright.sync_api")
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
@@ -30,10 +35,11 @@ needs_chromium = pytest.mark.skipif(
 )
 IMG = Path(__file__).resolve().parents[1] / "docs" / "img"
 
-#: pixel statistics of an <img> drawn on a canvas: mean and standard deviation of the luminance
+#: pixel statistics of an <img> or a camera view's <canvas> drawn on a canvas: mean and standard
+#: deviation of the luminance
 IMAGE_STATS = """(img) => {
   const c = document.createElement("canvas");
-  c.width = img.naturalWidth; c.height = img.naturalHeight;
+  c.width = img.naturalWidth ?? img.width; c.height = img.naturalHeight ?? img.height;
   if (!c.width) return null;
   const g = c.getContext("2d"); g.drawImage(img, 0, 0);
   const d = g.getImageData(0, 0, c.width, c.height).data;
@@ -43,7 +49,7 @@ IMAGE_STATS = """(img) => {
     s += y; s2 += y * y; hash = (hash * 31 + d[i] + 7 * d[i + 1]) % 1000000007;
   }
   const mean = s / n;
-  return {mean, std: Math.sqrt(Math.max(0, s2 / n - mean * mean)), hash, src: img.src};
+  return {mean, std: Math.sqrt(Math.max(0, s2 / n - mean * mean)), hash};
 }"""
 
 
@@ -101,7 +107,7 @@ def stack() -> Iterator[Stack]:
 
 
 def rgb_stats(page) -> dict | None:
-    img = page.query_selector('figure.camera.rgb[data-cam="front"] > img')
+    img = page.query_selector('figure.camera.rgb[data-cam="front"] > canvas')
     return None if img is None else img.evaluate(IMAGE_STATS)
 
 
@@ -114,6 +120,34 @@ def test_image_frames_round_trip_and_reject_truncation() -> None:
 
 
 @pytest.mark.slow
+def test_depth_colours_follow_the_colour_map() -> None:
+    """The UI's depth view: the table lookup gives the colour map's colours to within one level."""
+    depth = np.linspace(-1.0, 25.0, 4000, dtype=np.float32).reshape(40, 100)
+    depth[3, 7] = np.nan
+    x = 1.0 - np.clip(np.nan_to_num(depth, nan=20.0) / 20.0, 0.0, 1.0)
+    r, g = np.clip(1.6 * x - 0.2, 0, 1), np.clip(1.4 * x * x, 0, 1)
+    want = np.stack([r, g, np.clip(0.6 - 0.6 * x, 0, 1) * x + 0.15 * x], -1)
+    want = (want * 255).astype(np.uint8)
+    want[3, 7] = 0
+    got = depth_to_rgb(depth, 20.0)
+    assert got.shape == (40, 100, 3) and got.dtype == np.uint8
+    assert np.abs(got.astype(int) - want).max() <= 2
+    assert (got[3, 7] == 0).all() and (got[depth >= 20.0] == got[-1, -1]).all()
+
+
+def test_ui_threads_run_at_a_lower_priority() -> None:
+    """A UI worker thread takes the configured nice value on top of the process's (Linux: per thread)."""
+    base = os.getpriority(os.PRIO_PROCESS, 0)
+    worker = DaemonWorker("test-ui-nice", nice=5)
+    try:
+        tid = worker.submit(threading.get_native_id).result(5)
+        nice = int(Path(f"/proc/self/task/{tid}/stat").read_text().rsplit(")", 1)[1].split()[16])
+        assert nice == min(19, base + 5)
+        assert os.getpriority(os.PRIO_PROCESS, 0) == base  # the calling thread keeps its own
+    finally:
+        worker.close()
+
+
 def test_run_rejects_a_ui_port_in_use() -> None:
     """A taken UI port is a start-up error in words, and the simulator it started is stopped again."""
     import socket
@@ -266,6 +300,26 @@ def test_out_of_bounds_click_shows_the_api_message(stack: Stack) -> None:
 
 
 @pytest.mark.slow
+def test_a_collision_is_logged_and_flashes_the_views(stack: Stack) -> None:
+    page, client = stack.page, stack.client
+    page.evaluate(
+        """() => {
+      const flash = document.getElementById("flash");
+      window.flashed = false;
+      new MutationObserver(() => { if (flash.classList.contains("on")) window.flashed = true; })
+        .observe(flash, { attributes: true });
+    }"""
+    )
+    info = client.scene_info()
+    assert info["name"] == "vineyard"
+    x, y, _ = client.state()["position"]
+    row = min(info["landmarks"]["row_y"], key=lambda r: abs(r - y))
+    client.goto([x + 1.0, row, 1.2])  # into the nearest vine row's hedge
+    page.wait_for_selector("#events li.event.collision", timeout=60000)
+    assert page.evaluate("window.flashed")
+
+
+@pytest.mark.slow
 def test_page_survives_a_simulator_restart(stack: Stack) -> None:
     page = stack.page
     stack.client.close()
@@ -286,3 +340,73 @@ def test_page_survives_a_simulator_restart(stack: Stack) -> None:
     page.wait_for_function(f"window.droneulatorUI.cameras.count > {shown + 3}", timeout=60000)
     page.click("#btn-takeoff")  # and it flies the new simulator
     stack.wait(lambda: stack.client.state()["position"][2] > 0.5, 60, "the take-off after the restart")
+
+
+@pytest.mark.slow
+def test_px4_status_and_flight_controls_locked_while_px4_flies(stack: Stack) -> None:
+    """With ``--px4``, the page shows PX4's status; while PX4 is armed the flight buttons are off with
+    the reason shown, and they come back when it disarms. PX4 is played by a pymavlink peer. (A second
+    simulator, in a new tab of the module's browser.)"""
+    from test_px4 import Peer
+
+    cfg = run_config()
+    cfg.px4.base_port = free_port()
+    ui_port = free_port()
+    run = launch_run(cfg, ["--realtime", "--px4", "--ui-port", str(ui_port)], start_timeout=120)
+    stop, armed = threading.Event(), threading.Event()
+
+    def px4() -> None:
+        peer = Peer(cfg.px4.base_port)
+        peer.hello()
+        peer.next(timeout=60)
+        while not stop.is_set():
+            peer.actuators((0.0,) * 4, armed=armed.is_set())
+            peer.next(timeout=60)  # like PX4 in lockstep, wait for the sensors (the renderer may be booting)
+            time.sleep(0.004)
+        peer.close()
+
+    flying = threading.Thread(target=px4, daemon=True)
+    page = stack.page.context.browser.new_page(viewport={"width": 1500, "height": 1000})
+    try:
+        deadline = time.monotonic() + 60  # the UI starts once the simulator is up, after the API
+        while not any(line.startswith("UI: http") for line in run.log.lines()):
+            assert time.monotonic() < deadline, "the UI never started\n" + run.log.tail(25)
+            time.sleep(0.1)
+        errors: list[str] = []
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(f"http://127.0.0.1:{ui_port}/#fly")
+        page.wait_for_selector("#px4:not([hidden])", timeout=60000)
+        page.wait_for_function("window.droneulatorUI.state !== null", timeout=60000)  # subscribed
+        assert "waiting for PX4" in page.inner_text("#px4-status")
+        assert not page.is_disabled("#btn-takeoff")
+        flying.start()
+        page.wait_for_function(
+            "document.getElementById('px4-status').textContent.includes('PX4 connected')", timeout=60000
+        )
+        page.wait_for_function("document.getElementById('btn-takeoff').disabled", timeout=30000)
+        armed.set()
+        page.wait_for_function(
+            "document.getElementById('px4-status').textContent.includes('is armed')", timeout=30000
+        )
+        assert page.is_disabled("#btn-takeoff") and page.is_disabled("#btn-land")
+        assert "PX4 is armed" in page.inner_text("#lock-reason")
+        page.wait_for_function(
+            "window.droneulatorUI.map.meta && window.droneulatorUI.cameras.count > 3", timeout=60000
+        )
+        page.screenshot(path=str(IMG / "ui_px4.png"), full_page=True)
+        stop.set()  # PX4 goes away: the simulator takes over and the UI may fly again
+        page.wait_for_function(
+            "document.getElementById('px4-status').textContent.includes('disconnected')", timeout=30000
+        )
+        assert not page.is_disabled("#btn-takeoff")
+        assert page.is_hidden("#lock-reason")
+        assert not errors, f"JavaScript errors in the page: {errors}"
+    except BaseException:
+        print(run.log.tail(40))  # shown by pytest with the failure
+        raise
+    finally:
+        stop.set()
+        if flying.is_alive():
+            flying.join(10)
+        page.close()
+        run.stop()

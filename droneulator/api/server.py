@@ -110,6 +110,7 @@ class _Session:
         self.task: asyncio.Task[None] | None = None
         self.sent_seq = 0
         self.next_state_at = 0.0
+        self.awaiting_state = False  # its stream task waits for a state newer than the one it sent
 
     def streams(self) -> list[str]:
         on = {"state": self.state_period is not None, "events": self.events_on}
@@ -158,7 +159,10 @@ class ApiServer:
         self._state: VehicleState | None = None
         self._state_cache: tuple[int, str | None] = (0, None)
         self._state_wake_pending = False
-        self._n_state_subscribers = 0
+        #: sessions whose stream waits for a newer state: only these are woken by a published state (the
+        #: others are due later and wake by their own timer), so a 10 Hz subscriber does not wake the
+        #: server's loop at the physics rate
+        self._n_awaiting_state = 0
         self._sessions: set[_Session] = set()
         self._background: set[asyncio.Task[Any]] = set()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -274,7 +278,7 @@ class ApiServer:
             self._state_seq += 1
             self._state = state
         loop = self._loop
-        if loop is None or self._state_wake_pending or not self._n_state_subscribers:
+        if loop is None or self._state_wake_pending or not self._n_awaiting_state:
             return
         self._state_wake_pending = True
         try:
@@ -293,7 +297,7 @@ class ApiServer:
     def _wake_state_subscribers(self) -> None:
         self._state_wake_pending = False
         for s in self._sessions:
-            if s.state_period is not None:
+            if s.awaiting_state:
                 s.wake.set()
 
     def _push_event(self, event: dict[str, Any]) -> None:
@@ -420,7 +424,6 @@ class ApiServer:
         s.wake.set()
 
     def _set_streams(self, s: _Session, streams: Any, period: float | None) -> None:
-        self._n_state_subscribers += (period is not None) - (s.state_period is not None)
         s.state_period = period
         s.events_on = "events" in streams
         if not s.events_on:
@@ -437,22 +440,36 @@ class ApiServer:
                         await s.ws.send(text)
                     continue
                 timeout = None
-                if s.state_period is not None and self._state_seq != s.sent_seq:
-                    now = loop.time()
-                    if now >= s.next_state_at:
-                        seq, text = self._state_text()
-                        s.sent_seq = seq
-                        if text is not None:
-                            # a fixed grid keeps the average rate; restart it after a stall
-                            base = s.next_state_at if now - s.next_state_at < s.state_period else now
-                            s.next_state_at = base + s.state_period
-                            async with s.send_lock:
-                                await s.ws.send(text)
-                        continue
-                    timeout = s.next_state_at - now
+                awaiting = False
+                if s.state_period is not None:
+                    if self._state_seq != s.sent_seq:
+                        now = loop.time()
+                        if now >= s.next_state_at:
+                            seq, text = self._state_text()
+                            s.sent_seq = seq
+                            if text is not None:
+                                # a fixed grid keeps the average rate; restart it after a stall
+                                base = s.next_state_at if now - s.next_state_at < s.state_period else now
+                                s.next_state_at = base + s.state_period
+                                async with s.send_lock:
+                                    await s.ws.send(text)
+                            continue
+                        timeout = s.next_state_at - now
+                    else:
+                        awaiting = True
                 s.wake.clear()
-                with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(timeout):
-                        await s.wake.wait()
+                if awaiting:
+                    s.awaiting_state = True
+                    self._n_awaiting_state += 1
+                try:
+                    # a state published before the count went up did not wake us: look again
+                    if not (awaiting and self._state_seq != s.sent_seq):
+                        with contextlib.suppress(TimeoutError):
+                            async with asyncio.timeout(timeout):
+                                await s.wake.wait()
+                finally:
+                    if awaiting:
+                        s.awaiting_state = False
+                        self._n_awaiting_state -= 1
         except ConnectionClosed:
             pass

@@ -147,8 +147,9 @@ def decode_compressed(msg: Any) -> np.ndarray:
         raise ValueError(f"CompressedImage ({msg.format}, {len(data)} bytes) does not decode: {exc}") from exc
 
 
-def decode_depth(msg: Any) -> np.ndarray:
-    """Metres of a ``32FC1`` ``sensor_msgs/Image`` as an HxW ``float32`` array (NaN: no return).
+def decode_depth(msg: Any, stride: int = 1) -> np.ndarray:
+    """Metres of a ``32FC1`` ``sensor_msgs/Image`` as an HxW ``float32`` array (NaN: no return), or of
+    every ``stride``-th row and column of it (only those are copied).
 
     Honours ``step`` (row padding) and ``is_bigendian``; the result owns its memory.
     """
@@ -159,5 +160,5 @@ def decode_depth(msg: Any) -> np.ndarray:
     if step < 4 * w or data.size < h * step:
         raise ValueError(f"32FC1 image {w}x{h}: step {step} and {data.size} data bytes do not fit")
     dtype = np.dtype(">f4" if msg.is_bigendian else "<f4")
-    rows = data[: h * step].reshape(h, step)[:, : 4 * w]
-    return np.ascontiguousarray(rows).view(dtype).reshape(h, w).astype(np.float32)
+    rows = data[: h * step].reshape(h, step)[::stride, : 4 * w]
+    return np.ascontiguousarray(rows).view(dtype)[:, ::stride].astype(np.float32)

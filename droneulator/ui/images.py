@@ -87,7 +87,7 @@ def encode_for_browser(
         rgb = decode_compressed(msg)
         return "image/jpeg", _jpeg(rgb, jpeg_quality), rgb.shape[1], rgb.shape[0]
     if kind == "depth":
-        depth = decode_depth(msg)[::DEPTH_SEG_STRIDE, ::DEPTH_SEG_STRIDE]
+        depth = decode_depth(msg, DEPTH_SEG_STRIDE)
         return (
             "image/jpeg",
             _jpeg(depth_to_rgb(depth, depth_max_m), jpeg_quality),
@@ -142,7 +142,8 @@ class ImageHub:
         self._subs: list[Any] = []
         self._active = False
         #: (cam, kind) -> (raw CDR sample, raw seq); raw seq counts samples received per stream
-        self._raw: dict[tuple[str, str], tuple[bytes, int]] = {}
+        #: newest sample per stream, still Zenoh's bytes: copied only when it is encoded (a third of them)
+        self._raw: dict[tuple[str, str], tuple[Any, int]] = {}
         self._encoded_seq: dict[tuple[str, str], int] = {}
         self._frames_out: dict[tuple[str, str], int] = {}
         self.received = 0
@@ -216,9 +217,9 @@ class ImageHub:
             if len(parts) <= index:
                 return
             key = (parts[index], kind)
-            payload = sample.payload.to_bytes()
+            payload = sample.payload
             with self._lock:
-                seq = self._raw.get(key, (b"", 0))[1] + 1
+                seq = self._raw.get(key, (None, 0))[1] + 1
                 self._raw[key] = (payload, seq)
                 self.received += 1
                 self.last_sample = time.monotonic()
@@ -239,7 +240,7 @@ class ImageHub:
         out = []
         for (cam, kind), payload, _ in todo:
             try:
-                msg = messages.decode(TYPES[kind], payload)
+                msg = messages.decode(TYPES[kind], payload.to_bytes())
                 mime, data, w, h = encode_for_browser(kind, msg, self.jpeg_quality, self.depth_max_m)
             except (messages.SerdeError, ValueError) as exc:
                 self.errors += 1

@@ -97,10 +97,10 @@ def render_map(name: str, seed: int) -> MapImage:
 class ScenePictures:
     """Previews and maps drawn on demand on one thread and cached per (scene, seed)."""
 
-    def __init__(self) -> None:
+    def __init__(self, nice: int = 0) -> None:
         self._lock = threading.Lock()
         self._jobs: dict[tuple[str, str, int], Future[Any]] = {}
-        self._worker = DaemonWorker("ui-render")
+        self._worker = DaemonWorker("ui-render", nice=nice)
 
     def _get(self, kind: str, name: str, seed: int) -> Future[Any]:
         from droneulator.scenes import list_scenes

@@ -48,7 +48,7 @@ from droneulator.imaging import depth_to_rgb
 from droneulator.scenes.base import SEGMENTATION_PALETTE
 from droneulator.ui.images import Frame, ImageHub
 from droneulator.ui.scenes import ScenePictures
-from droneulator.ui.worker import DaemonWorker
+from droneulator.ui.worker import DaemonWorker, lower_priority
 
 log = logging.getLogger("droneulator.ui")
 
@@ -119,9 +119,9 @@ class UIServer:
             jpeg_quality=self.config.jpeg_quality,
             depth_max_m=self.config.depth_max_m,
         )
-        self.pictures = ScenePictures()
+        self.pictures = ScenePictures(nice=self.config.nice)
         #: Zenoh session calls and image encoding, off the event loop
-        self._images = DaemonWorker("ui-images")
+        self._images = DaemonWorker("ui-images", nice=self.config.nice)
         self.sessions: set[BrowserSession] = set()
         self.frames: dict[tuple[str, str], Frame] = {}
         self._frames_changed: asyncio.Condition | None = None
@@ -199,6 +199,7 @@ class UIServer:
             done.set()
 
         def main() -> None:
+            lower_priority(self.config.nice)
             try:
                 asyncio.run(self.serve_forever(ready))
             except BaseException as exc:  # reported to the caller below
@@ -458,6 +459,7 @@ def run_ui(server: UIServer, announce: Callable[[str], None] = print) -> int:
     import signal
 
     async def main() -> None:
+        lower_priority(server.config.nice)
         loop = asyncio.get_running_loop()
         task = asyncio.current_task()
         assert task is not None

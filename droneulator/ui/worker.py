@@ -1,11 +1,14 @@
-"""One daemon thread running blocking jobs in order (GL rendering, Zenoh session calls).
+"""The UI's threads: one daemon thread running blocking jobs in order (GL rendering, Zenoh session calls),
+and the lower scheduling priority every UI thread takes.
 
-Unlike asyncio's default executor or a ThreadPoolExecutor, nothing waits for it when the process ends, so a
-render or a Zenoh call in progress never holds up Ctrl-C or SIGTERM.
+Unlike asyncio's default executor or a ThreadPoolExecutor, nothing waits for a :class:`DaemonWorker` when
+the process ends, so a render or a Zenoh call in progress never holds up Ctrl-C or SIGTERM.
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
 import queue
 import threading
 from collections.abc import Callable
@@ -13,16 +16,29 @@ from concurrent.futures import Future
 from typing import Any
 
 
+def lower_priority(nice: int) -> None:
+    """Raise the calling thread's nice value by ``nice`` (Linux schedules threads one by one; threads it
+    starts later, such as a Zenoh session's, inherit it). The UI then takes the CPU the simulation leaves
+    idle: on a machine whose cores are all busy, the page's images fall behind (and are counted as
+    dropped) instead of the simulation slowing down. Ignored where the OS refuses."""
+    if nice > 0 and hasattr(os, "setpriority"):
+        with contextlib.suppress(OSError):
+            tid = threading.get_native_id()
+            os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + nice))
+
+
 class DaemonWorker:
     """Runs ``submit``-ted callables one at a time on a daemon thread; each returns a Future."""
 
-    def __init__(self, name: str) -> None:
+    def __init__(self, name: str, nice: int = 0) -> None:
         self._todo: queue.Queue[tuple[Future[Any], Callable[..., Any], tuple[Any, ...]] | None]
         self._todo = queue.Queue()
+        self._nice = nice
         self._thread = threading.Thread(target=self._work, daemon=True, name=name)
         self._thread.start()
 
     def _work(self) -> None:
+        lower_priority(self._nice)
         while (job := self._todo.get()) is not None:
             future, fn, args = job
             if not future.set_running_or_notify_cancel():

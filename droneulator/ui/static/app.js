@@ -4,6 +4,7 @@
 import { ApiError, Connection } from "./connection.js";
 import { CameraViews } from "./cameras.js";
 import { MapView } from "./map.js";
+import { painter } from "./painter.js";
 
 const $ = (id) => document.getElementById(id);
 const KEYS = {
@@ -13,6 +14,8 @@ const KEYS = {
 const YAW_RATE = 0.8; // rad/s while A/D is held
 const EVENT_LOG = 60;
 const RTF_WINDOW_MS = 3000;
+const STATE_HZ = 5; // state messages per second: the map and the telemetry change at most 4 times a second
+const TELEMETRY_MS = 250;
 
 const ui = {
   config: null,
@@ -23,6 +26,7 @@ const ui = {
   lastVelocity: null,
   rtfSamples: [],
   images: null,
+  telemetryAt: 0,
 };
 window.droneulatorUI = ui; // for tests and the benchmark
 
@@ -204,7 +208,10 @@ function onState(state) {
   ui.rtfSamples.push([now, state.t]);
   while (ui.rtfSamples.length > 2 && now - ui.rtfSamples[0][0] > RTF_WINDOW_MS) ui.rtfSamples.shift();
   map.setState(state);
-  renderTelemetry();
+  if (now - ui.telemetryAt >= TELEMETRY_MS) {
+    ui.telemetryAt = now;
+    painter.add("telemetry", renderTelemetry);
+  }
 }
 
 function renderTelemetry() {
@@ -229,6 +236,14 @@ function renderTelemetry() {
       ["frames dropped", `${im.dropped} (page too slow)`]);
   }
   const dl = $("telemetry");
+  const shown = [...dl.querySelectorAll("dd")];
+  if (shown.length === rows.length && shown.every((dd, i) => dd.dataset.key === rows[i][0])) {
+    // same rows: change only the text that changed (no new nodes, no layout of the whole list)
+    shown.forEach((dd, i) => {
+      if (dd.textContent !== rows[i][1]) dd.textContent = rows[i][1];
+    });
+    return;
+  }
   dl.replaceChildren();
   for (const [k, v] of rows) {
     const dt = document.createElement("dt");
@@ -260,19 +275,33 @@ function onEvent(ev) {
     void flash.offsetWidth; // restart the animation
     flash.classList.add("on");
   }
-  if (ev.type.startsWith("px4_")) {
-    $("px4").hidden = false;
-    const status = {
-      px4_connected: ev.holding ? "PX4 connected; the simulator holds the vehicle until PX4 arms"
-        : "PX4 connected, disarmed: the UI may fly",
-      px4_armed: "PX4 is armed and in control",
-      px4_disarmed: "PX4 disarmed: the UI may fly",
-      px4_disconnected: `PX4 disconnected (${ev.reason || "no reason given"})`,
-    }[ev.type];
-    $("px4-status").textContent = status || ev.type;
-    if (ev.type === "px4_armed") setLocked("PX4 is armed and flying the vehicle");
-    if (ev.type === "px4_disarmed" || ev.type === "px4_disconnected") setLocked(null);
+  if (ev.type.startsWith("px4_")) onPx4Event(ev);
+}
+
+// PX4's status as the simulator runs it (docs/px4.md): a connected PX4 drives the vehicle, armed or not
+// (disarmed: motors off), and flight commands are refused meanwhile; only a PX4 that connected over a
+// vehicle the simulator was flying waits, holding it, until it arms. A page opened while PX4 is already
+// connected learns of it from the API's flight_locked answer to its first command.
+const PX4_IN_CONTROL = "PX4 SITL is in control; flight commands come from PX4"; // the runtime's words
+
+function onPx4Event(ev) {
+  $("px4").hidden = false;
+  let status = ev.type;
+  if (ev.type === "px4_connected") {
+    status = ev.holding ? "PX4 connected; the simulator holds the vehicle until PX4 arms"
+      : "PX4 connected and in control (disarmed: motors off)";
+    setLocked(ev.holding ? null : PX4_IN_CONTROL);
+  } else if (ev.type === "px4_armed") {
+    status = "PX4 is armed and in control";
+    setLocked("PX4 is armed and flying the vehicle");
+  } else if (ev.type === "px4_disarmed") {
+    status = "PX4 disarmed (motors off); still in control until it disconnects";
+    setLocked(PX4_IN_CONTROL);
+  } else if (ev.type === "px4_disconnected") {
+    status = `PX4 disconnected (${ev.reason || "no reason given"}): the UI may fly`;
+    setLocked(null);
   }
+  $("px4-status").textContent = status;
 }
 
 // ------------------------------------------------------------------------------------------------ connection
@@ -284,7 +313,7 @@ function setConnection(text, good) {
 
 async function onApiConnected() {
   try {
-    await send("subscribe", { streams: ["state", "events"], rate_hz: 20 }, "subscribing to the state");
+    await send("subscribe", { streams: ["state", "events"], rate_hz: STATE_HZ }, "subscribing to the state");
     await loadScene();
     if (ui.scene && location.hash !== "#fly" && !ui.started) showPage("levels");
     ui.started = true;
@@ -312,7 +341,7 @@ function onUiMessage(msg) {
 const conn = new Connection({
   onOpen: () => setConnection("waiting for the simulator…", false),
   onClose: () => setConnection("UI server unreachable, reconnecting…", false),
-  onImage: (header, blob) => cams.show(header, blob),
+  onImage: (header, bytes) => cams.show(header, bytes),
   onMessage: (msg) => {
     if (msg.type === "state") onState(msg.state);
     else if (msg.type === "event") onEvent(msg.event);

@@ -1,6 +1,14 @@
 // Live camera views: for every camera of the rig, its RGB, depth (with a metres scale) and segmentation
 // (with the class legend). Each shown image is logged with its render stamp and the wall time it
 // appeared, which the benchmark reads to measure the image latency.
+//
+// Images arrive as JPEG bytes and are decoded with WebCodecs' ImageDecoder straight from those bytes
+// into a bitmap handed to the view's canvas ("bitmaprenderer": no copy, no repaint of the page). An
+// <img> fed blob: URLs costs more than twice the CPU: every Blob is registered with the browser process
+// and the image is decoded again to paint it; on a machine whose cores the simulation needs, that CPU
+// is the simulation's (docs/ui.md). Browsers without ImageDecoder decode through createImageBitmap.
+
+import { painter } from "./painter.js";
 
 const KIND_TITLES = { rgb: "RGB", depth: "Depth", seg: "Segmentation" };
 const SHOWN_LOG = 2000;
@@ -12,6 +20,8 @@ export class CameraViews {
     this.tiles = new Map();
     this.shown = []; // {cam, kind, stamp_ns, shown_ms}
     this.count = 0;
+    this.errors = 0; // images that could not be decoded
+    window.addEventListener("resize", () => this.tiles.forEach((t) => fit(t)));
   }
 
   tile(cam, kind) {
@@ -22,11 +32,13 @@ export class CameraViews {
     fig.className = `camera ${kind}`;
     fig.dataset.cam = cam;
     fig.dataset.kind = kind;
-    const img = document.createElement("img");
-    img.alt = `${cam} ${KIND_TITLES[kind]}`;
+    const view = document.createElement("canvas");
+    view.className = "view";
+    view.setAttribute("role", "img");
+    view.setAttribute("aria-label", `${cam} ${KIND_TITLES[kind]}`);
     const cap = document.createElement("figcaption");
     cap.innerHTML = `<b>${cam}</b> · ${KIND_TITLES[kind]}`;
-    fig.append(img, cap);
+    fig.append(view, cap);
     if (kind === "depth") {
       const scale = document.createElement("div");
       scale.className = "scale";
@@ -56,41 +68,75 @@ export class CameraViews {
     [...row.children]
       .sort((a, b) => Object.keys(KIND_TITLES).indexOf(a.dataset.kind) - Object.keys(KIND_TITLES).indexOf(b.dataset.kind))
       .forEach((el) => row.append(el));
-    t = { img, busy: false, next: null };
+    t = { fig, view, ctx: view.getContext("bitmaprenderer"), busy: false, next: null, pending: null };
     this.tiles.set(key, t);
     return t;
   }
 
-  show(header, blob) {
+  show(header, bytes) {
     const t = this.tile(header.cam, header.kind);
     if (t.busy) {
-      t.next = [header, blob]; // newest wins: an older image still waiting is dropped
+      t.next = [header, bytes]; // newest wins: an older image still waiting is dropped
       return;
     }
     t.busy = true;
-    const url = URL.createObjectURL(blob);
-    const done = () => {
-      if (t.url) URL.revokeObjectURL(t.url);
-      t.url = url;
+    painter.expect();
+    decodeImage(bytes, header.mime).then((bitmap) => {
+      if (t.pending) t.pending.close(); // decoded but never painted: replaced by a newer image
+      t.pending = bitmap;
+      painter.add(`${header.cam}/${header.kind}`, () => this.paint(t, header), true);
+    }, (err) => {
+      this.errors++;
+      console.warn(`${header.cam} ${header.kind}: image not decoded: ${err}`);
+    }).finally(() => {
       t.busy = false;
-      this.count++;
-      this.shown.push({ cam: header.cam, kind: header.kind, stamp_ns: header.stamp_ns,
-        shown_ms: performance.timeOrigin + performance.now() });
-      if (this.shown.length > SHOWN_LOG) this.shown.splice(0, this.shown.length - SHOWN_LOG);
+      painter.done();
       if (t.next) {
         const [h, b] = t.next;
         t.next = null;
         this.show(h, b);
       }
-    };
-    const probe = new Image();
-    probe.src = url;
-    probe.decode().then(() => {
-      t.img.src = url;
-      done();
-    }, () => {
-      t.busy = false;
-      URL.revokeObjectURL(url);
     });
+  }
+
+  paint(t, header) {
+    const bitmap = t.pending;
+    t.pending = null;
+    if (!bitmap) return;
+    if (t.view.width !== bitmap.width || t.view.height !== bitmap.height) {
+      t.view.width = bitmap.width;
+      t.view.height = bitmap.height;
+      fit(t);
+    }
+    t.ctx.transferFromImageBitmap(bitmap);
+    this.count++;
+    this.shown.push({ cam: header.cam, kind: header.kind, stamp_ns: header.stamp_ns,
+      shown_ms: performance.timeOrigin + performance.now() });
+    if (this.shown.length > SHOWN_LOG) this.shown.splice(0, this.shown.length - SHOWN_LOG);
+  }
+}
+
+// Show a view at a whole multiple of its pixel size, the largest that fits its column (or shrunk to the
+// column when even one pixel per pixel does not fit): a view at its own size is copied by the browser's
+// compositor, and only scaled views cost it a resampling of every image.
+function fit(t) {
+  const room = t.fig.clientWidth;
+  const k = Math.floor(room / t.view.width);
+  t.view.style.width = k >= 1 ? `${k * t.view.width}px` : "100%";
+}
+
+// Decode JPEG or PNG bytes into an ImageBitmap.
+async function decodeImage(bytes, mime) {
+  if (typeof ImageDecoder === "undefined") return createImageBitmap(new Blob([bytes], { type: mime }));
+  const decoder = new ImageDecoder({ data: bytes, type: mime });
+  try {
+    const { image } = await decoder.decode();
+    try {
+      return await createImageBitmap(image);
+    } finally {
+      image.close();
+    }
+  } finally {
+    decoder.close();
   }
 }

@@ -39,7 +39,7 @@ export class Connection {
       const view = new DataView(data);
       const n = view.getUint32(0);
       const header = JSON.parse(new TextDecoder().decode(new Uint8Array(data, 4, n)));
-      this.handlers.onImage(header, new Blob([new Uint8Array(data, 4 + n)], { type: header.mime }));
+      this.handlers.onImage(header, new Uint8Array(data, 4 + n));
       return;
     }
     const msg = JSON.parse(data);

@@ -1,7 +1,10 @@
 // The top-down map: the renderer's orthographic picture of the scene, the flyable box, the vehicle with
 // its heading, its trail and the active goal. A click reports the world x, y under the pointer.
 
+import { painter } from "./painter.js";
+
 const TRAIL_POINTS = 600;
+const DRAW_MS = 250; // the vehicle moves on the map at most 4 times a second
 
 export class MapView {
   constructor(canvas, onClick) {
@@ -12,6 +15,9 @@ export class MapView {
     this.trail = [];
     this.vehicle = null;
     this.goal = null;
+    this.background = null; // the map picture with the flyable box, drawn once per scene
+    this.drawnAt = 0;
+    this.drawTimer = 0;
     canvas.addEventListener("click", (e) => {
       if (!this.meta) return;
       const r = canvas.getBoundingClientRect();
@@ -29,10 +35,13 @@ export class MapView {
     img.src = meta.image;
     await img.decode();
     const [x0, y0, x1, y1] = meta.extent;
-    this.canvas.width = 400;
-    this.canvas.height = Math.round((400 * (y1 - y0)) / (x1 - x0));
+    // one canvas pixel per screen pixel: the compositor then copies the map instead of resampling it
+    const width = Math.round(this.canvas.clientWidth * devicePixelRatio) || 400;
+    this.canvas.width = width;
+    this.canvas.height = Math.round((width * (y1 - y0)) / (x1 - x0));
     this.image = img;
     this.meta = meta;
+    this.background = this.drawBackground();
     this.trail = [];
     this.goal = null;
     this.draw();
@@ -56,7 +65,40 @@ export class MapView {
       this.trail.push([x, y]);
       if (this.trail.length > TRAIL_POINTS) this.trail.shift();
     }
-    this.draw();
+    this.requestDraw();
+  }
+
+  // Draw with the page's next paint, at most every DRAW_MS: the whole canvas is composited again each
+  // time it changes.
+  requestDraw() {
+    if (this.drawTimer) return; // a draw is already due, and will show this state too
+    const wait = Math.max(0, this.drawnAt + DRAW_MS - performance.now());
+    this.drawTimer = setTimeout(() => {
+      this.drawTimer = 0;
+      this.drawnAt = performance.now();
+      painter.add("map", () => this.draw());
+    }, wait);
+  }
+
+  drawBackground() {
+    const bg = document.createElement("canvas");
+    bg.width = this.canvas.width;
+    bg.height = this.canvas.height;
+    const ctx = bg.getContext("2d");
+    ctx.drawImage(this.image, 0, 0, bg.width, bg.height);
+    // outside the flyable box: dimmed
+    const [bx0, by1] = this.toCanvas(this.meta.bounds_min[0], this.meta.bounds_min[1]);
+    const [bx1, by0] = this.toCanvas(this.meta.bounds_max[0], this.meta.bounds_max[1]);
+    ctx.fillStyle = "rgba(0, 0, 0, 0.35)";
+    ctx.fillRect(0, 0, bg.width, by0);
+    ctx.fillRect(0, by1, bg.width, bg.height - by1);
+    ctx.fillRect(0, by0, bx0, by1 - by0);
+    ctx.fillRect(bx1, by0, bg.width - bx1, by1 - by0);
+    ctx.strokeStyle = "rgba(255, 255, 255, 0.8)";
+    ctx.setLineDash([6, 4]);
+    ctx.lineWidth = 1;
+    ctx.strokeRect(bx0, by0, bx1 - bx0, by1 - by0);
+    return bg;
   }
 
   clearTrail() {
@@ -73,20 +115,7 @@ export class MapView {
     const { ctx, canvas } = this;
     ctx.clearRect(0, 0, canvas.width, canvas.height);
     if (!this.meta) return;
-    ctx.drawImage(this.image, 0, 0, canvas.width, canvas.height);
-    // outside the flyable box: dimmed
-    const [bx0, by1] = this.toCanvas(this.meta.bounds_min[0], this.meta.bounds_min[1]);
-    const [bx1, by0] = this.toCanvas(this.meta.bounds_max[0], this.meta.bounds_max[1]);
-    ctx.fillStyle = "rgba(0, 0, 0, 0.35)";
-    ctx.fillRect(0, 0, canvas.width, by0);
-    ctx.fillRect(0, by1, canvas.width, canvas.height - by1);
-    ctx.fillRect(0, by0, bx0, by1 - by0);
-    ctx.fillRect(bx1, by0, canvas.width - bx1, by1 - by0);
-    ctx.strokeStyle = "rgba(255, 255, 255, 0.8)";
-    ctx.setLineDash([6, 4]);
-    ctx.lineWidth = 1;
-    ctx.strokeRect(bx0, by0, bx1 - bx0, by1 - by0);
-    ctx.setLineDash([]);
+    ctx.drawImage(this.background, 0, 0);
     if (this.trail.length > 1) {
       ctx.strokeStyle = "rgba(255, 220, 60, 0.9)";
       ctx.lineWidth = 2;
