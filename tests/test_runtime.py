@@ -77,12 +77,17 @@ class Run:
         self.launched = launch_run(cfg, extra)
         self.proc = self.launched.proc
         self.url = self.launched.url
-        self.client = self.launched.client()
-        self.session = zenoh.open(subscriber_config(self.launched.zenoh_endpoint))
         self.lock = threading.Lock()
         self.msgs: dict[str, list] = defaultdict(list)
-        self.subs = [self.session.declare_subscriber(k, self._on_sample(k, t)) for k, t in TOPICS.items()]
-        self.wait_for(lambda: all(self.msgs[k] for k in TOPICS), 60, "every topic to arrive")
+        self.subs: list = []
+        try:
+            self.client = self.launched.client()
+            self.session = zenoh.open(subscriber_config(self.launched.zenoh_endpoint))
+            self.subs = [self.session.declare_subscriber(k, self._on_sample(k, t)) for k, t in TOPICS.items()]
+            self.wait_for(lambda: all(self.msgs[k] for k in TOPICS), 60, "every topic to arrive")
+        except BaseException:
+            self.close()
+            raise
 
     @property
     def log(self) -> list[str]:
@@ -126,8 +131,10 @@ class Run:
     def close(self) -> None:
         for s in self.subs:
             s.undeclare()
-        self.session.close()
-        self.client.close()
+        if hasattr(self, "session"):
+            self.session.close()
+        if hasattr(self, "client"):
+            self.client.close()
         self.launched.stop()
 
 
@@ -410,17 +417,19 @@ def test_lockstep_loses_no_image_to_a_slow_subscriber():
 
 def test_sigterm_stops_everything_within_2s():
     r = Run("default")
-    kids = r.children()
-    assert set(kids) == {"dynamics_server", "render_server", "bridge"}
-    t0 = time.monotonic()
-    r.proc.send_signal(signal.SIGTERM)
-    r.proc.wait(5)
-    assert time.monotonic() - t0 < 2.0
-    time.sleep(0.2)
-    for pid in kids.values():
-        with pytest.raises(ProcessLookupError):
-            os.kill(pid, 0)
-    r.close()
+    try:
+        kids = r.children()
+        assert set(kids) == {"dynamics_server", "render_server", "bridge"}
+        t0 = time.monotonic()
+        r.proc.send_signal(signal.SIGTERM)
+        r.proc.wait(5)
+        assert time.monotonic() - t0 < 2.0
+        time.sleep(0.2)
+        for pid in kids.values():
+            with pytest.raises(ProcessLookupError):
+                os.kill(pid, 0)
+    finally:
+        r.close()
 
 
 def test_px4_drives_the_clock_and_websocket_flight_is_refused():

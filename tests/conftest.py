@@ -1,0 +1,56 @@
+"""Suite-wide guard: a test that fails before closing its Zenoh session must not hang the whole run.
+
+zenoh-python serves a session on non-daemon Python threads that live until the session is closed,
+so a session left open (say by an assertion that fires before its ``close()``) makes the interpreter
+wait for ever after the last test, and CI times out instead of reporting the failure. Every session
+opened while the suite runs is tracked here and closed when the suite ends; any other non-daemon
+thread still alive then is named, and the run exits without waiting for it, as a failure.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import threading
+import time
+
+import pytest
+import zenoh
+
+_open = zenoh.open
+_sessions: list[zenoh.Session] = []
+_exit_status = 0
+
+
+def _tracked_open(*args, **kwargs) -> zenoh.Session:
+    session = _open(*args, **kwargs)
+    _sessions[:] = [s for s in _sessions if not s.is_closed()]
+    _sessions.append(session)
+    return session
+
+
+zenoh.open = _tracked_open
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    global _exit_status
+    _exit_status = int(exitstatus)
+    left = [s for s in _sessions if not s.is_closed()]
+    for s in left:
+        s.close()
+    if left:
+        print(f"\nconftest: closed {len(left)} Zenoh session(s) a test left open", file=sys.stderr)
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    deadline = time.monotonic() + 10.0
+    for t in threading.enumerate():
+        if t is not threading.main_thread() and not t.daemon:
+            t.join(max(0.0, deadline - time.monotonic()))
+    stuck = [t.name for t in threading.enumerate() if t is not threading.main_thread() and not t.daemon]
+    if stuck:
+        print(f"\nconftest: non-daemon threads still running after the suite: {stuck}", file=sys.stderr)
+        sys.stderr.flush()
+        sys.stdout.flush()
+        os._exit(_exit_status or 1)
