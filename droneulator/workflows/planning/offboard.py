@@ -466,8 +466,8 @@ class OffboardLink:
         return False
 
     def _fail(self, msg: str) -> None:
+        log.error("offboard: %s", msg)  # logged before it is published: a reader of .error sees the line too
         self.error = msg
-        log.error("offboard: %s", msg)
 
     def _wait(self, pred: Callable[[], bool], timeout: float | None) -> bool:
         """Wait (lock held by the caller's ``with``) until ``pred()``, the timeout or close."""
