@@ -448,13 +448,12 @@ def plane_sweep(
         other = m_idx != best_i[None]
         order = np.argsort(~other, axis=0, kind="stable")[: slots - 1]
         alt = []
-        for k_ in range(slots - 1):
-            pick = [
-                np.take_along_axis(a, order[k_ : k_ + 1], axis=0)[0] for a in (m_cost, m_idx, m_left, m_right)
-            ]
+        for rank in range(slots - 1):
+            at = order[rank : rank + 1]
+            pick = [np.take_along_axis(a, at, axis=0)[0] for a in (m_cost, m_idx, m_left, m_right)]
             a_inv = _refined_inverse_depth(inv, pick[1], pick[0], pick[2], pick[3])
             a_ok = valid & (pick[1] >= 0) & (1.0 - pick[0] >= opts.min_ncc) & (a_inv > 0)
-            a_ok &= np.take_along_axis(other, order[k_ : k_ + 1], axis=0)[0]
+            a_ok &= np.take_along_axis(other, at, axis=0)[0]
             alt.append(np.where(a_ok, 1.0 / np.where(a_ok, a_inv, 1.0), np.nan).astype(np.float32))
         alternatives = np.stack(alt)
     return DepthMap(depth, ncc, alternatives)
