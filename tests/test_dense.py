@@ -20,7 +20,9 @@ from droneulator.workflows.photogrammetry.fusion import FusionOptions, fuse, rea
 from droneulator.workflows.photogrammetry.mvs import (  # noqa: E402
     MvsOptions,
     View,
+    _forward_backward_error,
     depth_range,
+    plane_homography,
     plane_sweep,
     select_neighbors,
 )
@@ -183,6 +185,71 @@ def test_fusion_keeps_consistent_depths_and_rejects_a_wrong_depth_map():
     assert (cloud.support >= 2).all()
     # with three right maps of four, demanding three agreeing views keeps nothing
     assert len(fuse(views, maps, everyone, FusionOptions(min_consistent=3)).points) == 0
+
+
+def test_fusion_tries_a_pixels_alternative_depth_and_rejects_a_wrong_one():
+    views, depths = _views([-0.5, -0.2, 0.1])
+    right = [d.astype(np.float32) for d in depths]
+    everyone = [[j for j in range(3) if j != i] for i in range(3)]
+    n = np.cross(E1, E2)
+    nan = np.full((1, H, W), np.nan, np.float32)
+    # view 0's best depth is 8 % off (no view agrees with it), its second hypothesis is the true depth
+    maps = [right[0] * 1.08, right[1], right[2]]
+    assert not (fuse(views, maps, everyone, FusionOptions()).source == 0).any()
+    cloud = fuse(views, maps, everyone, FusionOptions(), [right[0][None], nan, nan])
+    from_alt = (cloud.source == 0) & (cloud.hypothesis == 1)
+    assert from_alt.sum() > 0.5 * H * W and (cloud.hypothesis[cloud.source == 0] == 1).all()
+    assert np.abs((cloud.points - P0) @ n).max() < 1e-6  # every point from a true depth
+    # a wrong alternative (15 % off) is rejected
+    wrong = fuse(views, maps, everyone, FusionOptions(), [(right[0] * 0.85)[None], nan, nan])
+    assert not (wrong.source == 0).any()
+    # every view's best depth wrong, each its own way, the truth second everywhere: only when neighbours
+    # agree through their alternatives too
+    maps = [right[0] * 1.08, right[1] * 0.92, right[2] * 1.16]
+    alts = [r[None] for r in right]
+    assert len(fuse(views, maps, everyone, FusionOptions(), alts).points) == 0
+    cloud = fuse(views, maps, everyone, FusionOptions(neighbor_alternatives=True), alts)
+    assert len(cloud.points) > 0.5 * H * W and (cloud.hypothesis == 1).all()
+    assert np.abs((cloud.points - P0) @ n).max() < 1e-6
+
+
+def test_plane_sweep_keeps_the_second_cost_minimum_as_an_alternative_depth():
+    views, depths = _step_views([-0.3, 0.0, 0.3])
+    o = MvsOptions(neighbors=2, candidates=2)
+    dm = plane_sweep(views[1], [views[0], views[2]], 2.0, 4.5, o)
+    base = plane_sweep(views[1], [views[0], views[2]], 2.0, 4.5, MvsOptions(neighbors=2))
+    np.testing.assert_array_equal(dm.depth, base.depth)  # the winner is unchanged
+    assert base.alternatives is None and dm.alternatives.shape == (1, H, W)
+    truth = depths[1]
+    alt = dm.alternatives[0]
+    assert np.isfinite(alt).mean() > 0.3
+    assert not np.any(np.abs(alt - dm.depth) < 1e-6)  # never the winner again
+    right = np.abs(dm.depth - truth) < 0.01 * truth
+    alt_right = np.abs(alt - truth) < 0.01 * truth
+    # where the winner is wrong, the alternative is sometimes right
+    assert alt_right[~right & np.isfinite(dm.depth)].mean() > 0.05
+    with pytest.raises(ValueError):
+        MvsOptions(candidates=0)
+
+
+def test_geometric_term_is_small_at_the_true_depth_and_capped_away_from_it():
+    views, depths = _views([-0.4, 0.0])
+    ref, src = views
+    T = np.linalg.inv(ref.T_world_cam) @ src.T_world_cam
+    N, kt = ref.K @ T[:3, :3] @ np.linalg.inv(src.K), ref.K @ T[:3, 3]
+    centre = (slice(H // 3, 2 * H // 3), slice(W // 3, 2 * W // 3))
+    z = float(np.median(depths[0][centre]))
+    near = np.abs(depths[0] - z) < 0.005 * z  # the reference pixels the plane z passes through
+    err = np.empty((H, W), np.float32)
+    _forward_backward_error(plane_homography(ref, src, z), N, kt, depths[1].astype(np.float32), 3.0, err)
+    assert near.sum() > 500 and np.median(err[near]) < 0.5
+    _forward_backward_error(
+        plane_homography(ref, src, 1.1 * z), N, kt, depths[1].astype(np.float32), 3.0, err
+    )
+    assert np.median(err[near]) == 3.0  # a plane 10 % off: capped
+    no_depth = np.full((H, W), np.nan, np.float32)
+    _forward_backward_error(plane_homography(ref, src, z), N, kt, no_depth, 3.0, err)
+    assert (err == 3.0).all()
 
 
 def test_ply_round_trip(tmp_path: Path):

@@ -123,29 +123,38 @@ def dense_cpu(
         for nb, count in ((neighbors, opts.mvs.neighbors), (fusion_nb, opts.fusion_neighbors)):
             nb[i] += [j for j in geometric[i] if j not in nb[i]][: max(0, count - len(nb[i]))]
     t_load = time.perf_counter() - t0
-    depths, per_view = [], []
+    depths: list[np.ndarray] = []
+    alternatives: list[np.ndarray | None] = []
+    per_view: list[dict[str, Any]] = []
     t0 = time.perf_counter()
-    for i, v in enumerate(views):
-        rng = depth_range(v, seen[i], opts.mvs.depth_margin, opts.mvs.subject_depth_factor)
-        if rng is None or not neighbors[i] or not v.mask.any():
-            depths.append(np.full(v.shape, np.nan, np.float32))
-            per_view.append({"name": v.name, "pixels": 0, "skipped": True})
-            continue
-        dm = plane_sweep(v, [views[j] for j in neighbors[i]], rng[0], rng[1], opts.mvs)
-        depths.append(dm.depth)
-        per_view.append(
-            {
-                "name": v.name,
-                "neighbors": [views[j].name for j in neighbors[i]],
-                "depth_range_m": [round(rng[0], 3), round(rng[1], 3)],
-                "pixels": int(np.isfinite(dm.depth).sum()),
-                "masked_pixels": int(v.mask.sum()),
-            }
-        )
+    # the photometric pass, then (geom_weight > 0) the pass checked against the neighbours' first depths
+    for geometric_pass in (False, True) if opts.mvs.geom_weight > 0 else (False,):
+        first = depths
+        depths, alternatives, per_view = [], [], []
+        for i, v in enumerate(views):
+            rng = depth_range(v, seen[i], opts.mvs.depth_margin, opts.mvs.subject_depth_factor)
+            if rng is None or not neighbors[i] or not v.mask.any():
+                depths.append(np.full(v.shape, np.nan, np.float32))
+                alternatives.append(None)
+                per_view.append({"name": v.name, "pixels": 0, "skipped": True})
+                continue
+            priors = [first[j] for j in neighbors[i]] if geometric_pass else None
+            dm = plane_sweep(v, [views[j] for j in neighbors[i]], rng[0], rng[1], opts.mvs, priors)
+            depths.append(dm.depth)
+            alternatives.append(dm.alternatives)
+            per_view.append(
+                {
+                    "name": v.name,
+                    "neighbors": [views[j].name for j in neighbors[i]],
+                    "depth_range_m": [round(rng[0], 3), round(rng[1], 3)],
+                    "pixels": int(np.isfinite(dm.depth).sum()),
+                    "masked_pixels": int(v.mask.sum()),
+                }
+            )
     t_stereo = time.perf_counter() - t0
     log(f"dense (CPU plane sweep): {len(views)} depth maps in {t_stereo:.1f} s")
     t0 = time.perf_counter()
-    cloud = fuse(views, depths, fusion_nb, opts.fusion)
+    cloud = fuse(views, depths, fusion_nb, opts.fusion, alternatives)
     for k, pv in enumerate(per_view):
         pv["fused_points"] = int((cloud.source == k).sum())
     write_ply(out / "fused.ply", cloud.points, cloud.colors)

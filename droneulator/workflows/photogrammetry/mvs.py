@@ -28,6 +28,7 @@ import math
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
 
 
@@ -64,6 +65,16 @@ class MvsOptions:
     #: regularisation of the guided filter (grey levels in [0, 1], squared): edges weaker than about
     #: its square root are smoothed over
     guided_eps: float = 1e-4
+    #: depth hypotheses kept per pixel: the winning plane and the next best local minima of the
+    #: aggregated cost (a leaf in front of a leaf leaves two minima; fusion tries the others when the
+    #: winner finds no agreeing view); 1: the winner only
+    candidates: int = 1
+    #: second pass with geometric consistency (COLMAP's geom_consistency): each neighbour's cost at a
+    #: plane adds geom_weight * min(forward-backward reprojection error through that neighbour's
+    #: first-pass depth map, geom_max_px); 0: one photometric pass
+    geom_weight: float = 0.0
+    #: the reprojection error is capped at this, pixels
+    geom_max_px: float = 3.0
 
     def __post_init__(self) -> None:
         if not 0.1 <= self.scale <= 1.0:
@@ -80,6 +91,10 @@ class MvsOptions:
             raise ValueError("mvs needs guided_radius >= 0 and guided_eps > 0")
         if not -1.0 <= self.min_ncc < 1.0:
             raise ValueError(f"mvs min_ncc must lie in [-1, 1), got {self.min_ncc}")
+        if self.geom_weight < 0 or not self.geom_max_px > 0:
+            raise ValueError("mvs needs geom_weight >= 0 and geom_max_px > 0")
+        if self.candidates < 1:
+            raise ValueError(f"mvs candidates must be >= 1, got {self.candidates}")
 
 
 @dataclass
@@ -246,16 +261,99 @@ def plane_homography(ref: View, src: View, depth: float) -> np.ndarray:
     return src.K @ (R + np.outer(t, n) / depth) @ np.linalg.inv(ref.K)
 
 
+@numba.njit(cache=True)
+def _forward_backward_error(
+    H: np.ndarray, N: np.ndarray, kt: np.ndarray, depth: np.ndarray, cap: float, out: np.ndarray
+) -> None:
+    """Per reference pixel: through homography ``H`` to its source pixel, out to the point at the source's
+    ``depth`` there (nearest pixel), and back into the reference (``N`` @ [u, v, 1] * depth + ``kt``, in
+    homogeneous reference pixels); the distance to where it started, at most ``cap`` (also where the
+    source has no depth)."""
+    h, w = out.shape
+    hs, ws = depth.shape
+    for r in range(h):
+        for c in range(w):
+            e = cap
+            z = H[2, 0] * c + H[2, 1] * r + H[2, 2]
+            if z > 0:
+                us = (H[0, 0] * c + H[0, 1] * r + H[0, 2]) / z
+                vs = (H[1, 0] * c + H[1, 1] * r + H[1, 2]) / z
+                ui, vi = round(us), round(vs)
+                if 0 <= ui < ws and 0 <= vi < hs:
+                    d = depth[int(vi), int(ui)]
+                    if d > 0:
+                        qz = d * (N[2, 0] * us + N[2, 1] * vs + N[2, 2]) + kt[2]
+                        if qz > 0:
+                            dx = (d * (N[0, 0] * us + N[0, 1] * vs + N[0, 2]) + kt[0]) / qz - c
+                            dy = (d * (N[1, 0] * us + N[1, 1] * vs + N[1, 2]) + kt[1]) / qz - r
+                            e = min(math.sqrt(dx * dx + dy * dy), cap)
+            out[r, c] = e
+
+
+@numba.njit(cache=True)
+def _insert_minimum(
+    before: np.ndarray,
+    cost: np.ndarray,
+    after: np.ndarray,
+    plane: int,
+    m_cost: np.ndarray,
+    m_idx: np.ndarray,
+    m_left: np.ndarray,
+    m_right: np.ndarray,
+) -> None:
+    """Where ``plane``'s ``cost`` is a local minimum (below ``before``, not above ``after``), insert it
+    into the per-pixel lists of the best minima (``m_*``: (slots, H, W), sorted by cost)."""
+    slots, h, w = m_cost.shape
+    for r in range(h):
+        for c in range(w):
+            x = cost[r, c]
+            if not (x < before[r, c] and x <= after[r, c]) or not x < m_cost[slots - 1, r, c]:
+                continue
+            s = slots - 1
+            while s > 0 and x < m_cost[s - 1, r, c]:
+                m_cost[s, r, c] = m_cost[s - 1, r, c]
+                m_idx[s, r, c] = m_idx[s - 1, r, c]
+                m_left[s, r, c] = m_left[s - 1, r, c]
+                m_right[s, r, c] = m_right[s - 1, r, c]
+                s -= 1
+            m_cost[s, r, c] = x
+            m_idx[s, r, c] = plane
+            m_left[s, r, c] = before[r, c]
+            m_right[s, r, c] = after[r, c]
+
+
 @dataclass
 class DepthMap:
-    """Depth along the optical axis (m, NaN: none) and the aggregated NCC of the winning plane."""
+    """Depth along the optical axis (m, NaN: none) and the aggregated NCC of the winning plane; with
+    ``MvsOptions.candidates`` > 1 also ``alternatives`` (candidates - 1, H, W): the depths of the next
+    best local minima of the cost, best first (NaN: none)."""
 
     depth: np.ndarray
     ncc: np.ndarray
+    alternatives: np.ndarray | None = None
 
 
-def plane_sweep(ref: View, sources: list[View], near: float, far: float, opts: MvsOptions) -> DepthMap:
-    """Depth map of ``ref`` (at its own resolution) from ``sources`` between depths ``near`` and ``far``."""
+def _refined_inverse_depth(
+    inv: np.ndarray, idx: np.ndarray, cost: np.ndarray, left: np.ndarray, right: np.ndarray
+) -> np.ndarray:
+    """Inverse depth at plane ``idx`` moved to the vertex of the parabola through its cost and its two
+    neighbours' (at most half a plane)."""
+    denom = left - 2 * cost + right
+    offset = np.where(denom > 1e-6, 0.5 * (left - right) / np.where(denom > 1e-6, denom, 1.0), 0.0)
+    return inv[np.clip(idx, 0, len(inv) - 1)] + np.clip(offset, -0.5, 0.5) * (inv[1] - inv[0])
+
+
+def plane_sweep(
+    ref: View,
+    sources: list[View],
+    near: float,
+    far: float,
+    opts: MvsOptions,
+    priors: list[np.ndarray | None] | None = None,
+) -> DepthMap:
+    """Depth map of ``ref`` (at its own resolution) from ``sources`` between depths ``near`` and ``far``.
+    With ``priors`` (the sources' first-pass depth maps) and ``opts.geom_weight`` > 0 each source's cost
+    adds the geometric-consistency term."""
     if not 0 < near < far:
         raise ValueError(f"plane sweep needs 0 < near < far, got {near}, {far}")
     if not sources:
@@ -282,6 +380,26 @@ def plane_sweep(ref: View, sources: list[View], near: float, far: float, opts: M
     right = np.full((h, w), np.nan, np.float32)
     prev = np.full((h, w), np.nan, np.float32)
     costs = np.empty((len(sources), h, w), np.float32)
+    geom = []
+    if priors is not None and opts.geom_weight > 0:
+        if len(priors) != len(sources):
+            raise ValueError("plane sweep needs one prior depth map per source")
+        for src, prior in zip(sources, priors, strict=True):
+            if prior is None:
+                geom.append(None)
+                continue
+            T = np.linalg.inv(ref.T_world_cam) @ src.T_world_cam  # source optical -> reference optical
+            geom.append(
+                (ref.K @ T[:3, :3] @ np.linalg.inv(src.K), ref.K @ T[:3, 3], np.nan_to_num(prior, nan=0.0))
+            )
+    err = np.empty((h, w), np.float32)
+    # the best local minima of the cost along the sweep, sorted: cost, plane, and the two neighbours' costs
+    slots = opts.candidates if opts.candidates > 1 else 0
+    m_cost = np.full((slots, h, w), np.inf, np.float32)
+    m_idx = np.full((slots, h, w), -1, np.int32)
+    m_left = np.full((slots, h, w), np.nan, np.float32)
+    m_right = np.full((slots, h, w), np.nan, np.float32)
+    prev2 = np.full((h, w), np.nan, np.float32)
     for i, d_inv in enumerate(inv):
         for s, src in enumerate(sources):
             H = plane_homography(ref, src, 1.0 / d_inv)
@@ -296,6 +414,10 @@ def plane_sweep(ref: View, sources: list[View], near: float, far: float, opts: M
             cov = cv2.boxFilter(r * warped, -1, win, borderType=cv2.BORDER_REFLECT) - mu_r * mu_s
             ncc = cov / np.sqrt(np.maximum(var_r * var_s, 1e-10))
             costs[s] = np.where(covered & (var_s > 1e-5), 1.0 - ncc, 2.0)
+            if geom and geom[s] is not None:
+                N, kt, prior = geom[s]
+                _forward_backward_error(H, N, kt, prior, opts.geom_max_px, err)
+                costs[s] += opts.geom_weight * err
         # a new array: `prev` must keep this plane's costs when `costs` is refilled for the next one
         c = costs[0].copy() if k == len(sources) == 1 else np.partition(costs, k - 1, axis=0)[:k].mean(axis=0)
         if opts.guided_radius > 0:
@@ -309,18 +431,32 @@ def plane_sweep(ref: View, sources: list[View], near: float, far: float, opts: M
         best_i[better] = i
         left[better] = prev[better]
         right[better] = np.nan
+        if slots and i >= 2:
+            _insert_minimum(prev2, prev, c, i - 1, m_cost, m_idx, m_left, m_right)
+        prev2 = prev
         prev = c
     # sub-plane refinement: vertex of the parabola through the winning plane and its two neighbours
-    denom = left - 2 * best + right
-    offset = np.where(denom > 1e-6, 0.5 * (left - right) / np.where(denom > 1e-6, denom, 1.0), 0.0)
     interior = (best_i > 0) & (best_i < opts.planes - 1) & np.isfinite(left) & np.isfinite(right)
-    step = inv[1] - inv[0]
-    idx = np.clip(best_i, 0, opts.planes - 1)
-    d_inv = inv[idx] + np.clip(offset, -0.5, 0.5) * step
+    d_inv = _refined_inverse_depth(inv, best_i, best, left, right)
     ncc = (1.0 - best).astype(np.float32)
-    ok = interior & textured & ref.mask & (ncc >= opts.min_ncc) & (d_inv > 0)
+    valid = textured & ref.mask
+    ok = interior & valid & (ncc >= opts.min_ncc) & (d_inv > 0)
     depth = np.where(ok, 1.0 / np.where(ok, d_inv, 1.0), np.nan).astype(np.float32)
-    return DepthMap(depth, ncc)
+    alternatives = None
+    if slots:
+        # the minima other than the winner, best first
+        other = m_idx != best_i[None]
+        order = np.argsort(~other, axis=0, kind="stable")[: slots - 1]
+        alt = []
+        for rank in range(slots - 1):
+            at = order[rank : rank + 1]
+            pick = [np.take_along_axis(a, at, axis=0)[0] for a in (m_cost, m_idx, m_left, m_right)]
+            a_inv = _refined_inverse_depth(inv, pick[1], pick[0], pick[2], pick[3])
+            a_ok = valid & (pick[1] >= 0) & (1.0 - pick[0] >= opts.min_ncc) & (a_inv > 0)
+            a_ok &= np.take_along_axis(other, at, axis=0)[0]
+            alt.append(np.where(a_ok, 1.0 / np.where(a_ok, a_inv, 1.0), np.nan).astype(np.float32))
+        alternatives = np.stack(alt)
+    return DepthMap(depth, ncc, alternatives)
 
 
 def backproject(view: View, depth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
