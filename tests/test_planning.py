@@ -10,14 +10,7 @@ from droneulator.config import CameraConfig
 from droneulator.render import Renderer
 from droneulator.scenes.base import CollisionModel, MeshPart, Scene, SemanticClass
 from droneulator.workflows.planning.astar import astar
-from droneulator.workflows.planning.bspline import (
-    Pairs,
-    Weights,
-    compiled_cost,
-    cost,
-    reallocate_time,
-    straight_line,
-)
+from droneulator.workflows.planning.bspline import Pairs, Weights, compiled_cost, cost, straight_line
 from droneulator.workflows.planning.config import PlannerConfig
 from droneulator.workflows.planning.mapping import LocalMap
 from droneulator.workflows.planning.planner import Planner
@@ -376,42 +369,3 @@ def test_local_goal_is_where_the_camera_has_looked_not_behind_the_crown() -> Non
     assert sdf(traj.position(traj.sample(0.02))).min() > 0.25
     near = start + [2.0, 0.5, 0.0]  # a free goal within the horizon is taken as it is
     assert np.array_equal(planner.local_goal(start, near), near)
-
-
-def test_when_the_optimiser_leaves_a_collision_the_search_path_is_flown(caplog) -> None:
-    """An optimiser that cannot push the curve out (one iteration, almost no collision weight) leaves
-    the straight line through the column; instead of failing, the planner flies the A* path itself:
-    clear of the inflation, ending at rest on the goal, within the speed and acceleration limits."""
-    cfg = PlannerConfig(opt_max_iters=1, lambda_collision=1e-9)
-    planner = Planner(cfg)
-    planner.map = column_map(cfg)
-    start, goal = np.array([0.5, 0.0, 1.5]), np.array([5.5, 0.0, 1.5])
-    with caplog.at_level("INFO", logger="droneulator.workflows.planning.planner"):
-        traj = planner.plan(start, np.zeros(3), np.zeros(3), goal)
-    assert traj is not None, planner.reason
-    assert "flying the search path" in caplog.text
-    p = traj.position(traj.sample(0.01))
-    clearance = np.hypot(p[:, 0] - COLUMN[0], p[:, 1] - COLUMN[1]) - COLUMN_R
-    assert clearance.min() >= cfg.inflation - 1e-6
-    assert np.allclose(p[0], start) and np.allclose(p[-1], goal, atol=1e-6)
-    assert np.linalg.norm(traj.velocity(traj.duration)) < 1e-6
-    vmax, amax = traj.max_vel_acc()
-    assert vmax <= cfg.max_vel * 1.001 and amax <= cfg.max_acc * 1.001
-    assert not planner.needs_replan(traj)
-
-
-def test_time_reallocation_from_an_accelerating_start_stays_bounded() -> None:
-    """A replan from a reference that brakes hard sideways (1.5 m/s, -2.9 m/s^2) towards a goal ahead:
-    stretching the segments with the start acceleration kept pushed the first control points out by
-    a0 dt^2 / 2 until they were 7e8 m away. Now the limits are met, the start position and velocity are
-    kept, and the curve stays within a few metres."""
-    p0, v0, a0 = np.zeros(3), np.array([0.0, 1.5, 0.0]), np.array([0.0, -2.9, 0.0])
-    ahead = np.array([3.0, 0.0, 0.0])
-    traj = reallocate_time(straight_line(p0, v0, a0, ahead, 0.4, 2.0), p0, v0, a0, 2.0, 3.0)
-    vmax, amax = traj.max_vel_acc()
-    assert vmax <= 2.0 and amax <= 3.0
-    assert np.allclose(traj.position(0.0), p0) and np.allclose(traj.velocity(0.0), v0)
-    assert np.abs(traj.ctrl).max() < 5.0
-    gentle = np.array([0.0, -0.9, 0.0])  # within reach: the start acceleration is kept too
-    traj = reallocate_time(straight_line(p0, v0, gentle, ahead, 0.4, 2.0), p0, v0, gentle, 2.0, 3.0)
-    assert np.allclose(traj.acceleration(0.0), gentle)

@@ -23,7 +23,6 @@ import logging
 import os
 import queue
 import signal
-import sys
 import threading
 import time
 from multiprocessing.connection import Connection, Listener, wait
@@ -352,21 +351,10 @@ def main() -> None:
     )
     signal.signal(signal.SIGTERM, lambda *_: server.stopping.set())
     signal.signal(signal.SIGINT, lambda *_: server.stopping.set())
-    code = 0
     try:
         server.run()
-    except Exception:
-        log.exception("dynamics server failed")
-        code = 1
     finally:
         server.close()
-    # Everything the server owns is closed now. Skip the interpreter's teardown of torch, numba and
-    # the scene: it takes ~0.6 s here (three times that on a loaded machine), which would eat the
-    # supervisor's 2 s stop budget.
-    logging.shutdown()
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(code)
 
 
 if __name__ == "__main__":

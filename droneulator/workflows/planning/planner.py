@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import logging
 import math
 import time
 
@@ -16,13 +15,10 @@ from droneulator.workflows.planning.bspline import (
     Weights,
     optimize,
     reallocate_time,
-    start_points,
     straight_line,
 )
 from droneulator.workflows.planning.config import PlannerConfig
 from droneulator.workflows.planning.mapping import LocalMap
-
-log = logging.getLogger(__name__)
 
 
 class Planner:
@@ -157,64 +153,9 @@ class Planner:
             traj = self._optimize(traj, pairs)
         traj = self._optimize(traj, pairs)
         traj = reallocate_time(traj, p0, v0, a0, self.cfg.max_vel, self.cfg.max_acc)
-        if not self._within_limits(traj):
-            return self._fail("no time allocation keeps the speed and acceleration limits from this start")
         if len(self._colliding(traj)):
-            fallback = self._guide_path_plan(p0, v0, a0, goal)
-            if fallback is None:
-                return self._fail("the optimised trajectory still meets obstacles")
-            return fallback
+            return self._fail("the optimised trajectory still meets obstacles")
         return traj
-
-    def _within_limits(self, traj: BSpline) -> bool:
-        """The curve stays in the local map, within 5 % of the speed and acceleration limits."""
-        vmax, amax = traj.max_vel_acc()
-        c = self.cfg
-        inside = bool(self.map.inside(traj.ctrl).all())
-        return inside and vmax <= 1.05 * c.max_vel and amax <= 1.05 * c.max_acc
-
-    def _guide_path_plan(self, p0: np.ndarray, v0: np.ndarray, a0: np.ndarray,
-                         goal: np.ndarray) -> BSpline | None:  # fmt: skip
-        """Fallback when the optimised curve still collides (e.g. stopped in a narrow gap): a slower
-        B-spline whose control points follow the A* path itself, shortened where the straight line
-        between its points is free, with one control point every voxel so the curve cannot cut a
-        corner by more than about a voxel. None if there is no path or the curve still collides."""
-        m, c = self.map, self.cfg
-        blocked = m.count
-        ia, ib = m.index(p0), m.index(goal)
-        if blocked[tuple(ia)]:
-            ia = m.nearest_free(ia, 2 * c.inflation)
-        if ia is None or blocked[tuple(ib)]:
-            return None
-        path = astar(blocked, ia, ib, c.astar_max_expansions, int(np.ceil(c.astar_margin / c.resolution)))
-        if len(path) < 2:
-            return None
-        pts = m.point(path)
-        pts[0], pts[-1] = p0, goal
-        corners = [0]  # line-of-sight shortening: from each kept point, the farthest one seen free
-        while corners[-1] < len(pts) - 1:
-            i, j = corners[-1], len(pts) - 1
-            while j > i + 1 and not self._segment_free(pts[i], pts[j]):
-                j -= 1
-            corners.append(j)
-        for poly in (pts[corners], pts):  # the shortened path, else the voxel path as it is
-            seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
-            along = np.concatenate([[0.0], np.cumsum(seg)])
-            n = max(int(np.ceil(along[-1] / c.resolution)), 1)
-            s = np.linspace(0.0, along[-1], n + 1)
-            inner = np.stack([np.interp(s, along, poly[:, k]) for k in range(3)], axis=1)[1:-1]
-            dt = c.resolution / (0.5 * c.max_vel)
-            ctrl = np.concatenate([start_points(p0, v0, a0, dt), inner, np.tile(goal, (3, 1))])
-            traj = reallocate_time(BSpline(ctrl, dt), p0, v0, a0, c.max_vel, c.max_acc)
-            if self._within_limits(traj) and not len(self._colliding(traj)):
-                log.info("optimised trajectory collided; flying the search path (%.1f m) instead", along[-1])
-                return traj
-        return None
-
-    def _segment_free(self, a: np.ndarray, b: np.ndarray) -> bool:
-        """True if the straight segment a -> b stays out of the inflated map (sampled every half voxel)."""
-        n = max(int(np.ceil(np.linalg.norm(b - a) / (0.5 * self.cfg.resolution))), 1)
-        return not self.map.is_occupied(a + np.linspace(0.0, 1.0, n + 1)[:, None] * (b - a)).any()
 
     def local_goal(self, p0: np.ndarray, goal: np.ndarray) -> np.ndarray:
         """Where to plan to this cycle: ``goal`` itself when it is within the horizon and free, else a
