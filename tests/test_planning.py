@@ -2,15 +2,25 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from droneulator import frames
 from droneulator.config import CameraConfig
 from droneulator.render import Renderer
 from droneulator.scenes.base import CollisionModel, MeshPart, Scene, SemanticClass
 from droneulator.workflows.planning.astar import astar
-from droneulator.workflows.planning.bspline import Pairs, Weights, compiled_cost, cost, straight_line
+from droneulator.workflows.planning.bspline import (
+    Pairs,
+    Weights,
+    compiled_cost,
+    cost,
+    reallocate_time,
+    straight_line,
+)
 from droneulator.workflows.planning.config import PlannerConfig
 from droneulator.workflows.planning.mapping import LocalMap
 from droneulator.workflows.planning.planner import Planner
@@ -369,3 +379,49 @@ def test_local_goal_is_where_the_camera_has_looked_not_behind_the_crown() -> Non
     assert sdf(traj.position(traj.sample(0.02))).min() > 0.25
     near = start + [2.0, 0.5, 0.0]  # a free goal within the horizon is taken as it is
     assert np.array_equal(planner.local_goal(start, near), near)
+
+
+def test_a_curve_that_still_collides_is_re_optimised_from_the_search_path(caplog) -> None:
+    """A real case from the `planning` scene (the map the node had built from depth, saved as its
+    occupied voxels): a replan at 1.6 m/s towards the gap between the trunk and the crown. The curve
+    optimised from the straight line still collides, and the node used to retry it every 0.1 s while
+    the vehicle hovered. Re-initialised from the A* path, the same optimiser finds a clear curve:
+    from the start state to the goal at rest, within the limits, at full speed (not a crawl)."""
+    data = np.load(Path(__file__).parent / "data" / "planning_tree_map.npz")
+    cfg = PlannerConfig(ceiling=4.0, inflation_margin=0.4)
+    planner = Planner(cfg, centre=data["centre"])
+    planner.map.insert_points(data["occupied"])
+    p0, v0, a0, goal = data["p"], data["v"], data["a"], data["goal"]
+    line = planner._optimised(straight_line(p0, v0, a0, goal, cfg.ctrl_spacing, cfg.max_vel), p0, v0, a0)
+    assert line is not None and len(planner._colliding(line)) > 0  # the case this is about
+    with caplog.at_level("INFO", logger="droneulator.workflows.planning.planner"):
+        traj = planner.plan(p0, v0, a0, goal)
+    assert traj is not None, planner.reason
+    assert "re-optimised from the search path" in caplog.text
+    p = traj.position(traj.sample(0.01))
+    clearance, _ = cKDTree(data["occupied"]).query(p)
+    assert clearance.min() >= cfg.inflation - cfg.resolution
+    assert np.allclose(p[0], p0) and np.allclose(traj.velocity(0.0), v0)
+    assert np.allclose(p[-1], goal, atol=1e-6) and np.linalg.norm(traj.velocity(traj.duration)) < 1e-6
+    vmax, amax = traj.max_vel_acc()
+    assert vmax <= cfg.max_vel * 1.05 and amax <= cfg.max_acc * 1.05
+    length = np.linalg.norm(np.diff(p, axis=0), axis=1).sum()
+    assert traj.duration < 2.0 * length / cfg.max_vel  # about 7 m in under 7 s
+    assert not planner.needs_replan(traj)
+
+
+def test_time_reallocation_from_an_accelerating_start_stays_bounded() -> None:
+    """A replan from a reference that brakes hard sideways (1.5 m/s, -2.9 m/s^2) towards a goal ahead:
+    stretching the segments with the start acceleration kept pushed the first control points out by
+    a0 dt^2 / 2 until they were 7e8 m away. Now the limits are met, the start position and velocity are
+    kept, and the curve stays within a few metres."""
+    p0, v0, a0 = np.zeros(3), np.array([0.0, 1.5, 0.0]), np.array([0.0, -2.9, 0.0])
+    ahead = np.array([3.0, 0.0, 0.0])
+    traj = reallocate_time(straight_line(p0, v0, a0, ahead, 0.4, 2.0), p0, v0, a0, 2.0, 3.0)
+    vmax, amax = traj.max_vel_acc()
+    assert vmax <= 2.0 and amax <= 3.0
+    assert np.allclose(traj.position(0.0), p0) and np.allclose(traj.velocity(0.0), v0)
+    assert np.abs(traj.ctrl).max() < 5.0
+    gentle = np.array([0.0, -0.9, 0.0])  # within reach: the start acceleration is kept too
+    traj = reallocate_time(straight_line(p0, v0, gentle, ahead, 0.4, 2.0), p0, v0, gentle, 2.0, 3.0)
+    assert np.allclose(traj.acceleration(0.0), gentle)

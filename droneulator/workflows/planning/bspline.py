@@ -310,17 +310,24 @@ def reallocate_time(traj: BSpline, p0: np.ndarray, v0: np.ndarray, a0: np.ndarra
     """Stretch ``dt`` until velocity and acceleration control points are within the limits.
 
     Stretching keeps the path; the three start control points are recomputed so the start state
-    is kept exactly (EGO re-fits the curve instead; here the start points move by O(v dt)).
+    is kept exactly (EGO re-fits the curve instead; here the start points move by O(v dt)). A start
+    acceleration pushes the first control points out by ``a0 dt^2 / 2``, which grows faster than the
+    stretch helps, so past 8 times the first ``dt`` the start keeps position and velocity only
+    (``a0`` = 0; the acceleration reference jumps once) instead of running away. The result may
+    still exceed the limits (e.g. a start faster than ``max_vel``): callers check.
     """
+    p0, v0 = np.asarray(p0, float), np.asarray(v0, float)
     out = traj
-    for _ in range(20):
-        vmax, amax = out.max_vel_acc()
-        ratio = max(vmax / max_vel, math.sqrt(amax / max_acc))
-        if ratio <= 1.0:
-            return out
-        dt = out.dt * min(ratio * 1.02, 2.0)
-        ctrl = out.ctrl.copy()
-        ctrl[:3] = start_points(np.asarray(p0, float), np.asarray(v0, float), np.asarray(a0, float), dt)
-        out = BSpline(ctrl, dt)
+    for a_start in (np.asarray(a0, float), np.zeros(3)):
+        out = BSpline(np.concatenate([start_points(p0, v0, a_start, traj.dt), traj.ctrl[3:]]), traj.dt)
+        for _ in range(20):
+            vmax, amax = out.max_vel_acc()
+            ratio = max(vmax / max_vel, math.sqrt(amax / max_acc))
+            if ratio <= 1.0:
+                return out
+            dt = out.dt * min(ratio * 1.02, 2.0)
+            if dt > 8.0 * traj.dt:
+                break
+            out = BSpline(np.concatenate([start_points(p0, v0, a_start, dt), out.ctrl[3:]]), dt)
     return out
 

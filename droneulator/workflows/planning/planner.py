@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 
@@ -15,10 +16,13 @@ from droneulator.workflows.planning.bspline import (
     Weights,
     optimize,
     reallocate_time,
+    start_points,
     straight_line,
 )
 from droneulator.workflows.planning.config import PlannerConfig
 from droneulator.workflows.planning.mapping import LocalMap
+
+log = logging.getLogger(__name__)
 
 
 class Planner:
@@ -142,20 +146,94 @@ class Planner:
             return self._fail(f"goal {goal.round(2)} is occupied ({near})")
         if self.map.is_occupied(p0, inflated=False):
             return self._fail(f"start {p0.round(2)} is inside a mapped obstacle")
-        traj = straight_line(p0, v0, a0, goal, self.cfg.ctrl_spacing, self.cfg.max_vel)
+        line = straight_line(p0, v0, a0, goal, self.cfg.ctrl_spacing, self.cfg.max_vel)
+        traj = self._optimised(line, p0, v0, a0)
+        if traj is None:
+            return self._fail(f"no path from {p0.round(2)} to {goal.round(2)} round the obstacles")
+        fits, clear = self._within_limits(traj), not len(self._colliding(traj))
+        if fits and clear:
+            return traj
+        for seed, length in self._search_path_seeds(p0, v0, a0, goal):
+            again = self._optimised(seed, p0, v0, a0)
+            if again is not None and self._within_limits(again) and not len(self._colliding(again)):
+                log.info("re-optimised from the search path (%.1f m): the curve from the straight line %s",
+                         length, "still collided" if fits else "broke the limits")  # fmt: skip
+                return again
+        if not fits:
+            return self._fail("no time allocation keeps the speed and acceleration limits from this start")
+        return self._fail("the optimised trajectory still meets obstacles")
+
+    def _optimised(self, traj: BSpline, p0: np.ndarray, v0: np.ndarray, a0: np.ndarray) -> BSpline | None:
+        """EGO's rebound loop from an initial curve: optimise; while the result collides, add {p, v}
+        pairs from an A* path round each colliding stretch, and while it breaks the speed or
+        acceleration limit, stretch its time step; then optimise again (eight optimisations at most).
+        The result is checked after every optimisation: smoothing alone can pull a clear curve (an A*
+        path's) into an obstacle it has no pairs for, and stretching the time step alone moves the
+        start's control points out by ``v0 dt`` and raises the acceleration where they meet the rest.
+        A last time re-allocation makes sure of the limits. None if a colliding stretch has no path."""
+        c = self.cfg
         pairs = Pairs()
-        for _ in range(5):
+        for i in range(8):
             hits = self._colliding(traj)
-            if len(hits) == 0:
+            vmax, amax = traj.max_vel_acc()
+            ratio = max(vmax / c.max_vel, math.sqrt(amax / c.max_acc))
+            if i > 0 and len(hits) == 0 and ratio <= 1.0:
                 break
-            if not self._add_pairs(traj, hits, pairs):
-                return self._fail(f"no path from {p0.round(2)} to {goal.round(2)} round the obstacles")
+            if len(hits) and not self._add_pairs(traj, hits, pairs):
+                return None
+            if i > 0 and ratio > 1.0:
+                dt = traj.dt * min(ratio * 1.02, 2.0)
+                traj = BSpline(np.concatenate([start_points(p0, v0, a0, dt), traj.ctrl[3:]]), dt)
             traj = self._optimize(traj, pairs)
-        traj = self._optimize(traj, pairs)
-        traj = reallocate_time(traj, p0, v0, a0, self.cfg.max_vel, self.cfg.max_acc)
-        if len(self._colliding(traj)):
-            return self._fail("the optimised trajectory still meets obstacles")
-        return traj
+        return reallocate_time(traj, p0, v0, a0, c.max_vel, c.max_acc)
+
+    def _within_limits(self, traj: BSpline) -> bool:
+        """The curve stays in the local map, within 5 % of the speed and acceleration limits."""
+        vmax, amax = traj.max_vel_acc()
+        c = self.cfg
+        inside = bool(self.map.inside(traj.ctrl).all())
+        return inside and vmax <= 1.05 * c.max_vel and amax <= 1.05 * c.max_acc
+
+    def _search_path_seeds(self, p0: np.ndarray, v0: np.ndarray, a0: np.ndarray,
+                           goal: np.ndarray) -> list[tuple[BSpline, float]]:  # fmt: skip
+        """Initial curves along the A* path from start to goal, for when the curve optimised from the
+        straight line still collides (a narrow gap beside a trunk, say: the straight line's pairs pull
+        it the wrong way). EGO re-initialises from the search path the same way. Control points every
+        ``ctrl_spacing`` along the path shortened by line of sight, then along the voxel path itself;
+        each with its length. Empty if there is no path."""
+        m, c = self.map, self.cfg
+        blocked = m.count
+        ia, ib = m.index(p0), m.index(goal)
+        if blocked[tuple(ia)]:
+            ia = m.nearest_free(ia, c.inflation + c.resolution)
+        if ia is None or blocked[tuple(ib)]:
+            return []
+        path = astar(blocked, ia, ib, c.astar_max_expansions, int(np.ceil(c.astar_margin / c.resolution)))
+        if len(path) < 2:
+            return []
+        pts = m.point(path)
+        pts[0], pts[-1] = p0, goal
+        corners = [0]  # line-of-sight shortening: from each kept point, the farthest one seen free
+        while corners[-1] < len(pts) - 1:
+            i, j = corners[-1], len(pts) - 1
+            while j > i + 1 and not self._segment_free(pts[i], pts[j]):
+                j -= 1
+            corners.append(j)
+        seeds = []
+        for poly in (pts[corners], pts):
+            along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(poly, axis=0), axis=1))])
+            n = max(int(np.ceil(along[-1] / c.ctrl_spacing)), 1)
+            s = np.linspace(0.0, along[-1], n + 1)
+            inner = np.stack([np.interp(s, along, poly[:, k]) for k in range(3)], axis=1)[1:-1]
+            dt = max(along[-1] / n, 1e-3) / c.max_vel
+            ctrl = np.concatenate([start_points(p0, v0, a0, dt), inner, np.tile(goal, (3, 1))])
+            seeds.append((BSpline(ctrl, dt), float(along[-1])))
+        return seeds
+
+    def _segment_free(self, a: np.ndarray, b: np.ndarray) -> bool:
+        """True if the straight segment a -> b stays out of the inflated map (sampled every half voxel)."""
+        n = max(int(np.ceil(np.linalg.norm(b - a) / (0.5 * self.cfg.resolution))), 1)
+        return not self.map.is_occupied(a + np.linspace(0.0, 1.0, n + 1)[:, None] * (b - a)).any()
 
     def local_goal(self, p0: np.ndarray, goal: np.ndarray) -> np.ndarray:
         """Where to plan to this cycle: ``goal`` itself when it is within the horizon and free, else a
