@@ -88,6 +88,7 @@ def fly_one(run, client, goal_pub, goal: np.ndarray, start: np.ndarray, bounds: 
         t0 = s0["t"]
         samples: list[tuple[float, list[float], float]] = []
         collisions = 0
+        contacts: list[dict] = []  # the collision events themselves, for the JSON
         t_arrive = None
         deadline_wall = wall0 + args.timeout * 4
         while time.monotonic() < deadline_wall:
@@ -97,6 +98,7 @@ def fly_one(run, client, goal_pub, goal: np.ndarray, start: np.ndarray, bounds: 
             if msg.get("type") == "event":
                 if msg["event"].get("type") in ("collision", "impact"):
                     collisions += 1
+                    contacts.append(msg["event"])
                 continue
             if msg.get("type") != "state":
                 continue
@@ -139,6 +141,7 @@ def fly_one(run, client, goal_pub, goal: np.ndarray, start: np.ndarray, bounds: 
         "goal_error_m": float(np.linalg.norm(pos[-1] - goal)),
         "min_clearance_m": float(clearance.min()),
         "collisions": collisions,
+        "collision_events": contacts[:20],
         "plans": planner.get("plans"),
         "plan_failures": planner.get("failures"),
         "plan_ms_median": _pct(plan_ms, 50),
@@ -146,7 +149,7 @@ def fly_one(run, client, goal_pub, goal: np.ndarray, start: np.ndarray, bounds: 
         "map_ms_median": _pct(map_ms, 50),
         "plan_ms": plan_ms,
         "rtf": float((t[-1] - t0) / wall) if len(t) else float("nan"),
-        "trajectory": pos[:, :2].round(3).tolist(),
+        "trajectory": pos.round(3).tolist(),
     }
 
 
