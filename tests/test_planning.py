@@ -350,8 +350,9 @@ def test_a_start_inside_the_inflation_is_planned_out_of() -> None:
 
 def test_local_goal_is_where_the_camera_has_looked_not_behind_the_crown() -> None:
     """`planning` scene, rendered: from 7 m before the central tree, the goal 8 m behind it. The
-    straight line at the horizon ends inside the crown; the local goal must be a point the camera
-    has seen free, clear of the true geometry (the scene's SDF), with a collision-free plan to it."""
+    straight line at the horizon ends behind the crown's near side, where the camera cannot see; the
+    local goal must be a point the camera has seen free, clear of the true geometry (the scene's SDF),
+    with a collision-free plan to it."""
     from droneulator.scenes import get_scene
     from droneulator.scenes.collision import sdf_lookup_many
 
@@ -368,7 +369,9 @@ def test_local_goal_is_where_the_camera_has_looked_not_behind_the_crown() -> Non
     col = scene.collision
     sdf = lambda p: sdf_lookup_many(col.sdf, col.origin, col.resolution, np.atleast_2d(p))  # noqa: E731
     on_line = start + cfg.horizon * (goal - start) / np.linalg.norm(goal - start)
-    assert sdf(on_line)[0] < 0  # the old rule's horizon point is inside the crown
+    # the old rule's horizon point: hidden behind leaves, never seen free
+    assert sdf(np.linspace(start, on_line, 50)).min() < 0
+    assert not planner.map.seen_free(planner.map.index(on_line))[0]
     local = planner.local_goal(start, goal)
     assert np.linalg.norm(local - start) >= cfg.min_step
     assert sdf(local)[0] > 0.25, (local, sdf(local))  # mapped leaves lie inside the SDF's envelope

@@ -5,8 +5,9 @@ the trunk with golden-angle azimuths and reach toward the envelope, secondary (a
 tertiary) branches fork off them, and clusters of crossed alpha-tested leaf cards sit around every
 branch tip and along the outer part of the branches, so the crown has depth, gaps and visible wood
 rather than reading as a ball on a stick. Each tree also returns its collision primitives: capsules
-for trunk and branches, spheres for the leaf clusters and an ellipsoid for the crown's core (the
-canopy is an obstacle).
+for trunk and branches and spheres for the leaf clusters. The canopy is an obstacle where leaves and
+wood are drawn and nowhere else: no solid core between the clusters, which cameras (and a depth-only
+planner) would see as free space and the vehicle would collide with.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from droneulator.scenes.base import SemanticClass
-from droneulator.scenes.collision import Capsule, Ellipsoid, Primitive, Sphere
+from droneulator.scenes.collision import Capsule, Primitive, Sphere
 from droneulator.scenes.geometry import (
     PartBuilder,
     any_perpendicular,
@@ -242,8 +243,6 @@ class _TreeGrower:
         foliage.add(cards, SemanticClass.CANOPY)
         margin = 0.25 * p.card_size
         prims += [Sphere(c, float(r + margin)) for c, r in zip(centers_a, radii_a, strict=True)]
-        # the crown's core (between the clusters, full of branches) is an obstacle too
-        prims.append(Ellipsoid(self.crown_center.copy(), self.crown_radii * 0.6))
         if fruit is not None and p.fruit_count > 0:
             owner_f = rng.integers(0, len(centers_a), p.fruit_count)
             d = rng.normal(size=(p.fruit_count, 3))
