@@ -10,13 +10,15 @@ watches the API's state stream (it never talks to the planner) and, per run, rep
 ``--settle`` s of sim time, minimum clearance from the vehicle centre to the true scene geometry
 (the scene's SDF, which only the benchmark reads), collisions, the planner's plan and map-update
 times (median, p99, from its ``--stats`` file) and the real-time factor. Writes
-``benchmarks/results/planning.json`` and a top-down figure of the five trajectories
-(``benchmarks/results/planning.png``).
+``benchmarks/results/planning.json`` (with each flight's 3-D track, its events and, after a collision
+or impact, the last 300 states before it, to trace a failed flight) and a top-down figure of the five
+trajectories (``benchmarks/results/planning.png``).
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import json
 import os
 import signal
@@ -89,6 +91,9 @@ def fly_one(run, client, goal_pub, goal: np.ndarray, start: np.ndarray, bounds: 
         samples: list[tuple[float, list[float], float]] = []
         collisions = 0
         contacts: list[dict] = []  # the collision events themselves, for the JSON
+        events: list[dict] = []  # every event, and the states before the first contact, to trace one
+        recent: collections.deque[dict] = collections.deque(maxlen=300)
+        before_contact: list[dict] = []
         t_arrive = None
         deadline_wall = wall0 + args.timeout * 4
         while time.monotonic() < deadline_wall:
@@ -96,7 +101,10 @@ def fly_one(run, client, goal_pub, goal: np.ndarray, start: np.ndarray, bounds: 
             if msg is None:
                 continue
             if msg.get("type") == "event":
+                events.append(msg["event"])
                 if msg["event"].get("type") in ("collision", "impact"):
+                    if not collisions:
+                        before_contact = list(recent)
                     collisions += 1
                     contacts.append(msg["event"])
                 continue
@@ -105,6 +113,7 @@ def fly_one(run, client, goal_pub, goal: np.ndarray, start: np.ndarray, bounds: 
             st = msg["state"]
             if st["t"] < t0:
                 continue
+            recent.append(st)
             p = np.array(st["position"])
             speed = float(np.linalg.norm(st["velocity"]))
             samples.append((st["t"], st["position"], speed))
@@ -142,6 +151,8 @@ def fly_one(run, client, goal_pub, goal: np.ndarray, start: np.ndarray, bounds: 
         "min_clearance_m": float(clearance.min()),
         "collisions": collisions,
         "collision_events": contacts[:20],
+        "events": events[:100],
+        "states_before_contact": before_contact,
         "plans": planner.get("plans"),
         "plan_failures": planner.get("failures"),
         "plan_ms_median": _pct(plan_ms, 50),
