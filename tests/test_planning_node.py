@@ -37,7 +37,8 @@ def test_plan_node_flies_round_the_tree_and_refuses_an_occupied_or_far_goal():
     clearance to the true geometry (the scene's SDF, read by the test only)."""
     cfg = _run_config()
     ns = cfg.bridge.namespace
-    planner = PlannerConfig(ceiling=4.0, inflation_margin=0.4)
+    # the benchmark's virtual ceiling and floor: round the crown, not over it or through the gap under it
+    planner = PlannerConfig(ceiling=4.0, floor=1.5, inflation_margin=0.4)
     with launch_run(cfg) as run:
         client = run.client()
         node = PlanNode(PlanNodeConfig(zenoh=run.zenoh_endpoint, namespace=ns, camera=CAM.name), planner)
@@ -59,8 +60,14 @@ def test_plan_node_flies_round_the_tree_and_refuses_an_occupied_or_far_goal():
                 time.sleep(0.05)
             assert "outside the local map" in node.last_failure
 
-            # on the ground 3.5 m ahead, at the bottom of the view: occupied in the depth-built map, refused
-            goals.publish(M.serialize(M.pose_stamped(0, ODOM_FRAME, start + [3.5, 0.0, -2.3], [0, 0, 0, 1])))
+            # the crown's near side straight ahead, between the virtual floor and ceiling (so only the
+            # depth-built map can make it occupied): refused
+            col = get_scene("planning", 0).collision
+            sdf = lambda p: sdf_lookup_many(col.sdf, col.origin, col.resolution, p)  # noqa: E731
+            ahead = start + np.outer(np.linspace(0.0, 6.0, 241), [1.0, 0.0, 0.0])
+            leaf = ahead[np.argmax(sdf(ahead) < 0)]
+            assert sdf(leaf[None])[0] < 0 and 2.3 < leaf[2] < 2.7
+            goals.publish(M.serialize(M.pose_stamped(0, ODOM_FRAME, leaf, [0, 0, 0, 1])))
             while node.failures == 1:
                 assert time.monotonic() < deadline + 20, "the occupied goal was never answered"
                 time.sleep(0.05)
@@ -98,8 +105,6 @@ def test_plan_node_flies_round_the_tree_and_refuses_an_occupied_or_far_goal():
                 if m.get("type") == "event" and m["event"].get("type") in ("collision", "impact")
             ]  # fmt: skip
             assert not collisions
-            col = get_scene("planning", 0).collision
-            sdf = lambda p: sdf_lookup_many(col.sdf, col.origin, col.resolution, p)  # noqa: E731
             assert sdf(np.linspace(start, goal, 50)).min() < 0  # the straight line runs through the crown
             clearance = sdf(track)
             closest = f"{clearance.min():.2f} m from the tree at {track[clearance.argmin()]}"

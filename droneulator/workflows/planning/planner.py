@@ -130,8 +130,10 @@ class Planner:
              goal: np.ndarray) -> BSpline | None:  # fmt: skip
         """A collision-free, feasible B-spline from the start state to ``goal`` (at rest), or None.
 
-        On None, :attr:`reason` says why: goal outside the map, goal or start occupied, no path
-        round the obstacles, or an optimised trajectory that still collides.
+        The curve is optimised from the straight line, and again from the A* path when that one
+        still collides or breaks the limits. On None, :attr:`reason` says why: goal outside the map,
+        goal or start occupied, no path round the obstacles, no time allocation within the limits, or
+        an optimised trajectory that still collides.
         """
         p0, v0, a0, goal = (np.asarray(x, dtype=float).reshape(3) for x in (start_p, start_v, start_a, goal))
         self.reason = ""
@@ -213,7 +215,7 @@ class Planner:
             return []
         pts = m.point(path)
         pts[0], pts[-1] = p0, goal
-        corners = [0]  # line-of-sight shortening: from each kept point, the farthest one seen free
+        corners = [0]  # line-of-sight shortening: from each kept point, the farthest one in clear line
         while corners[-1] < len(pts) - 1:
             i, j = corners[-1], len(pts) - 1
             while j > i + 1 and not self._segment_free(pts[i], pts[j]):
