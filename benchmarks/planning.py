@@ -90,7 +90,6 @@ def fly_one(run, client, goal_pub, goal: np.ndarray, start: np.ndarray, bounds: 
         t0 = s0["t"]
         samples: list[tuple[float, list[float], float]] = []
         collisions = 0
-        contacts: list[dict] = []  # the collision events themselves, for the JSON
         events: list[dict] = []  # every event, and the states before the first contact, to trace one
         recent: collections.deque[dict] = collections.deque(maxlen=300)
         before_contact: list[dict] = []
@@ -106,7 +105,6 @@ def fly_one(run, client, goal_pub, goal: np.ndarray, start: np.ndarray, bounds: 
                     if not collisions:
                         before_contact = list(recent)
                     collisions += 1
-                    contacts.append(msg["event"])
                 continue
             if msg.get("type") != "state":
                 continue
@@ -150,7 +148,6 @@ def fly_one(run, client, goal_pub, goal: np.ndarray, start: np.ndarray, bounds: 
         "goal_error_m": float(np.linalg.norm(pos[-1] - goal)),
         "min_clearance_m": float(clearance.min()),
         "collisions": collisions,
-        "collision_events": contacts[:20],
         "events": events[:100],
         "states_before_contact": before_contact,
         "plans": planner.get("plans"),
