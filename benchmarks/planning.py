@@ -180,11 +180,11 @@ def figure(scene_name: str, seed: int, runs: list[dict], start: np.ndarray, out:
     ax.contourf(X, Y, anywhere.reshape(X.shape), levels=[-10, 0], colors=["#cfe3c6"])
     ax.contourf(X, Y, slice_d.reshape(X.shape), levels=[-10, 0, 0.5], colors=["#2f6b2a", "#a9c9a0"])
     colours = plt.cm.plasma(np.linspace(0.05, 0.85, len(runs)))
-    for i, (r, c) in enumerate(zip(runs, colours, strict=True)):
+    for r, c in zip(runs, colours, strict=True):
         tr = np.array(r["trajectory"])
         ok = "reached" if r["reached"] else "NOT reached"
         ax.plot(tr[:, 0], tr[:, 1], color=c, lw=2,
-                label=f"goal {i + 1}: {ok}, {r['flight_time_s'] or float('nan'):.1f} s, "
+                label=f"goal {r['goal_index']}: {ok}, {r['flight_time_s'] or float('nan'):.1f} s, "
                       f"clearance {r['min_clearance_m']:.2f} m")  # fmt: skip
         ax.plot(*r["goal"][:2], marker="*", ms=16, color=c, mec="k")
     ax.plot(*start[:2], marker="o", ms=10, color="k", label="start")
@@ -207,7 +207,8 @@ def main() -> None:
     ap.add_argument("--arrive", type=float, default=0.1, help="arrival radius for the flight time (m)")
     ap.add_argument("--settle", type=float, default=2.0, help="sim s after arrival before the goal error")
     ap.add_argument("--timeout", type=float, default=60.0, help="sim seconds allowed per flight")
-    ap.add_argument("--logs", default=None, help="keep the planner logs and stats in this folder")
+    ap.add_argument("--repeat", type=int, default=1, help="fly each goal this many times")
+    ap.add_argument("--logs", default=None, help="keep the simulator's and the planner's logs and stats here")
     ap.add_argument("--output", default=None, help="JSON path (default benchmarks/results/planning.json)")
     args = ap.parse_args()
 
@@ -218,19 +219,24 @@ def main() -> None:
     picks = args.goals or list(range(1, len(GOALS_XY) + 1))
     cfg = load_config(scene=args.scene, seed=args.seed)
     runs = []
-    with tempfile.TemporaryDirectory(prefix="droneulator-planning-") as tmp, launch_run(cfg) as run:
-        if args.logs:
-            tmp = args.logs
-            Path(tmp).mkdir(parents=True, exist_ok=True)
+    if args.logs:
+        Path(args.logs).mkdir(parents=True, exist_ok=True)
+    run_log = Path(args.logs) / "run.log" if args.logs else None
+    with (
+        tempfile.TemporaryDirectory(prefix="droneulator-planning-") as scratch,
+        launch_run(cfg, log=run_log) as run,
+    ):
+        tmp = args.logs or scratch
         client = run.client(timeout=60)
         sender = RosZenohNode.from_config(run.config.bridge, listen=(), connect=(run.zenoh_endpoint,))
         goal_pub = sender.publisher(f"/{run.config.bridge.namespace}/planner/goal", GOAL_TYPE)
         client.subscribe(["state", "events"], rate_hz=50)
         try:
-            for i in picks:
+            for k, i in enumerate(i for i in picks for _ in range(args.repeat)):
                 gx, gy = GOALS_XY[i - 1]
                 goal = np.array([gx, gy, ALTITUDE])
-                r = fly_one(run, client, goal_pub, goal, start, bounds, Path(tmp), args, i)
+                r = fly_one(run, client, goal_pub, goal, start, bounds, Path(tmp), args, k + 1)
+                r["goal_index"] = i
                 runs.append(r)
                 print(f"goal {i} {goal.tolist()}: reached={r['reached']} time={r['flight_time_s']} "
                       f"length={r['path_length_m']:.2f} error={r['goal_error_m']:.3f} "
@@ -239,7 +245,7 @@ def main() -> None:
                       f"plans={r['plans']} failures={r['plan_failures']} rtf={r['rtf']:.2f}",
                       flush=True)  # fmt: skip
                 if not r["reached"]:
-                    print((Path(tmp) / f"plan_{i}.log").read_text()[-3000:])
+                    print((Path(tmp) / f"plan_{k + 1}.log").read_text()[-3000:])
         finally:
             sender.close()
             client.close()
@@ -258,7 +264,8 @@ def main() -> None:
     print("\n| goal | reached | flight time (s) | path (m) | straight (m) | goal error (m) "
           "| min clearance (m) | plan median / p99 (ms) | RTF |")  # fmt: skip
     print("|---|---|---|---|---|---|---|---|---|")
-    for i, r in zip(picks, runs, strict=True):
+    for r in runs:
+        i = r["goal_index"]
         ft = "-" if r["flight_time_s"] is None else f"{r['flight_time_s']:.2f}"
         print(f"| {i} | {'yes' if r['reached'] else 'no'} | {ft} | {r['path_length_m']:.2f} | "
               f"{r['straight_line_m']:.2f} | {r['goal_error_m']:.3f} | {r['min_clearance_m']:.2f} | "
