@@ -14,6 +14,7 @@ from droneulator.render import Renderer
 from droneulator.scenes.base import CollisionModel, MeshPart, Scene, SemanticClass
 from droneulator.workflows.planning.astar import astar
 from droneulator.workflows.planning.bspline import (
+    BSpline,
     Pairs,
     Weights,
     compiled_cost,
@@ -324,6 +325,22 @@ def test_virtual_ceiling_sends_the_route_round_not_over() -> None:
     assert np.abs(p[:, 1]).max() > 0.5  # bent sideways
     with pytest.raises(ValueError, match="ceiling - floor"):
         PlannerConfig(ceiling=1.0, floor=0.5)
+
+
+def test_warm_up_plans_round_its_scratch_wall_whatever_the_floor_and_ceiling(monkeypatch) -> None:
+    """The warm-up must reach the optimiser, or its kernels compile during the first real plan: with the
+    benchmark's floor (1.5 m) its scratch scene at z = 0 was blocked and the first plan of a fresh
+    checkout took 7 to 14 s while the vehicle hovered. The warm-up now raises if its plan fails."""
+    cfg = PlannerConfig(ceiling=4.0, floor=1.5, inflation_margin=0.6)
+    planner = Planner(cfg, centre=np.array([0.0, 0.0, 2.5]))
+    before = planner.map.count.copy()
+    plans: list[BSpline | None] = []
+    plan = Planner.plan
+    monkeypatch.setattr(Planner, "plan", lambda self, *a: plans.append(plan(self, *a)) or plans[-1])
+    assert planner.warm_up() > 0.0
+    assert len(plans) == 1 and plans[0] is not None  # the scratch plan ran the whole optimiser
+    assert np.array_equal(planner.map.count, before)  # its own map untouched, floor and ceiling kept
+    assert planner.map.is_occupied(np.array([0.0, 0.0, 0.5]))
 
 
 def test_a_start_inside_the_inflation_is_planned_out_of() -> None:

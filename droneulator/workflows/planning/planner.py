@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -294,9 +295,13 @@ class Planner:
 
     def warm_up(self) -> float:
         """Compile (or load from numba's cache) every kernel on a throwaway map: a wall seen from 2 m,
-        then a plan round it. Returns the wall time taken; leaves this planner's map untouched."""
+        then a plan round it. Returns the wall time taken; leaves this planner's map untouched.
+
+        The scratch planner has no virtual floor or ceiling: with them the scratch scene at z = 0 would
+        be blocked, the plan would stop at its first check, and its kernels would compile during the
+        first real plan (7 to 14 s of a flight spent hovering)."""
         t0 = time.perf_counter()
-        scratch = Planner(self.cfg, np.zeros(3))
+        scratch = Planner(dataclasses.replace(self.cfg, floor=None, ceiling=None), np.zeros(3))
         K = np.array([[40.0, 0.0, 40.0], [0.0, 40.0, 30.0], [0.0, 0.0, 1.0]])
         T = frames.T_link_optical()  # a camera at the origin looking along world +x
         depth = np.full((60, 80), np.nan, dtype=np.float32)
@@ -304,7 +309,8 @@ class Planner:
         for _ in range(3):  # a voxel needs two hits to count as occupied
             scratch.update_map(depth, T, K)
         scratch.map.recenter(np.array([0.0, 0.0, 0.05]), force=True)
-        scratch.plan(np.zeros(3), np.zeros(3), np.zeros(3), np.array([4.0, 0.0, 0.0]))
+        if scratch.plan(np.zeros(3), np.zeros(3), np.zeros(3), np.array([4.0, 0.0, 0.0])) is None:
+            raise RuntimeError(f"planner warm-up: the plan round the scratch wall failed ({scratch.reason})")
         scratch.local_goal(np.zeros(3), np.array([9.0, 0.0, 0.0]))
         return time.perf_counter() - t0
 
