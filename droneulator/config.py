@@ -117,6 +117,18 @@ class FlightConfig:
     leash: float = 1.0
     arrive_tolerance: float = 0.05
     arrive_speed: float = 0.05
+    #: the SE(3) controller keeps its thrust vector within this tilt of vertical (degrees, in (0, 90))
+    #: and its vertical part at least ``min_lift`` times the weight, as PX4's MPC_TILTMAX_AIR and
+    #: MPC_THR_MIN do; null: RotorPy's unbounded controller, which can flip the vehicle when a
+    #: reference jumps metres away
+    max_tilt_deg: float | None = 45.0
+    min_lift: float = 0.2
+
+    def __post_init__(self) -> None:
+        if self.max_tilt_deg is not None and not 0.0 < self.max_tilt_deg < 90.0:
+            raise ValueError(f"flight.max_tilt_deg must lie in (0, 90), got {self.max_tilt_deg}")
+        if not 0.0 <= self.min_lift < 1.0:
+            raise ValueError(f"flight.min_lift must lie in [0, 1), got {self.min_lift}")
 
 
 @dataclass

@@ -120,8 +120,10 @@ def test_goto_trajectory_peak_speed_and_short_yaw():
     assert tr.flat(tr.duration)[9] == pytest.approx(3.0 + (2 * np.pi - 6.0))  # the short way round
 
 
-def test_closed_loop_matches_rotorpy_integration_within_1cm():
-    """10 s of min-snap tracking: compiled RK4 vs RotorPy's solve_ivp loop, same controller."""
+@pytest.mark.parametrize("max_tilt_deg", [None, 45.0])
+def test_closed_loop_matches_rotorpy_integration_within_1cm(max_tilt_deg):
+    """10 s of min-snap tracking: compiled RK4 vs RotorPy's solve_ivp loop, same controller (with the
+    default thrust bounds too: a flyable trajectory never reaches them)."""
     qp = get_params("hummingbird")
     traj = MinSnap(
         np.array([[0, 0, 1.0], [3, 2, 2.5], [5, -1, 1.5], [1, 1, 1]]),
@@ -138,7 +140,7 @@ def test_closed_loop_matches_rotorpy_integration_within_1cm():
         "rotor_speeds": np.full(4, 1788.53),
     }
     ref_v, ref_c = Multirotor(qp, initial_state=init, enable_ground=True), SE3Control(qp)
-    fast_v, fast_c = FastMultirotor(qp, substep=1e-3), FastSE3Control(qp)
+    fast_v, fast_c = FastMultirotor(qp, substep=1e-3), FastSE3Control(qp, max_tilt_deg, 0.2)
     st, s = {k: v.copy() for k, v in init.items()}, pack_state(init)
     err = []
     for i in range(1000):
@@ -148,6 +150,50 @@ def test_closed_loop_matches_rotorpy_integration_within_1cm():
         err.append(np.linalg.norm(st["x"] - s[STATE.x]))
     assert max(err) < 0.01
     assert np.linalg.norm(unpack_state(s)["x"] - traj.update(10.0)["x"]) < 0.1  # it really flew the path
+
+
+def _worst_reference_steps(ctrl: FastSE3Control, trials: int = 150) -> tuple[float, float]:
+    """Largest tilt (degrees) and altitude lost below the lower of start and reference (m) over random
+    reference jumps: 3 m sideways and 1.5 m up or down (1 sigma), random velocities and headings."""
+    qp = get_params("hummingbird")
+    vehicle, rs = FastMultirotor(qp, enable_ground=False), np.random.default_rng(7)
+    lo, hi = qp["rotor_speed_min"], qp["rotor_speed_max"]
+    tilt, drop = 0.0, 0.0
+    for _ in range(trials):
+        s = pack_state(
+            {
+                "x": np.array([0, 0, 10.0]),
+                "v": rs.normal(size=3) * 2,
+                "q": np.array([0, 0, 0, 1.0]),
+                "w": np.zeros(3),
+                "wind": np.zeros(3),
+                "rotor_speeds": np.full(4, vehicle.hover_speed),
+            }
+        )
+        flat = np.zeros(11)
+        flat[0:3] = [0, 0, 10.0] + rs.normal(size=3) * [3, 3, 1.5]
+        flat[3:6] = rs.normal(size=3)
+        flat[9] = rs.uniform(-np.pi, np.pi)
+        for _ in range(300):
+            vehicle.step(s, np.clip(ctrl.motor_speeds(s, flat), lo, hi), 0.01)
+            x, y = s[STATE.q][0], s[STATE.q][1]
+            tilt = max(tilt, np.degrees(np.arccos(np.clip(1 - 2 * (x * x + y * y), -1, 1))))
+            drop = max(drop, min(flat[2], 10.0) - s[STATE.x][2])
+    return tilt, drop
+
+
+def test_thrust_bounds_keep_the_vehicle_upright_when_the_reference_jumps():
+    """RotorPy's SE(3) controller asks for any force the position error gives: a reference metres away
+    and below tips the vehicle past 90 degrees, and it flies itself metres down (the planning
+    benchmark saw an 8 m/s impact after an emergency stop). With PX4-like bounds (tilt <= 45 degrees,
+    lift >= 0.2 g) no jump turns it over and none costs more than a few metres of overshoot."""
+    qp = get_params("hummingbird")
+    tilt, drop = _worst_reference_steps(FastSE3Control(qp))
+    assert tilt > 120 and drop > 5  # the case this is about
+    tilt, drop = _worst_reference_steps(FastSE3Control(qp, max_tilt_deg=45.0, min_lift=0.2))
+    assert tilt < 80 and drop < 3
+    with pytest.raises(ValueError, match="max_tilt_deg"):
+        FastSE3Control(qp, max_tilt_deg=90.0)
 
 
 def test_motors_off_rests_on_ground():

@@ -70,7 +70,7 @@ class FlightController:
 
     def __init__(self, quad_params: dict[str, Any], cfg: FlightConfig) -> None:
         self.cfg = cfg
-        self.se3 = FastSE3Control(quad_params)
+        self.se3 = FastSE3Control(quad_params, cfg.max_tilt_deg, cfg.min_lift)
         self.mode = Mode.IDLE
         self.trajectory: PolyTrajectory | None = None
         self.velocity_ref: VelocityReference | None = None

@@ -4,6 +4,13 @@
 than the whole physics step. :class:`FastSE3Control` computes the identical motor-speed command
 (same gains, same allocation matrix; equality with RotorPy is asserted in the tests) in a few
 microseconds.
+
+Optionally it bounds the desired thrust vector as an autopilot's position controller does (PX4's
+``MPC_TILTMAX_AIR`` and ``MPC_THR_MIN``): its vertical part at least ``min_lift`` times the weight and
+its tilt from vertical at most ``max_tilt_deg``. RotorPy's controller has neither: when a reference
+jumps metres away (a planner's emergency stop, a late plan), the desired force can point sideways or
+down, and the vehicle rolls past 90 degrees and flies itself into the ground. Within the bounds the
+command is RotorPy's.
 """
 
 from __future__ import annotations
@@ -37,12 +44,21 @@ def se3_motor_speeds(
     kd_att: float,
     TM_to_f: np.ndarray,
     k_eta: float,
+    tan_max_tilt: float,
+    min_lift: float,
 ) -> np.ndarray:
     g = 9.81
     F_des = np.empty(3)
     for i in range(3):
         F_des[i] = mass * (-kp_pos[i] * (x[i] - flat[i]) - kd_pos[i] * (v[i] - flat[3 + i]) + flat[6 + i])
     F_des[2] += mass * g
+    if tan_max_tilt > 0.0:  # the autopilot's thrust bounds: vertical part first, then the tilt
+        F_des[2] = max(F_des[2], min_lift * mass * g)
+        horizontal = math.sqrt(F_des[0] ** 2 + F_des[1] ** 2)
+        most = F_des[2] * tan_max_tilt
+        if horizontal > most:
+            F_des[0] *= most / horizontal
+            F_des[1] *= most / horizontal
     R = quat_to_matrix(q)
     u1 = F_des[0] * R[0, 2] + F_des[1] * R[1, 2] + F_des[2] * R[2, 2]
 
@@ -87,9 +103,20 @@ def pack_flat(flat_output: dict[str, Any]) -> np.ndarray:
 
 
 class FastSE3Control:
-    """Gains and allocation taken from a RotorPy ``SE3Control`` built with the same parameters."""
+    """Gains and allocation taken from a RotorPy ``SE3Control`` built with the same parameters.
 
-    def __init__(self, quad_params: dict[str, Any]) -> None:
+    ``max_tilt_deg`` (in (0, 90); None: no bounds, RotorPy's exact controller) and ``min_lift`` (share of
+    the weight, in [0, 1)) bound the desired thrust vector, see the module docstring."""
+
+    def __init__(
+        self, quad_params: dict[str, Any], max_tilt_deg: float | None = None, min_lift: float = 0.0
+    ) -> None:
+        if max_tilt_deg is not None and not 0.0 < max_tilt_deg < 90.0:
+            raise ValueError(f"max_tilt_deg must lie in (0, 90) degrees, got {max_tilt_deg}")
+        if not 0.0 <= min_lift < 1.0:
+            raise ValueError(f"min_lift must lie in [0, 1), got {min_lift}")
+        self.tan_max_tilt = 0.0 if max_tilt_deg is None else math.tan(math.radians(max_tilt_deg))
+        self.min_lift = float(min_lift)
         ref = SE3Control(quad_params)
         self.mass = float(ref.mass)
         self.inertia = np.ascontiguousarray(ref.inertia, dtype=float)
@@ -116,4 +143,6 @@ class FastSE3Control:
             self.kd_att,
             self.TM_to_f,
             self.k_eta,
+            self.tan_max_tilt,
+            self.min_lift,
         )
