@@ -73,6 +73,12 @@ class PlanNodeConfig:
     stop_margin_s: float = 1.0
     #: largest yaw rate the trajectory server commands (rad/s), like EGO's traj_server
     max_yaw_rate: float = math.pi / 2
+    #: a plan that took longer than this (sim time; the planner runs on the wall clock beside the
+    #: simulation) is dropped and made again: its start state lies that far in the past
+    max_plan_lag_s: float = 0.3
+    #: the odometry further than this from the reference (a collision, a gust, a rejected command):
+    #: the trajectory no longer describes the vehicle, so the next plan starts from the odometry
+    max_tracking_error: float = 1.0
     #: optional box ((xmin, ymin, zmin), (xmax, ymax, zmax)) goals must lie in; without it a goal must
     #: lie inside the local map when it arrives (goals further than the horizon are then approached in steps)
     bounds: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
@@ -86,6 +92,8 @@ class PlanNodeConfig:
             raise ValueError("replan_period_s, depth_timeout_s and goal_tolerance must be positive")
         if self.max_yaw_rate <= 0:
             raise ValueError("max_yaw_rate must be positive")
+        if self.max_plan_lag_s <= 0 or self.max_tracking_error <= 0:
+            raise ValueError("max_plan_lag_s and max_tracking_error must be positive")
 
 
 class PlanNode:
@@ -136,6 +144,8 @@ class PlanNode:
         #: counters for tests and logs
         self.plans = 0
         self.failures = 0
+        self.stale_plans = 0
+        self.off_track = 0
         self.commands = 0
         self.reached = threading.Event()
         self.last_failure = ""
@@ -220,6 +230,8 @@ class PlanNode:
         return {
             "plans": self.plans,
             "failures": self.failures,
+            "stale_plans": self.stale_plans,
+            "off_track": self.off_track,
             "commands": self.commands,
             "last_failure": self.last_failure,
             "plan_s": list(self.cycle_s),
@@ -285,6 +297,15 @@ class PlanNode:
             if new_goal and not self._goal_allowed(goal):
                 continue
             t_rel = ns_to_seconds(now - t0)
+            if traj is not None and not new_goal:
+                off = float(np.linalg.norm(odom[1] - traj.position(min(t_rel, traj.duration))))
+                if off > self.cfg.max_tracking_error:
+                    log.warning("the vehicle is %.2f m from its reference (a collision?): planning again "
+                                "from its odometry", off)  # fmt: skip
+                    self.off_track += 1
+                    self._replan(goal, odom, now, traj, t_rel, new_goal, from_odom=True)
+                    last_plan_ns = now
+                    continue
             due = new_goal or last_plan_ns is None or now - last_plan_ns >= self.cfg.replan_period_s * 1e9
             ended = traj is not None and t_rel >= traj.duration and not new_goal
             if ended and self._traj_goal is goal:
@@ -304,9 +325,11 @@ class PlanNode:
             last_plan_ns = now
 
     def _replan(self, goal: np.ndarray, odom: tuple, now: int, traj: BSpline | None, t_rel: float,
-                new_goal: bool) -> None:  # fmt: skip
-        """Plan from the odometry state (first plan) or the current reference (replans, continuity)."""
-        if traj is None or new_goal:
+                new_goal: bool, from_odom: bool = False) -> None:  # fmt: skip
+        """Plan from the odometry state (first plan, or the vehicle off its reference) or the current
+        reference (replans, continuity). A plan that took more than ``max_plan_lag_s`` of sim time is
+        dropped: it starts where the vehicle was, and serving it would jump the reference ahead."""
+        if traj is None or new_goal or from_odom:
             p0, v0, a0 = odom[1], odom[3], np.zeros(3)
         else:
             p0, v0, a0 = traj.position(t_rel), traj.velocity(t_rel), traj.acceleration(t_rel)
@@ -316,12 +339,23 @@ class PlanNode:
         self.cycle_s.append(time.perf_counter() - t_wall)
         reason = self.planner.reason
         with self._lock:
+            lag = ns_to_seconds(self._now_ns - now)
+            if plan is not None and lag > self.cfg.max_plan_lag_s:
+                log.warning("a plan took %.2f s of sim time (%.0f ms): dropped, planning again from the "
+                            "newer state", lag, 1e3 * self.cycle_s[-1])  # fmt: skip
+                self.stale_plans += 1
+                if from_odom:
+                    self._traj, self._hold = None, odom[1]
+                return
             if plan is None:
                 self.failures += 1
                 self.last_failure = reason
                 if new_goal or (traj is None and self._hold is None):
                     log.error("no motion: %s", reason)
                     self._traj, self._hold, self._goal = None, None, None
+                elif from_odom:
+                    log.warning("replan from the odometry failed (%s): stopping", reason)
+                    self._traj, self._hold = None, odom[1]
                 elif traj is None:
                     if not self._failing:
                         log.warning("still stopped at %s: %s; retrying", self._hold.round(2), reason)
