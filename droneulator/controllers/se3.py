@@ -7,10 +7,12 @@ microseconds.
 
 Optionally it bounds the desired thrust vector as an autopilot's position controller does (PX4's
 ``MPC_TILTMAX_AIR`` and ``MPC_THR_MIN``): its vertical part at least ``min_lift`` times the weight and
-its tilt from vertical at most ``max_tilt_deg``. RotorPy's controller has neither: when a reference
-jumps metres away (a planner's emergency stop, a late plan), the desired force can point sideways or
-down, and the vehicle rolls past 90 degrees and flies itself into the ground. Within the bounds the
-command is RotorPy's.
+its tilt from vertical at most ``max_tilt_deg``; and it gives up yaw moment before thrust when a rotor
+would leave its speed range, as PX4's mixer does. RotorPy's controller has none of these: when a
+reference jumps metres away (a planner's emergency stop, a late plan) the desired force can point
+sideways or down, and the vehicle rolls past 90 degrees and flies itself into the ground; and a yaw
+command of 1 rad/s asks two rotors for negative thrust, the clipped command lifts the vehicle and it
+climbs metres while it turns. Within the bounds the command is RotorPy's.
 """
 
 from __future__ import annotations
@@ -46,6 +48,8 @@ def se3_motor_speeds(
     k_eta: float,
     tan_max_tilt: float,
     min_lift: float,
+    f_min: float,
+    f_max: float,
 ) -> np.ndarray:
     g = 9.81
     F_des = np.empty(3)
@@ -84,6 +88,18 @@ def se3_motor_speeds(
     u2 = inertia @ (-kp_att * att_err - kd_att * w_err) + gyro
     TM = np.array([u1, u2[0], u2[1], u2[2]])
     f = TM_to_f @ TM
+    if f_max > f_min:  # yaw desaturation: scale the yaw moment down until every rotor is in range
+        keep = 1.0
+        for i in range(4):
+            yaw_part = TM_to_f[i, 3] * TM[3]
+            rest = f[i] - yaw_part
+            if yaw_part < 0.0 and f[i] < f_min:
+                keep = min(keep, max(0.0, (f_min - rest) / yaw_part))
+            elif yaw_part > 0.0 and f[i] > f_max:
+                keep = min(keep, max(0.0, (f_max - rest) / yaw_part))
+        if keep < 1.0:
+            for i in range(4):
+                f[i] -= (1.0 - keep) * TM_to_f[i, 3] * TM[3]
     out = np.empty(4)
     for i in range(4):
         c = f[i] / k_eta
@@ -106,7 +122,8 @@ class FastSE3Control:
     """Gains and allocation taken from a RotorPy ``SE3Control`` built with the same parameters.
 
     ``max_tilt_deg`` (in (0, 90); None: no bounds, RotorPy's exact controller) and ``min_lift`` (share of
-    the weight, in [0, 1)) bound the desired thrust vector, see the module docstring."""
+    the weight, in [0, 1)) bound the desired thrust vector; with them the yaw moment is also given up
+    before thrust when a rotor would leave its speed range (see the module docstring)."""
 
     def __init__(
         self, quad_params: dict[str, Any], max_tilt_deg: float | None = None, min_lift: float = 0.0
@@ -118,6 +135,11 @@ class FastSE3Control:
         self.tan_max_tilt = 0.0 if max_tilt_deg is None else math.tan(math.radians(max_tilt_deg))
         self.min_lift = float(min_lift)
         ref = SE3Control(quad_params)
+        # rotor force range for the yaw desaturation, on with the thrust bounds (both 0: off)
+        bounded = max_tilt_deg is not None
+        k = float(quad_params["k_eta"])
+        self.f_min = k * float(quad_params["rotor_speed_min"]) ** 2 if bounded else 0.0
+        self.f_max = k * float(quad_params["rotor_speed_max"]) ** 2 if bounded else 0.0
         self.mass = float(ref.mass)
         self.inertia = np.ascontiguousarray(ref.inertia, dtype=float)
         self.kp_pos = np.asarray(ref.kp_pos, dtype=float)
@@ -145,4 +167,6 @@ class FastSE3Control:
             self.k_eta,
             self.tan_max_tilt,
             self.min_lift,
+            self.f_min,
+            self.f_max,
         )
