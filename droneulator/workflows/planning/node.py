@@ -292,6 +292,9 @@ class PlanNode:
                     self.map_s.append(time.perf_counter() - t_map)
                     if len(self.map_s) == 1:
                         log.info("first depth image integrated (%d voxel updates)", updates)
+                with self._lock:  # the state the plan starts from is the one after the map update
+                    odom, now = self._odom, self._now_ns
+                    traj, t0 = self._traj, self._traj_t0_ns
             if goal is None or odom is None or now is None or self.reached.is_set():
                 continue
             if new_goal and not self._goal_allowed(goal):
