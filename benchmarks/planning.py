@@ -55,10 +55,11 @@ def _pct(values: list[float], q: float) -> float:
     return float(np.percentile(values, q)) if values else float("nan")
 
 
-def _planner(endpoint: str, ns: str, bounds: list[float], stats: Path, log: Path) -> subprocess.Popen:
+def _planner(endpoint: str, ns: str, bounds: list[float], stats: Path, log: Path,
+             margin: float) -> subprocess.Popen:  # fmt: skip
     cmd = [sys.executable, "-m", "droneulator.cli", "plan", "--zenoh", endpoint, "--namespace", ns,
            "--bounds", *map(str, bounds), "--ceiling", str(CEILING), "--floor", str(FLOOR),
-           "--margin", str(MARGIN), "--stats", str(stats), "-v"]  # fmt: skip
+           "--margin", str(margin), "--stats", str(stats), "-v"]  # fmt: skip
     out = open(log, "w")  # noqa: SIM115 (closed with the process by the OS)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env)
@@ -81,7 +82,7 @@ def fly_one(run, client, goal_pub, goal: np.ndarray, start: np.ndarray, bounds: 
     client.takeoff(altitude=ALTITUDE)
     client.wait_for_event("arrived", timeout=120)
     stats, log = workdir / f"plan_{index}.json", workdir / f"plan_{index}.log"
-    proc = _planner(run.zenoh_endpoint, run.config.bridge.namespace, bounds, stats, log)
+    proc = _planner(run.zenoh_endpoint, run.config.bridge.namespace, bounds, stats, log, args.margin)
     try:
         _wait_for_line(log, "first depth image integrated", proc, 120)
         s0 = client.state()
@@ -208,6 +209,7 @@ def main() -> None:
     ap.add_argument("--settle", type=float, default=2.0, help="sim s after arrival before the goal error")
     ap.add_argument("--timeout", type=float, default=60.0, help="sim seconds allowed per flight")
     ap.add_argument("--repeat", type=int, default=1, help="fly each goal this many times")
+    ap.add_argument("--margin", type=float, default=MARGIN, help="planner inflation margin (m)")
     ap.add_argument("--logs", default=None, help="keep the simulator's and the planner's logs and stats here")
     ap.add_argument("--output", default=None, help="JSON path (default benchmarks/results/planning.json)")
     args = ap.parse_args()
