@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -74,10 +75,11 @@ def test_rendered_wall_becomes_occupied_and_space_before_it_free(wall) -> None:
     depth, T_wo, K = wall
     assert np.isnan(depth).any() and np.isfinite(depth).any()  # sky above the wall: no returns
     cfg = PlannerConfig()
+    ego = LocalMap(dataclasses.replace(cfg, p_hit=0.70), centre=np.array([0.0, 0.0, 1.5]))
+    ego.update(depth, T_wo, K)
+    assert not ego.occupied_grid().any()  # EGO's sensor model: one hit (p 0.7) stays below p_occupied 0.8
     m = LocalMap(cfg, centre=np.array([0.0, 0.0, 1.5]))
-    m.update(depth, T_wo, K)
-    assert not m.occupied_grid().any()  # one hit (p 0.7) stays below the occupied threshold (0.8)
-    m.update(depth, T_wo, K)
+    m.update(depth, T_wo, K)  # the default (p 0.82): one frame maps the wall
     occ = m.point(np.argwhere(m.occupied_grid()))
     assert len(occ) > 500
     # every occupied voxel lies on the wall, within one voxel

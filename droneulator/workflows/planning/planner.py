@@ -306,7 +306,7 @@ class Planner:
         T = frames.T_link_optical()  # a camera at the origin looking along world +x
         depth = np.full((60, 80), np.nan, dtype=np.float32)
         depth[:, 30:50] = 2.0
-        for _ in range(3):  # a voxel needs two hits to count as occupied
+        for _ in range(3):  # however many hits the sensor model needs to call a voxel occupied
             scratch.update_map(depth, T, K)
         scratch.map.recenter(np.array([0.0, 0.0, 0.05]), force=True)
         if scratch.plan(np.zeros(3), np.zeros(3), np.zeros(3), np.array([4.0, 0.0, 0.0])) is None:
