@@ -119,8 +119,9 @@ class FlightConfig:
     arrive_speed: float = 0.05
     #: the SE(3) controller keeps its thrust vector within this tilt of vertical (degrees, in (0, 90))
     #: and its vertical part at least ``min_lift`` times the weight, as PX4's MPC_TILTMAX_AIR and
-    #: MPC_THR_MIN do; null: RotorPy's unbounded controller, which can flip the vehicle when a
-    #: reference jumps metres away
+    #: MPC_THR_MIN do, and gives up yaw moment before thrust when a rotor saturates (PX4's mixer);
+    #: null: RotorPy's unbounded controller, which can flip the vehicle when a reference jumps metres
+    #: away and lifts it when the heading is far off
     max_tilt_deg: float | None = 45.0
     min_lift: float = 0.2
 

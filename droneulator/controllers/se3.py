@@ -11,8 +11,8 @@ its tilt from vertical at most ``max_tilt_deg``; and it gives up yaw moment befo
 would leave its speed range, as PX4's mixer does. RotorPy's controller has none of these: when a
 reference jumps metres away (a planner's emergency stop, a late plan) the desired force can point
 sideways or down, and the vehicle rolls past 90 degrees and flies itself into the ground; and a yaw
-command of 1 rad/s asks two rotors for negative thrust, the clipped command lifts the vehicle and it
-climbs metres while it turns. Within the bounds the command is RotorPy's.
+error of a radian or two asks two rotors for negative thrust, the clipped command lifts the vehicle
+and it climbs while it turns. Within the bounds the command is RotorPy's.
 """
 
 from __future__ import annotations
