@@ -66,6 +66,11 @@ def test_a_run_serves_its_api_and_topics_on_the_chosen_ports_and_stops_cleanly(t
             assert time.monotonic() < deadline, "the bridge never started"
             time.sleep(0.1)
     assert run.proc.returncode == 0  # SIGTERM: an orderly shutdown
-    assert ps("-g", str(run.pid)) == []  # the whole group (dynamics, render, bridge) is gone
+    # the whole group (dynamics, render, bridge) is gone; a child may still be tearing down its memory
+    # for a moment (``ps`` shows it as ``[python]``) on a loaded machine
+    deadline = time.monotonic() + 5
+    while ps("-g", str(run.pid)) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert ps("-g", str(run.pid)) == []
     assert "bridge ready" in (tmp_path / "run.log").read_text()
     assert "bridge ready" in run.log.tail(200)

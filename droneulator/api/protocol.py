@@ -256,7 +256,11 @@ OPS: dict[str, Op] = {
             "track",
             "Track one setpoint of a stream (e.g. a planner's, like EGO-Planner's PositionCommand on "
             "`/<ns>/position_cmd`): the SE(3) controller takes it as its reference, propagated with "
-            "constant acceleration and yaw rate until the next one. Send them at 20 Hz or more: after "
+            "constant acceleration and yaw rate until the next one. The controller bounds what it asks "
+            "of the vehicle as an autopilot does (thrust tilt at most `flight.max_tilt_deg`, 45 deg; "
+            "vertical thrust at least `flight.min_lift`, 0.2 g; yaw moment reduced first when a rotor "
+            "saturates), so a setpoint far from the vehicle brings it there without turning it over. "
+            "Send them at 20 Hz or more: after "
             "0.5 s of sim time without one the vehicle holds where it is and a `track_timeout` event "
             "follows. Needs the vehicle airborne.",
             f"`t`: {_T}",

@@ -78,6 +78,7 @@ class PlanNodeConfig:
     max_plan_lag_s: float = 0.3
     #: the odometry further than this from the reference (a collision, a gust, a rejected command):
     #: the trajectory no longer describes the vehicle, so the next plan starts from the odometry
+    #: (``math.inf``: never, e.g. when something other than these setpoints flies the vehicle)
     max_tracking_error: float = 1.0
     #: optional box ((xmin, ymin, zmin), (xmax, ymax, zmax)) goals must lie in; without it a goal must
     #: lie inside the local map when it arrives (goals further than the horizon are then approached in steps)
