@@ -26,6 +26,7 @@ from droneulator.workflows.photogrammetry.mvs import (  # noqa: E402
     plane_sweep,
     select_neighbors,
 )
+from droneulator.workflows.photogrammetry.patchmatch import patchmatch_refine  # noqa: E402
 from droneulator.workflows.photogrammetry.truth import (  # noqa: E402
     GROUND,
     TREE,
@@ -250,6 +251,28 @@ def test_geometric_term_is_small_at_the_true_depth_and_capped_away_from_it():
     no_depth = np.full((H, W), np.nan, np.float32)
     _forward_backward_error(plane_homography(ref, src, z), N, kt, no_depth, 3.0, err)
     assert (err == 3.0).all()
+
+
+def test_patchmatch_recovers_a_slanted_planes_depth_and_normal_from_a_random_start():
+    views, depths = _views([-0.4, 0.4])
+    ref, src = views
+    no_seed = np.full((H, W), np.nan, np.float32)  # every pixel starts at a random depth, fronto-parallel
+    pm = patchmatch_refine(ref, [src], no_seed, 2.0, 4.5, iterations=4, best_k=1)
+    err = np.abs(pm.depth - depths[0])
+    valid = np.isfinite(err)
+    assert valid.mean() > 0.8  # everything both cameras see, but the borders
+    assert (err[valid] < 0.01 * depths[0][valid]).mean() > 0.85
+    assert np.median(err[valid]) < 0.003
+    # the plane's normal in the reference optical frame, facing the camera, 18 degrees off the optical axis
+    n = np.linalg.inv(ref.T_world_cam)[:3, :3] @ np.cross(E1, E2)
+    n = -n if n[2] > 0 else n
+    angle = np.degrees(np.arccos(np.clip(pm.normal[valid] @ n, -1.0, 1.0)))
+    assert np.median(angle) < 12.0, np.median(angle)  # a fronto-parallel plane: 18 degrees
+    # started from the truth, it stays there
+    kept = patchmatch_refine(ref, [src], depths[0].astype(np.float32), 2.0, 4.5, iterations=1, best_k=1)
+    assert np.median(np.abs(kept.depth - depths[0])[np.isfinite(kept.depth)]) < 0.003
+    with pytest.raises(ValueError):
+        MvsOptions(patchmatch_iterations=-1)
 
 
 def test_ply_round_trip(tmp_path: Path):

@@ -32,6 +32,7 @@ from droneulator.workflows.photogrammetry.mvs import (
     plane_sweep,
     select_neighbors,
 )
+from droneulator.workflows.photogrammetry.patchmatch import patchmatch_refine, patchmatch_settings
 
 #: a view needs this many sparse points for its own depth range and neighbours
 MIN_SPARSE = 10
@@ -126,6 +127,7 @@ def dense_cpu(
     depths: list[np.ndarray] = []
     alternatives: list[np.ndarray | None] = []
     per_view: list[dict[str, Any]] = []
+    pm_time = 0.0
     t0 = time.perf_counter()
     # the photometric pass, then (geom_weight > 0) the pass checked against the neighbours' first depths
     for geometric_pass in (False, True) if opts.mvs.geom_weight > 0 else (False,):
@@ -139,7 +141,14 @@ def dense_cpu(
                 per_view.append({"name": v.name, "pixels": 0, "skipped": True})
                 continue
             priors = [first[j] for j in neighbors[i]] if geometric_pass else None
-            dm = plane_sweep(v, [views[j] for j in neighbors[i]], rng[0], rng[1], opts.mvs, priors)
+            sources = [views[j] for j in neighbors[i]]
+            dm = plane_sweep(v, sources, rng[0], rng[1], opts.mvs, priors)
+            if opts.mvs.patchmatch_iterations > 0:
+                t_pm = time.perf_counter()
+                dm.depth = patchmatch_refine(
+                    v, sources, dm.depth, rng[0], rng[1], **patchmatch_settings(opts.mvs)
+                ).depth
+                pm_time += time.perf_counter() - t_pm
             depths.append(dm.depth)
             alternatives.append(dm.alternatives)
             per_view.append(
@@ -177,6 +186,7 @@ def dense_cpu(
             "load": round(t_load, 3),
             "stereo": round(t_stereo, 3),
             "fusion": round(t_fusion, 3),
+            "patchmatch": round(pm_time, 3),
             "total": round(t_load + t_stereo + t_fusion, 3),
         },
         "options": asdict(opts),

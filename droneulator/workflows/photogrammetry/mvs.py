@@ -75,6 +75,14 @@ class MvsOptions:
     geom_weight: float = 0.0
     #: the reprojection error is capped at this, pixels
     geom_max_px: float = 3.0
+    #: PatchMatch iterations refining the sweep's depths with a slanted plane per pixel
+    #: (:mod:`.patchmatch`); 0: off
+    patchmatch_iterations: int = 0
+    #: PatchMatch window radius, pixels: the 3x3 NCC costs over it are averaged with support weights
+    patchmatch_radius: int = 2
+    #: PatchMatch support weights: exp(-mean RGB difference (0 to 1) / sigma_color - distance / sigma_space)
+    patchmatch_sigma_color: float = 0.05
+    patchmatch_sigma_space: float = 5.0
 
     def __post_init__(self) -> None:
         if not 0.1 <= self.scale <= 1.0:
@@ -95,6 +103,10 @@ class MvsOptions:
             raise ValueError("mvs needs geom_weight >= 0 and geom_max_px > 0")
         if self.candidates < 1:
             raise ValueError(f"mvs candidates must be >= 1, got {self.candidates}")
+        if self.patchmatch_iterations < 0 or self.patchmatch_radius < 1:
+            raise ValueError("mvs needs patchmatch_iterations >= 0 and patchmatch_radius >= 1")
+        if not (self.patchmatch_sigma_color > 0 and self.patchmatch_sigma_space > 0):
+            raise ValueError("mvs needs patchmatch_sigma_color > 0 and patchmatch_sigma_space > 0")
 
 
 @dataclass
