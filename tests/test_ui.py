@@ -72,7 +72,12 @@ class Stack:
         self.ui_port = ui_port
         self.run = run
         self.page = page
-        self.client = run.client()
+        try:
+            self.client = run.client()
+        except OSError as exc:  # say why: one fresh-clone CI run found the API gone at this point
+            raise RuntimeError(
+                f"the run stopped answering ({exc}); running: {run.running()}; log:\n{run.log.tail(40)}"
+            ) from exc
 
     def wait(self, predicate, timeout: float, what: str, poll: float = 0.1):
         deadline = time.monotonic() + timeout
