@@ -153,6 +153,12 @@ def test_closed_loop_matches_rotorpy_integration_within_1cm(max_tilt_deg):
     assert np.linalg.norm(unpack_state(s)["x"] - traj.update(10.0)["x"]) < 0.1  # it really flew the path
 
 
+def _hover_at_10m(vehicle: FastMultirotor, v: np.ndarray) -> np.ndarray:
+    """Packed state: level at 10 m, moving at ``v``, rotors at hover speed."""
+    state = {"x": np.array([0, 0, 10.0]), "v": v, "q": np.array([0, 0, 0, 1.0]), "w": np.zeros(3)}
+    return pack_state({**state, "wind": np.zeros(3), "rotor_speeds": np.full(4, vehicle.hover_speed)})
+
+
 def _worst_reference_steps(ctrl: FastSE3Control, trials: int = 150) -> tuple[float, float]:
     """Largest tilt (degrees) and altitude lost below the lower of start and reference (m) over random
     reference jumps: 3 m sideways and 1.5 m up or down (1 sigma), random velocities and headings."""
@@ -161,16 +167,7 @@ def _worst_reference_steps(ctrl: FastSE3Control, trials: int = 150) -> tuple[flo
     lo, hi = qp["rotor_speed_min"], qp["rotor_speed_max"]
     tilt, drop = 0.0, 0.0
     for _ in range(trials):
-        s = pack_state(
-            {
-                "x": np.array([0, 0, 10.0]),
-                "v": rs.normal(size=3) * 2,
-                "q": np.array([0, 0, 0, 1.0]),
-                "w": np.zeros(3),
-                "wind": np.zeros(3),
-                "rotor_speeds": np.full(4, vehicle.hover_speed),
-            }
-        )
+        s = _hover_at_10m(vehicle, rs.normal(size=3) * 2)
         flat = np.zeros(11)
         flat[0:3] = [0, 0, 10.0] + rs.normal(size=3) * [3, 3, 1.5]
         flat[3:6] = rs.normal(size=3)
@@ -203,16 +200,7 @@ def _altitude_range_after_a_yaw_step(ctrl: FastSE3Control, step: float = 2.0) ->
     qp = get_params("hummingbird")
     vehicle = FastMultirotor(qp, enable_ground=False)
     lo, hi = qp["rotor_speed_min"], qp["rotor_speed_max"]
-    s = pack_state(
-        {
-            "x": np.array([0, 0, 10.0]),
-            "v": np.zeros(3),
-            "q": np.array([0, 0, 0, 1.0]),
-            "w": np.zeros(3),
-            "wind": np.zeros(3),
-            "rotor_speeds": np.full(4, vehicle.hover_speed),
-        }
-    )
+    s = _hover_at_10m(vehicle, np.zeros(3))
     flat, z = np.zeros(11), []
     flat[2], flat[9] = 10.0, step
     for _ in range(400):
@@ -223,8 +211,8 @@ def _altitude_range_after_a_yaw_step(ctrl: FastSE3Control, step: float = 2.0) ->
 
 def test_yaw_gives_way_to_thrust_when_a_rotor_saturates():
     """Told to face 2 rad away, RotorPy's controller asks two rotors for negative thrust; clipped, the
-    others' extra thrust lifts the vehicle metres (the planning benchmark's vehicle rose from 2.5 to
-    3.5 m at its goal, above the planner's ceiling). The bounded controller scales the yaw moment down
+    others' extra thrust lifts the vehicle (0.7 m here; the planning benchmark's vehicle rose from 2.5
+    to 3.5 m at its goal, above the planner's ceiling). The bounded controller scales the yaw moment down
     first, as PX4's mixer does: the altitude holds and the turn is still made."""
     qp = get_params("hummingbird")
     assert _altitude_range_after_a_yaw_step(FastSE3Control(qp))[0] > 0.5  # the case this is about

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 import time
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -168,19 +170,37 @@ class ScriptedSim:
         self._thread.join(5)
         self.node.close()
 
+    def send_goal(self, goal: list[float]) -> None:
+        self.goal.publish(M.serialize(M.pose_stamped(0, ODOM_FRAME, goal, [0, 0, 0, 1])))
 
-def test_plan_node_plans_from_the_world_frame_velocity_and_stops_commanding_without_depth():
+
+@contextlib.contextmanager
+def scripted_node() -> Iterator[tuple[ScriptedSim, PlanNode]]:
+    """A started :class:`ScriptedSim` and a default plan node on its Zenoh endpoint."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     sim = ScriptedSim(endpoint, "droneulator", "front")
     node = PlanNode(PlanNodeConfig(zenoh=endpoint))
     try:
         sim.start()
         time.sleep(0.5)
-        sim.goal.publish(M.serialize(M.pose_stamped(0, ODOM_FRAME, [0.0, 4.0, 2.0], [0, 0, 0, 1])))
-        deadline = time.monotonic() + 20
-        while len(sim.cmds) < 50:
-            assert time.monotonic() < deadline, f"no commands; last failure {node.last_failure!r}"
-            time.sleep(0.05)
+        yield sim, node
+    finally:
+        node.close()
+        sim.close()
+
+
+def _wait(cond, timeout: float, what) -> None:
+    """Poll ``cond`` until it holds; else fail with ``what`` (a string, or a function for one made then)."""
+    deadline = time.monotonic() + timeout
+    while not cond():
+        assert time.monotonic() < deadline, what() if callable(what) else what
+        time.sleep(0.05)
+
+
+def test_plan_node_plans_from_the_world_frame_velocity_and_stops_commanding_without_depth():
+    with scripted_node() as (sim, node):
+        sim.send_goal([0.0, 4.0, 2.0])
+        _wait(lambda: len(sim.cmds) >= 50, 20, lambda: f"no commands; last failure {node.last_failure!r}")
         with sim.lock:
             first = sim.cmds[0]
             stamps = np.array([header_ns(m) for m in sim.cmds])
@@ -202,34 +222,16 @@ def test_plan_node_plans_from_the_world_frame_velocity_and_stops_commanding_with
         time.sleep(0.3)
         assert len(sim.cmds) == n, "still commanding without depth"
         sim.depth_on = True
-        deadline = time.monotonic() + 10
-        while len(sim.cmds) == n:
-            assert time.monotonic() < deadline, "commands did not resume with depth"
-            time.sleep(0.05)
-    finally:
-        node.close()
-        sim.close()
-
-
-def _wait(cond, timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not cond():
-        assert time.monotonic() < deadline, what
-        time.sleep(0.05)
+        _wait(lambda: len(sim.cmds) > n, 10, "commands did not resume with depth")
 
 
 def test_a_vehicle_that_stays_behind_its_reference_is_planned_for_from_its_odometry():
     """The scripted vehicle never moves (as one stopped by a collision): once the reference is more than
     ``max_tracking_error`` ahead, the node plans again from the odometry, so what it commands stays
     near the vehicle instead of running on to the goal 6 m away."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    sim = ScriptedSim(endpoint, "droneulator", "front")
-    node = PlanNode(PlanNodeConfig(zenoh=endpoint))
-    try:
-        sim.start()
-        time.sleep(0.5)
-        sim.goal.publish(M.serialize(M.pose_stamped(0, ODOM_FRAME, [0.0, 6.0, 2.0], [0, 0, 0, 1])))
-        _wait(lambda: node.off_track >= 2, 30, f"never re-planned from odometry ({node.last_failure!r})")
+    with scripted_node() as (sim, node):
+        sim.send_goal([0.0, 6.0, 2.0])
+        _wait(lambda: node.off_track >= 2, 30, lambda: f"no re-plan from odometry ({node.last_failure!r})")
         with sim.lock:
             n = len(sim.cmds)
         t_end = sim.t_ns + 3_000_000_000
@@ -240,36 +242,26 @@ def test_a_vehicle_that_stays_behind_its_reference_is_planned_for_from_its_odome
         off = np.linalg.norm(p - sim.position, axis=1)
         assert len(later) > 100 and off.max() < node.cfg.max_tracking_error + 0.3, off.max()
         assert node.off_track >= 3  # it keeps doing so while the vehicle stays put
-    finally:
-        node.close()
-        sim.close()
 
 
 def test_a_plan_that_took_too_long_in_sim_time_is_dropped_and_made_again():
     """The first plan takes 0.6 s of wall time (about 1.2 s of the scripted sim time): it starts where the
     vehicle was, so it is dropped and the next one, made from the newer state, is flown from its start."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    sim = ScriptedSim(endpoint, "droneulator", "front")
-    node = PlanNode(PlanNodeConfig(zenoh=endpoint))
-    plan, calls = node.planner.plan, []
+    calls = []
+    with scripted_node() as (sim, node):
+        plan = node.planner.plan
 
-    def slow_first(*args):
-        calls.append(1)
-        if len(calls) == 1:
-            time.sleep(0.6)
-        return plan(*args)
+        def slow_first(*args):
+            calls.append(1)
+            if len(calls) == 1:
+                time.sleep(0.6)
+            return plan(*args)
 
-    node.planner.plan = slow_first
-    try:
-        sim.start()
-        time.sleep(0.5)
-        sim.goal.publish(M.serialize(M.pose_stamped(0, ODOM_FRAME, [0.0, 4.0, 2.0], [0, 0, 0, 1])))
-        _wait(lambda: len(sim.cmds) >= 5, 20, f"no commands; last failure {node.last_failure!r}")
+        node.planner.plan = slow_first
+        sim.send_goal([0.0, 4.0, 2.0])
+        _wait(lambda: len(sim.cmds) >= 5, 20, lambda: f"no commands; last failure {node.last_failure!r}")
         assert node.stale_plans == 1 and len(calls) >= 2 and node.plans >= 1
         with sim.lock:
             first = sim.cmds[0]
         p0 = np.array([first.position.x, first.position.y, first.position.z])
         assert np.linalg.norm(p0 - sim.position) < 0.05, p0  # flown from its start, no jump ahead
-    finally:
-        node.close()
-        sim.close()
