@@ -178,10 +178,13 @@ def devtools_port(profile: Path, timeout: float = 60.0) -> int:
 
 
 def without_ui(args: argparse.Namespace) -> dict:
-    with launch_run(load_config(scene=args.scene), ["--lockstep"], start_timeout=180) as run:
-        client = fly(run)
-        res = measure_rtf(client, args.seconds, args.warmup)
-        client.close()
+    """The baseline: the same run with the same latency log (only the UI and the browser differ)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg = load_config(scene=args.scene, overrides=[f"bridge.latency_log={Path(tmp) / 'latency.log'}"])
+        with launch_run(cfg, ["--lockstep"], start_timeout=180) as run:
+            client = fly(run)
+            res = measure_rtf(client, args.seconds, args.warmup)
+            client.close()
     return res
 
 

@@ -188,7 +188,11 @@ def test_fly_and_decode_every_topic(run):
     # odom_world: the same odometry with the twist in the world frame (EGO-Planner's convention)
     world = {stamp_ns(m): m for _, m in msgs["droneulator/odom_world"]}
     both = sorted(set(world) & set(odom))
-    assert len(both) > 10
+    assert len(both) > 10, (
+        f"{len(both)} common stamps: odom {len(odom)} in [{min(odom)}, {max(odom)}] ns, odom_world "
+        f"{len(world)} in [{min(world, default=None)}, {max(world, default=None)}] ns\n"
+        + "\n".join(run.log[-30:])
+    )
     moving = 0
     for t in both:
         a, b = odom[t], world[t]

@@ -126,18 +126,21 @@ def test_image_frames_round_trip_and_reject_truncation() -> None:
 
 @pytest.mark.slow
 def test_depth_colours_follow_the_colour_map() -> None:
-    """The UI's depth view: the table lookup gives the colour map's colours to within one level."""
+    """The UI's depth view: the table lookup gives the colour map's colours to within one level, and no
+    depth (NaN, an infinity) is black."""
     depth = np.linspace(-1.0, 25.0, 4000, dtype=np.float32).reshape(40, 100)
-    depth[3, 7] = np.nan
-    x = 1.0 - np.clip(np.nan_to_num(depth, nan=20.0) / 20.0, 0.0, 1.0)
+    depth[3, 7], depth[4, 8], depth[5, 9] = np.nan, np.inf, -np.inf
+    x = 1.0 - np.clip(np.where(np.isfinite(depth), depth, 20.0) / 20.0, 0.0, 1.0)
     r, g = np.clip(1.6 * x - 0.2, 0, 1), np.clip(1.4 * x * x, 0, 1)
     want = np.stack([r, g, np.clip(0.6 - 0.6 * x, 0, 1) * x + 0.15 * x], -1)
     want = (want * 255).astype(np.uint8)
-    want[3, 7] = 0
+    want[3, 7] = want[4, 8] = want[5, 9] = 0
     got = depth_to_rgb(depth, 20.0)
     assert got.shape == (40, 100, 3) and got.dtype == np.uint8
     assert np.abs(got.astype(int) - want).max() <= 2
-    assert (got[3, 7] == 0).all() and (got[depth >= 20.0] == got[-1, -1]).all()
+    assert (got[3:6, 7:10].diagonal(axis1=0, axis2=1) == 0).all()  # NaN and both infinities: black
+    far = np.isfinite(depth) & (depth >= 20.0)
+    assert (got[far] == got[-1, -1]).all()
 
 
 def test_ui_threads_run_at_a_lower_priority() -> None:

@@ -55,7 +55,13 @@ class Frame:
     kind: str
     seq: int
     stamp_ns: int
-    blob: bytes
+    header: dict[str, Any]
+    data: bytes
+
+    def blob(self, more: int = 0) -> bytes:
+        """The WebSocket message (:func:`pack_frame`); ``more``: how many images of the same burst follow
+        it, so the page paints a burst once, when its last image is decoded."""
+        return pack_frame({**self.header, "more": more}, self.data)
 
 
 def pack_frame(header: dict[str, Any], data: bytes) -> bytes:
@@ -259,7 +265,7 @@ class ImageHub:
                 "height": h,
                 "encoded_ns": time.time_ns(),
             }
-            out.append(Frame(cam, kind, n, stamp, pack_frame(header, data)))
+            out.append(Frame(cam, kind, n, stamp, header, data))
         self.encoded += len(out)
         return out
 

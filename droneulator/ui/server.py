@@ -424,6 +424,7 @@ class BrowserSession:
 
         while True:
             await server.wait_frames(newer)
+            burst = []
             for key, frame in list(server.frames.items()):
                 last = self._sent_seq.get(key, 0)
                 if frame.seq <= last:
@@ -431,7 +432,9 @@ class BrowserSession:
                 if last:
                     self.skipped += frame.seq - last - 1
                 self._sent_seq[key] = frame.seq
-                await self.ws.send(frame.blob)
+                burst.append(frame)
+            for i, frame in enumerate(burst):
+                await self.ws.send(frame.blob(more=len(burst) - 1 - i))
                 self.sent += 1
 
     async def _send_status(self) -> None:

@@ -382,4 +382,4 @@ async function init() {
 }
 
 init().catch((err) => showError(`the page could not start: ${describe(err)}`));
-setInterval(renderTelemetry, 1000);
+setInterval(() => painter.add("telemetry", renderTelemetry), 1000); // with the next paint

@@ -12,6 +12,10 @@ import { painter } from "./painter.js";
 
 const KIND_TITLES = { rgb: "RGB", depth: "Depth", seg: "Segmentation" };
 const SHOWN_LOG = 2000;
+// The UI server sends each round's images back to back, every header saying how many more follow
+// (`more`). The paint waits for the round's last image (at most BURST_WAIT_MS), so one round is one
+// frame of the browser's compositor, not two or three (docs/ui.md).
+const BURST_WAIT_MS = 50;
 
 export class CameraViews {
   constructor(root, config) {
@@ -21,6 +25,7 @@ export class CameraViews {
     this.shown = []; // {cam, kind, stamp_ns, shown_ms}
     this.count = 0;
     this.errors = 0; // images that could not be decoded
+    this.burstTimer = 0; // while set, the paint waits for the rest of a burst
     window.addEventListener("resize", () => this.tiles.forEach((t) => fit(t)));
   }
 
@@ -74,6 +79,26 @@ export class CameraViews {
   }
 
   show(header, bytes) {
+    if (header.more > 0) this.holdBurst();
+    this.decode(header, bytes);
+    if (!(header.more > 0)) this.releaseBurst();
+  }
+
+  // Hold the paint until the burst's last image has arrived (and been queued for decoding).
+  holdBurst() {
+    if (this.burstTimer) return;
+    painter.expect();
+    this.burstTimer = setTimeout(() => this.releaseBurst(), BURST_WAIT_MS);
+  }
+
+  releaseBurst() {
+    if (!this.burstTimer) return;
+    clearTimeout(this.burstTimer);
+    this.burstTimer = 0;
+    painter.done();
+  }
+
+  decode(header, bytes) {
     const t = this.tile(header.cam, header.kind);
     if (t.busy) {
       t.next = [header, bytes]; // newest wins: an older image still waiting is dropped
@@ -94,7 +119,7 @@ export class CameraViews {
       if (t.next) {
         const [h, b] = t.next;
         t.next = null;
-        this.show(h, b);
+        this.decode(h, b);
       }
     });
   }
