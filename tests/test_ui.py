@@ -261,6 +261,45 @@ def test_rgb_view_shows_a_changing_image(stack: Stack) -> None:
     stack.wait(lambda: client.state()["mode"] == "hold", 30, "the climb to end")
 
 
+#: in a page of the UI's origin: a fresh CameraViews fed three JPEGs 40 ms apart, each header's ``more``
+#: from ``mores``; the paint that showed each image
+BURST = """async (mores) => {
+  const { CameraViews } = await import("/static/cameras.js");
+  const root = document.createElement("div");
+  document.body.append(root);
+  const views = new CameraViews(root, { depth_max_m: 20, legend: [] });
+  const c = document.createElement("canvas");
+  c.width = 64; c.height = 48;
+  c.getContext("2d").fillRect(8, 8, 20, 20);
+  const bytes = new Uint8Array(await (await new Promise((r) => c.toBlob(r, "image/jpeg"))).arrayBuffer());
+  const kinds = ["rgb", "depth", "seg"];
+  for (let i = 0; i < 3; i++) {
+    views.show({ cam: "burst", kind: kinds[i], stamp_ns: 1, mime: "image/jpeg", more: mores[i] }, bytes);
+    await new Promise((r) => setTimeout(r, 40));
+  }
+  await new Promise((r) => setTimeout(r, 300));
+  return views.shown.map((s) => s.paint);
+}"""
+
+
+@pytest.mark.slow
+def test_a_round_of_images_is_painted_at_once(stack: Stack) -> None:
+    """The UI server sends a round's images back to back, each saying how many follow (``more``); the
+    page paints the round once its last image is decoded: one compositor frame per round, not one per
+    image (the largest part of the browser's CPU, docs/ui.md). Fed 40 ms apart, images that say nothing
+    follows are not all painted together; the same three as one round are."""
+    page = stack.page.context.browser.new_page()
+    try:
+        page.goto(f"http://127.0.0.1:{stack.ui_port}/static/style.css")
+        apart = page.evaluate(BURST, [0, 0, 0])
+        together = page.evaluate(BURST, [2, 1, 0])
+    finally:
+        page.close()
+    assert len(apart) == len(together) == 3
+    assert len(set(apart)) > 1, f"paints of separate images: {apart}"
+    assert len(set(together)) == 1, f"paints of one round: {together}"
+
+
 @pytest.mark.slow
 def test_map_click_flies_there(stack: Stack) -> None:
     page, client = stack.page, stack.client

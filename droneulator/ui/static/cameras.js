@@ -13,8 +13,8 @@ import { painter } from "./painter.js";
 const KIND_TITLES = { rgb: "RGB", depth: "Depth", seg: "Segmentation" };
 const SHOWN_LOG = 2000;
 // The UI server sends each round's images back to back, every header saying how many more follow
-// (`more`). The paint waits for the round's last image (at most BURST_WAIT_MS), so one round is one
-// frame of the browser's compositor, not two or three (docs/ui.md).
+// (`more`). The paint waits for the round's last image (at most BURST_WAIT_MS after the one before it),
+// so one round is one frame of the browser's compositor, not two or three (docs/ui.md).
 const BURST_WAIT_MS = 50;
 
 export class CameraViews {
@@ -22,7 +22,7 @@ export class CameraViews {
     this.root = root;
     this.config = config;
     this.tiles = new Map();
-    this.shown = []; // {cam, kind, stamp_ns, shown_ms}
+    this.shown = []; // {cam, kind, stamp_ns, shown_ms, paint}
     this.count = 0;
     this.errors = 0; // images that could not be decoded
     this.burstTimer = 0; // while set, the paint waits for the rest of a burst
@@ -86,8 +86,8 @@ export class CameraViews {
 
   // Hold the paint until the burst's last image has arrived (and been queued for decoding).
   holdBurst() {
-    if (this.burstTimer) return;
-    painter.expect();
+    if (this.burstTimer) clearTimeout(this.burstTimer);
+    else painter.expect();
     this.burstTimer = setTimeout(() => this.releaseBurst(), BURST_WAIT_MS);
   }
 
@@ -136,7 +136,7 @@ export class CameraViews {
     t.ctx.transferFromImageBitmap(bitmap);
     this.count++;
     this.shown.push({ cam: header.cam, kind: header.kind, stamp_ns: header.stamp_ns,
-      shown_ms: performance.timeOrigin + performance.now() });
+      shown_ms: performance.timeOrigin + performance.now(), paint: painter.flushes });
     if (this.shown.length > SHOWN_LOG) this.shown.splice(0, this.shown.length - SHOWN_LOG);
   }
 }

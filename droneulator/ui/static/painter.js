@@ -12,6 +12,7 @@ export class Painter {
     this.frame = 0;
     this.timer = 0;
     this.waiting = 0; // updates on their way (images decoding): the burst's paint waits for them
+    this.flushes = 0; // paints so far (the camera views log which paint showed each image)
   }
 
   // Queue `fn` for the next paint; `urgent` paints at the next animation frame, otherwise within
@@ -41,6 +42,7 @@ export class Painter {
 
   flush() {
     this.frame = 0;
+    this.flushes++;
     const jobs = [...this.jobs.values()];
     this.jobs.clear();
     for (const fn of jobs) fn();
