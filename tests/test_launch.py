@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import socket
 import subprocess
 import threading
 import time
@@ -12,7 +13,7 @@ import pytest
 from droneulator.config import load_config
 from droneulator.ros.topics import TYPES, stamp_to_ns, vehicle_topics
 from droneulator.ros.zenoh_node import RosZenohNode
-from droneulator.runtime.launch import LaunchError, launch_run
+from droneulator.runtime.launch import LaunchError, _ephemeral_range, free_port, launch_run
 
 pytestmark = pytest.mark.slow
 
@@ -21,6 +22,21 @@ def ps(*select: str) -> list[str]:
     """Command lines of the live processes ``ps`` selects (zombies waiting for init are not alive)."""
     out = subprocess.run(["ps", "-o", "stat=,args=", *select], capture_output=True, text=True)
     return [line.split(None, 1)[1] for line in out.stdout.splitlines() if not line.lstrip().startswith("Z")]
+
+
+def test_free_ports_are_distinct_bindable_and_outside_the_ephemeral_range():
+    """A port handed out for a server started later must not be taken meanwhile by an outgoing connection
+    (those take ephemeral source ports) or handed out again: either could explain the one UI test run
+    that found its just-started run gone."""
+    lo, hi = _ephemeral_range()
+    ports = [free_port() for _ in range(300)]
+    assert len(set(ports)) == len(ports)
+    assert all(p >= 20000 and not lo <= p <= hi for p in ports)
+    with socket.socket() as server, socket.socket() as client:
+        server.bind(("127.0.0.1", ports[0]))
+        server.listen()
+        client.connect(("127.0.0.1", ports[0]))
+        assert lo <= client.getsockname()[1] <= hi  # an outgoing connection's source port is ephemeral
 
 
 def test_reserved_options_are_refused_before_anything_starts():

@@ -20,6 +20,7 @@ import copy
 import ctypes
 import json
 import os
+import random
 import signal
 import socket
 import subprocess
@@ -54,11 +55,48 @@ class LaunchError(RuntimeError):
     """``droneulator run`` exited or did not answer on its API in time; the message ends with its log."""
 
 
+#: ports :func:`free_port` has handed out in this process (never handed out twice)
+_HANDED_OUT: set[int] = set()
+_PORT_FLOOR = 20000  # below: well-known and registered services (Zenoh's 7447, the API's 8765, ...)
+
+
+def _ephemeral_range() -> tuple[int, int]:
+    """The ports the OS gives outgoing connections (Linux: ``ip_local_port_range``)."""
+    try:
+        lo, hi = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()
+        return int(lo), int(hi)
+    except (OSError, ValueError):
+        return 32768, 60999
+
+
 def free_port(host: str = "127.0.0.1") -> int:
-    """A TCP port nothing listens on right now (the OS picks it)."""
+    """A TCP port nothing is bound to right now, for a server the caller starts later.
+
+    Chosen outside the OS's ephemeral range, so no outgoing connection (each takes an ephemeral port as
+    its source) can take it in the seconds before the server binds it, and never handed out twice by
+    this process. Falls back to a port the OS picks.
+    """
+    lo, hi = _ephemeral_range()
+    pool = [(_PORT_FLOOR, lo - 1), (hi + 1, 65535)]
+    pool = [(a, b) for a, b in pool if a <= b]
+    rng = random.SystemRandom()
+    for _ in range(200 if pool else 0):
+        a, b = rng.choice(pool)
+        port = rng.randint(a, b)
+        if port in _HANDED_OUT:
+            continue
+        with socket.socket() as s:
+            try:
+                s.bind((host, port))
+            except OSError:
+                continue
+        _HANDED_OUT.add(port)
+        return port
     with socket.socket() as s:
         s.bind((host, 0))
-        return int(s.getsockname()[1])
+        port = int(s.getsockname()[1])
+    _HANDED_OUT.add(port)
+    return port
 
 
 def _die_with_parent() -> None:

@@ -59,8 +59,8 @@ class Frame:
     data: bytes
 
     def blob(self, more: int = 0) -> bytes:
-        """The WebSocket message (:func:`pack_frame`); ``more``: how many images of the same burst follow
-        it, so the page paints a burst once, when its last image is decoded."""
+        """The WebSocket message (:func:`pack_frame`); ``more``: how many images of the same round follow
+        it, so the page paints a round once, when its last image is decoded."""
         return pack_frame({**self.header, "more": more}, self.data)
 
 
