@@ -73,7 +73,9 @@ def main() -> None:
     ap.add_argument("--height", type=int, default=None, help="default: capture.height (768)")
     ap.add_argument("--out", default="out/bench_photogrammetry", help="datasets go to OUT/views_N")
     ap.add_argument("--reuse", action="store_true", help="keep complete datasets instead of capturing again")
-    ap.add_argument("--dense-scale", type=float, default=0.5, help="CPU dense stereo image scale")
+    ap.add_argument(
+        "--dense-scale", type=float, default=MvsOptions.scale, help="CPU dense stereo image scale"
+    )
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     ap.add_argument("--json", default=None, help="output JSON (default: benchmarks/results/)")
     args = ap.parse_args()

@@ -400,9 +400,8 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
     from droneulator.workflows.photogrammetry.mvs import MvsOptions
     from droneulator.workflows.photogrammetry.reconstruct import ReconstructOptions, reconstruct
 
-    dense = DenseOptions(
-        mvs=MvsOptions(scale=args.dense_scale), mask=args.dense_mask, path="cpu" if args.cpu_dense else "auto"
-    )
+    mvs = MvsOptions() if args.dense_scale is None else MvsOptions(scale=args.dense_scale)
+    dense = DenseOptions(mvs=mvs, mask=args.dense_mask, path="cpu" if args.cpu_dense else "auto")
     opts = ReconstructOptions(
         mask=args.mask,
         dense_options=dense,
@@ -729,7 +728,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="CPU dense stereo on the tree's pixels only (default) or on whole images",
     )
     p.add_argument(
-        "--dense-scale", type=float, default=0.5, help="CPU dense stereo image scale (default 0.5)"
+        "--dense-scale",
+        type=float,
+        default=None,
+        help="CPU dense stereo image scale (default: MvsOptions.scale, 0.75)",
     )
     p.add_argument(
         "--cpu-dense", action="store_true", help="the CPU plane sweep even where pycolmap has CUDA"

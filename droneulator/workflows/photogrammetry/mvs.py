@@ -36,8 +36,10 @@ import numpy as np
 class MvsOptions:
     """Plane-sweep stereo settings (``reconstruct --set``-style names in the report)."""
 
-    #: images are resampled by this factor before stereo (0.5: a 1024x768 capture runs at 512x384)
-    scale: float = 0.5
+    #: images are resampled by this factor before stereo (0.75: a 1024x768 capture runs at 768x576); at
+    #: 54 views 0.75 covers 83.8 % of the seen tree surface against 77.1 % at 0.5, in 540 s against 221 s
+    #: (docs/photogrammetry.md)
+    scale: float = 0.75
     #: neighbours warped into each reference view
     neighbors: int = 5
     #: depth hypotheses per reference view, evenly spaced in inverse depth
