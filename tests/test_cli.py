@@ -8,6 +8,7 @@ child (``droneulator.runtime.*``) that starts at all is seen.
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import socket
@@ -335,3 +336,13 @@ def test_a_port_taken_after_the_checks_is_still_one_line() -> None:
     assert "the dynamics server stopped while starting" in message
     assert "address already in use" in message.lower() and str(port) in message
     Path(message.rsplit("its full output: ", 1)[1]).unlink(missing_ok=True)
+
+
+def test_reconstruct_help_states_the_dense_scale_default() -> None:
+    """``reconstruct --help`` names the dense scale that runs when the option is left out."""
+    from droneulator.cli import build_parser
+    from droneulator.workflows.photogrammetry.mvs import MvsOptions
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    action = next(a for a in sub.choices["reconstruct"]._actions if a.dest == "dense_scale")
+    assert action.default is None and f"{MvsOptions().scale}" in action.help
