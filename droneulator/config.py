@@ -206,6 +206,10 @@ class BridgeConfig:
             raise ValueError("bridge.jpeg_quality must lie in [1, 100]")
 
 
+#: what the simulator does when PX4 is lost in the air (``px4.on_loss``)
+PX4_ON_LOSS = ("land", "hold", "fall")
+
+
 @dataclass
 class PX4Config:
     """PX4 SITL simulator interface (``droneulator run --px4``). Noise is deterministic under the seed."""
@@ -258,11 +262,17 @@ class PX4Config:
     speed_factor: float = 1.0
     #: PX4's THR_MDL_FAC: thrust fraction (1 - k) u + k u^2 of motor output u (0: thrust linear in u)
     thrust_model_factor: float = 0.0
+    #: PX4 lost while it flies the vehicle in the air: "land" (the simulator's controller lands it
+    #: gently, clear of the scene), "hold" (hovers where it is) or "fall" (rotors stop, as a real
+    #: vehicle's would). Either way a new PX4 gets the rotors only once the vehicle is on the ground.
+    on_loss: str = "land"
 
     def __post_init__(self) -> None:
         for name in ("gps_hz", "mag_hz", "baro_hz"):
             if not math.isfinite(getattr(self, name)) or getattr(self, name) <= 0:
                 raise ValueError(f"px4.{name} must be a positive rate in Hz")
+        if self.on_loss not in PX4_ON_LOSS:
+            raise ValueError(f"px4.on_loss must be one of {', '.join(PX4_ON_LOSS)}, got {self.on_loss!r}")
         if not 0.0 <= self.thrust_model_factor <= 1.0:
             raise ValueError("px4.thrust_model_factor (PX4's THR_MDL_FAC) must lie in [0, 1]")
         if not math.isfinite(self.speed_factor) or self.speed_factor < 0:

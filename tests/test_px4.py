@@ -20,6 +20,7 @@ from droneulator.config import PX4Config, load_config
 from droneulator.px4 import MotorMap, PX4Link, px4_rotor_order
 from droneulator.px4.link import (
     BOOT_GRACE_S,
+    CANDIDATE_TIMEOUT_S,
     LINK_SILENCE_S,
     SENSOR_ACCEL,
     SENSOR_BARO,
@@ -58,18 +59,31 @@ def wait_until(pred: Any, timeout: float = 5.0) -> None:
 class Served:
     """A PX4Link served from a background thread, as the dynamics server does."""
 
-    def __init__(self, sim: Simulator, cfg: PX4Config | None = None, seed: int = 0) -> None:
+    def __init__(
+        self, sim: Simulator, cfg: PX4Config | None = None, seed: int = 0, run_alone: bool = False
+    ) -> None:
+        """``run_alone``: step the simulation while no PX4 is connected and the vehicle is not at rest
+        (as the dynamics server does); otherwise time stands still without PX4."""
         self.sim = sim
+        self.run_alone = run_alone
         self.lock = threading.Lock()
         self.link = PX4Link(sim, cfg or px4_cfg(), seed=seed)
         self.link.start()
         self._stop = threading.Event()
+        #: the simulator's events (impact, landed, ...) from every step the link took
+        self.sim_events: list[Any] = []
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            self.link.serve_once(0.02, self.lock)
+            res = self.link.serve_once(0.02, self.lock)
+            if res is not None:
+                self.sim_events.extend(res.events)
+            elif self.run_alone and not self.link.connected:
+                with self.lock:  # no PX4: the simulator runs on its own, as the dynamics server does
+                    if self.sim.mode.value != "idle" or self.sim.state.position[2] > 0.05:
+                        self.sim_events.extend(self.sim.step().events)
 
     def reset(self, **kw: Any) -> None:
         wait_until(lambda: not self.link.connected)
@@ -80,6 +94,19 @@ class Served:
         self._stop.set()
         self.thread.join(5.0)
         self.link.close()
+
+
+def px4_in_the_air(served: Served, position: Any) -> Peer:
+    """A PX4 with the rotors at ``position`` in the air: it connects with the vehicle on the ground (a
+    new PX4 gets the rotors only there), then the simulation is reset in-process, under the lock, into
+    a hover at ``position``, as if PX4 had flown it there."""
+    served.reset()
+    peer = Peer(served.link.port)
+    peer.next()
+    assert served.link.in_control
+    with served.lock:
+        served.sim.reset(position=position, airborne=True)
+    return peer
 
 
 class Peer:
@@ -234,6 +261,31 @@ def test_sensor_models_in_px4_frames():
     np.testing.assert_allclose(accel, [0.0, -9.81 * math.sin(0.3), -9.81 * math.cos(0.3)], atol=1e-9)
 
 
+def _px4_fifo_counts(values: list[float], scale: float) -> np.ndarray:
+    """What PX4's SimulatorMavlink stores: float32 value / float32 FIFO scale, cast to int16_t."""
+    counts = np.trunc(np.float32(values) / np.float32(scale)).astype(np.int64)  # C's float -> int
+    return ((counts + 32768) % 65536) - 32768  # two's complement, as the int16_t store wraps
+
+
+def test_full_scale_imu_values_fit_px4s_int16_fifo_without_wrapping(sim):
+    """+16 g and +2000 deg/s are 32768 FIFO counts, one past int16: the link sends at most 32767."""
+    g_scale, w_scale = 9.80665 / 2048.0, math.radians(2000.0 / 32768.0)
+    assert _px4_fifo_counts([16 * 9.80665], g_scale)[0] == -32768  # what the unclipped value became
+    sim.reset()
+    bias = {"accel_bias": (500.0, -500.0, 0.0), "gyro_bias": (100.0, -100.0, 0.0), "accel_noise": 0.0}
+    served = Served(sim, px4_cfg(**bias, gyro_noise=0.0))
+    try:
+        s = first_batch(served)["HIL_SENSOR"]
+    finally:
+        served.close()
+    accel = _px4_fifo_counts([s.xacc, s.yacc, s.zacc], g_scale)
+    gyro = _px4_fifo_counts([s.xgyro, s.ygyro, s.zgyro], w_scale)
+    assert accel[0] == 32767 and accel[1] == -32768  # saturated both ways, no sign flip
+    assert gyro[0] == 32767 and gyro[1] == -32768
+    assert accel[2] == round(-9.80665 / g_scale)  # unsaturated axes untouched (-1 g, at rest)
+    assert gyro[2] == 0
+
+
 # --------------------------------------------------------------------------- the link over TCP
 def test_connection_sends_every_sensor_then_rests_on_ground_in_lockstep(served, sim):
     peer = Peer(served.link.port)
@@ -319,10 +371,9 @@ def test_free_runs_until_the_first_actuator_message_then_waits_for_each(sim):
 
 def test_px4_without_lockstep_free_runs_on_its_latest_outputs(sim, caplog):
     start = sim.scene.spawn_position + [0.0, 0.0, 3.0]
-    sim.reset(position=start, airborne=True)
+    sim.reset()
     served = Served(sim, px4_cfg(speed_factor=1.0))
-    peer = Peer(served.link.port)
-    peer.next()
+    peer = px4_in_the_air(served, start)
     u = float(served.link.motor_map.speed_to_output(sim.vehicle.hover_speed))
     msgs: list[Any] = []
     for _ in range(20):  # a PX4 built without lockstep, sending at 50 Hz of wall time
@@ -340,9 +391,7 @@ def test_px4_without_lockstep_free_runs_on_its_latest_outputs(sim, caplog):
 
 def test_hover_outputs_hold_altitude(served, sim):
     start = sim.scene.spawn_position + [0.0, 0.0, 3.0]
-    served.reset(position=start, airborne=True)
-    peer = Peer(served.link.port)
-    peer.next()
+    peer = px4_in_the_air(served, start)
     u = float(served.link.motor_map.speed_to_output(sim.vehicle.hover_speed))
     assert u == pytest.approx(0.49, abs=0.01)  # SIH quad-X: hover at ~half thrust, as PX4 assumes
     zs, accel = [], []
@@ -372,9 +421,7 @@ def test_one_motor_step_gives_the_quad_x_torque_signs(params, sim):
     try:
         u = float(served.link.motor_map.speed_to_output(s.vehicle.hover_speed))
         for motor, signs in QUAD_X_RESPONSE.items():
-            served.reset(position=s.scene.spawn_position + [0.0, 0.0, 3.0], airborne=True)
-            peer = Peer(served.link.port)
-            peer.next()
+            peer = px4_in_the_air(served, s.scene.spawn_position + [0.0, 0.0, 3.0])
             for _ in range(5):
                 peer.step([u] * 4)
             cmd = [u] * 4
@@ -431,12 +478,13 @@ def test_dropped_connection_resumes_where_it_stopped(served, sim):
     peer.close()
 
 
-def test_a_second_client_is_refused_while_the_first_streams_and_replaces_it_once_silent(served, sim, caplog):
+def test_a_second_client_is_refused_while_the_first_streams(served, sim, caplog):
     caplog.set_level(logging.INFO, logger="droneulator.px4")
     first = Peer(served.link.port)
     first.hello()
     t = first.next()[-1].time_usec
     intruder = Peer(served.link.port)  # connects while the first PX4 is stepping
+    intruder.hello()
     for k in range(100):
         assert first.step(armed=False)[-1].time_usec == t + STEP_US * (k + 1)
     with pytest.raises(ConnectionError):  # closed by the simulator, without a byte
@@ -444,8 +492,49 @@ def test_a_second_client_is_refused_while_the_first_streams_and_replaces_it_once
     assert "refused a PX4 connection" in caplog.text and served.link.connected
     t = first.step(armed=False)[-1].time_usec  # the first PX4 keeps the link and the clock
     assert t * 1000 == sim.t_ns
-    time.sleep(LINK_SILENCE_S + 0.3)  # the first PX4 hangs: no answer to its last sensor data
+    intruder.close()
+    first.close()
+
+
+def test_a_paused_px4_keeps_its_link_against_a_stray_connection_and_flies_on(served, sim, caplog):
+    """A debugger pause (SIGSTOP) makes PX4 silent; a client that never shows it is a PX4 gets no
+    byte and cannot take the link, and PX4 resumes into it (its simulator_mavlink never reconnects)."""
+    caplog.set_level(logging.INFO, logger="droneulator.px4")
+    first = Peer(served.link.port)
+    first.hello()
+    first.next()
+    t = first.step(armed=False)[-1].time_usec
+    time.sleep(LINK_SILENCE_S + 0.5)  # paused: its last sensor data unanswered
+    stray = Peer(served.link.port)
+    stray.send(stray.mav.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0))
+    with pytest.raises(TimeoutError):
+        stray.next(timeout=1.0)  # nothing is streamed to it
+    assert stray.inbox == deque() and served.link.connected
+    for k in range(50):  # PX4 resumes: the same link, the clock goes on where it stopped
+        assert first.step(armed=False)[-1].time_usec == t + STEP_US * (k + 1)
+    with pytest.raises(ConnectionError):
+        stray.next(timeout=2.0)  # closed once PX4 answered again
+    assert "is alive and keeps the link" in caplog.text
+    assert [e.type for e in served.link.take_events()] == ["px4_connected"]
+    stray.close()
+    first.close()
+
+
+def test_a_silent_px4_is_replaced_by_the_next_one_that_shows_it_is_a_px4(served, sim, caplog):
+    caplog.set_level(logging.INFO, logger="droneulator.px4")
+    first = Peer(served.link.port)
+    first.hello()
+    first.next()
+    t = first.step(armed=False)[-1].time_usec
+    time.sleep(LINK_SILENCE_S + 0.3)  # the first PX4 died without closing its socket
+    stray = Peer(served.link.port)  # a port scanner: connects, says nothing
+    with pytest.raises(ConnectionError):
+        stray.next(timeout=CANDIDATE_TIMEOUT_S + 1.0)  # given nothing, then closed
+    assert stray.inbox == deque() and "no PX4 HEARTBEAT within" in caplog.text
     newer = Peer(served.link.port)
+    with pytest.raises(TimeoutError):
+        newer.next(timeout=0.5)  # sent nothing until it shows it is a PX4
+    newer.hello()  # PX4's first message on connecting: HEARTBEAT from MAV_AUTOPILOT_PX4
     assert newer.next()[-1].time_usec == t
     assert newer.step(armed=False)[-1].time_usec == t + STEP_US
     with pytest.raises(ConnectionError):
@@ -453,9 +542,8 @@ def test_a_second_client_is_refused_while_the_first_streams_and_replaces_it_once
     assert "silent for" in caplog.text
     kinds = [(e.type, e.data.get("holding")) for e in served.link.take_events()]
     assert kinds == [("px4_connected", False), ("px4_disconnected", None), ("px4_connected", False)]
-    newer.close()
-    intruder.close()
-    first.close()
+    for p in (newer, stray, first):
+        p.close()
 
 
 def test_a_quiet_link_is_kept_while_the_simulator_is_the_one_that_waits(served, sim):
@@ -475,46 +563,121 @@ def test_a_quiet_link_is_kept_while_the_simulator_is_the_one_that_waits(served, 
     first.close()
 
 
-def test_a_restarted_px4_does_not_drop_the_vehicle_until_it_arms(served, sim, caplog):
-    """A PX4 that connects while the vehicle is airborne (the last one hung mid-air) boots disarmed:
-    the simulator holds the vehicle, still in lockstep with the new PX4, until it arms."""
-    caplog.set_level(logging.INFO, logger="droneulator.px4")
-    start = sim.scene.spawn_position + [0.0, 0.0, 3.0]
-    served.reset(position=start, airborne=True)  # hovering under the simulator's own controller
-    u = float(served.link.motor_map.speed_to_output(sim.vehicle.hover_speed))
-    first = Peer(served.link.port)
-    first.next()
-    assert served.link.holding and not served.link.in_control
-    for _ in range(100):
-        first.step([u] * 4)  # PX4 arms: its outputs fly the vehicle
-    assert served.link.in_control and sim.mode.value == "external"
-    time.sleep(LINK_SILENCE_S + 0.3)  # PX4 hangs mid-air (lockstep: time stops with it) and restarts
-    z0 = sim.state.position[2]
-    restarted = Peer(served.link.port)
-    restarted.hello()
-    t = restarted.next()[-1].time_usec
-    assert served.link.holding and sim.mode.value == "hold"
-    zs = []
-    for k in range(500):  # 2 s of sim time, disarmed: zero outputs are not applied
-        assert restarted.step(armed=False)[-1].time_usec == t + STEP_US * (k + 1)
-        zs.append(sim.state.position[2])
-    assert sim.mode.value == "hold" and max(abs(z - z0) for z in zs) < 0.1
-    climb = float(served.link.motor_map.speed_to_output(sim.vehicle.hover_speed * math.sqrt(1.15)))
-    for _ in range(250):  # armed, 15 % over hover thrust: PX4 takes over and climbs
-        restarted.step([climb] * 4)
-    assert served.link.in_control and sim.mode.value == "external"
-    assert sim.state.position[2] > z0 + 0.3
-    assert "takes over from the simulator's hold" in caplog.text
-    kinds = [(e.type, e.data.get("holding")) for e in served.link.take_events()]
-    assert kinds == [
-        ("px4_connected", True),
-        ("px4_armed", None),
-        ("px4_disconnected", None),
-        ("px4_connected", True),
-        ("px4_armed", None),
-    ]
-    restarted.close()
-    first.close()
+def _climb(peer: Peer, sim: Simulator, link: PX4Link, altitude: float) -> None:
+    """Fly as an armed PX4 would in a take-off: equal outputs from an altitude loop on the truth."""
+    hover = link.motor_map.speed_to_output(sim.vehicle.hover_speed)
+    for _ in range(5000):
+        z, vz = sim.state.position[2], sim.state.velocity[2]
+        u = float(np.clip(hover * (1.0 + 0.6 * (altitude - z) - 0.8 * vz), 0.1, 0.9))
+        peer.step([u] * 4)
+        if abs(z - altitude) < 0.05 and abs(vz) < 0.05:
+            return
+    raise AssertionError(f"no hover at {altitude} m: z = {sim.state.position[2]:.2f} m")
+
+
+@pytest.mark.parametrize("on_loss", ["land", "hold", "fall"])
+def test_a_px4_lost_in_the_air_and_restarted_never_drops_the_vehicle_unless_told_to(sim, on_loss):
+    """PX4 dies at 5 m (its socket closes, as on SIGKILL) and restarts as a real PX4 boots: believing
+    it is landed, disarmed, then armed at idle. ``land`` lands clear of the scene and ``hold`` hovers,
+    with no impact, and the new PX4's arm in the air is refused; ``fall`` drops like a stone. Once the
+    vehicle is on the ground with PX4 disarmed, PX4 gets the rotors."""
+    sim.reset()
+    served = Served(sim, px4_cfg(on_loss=on_loss), run_alone=True)
+    link = served.link
+    try:
+        first = Peer(link.port)
+        first.hello()
+        first.next()
+        for _ in range(10):
+            first.step([0.0] * 4)  # armed on the ground: PX4 has the rotors
+        assert link.in_control and not link.holding
+        _climb(first, sim, link, 5.0)
+        assert sim.mode.value == "external"
+        link.take_events()
+        served.sim_events.clear()
+        first.close()  # PX4 killed in the hover
+        wait_until(lambda: not link.connected)
+        t_lost = sim.t
+        wait_until(lambda: sim.mode.value != "external")
+        lost = [e for e in link.take_events() if e.type == "px4_lost"]
+        assert len(lost) == 1 and lost[0].data["action"] == on_loss
+
+        restarted = Peer(link.port)  # the restarted PX4 connects
+        restarted.hello()
+        restarted.next()
+        assert link.holding and not link.in_control
+        idle = [0.05] * 4  # PX4 armed on what it believes is the ground: idle outputs
+        for _ in range(250):
+            restarted.step(armed=False)
+        for _ in range(500):  # the user arms it: refused in the air
+            restarted.step(idle)
+            if sim.mode.value == "idle" and sim.state.position[2] < 0.05:
+                break
+        events = link.take_events()
+        if on_loss != "fall":
+            assert link.holding and sim.state.position[2] > 1.0
+            assert [e.type for e in events].count("px4_arm_refused") == 1
+        if on_loss == "hold":
+            assert sim.mode.value == "hold" and abs(sim.state.position[2] - 5.0) < 0.1
+            with served.lock:
+                sim.land()  # what an API user does to hand the vehicle to the new PX4
+        for _ in range(6000):  # disarmed while it comes down (PX4's land detector, or the user)
+            restarted.step(armed=False)
+            if sim.mode.value == "idle" and sim.state.position[2] < 0.05:
+                break
+        assert sim.state.position[2] < 0.05
+        for _ in range(5):
+            restarted.step(armed=False)
+        assert link.in_control and not link.holding
+        if on_loss != "fall":  # a falling vehicle may be down before the new PX4 connects
+            assert "px4_in_control" in [e.type for e in link.take_events()]
+        for _ in range(50):  # armed on the ground: its idle outputs now spin the rotors
+            restarted.step(idle)
+        assert sim.mode.value == "external" and np.all(sim.state.rotor_speeds > 0.0)
+        impacts = [e for e in served.sim_events if e.type == "impact"]
+        if on_loss == "fall":
+            h = 5.0 - 0.0
+            assert len(impacts) >= 1
+            first_hit = impacts[0]
+            assert first_hit.data["speed"] == pytest.approx(math.sqrt(2 * 9.81 * h), rel=0.1)
+            assert first_hit.t - t_lost == pytest.approx(math.sqrt(2 * h / 9.81), rel=0.1)
+        else:
+            assert impacts == [], impacts
+        restarted.close()
+    finally:
+        served.close()
+
+
+def test_a_bad_on_loss_is_refused_with_the_choices():
+    with pytest.raises(ValueError, match="px4.on_loss must be one of land, hold, fall"):
+        PX4Config(on_loss="crash")
+    with pytest.raises(ValueError, match="on_loss"):
+        load_config(overrides=["px4.on_loss=drop"])
+
+
+def test_the_landing_spot_keeps_clear_of_the_scene():
+    """Above a tree crown the simulator does not land straight down through it."""
+    cfg = load_config(overrides=["vehicle.control_hz=250"])
+    s = Simulator(scene="tree_inspection", render=False, config=cfg)
+    try:
+        col = s.scene.collision
+        grid = np.stack(np.meshgrid(np.arange(-8, 8, 0.5), np.arange(-8, 8, 0.5), [3.0]), -1).reshape(-1, 3)
+        d = [col.distance(p) for p in grid]
+        assert min(d) < 0  # the crown is there
+        above = grid[int(np.argmin(d))] + [0.0, 0.0, 4.0]
+        s.reset(position=above)
+        xy = s.landing_spot()
+        column = np.array([[xy[0], xy[1], z] for z in np.linspace(0.75, above[2], 60)])
+        assert min(col.distance(p) for p in column) >= 0.5 + cfg.vehicle.collision_radius
+        assert np.linalg.norm(xy - above[:2]) > 0.5  # it moved off the crown
+        s.safe_land()
+        events: list[Any] = []
+        assert s.run_until(lambda sim: sim.mode.value == "idle", 60.0, events)
+        assert s.state.position[2] < 0.05 and s.collisions == 0
+        assert np.linalg.norm(s.state.position[:2] - xy) < 0.2
+        assert [e.type for e in events if e.type in ("impact", "collision")] == []
+    finally:
+        s.close()
 
 
 def test_on_the_ground_a_disarmed_px4_replacing_an_armed_one_stops_the_motors(served, sim):
@@ -571,9 +734,9 @@ def test_garbage_and_bad_actuator_values_are_rejected_and_the_link_keeps_working
 
 def test_same_seed_gives_identical_sensor_streams(sim):
     def run(seed: int) -> list[bytes]:
-        sim.reset(position=sim.scene.spawn_position + [0.0, 0.0, 3.0], airborne=True)
+        sim.reset()
         served = Served(sim, seed=seed)
-        peer = Peer(served.link.port)
+        peer = px4_in_the_air(served, sim.scene.spawn_position + [0.0, 0.0, 3.0])
         msgs = peer.next()
         u = float(served.link.motor_map.speed_to_output(sim.vehicle.hover_speed))
         for k in range(60):

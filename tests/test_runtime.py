@@ -15,6 +15,7 @@ import subprocess
 import threading
 import time
 from collections import defaultdict
+from typing import Any
 
 import numpy as np
 import pytest
@@ -490,17 +491,28 @@ def test_px4_drives_the_clock_and_websocket_flight_is_refused():
         assert c.state()["mode"] == "external"
         assert sum(refused in line for line in r.log) == 1
         pub.undeclare()
-        peer.close()  # PX4 goes away mid-flight: the simulator holds position and accepts commands again
-        r.wait_for(lambda: c.state()["mode"] == "hold", 10, "the vehicle to hold after PX4 left")
+        peer.close()  # PX4 goes away mid-flight: the simulator lands the vehicle and accepts commands again
+        r.wait_for(lambda: c.state()["mode"] == "land", 10, "the vehicle to land after PX4 left")
         c.goto([1.0, 1.0, 2.0])
     finally:
         r.close()
 
 
-def test_px4_restart_mid_hover_keeps_the_altitude_until_the_new_px4_arms():
-    """PX4 dies mid-hover and a restarted PX4 connects disarmed: the simulator holds the vehicle,
-    still stepped by PX4 (lockstep), until PX4 arms; a second client never takes a live link; the
-    connection and arming changes arrive as events, in order."""
+def _steps_until(peer: Any, c: Any, u: Any, armed: bool, mode: str, limit: int = 4000) -> int:
+    """Step PX4 (lockstep) with outputs ``u`` until the API reports ``mode``; returns the steps taken."""
+    for k in range(1, limit + 1):
+        peer.step(u, armed=armed)
+        if k % 25 == 0 and c.state()["mode"] == mode:
+            return k
+    raise AssertionError(f"no {mode!r} after {limit} steps: {c.state()}")
+
+
+def test_px4_lost_mid_air_is_landed_and_a_restarted_px4_gets_the_rotors_only_on_the_ground():
+    """A PX4 that connects over a vehicle the API flies, or restarts after dying mid-air, boots
+    believing it is landed: its arm in the air is refused (the simulator keeps flying, says why),
+    and it gets the rotors once the vehicle is down. The lost PX4's vehicle is landed by the
+    simulator (``px4.on_loss`` land); a second client never takes a live link; every change arrives
+    as an event, in order."""
     from test_px4 import Peer
 
     from droneulator.px4.mixing import MotorMap
@@ -516,74 +528,88 @@ def test_px4_restart_mid_hover_keeps_the_altitude_until_the_new_px4_arms():
         listener.wait_for_event("arrived", 60)
         qp = get_params("px4_quadx")
         hover = np.sqrt(qp["mass"] * 9.81 / (4 * qp["k_eta"]))
-        u_hover = [float(MotorMap(qp, 0.0).speed_to_output(hover))] * 4
+        u_idle = [0.05] * 4
         u_climb = [float(MotorMap(qp, 0.0).speed_to_output(hover * np.sqrt(1.15)))] * 4
 
         first = Peer(port)
         first.hello()
         first.next()
-        assert c.state()["mode"] == "hold"  # connected over a hovering vehicle: held until PX4 arms
         for _ in range(100):
-            first.step(u_hover, armed=True)
-        r.wait_for(lambda: c.state()["mode"] == "external", 10, "PX4 to take over when it arms")
+            first.step(u_idle, armed=True)  # armed over the hovering vehicle: refused
+        st = c.state()
+        assert st["mode"] == "hold" and abs(st["position"][2] - 2.0) < 0.1
+        c.land()  # the simulator flies: flight commands are accepted
+        with pytest.raises(ApiError) as e:
+            c.reset()  # but not a reset: it would turn the connected PX4's lockstep clock back
+        assert e.value.code == "flight_locked" and "clock back" in e.value.message
+        _steps_until(first, c, (0.0,) * 4, False, "idle")  # PX4 disarms; the vehicle lands
+        for _ in range(5):
+            first.step((0.0,) * 4, armed=False)  # on the ground, disarmed: PX4 has the rotors
+        for _ in range(250):
+            first.step(u_climb, armed=True)  # PX4 arms on the ground and climbs
+        st = c.state()
+        assert st["mode"] == "external" and st["position"][2] > 0.3
         with pytest.raises(ApiError) as e:
             c.hold()
         assert e.value.code == "flight_locked"
         intruder = Peer(port)  # a second client while PX4 flies: closed at once
         for _ in range(25):
-            first.step(u_hover, armed=True)
+            first.step(u_climb, armed=True)
         with pytest.raises(ConnectionError):
             intruder.next(timeout=5.0)
         intruder.close()
 
-        first.close()  # PX4 dies mid-hover
-        r.wait_for(lambda: c.state()["mode"] == "hold", 10, "the vehicle to hold after PX4 left")
-        z0 = c.state()["position"][2]
-        assert abs(z0 - 2.0) < 0.2
-        restarted = Peer(port)  # boots disarmed: zero outputs, which must not stop the motors
+        first.close()  # PX4 dies climbing
+        r.wait_for(lambda: c.state()["mode"] == "land", 10, "the simulator to land the vehicle")
+        restarted = Peer(port)  # boots believing it is landed: disarmed, then armed at idle
         restarted.hello()
         t0 = restarted.next()[-1].time_usec
-        zs = []
-        for k in range(1, 501):  # 2 s of sim time, one step per actuator message
+        for k in range(1, 101):  # one step per actuator message: the clock is the new PX4's
             assert restarted.step((0.0,) * 4, armed=False)[-1].time_usec == t0 + 4000 * k
-            if k % 25 == 0:
-                st = c.state()
-                zs.append(st["position"][2])
-                assert st["mode"] == "hold"
-        assert max(abs(z - z0) for z in zs) < 0.1, zs
         t_held = c.state()["t_ns"]
         time.sleep(0.3)
-        assert c.state()["t_ns"] == t_held  # the clock is still PX4's: no message, no time
-        c.hold()  # the simulator flies: flight commands are accepted
-        with pytest.raises(ApiError) as e:
-            c.reset()  # but not a reset: it would turn the connected PX4's lockstep clock back
-        assert e.value.code == "flight_locked" and "clock back" in e.value.message
+        assert c.state()["t_ns"] == t_held  # no message, no time
+        zs = []
+        for k in range(100):
+            restarted.step(u_idle, armed=True)  # armed in the air: refused, the landing goes on
+            if k % 25 == 0:
+                zs.append(c.state()["position"][2])
+                assert c.state()["mode"] == "land"
+        assert min(zs) > 0.3  # still in the air, the simulator's landing going on
+        _steps_until(restarted, c, (0.0,) * 4, False, "idle")
+        for _ in range(5):
+            restarted.step((0.0,) * 4, armed=False)
         for _ in range(250):
-            restarted.step(u_climb, armed=True)  # PX4 arms and takes over
+            restarted.step(u_climb, armed=True)  # armed on the ground: PX4 flies
         st = c.state()
-        assert st["mode"] == "external" and st["position"][2] > z0 + 0.3
-        with pytest.raises(ApiError) as e:
-            c.hold()
-        assert e.value.code == "flight_locked"
+        assert st["mode"] == "external" and st["position"][2] > 0.3
         restarted.close()
-        r.wait_for(lambda: c.state()["mode"] == "hold", 10, "the vehicle to hold after PX4 left again")
+        r.wait_for(lambda: c.state()["mode"] == "land", 10, "the vehicle to land after PX4 left again")
 
-        events = []
+        events, impacts = [], []
         while (msg := listener.next_message(timeout=2.0)) is not None:
             if msg.get("type") == "event" and msg["event"]["type"].startswith("px4_"):
                 events.append(msg["event"])
+            elif msg.get("type") == "event" and msg["event"]["type"] in ("impact", "collision"):
+                impacts.append(msg["event"])
+        assert impacts == []  # both landings were gentle
+        once = ["px4_armed", "px4_arm_refused", "px4_disarmed", "px4_in_control", "px4_armed"]
         assert [(e["type"], e.get("holding")) for e in events] == [
             ("px4_connected", True),
-            ("px4_armed", None),
+            *[(kind, None) for kind in once],
             ("px4_disconnected", None),
+            ("px4_lost", None),
             ("px4_connected", True),
-            ("px4_armed", None),
+            *[(kind, None) for kind in once],
             ("px4_disconnected", None),
+            ("px4_lost", None),
         ]
+        assert [e["action"] for e in events if e["type"] == "px4_lost"] == ["land", "land"]
+        assert "on the ground" in events[2]["reason"]
         assert np.all(np.diff([e["t"] for e in events]) >= 0)
-        assert events[2]["reason"] == "PX4 closed the connection"
+        assert events[6]["reason"] == "PX4 closed the connection"
         assert any("refused a PX4 connection" in line for line in r.log)
-        assert any("takes over from the simulator's hold" in line for line in r.log)
+        assert any("PX4 has the rotors" in line for line in r.log)
     finally:
         listener.close()
         r.close()

@@ -81,6 +81,8 @@ class FlightController:
         self._setpoint = np.zeros(FLAT_SIZE)  # the latest track setpoint, packed like a flat output
         self._setpoint_t = 0.0
         self._track_flat = np.zeros(FLAT_SIZE)
+        #: land on arriving at the current goto's target (:meth:`land_at`)
+        self._then_land = False
 
     @property
     def airborne_modes(self) -> tuple[Mode, ...]:
@@ -89,6 +91,7 @@ class FlightController:
     # ------------------------------------------------------------------ commands
     def motors_off(self) -> None:
         self.mode, self.trajectory, self.velocity_ref, self.target = Mode.IDLE, None, None, None
+        self._then_land = False
 
     def goto(
         self,
@@ -101,6 +104,7 @@ class FlightController:
         mode: Mode = Mode.GOTO,
     ) -> float:
         """Start a min-snap move to ``position`` (yaw kept if None); returns the planned duration."""
+        self._then_land = False
         yaw0 = yaw_of(s[STATE.q])
         yaw1 = yaw0 if yaw is None else float(yaw)
         v0 = np.zeros(3) if self.mode in (Mode.IDLE, Mode.COLLIDED) else s[STATE.v].copy()
@@ -134,7 +138,17 @@ class FlightController:
     def land(self, s: np.ndarray, t: float) -> float:
         return self.goto(s, t, np.array([*s[STATE.x][:2], 0.0]), speed=LAND_SPEED, mode=Mode.LAND)
 
+    def land_at(self, s: np.ndarray, t: float, xy: np.ndarray) -> float:
+        """Fly level to ``xy`` at the current height, then land there (a landing spot clear of the
+        scene beside the vehicle); returns the duration of the first leg."""
+        if np.allclose(xy, s[STATE.x][:2], atol=1e-6):
+            return self.land(s, t)
+        duration = self.goto(s, t, np.array([xy[0], xy[1], s[STATE.x][2]]))
+        self._then_land = True
+        return duration
+
     def hold(self, s: np.ndarray, t: float) -> None:
+        self._then_land = False
         self.trajectory = hold_trajectory(s[STATE.x].copy(), yaw_of(s[STATE.q]), t)
         self.target, self.target_yaw = s[STATE.x].copy(), yaw_of(s[STATE.q])
         self.velocity_ref = None
@@ -151,6 +165,7 @@ class FlightController:
             speed0 = float(s[STATE.v][:2] @ (c, sn)) if self.mode != Mode.COLLIDED else 0.0
             self.velocity_ref = VelocityReference(self.cfg, pos, yaw, speed=speed0)
         self.velocity_ref.command(forward, yaw_rate)
+        self._then_land = False
         self.trajectory, self.target = None, None
         self.mode = Mode.VELOCITY
 
@@ -173,6 +188,7 @@ class FlightController:
         f[0:3], f[3:6], f[6:9] = position, velocity, acceleration
         f[9], f[10] = yaw, yaw_rate
         self._setpoint_t = float(t)
+        self._then_land = False
         self.trajectory, self.velocity_ref = None, None
         self.target, self.target_yaw = np.array(position, dtype=float), float(yaw)
         self.mode = Mode.TRACK
@@ -190,9 +206,11 @@ class FlightController:
     def external(self, rotor_speeds: np.ndarray) -> None:
         """Hand the rotors to an external controller: these speeds (rad/s, RotorPy order) until changed."""
         self._external[:] = rotor_speeds
+        self._then_land = False
         self.mode, self.trajectory, self.velocity_ref, self.target = Mode.EXTERNAL, None, None, None
 
     def collided(self) -> None:
+        self._then_land = False
         self.mode, self.trajectory, self.velocity_ref, self.target = Mode.COLLIDED, None, None, None
 
     # ------------------------------------------------------------------ control tick
@@ -222,6 +240,11 @@ class FlightController:
                 self.motors_off()
                 events.append(Event("landed", t, {"position": s[STATE.x].tolist()}))
                 return self._zero, None, events
+            if done and self.mode == Mode.GOTO and self._then_land and self._settled(s):
+                self.land(s, t)  # the landing spot is reached: the second leg starts now
+                assert self.trajectory is not None
+                flat = self.trajectory.flat(t)
+                return self.se3.motor_speeds(s, flat), flat, events
             if done and self.mode in (Mode.GOTO, Mode.TAKEOFF) and self._settled(s):
                 events.append(
                     Event(

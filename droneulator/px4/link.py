@@ -20,14 +20,19 @@ by exactly one control period, and without one simulation time stops.
 
 One PX4 at a time: while the connected PX4 is alive (it sent data within ``LINK_SILENCE_S``, or owes
 no answer because the simulator has sent it nothing since its last message) a new connection to the
-port is closed at once, so a second client cannot take the vehicle from it. Once the old connection
-closed or went silent, the next one replaces it.
+port is closed at once, so a second client cannot take the vehicle from it. A connection that closed
+is replaced by the next one. A connection that arrives while PX4 is silent (paused in a debugger,
+stopped, or dead without closing) is sent nothing and replaces it only once it has shown it is a PX4
+(its first message, a HEARTBEAT from ``MAV_AUTOPILOT_PX4``): a stray client cannot take the link
+from a paused PX4, which resumes into it (PX4's simulator_mavlink never reconnects).
 
-A PX4 that connects while the simulator's own controller flies the vehicle (after the previous PX4
-died mid-air, the simulator holds) boots disarmed: its zero outputs are not applied, and the
-simulator keeps flying, until PX4 arms and takes over. On the ground a disarmed PX4 keeps the motors
-off. Connections, disconnections, arming and disarming are logged and queued as events
-(:meth:`PX4Link.take_events`: ``px4_connected``, ``px4_disconnected``, ``px4_armed``, ``px4_disarmed``).
+PX4 lost while its outputs drive the rotors in the air: ``px4.on_loss`` says what the simulator does
+(``land``: its controller lands the vehicle at a spot clear of the scene; ``hold``; ``fall``: rotors
+stop). A PX4 that connects while the vehicle is in the air (a restarted PX4 boots believing it is
+landed, and would output idle when armed) does not get the rotors: the simulator keeps flying, an arm
+in the air is refused (its outputs are not applied; logged and an event) until the vehicle is on the
+ground and PX4 disarmed or armed there. Connections, disconnections, losses, arming and hand-overs
+are logged and queued as events (:meth:`PX4Link.take_events`).
 """
 
 from __future__ import annotations
@@ -39,6 +44,7 @@ import select
 import socket
 import time
 from collections import deque
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -80,8 +86,15 @@ ACTUATOR_TIMEOUT_NS = 200_000_000
 BOOT_GRACE_S = 0.1
 #: a connection whose PX4 left sensor data unanswered this long (wall time) may be replaced by a new one
 LINK_SILENCE_S = 1.0
-#: above this height (m, world z) a vehicle the simulator flies is held when a disarmed PX4 connects
+#: above this height (m, world z) the vehicle is in the air: a new PX4 does not get its rotors
 AIRBORNE_Z_M = 0.05
+#: a connection waiting to replace a silent PX4 is closed when it shows no PX4 HEARTBEAT within this (wall s)
+CANDIDATE_TIMEOUT_S = 3.0
+#: at most this many connections wait to replace a silent PX4 at once; more are closed
+MAX_CANDIDATES = 4
+#: PX4 stores accel 0 and gyro 0 as int16 FIFO counts of these sizes (SimulatorMavlink::update_sensors)
+ACCEL_FIFO_SCALE = np.float32(G0 / 2048.0)
+GYRO_FIFO_SCALE = np.float32(math.radians(2000.0 / 32768.0))
 #: falling further behind the wall clock than this restarts the pacing instead of catching up
 MAX_LAG_S = 0.25
 SEND_TIMEOUT_S = 5.0
@@ -95,6 +108,17 @@ def _i16(x: float) -> int:
 
 def _u16(x: float) -> int:
     return int(np.clip(round(x), 0, 65534))
+
+
+def fifo_clip(values: np.ndarray, scale: np.float32) -> np.ndarray:
+    """``values`` clipped to what PX4's int16 FIFO holds at ``scale`` (-32768..32767 counts).
+
+    PX4 divides each float32 HIL_SENSOR value by the FIFO scale and stores it in an ``int16_t``: a
+    value at exactly +16 g (or +2000 deg/s) is +32768 counts and wraps to -32768, so the top of the
+    range is one count lower than the bottom's mirror image.
+    """
+    lo, hi = np.float32(-32768.0) * scale, np.float32(32767.0) * scale
+    return np.clip(np.asarray(values, dtype=np.float32), lo, hi)
 
 
 def _next_stx(buf: bytearray, start: int) -> int | None:
@@ -114,6 +138,19 @@ def _parse_frame(data: bytes) -> tuple[Any, int] | bool | None:
     if isinstance(msg, mavlink.MAVLink_bad_data):
         return False
     return msg, len(data) - parser.buf_len()
+
+
+@dataclass
+class _Candidate:
+    """A connection that arrived while the connected PX4 was silent: it is sent nothing and replaces
+    that PX4 only once it has shown it is one (a HEARTBEAT from ``MAV_AUTOPILOT_PX4``)."""
+
+    sock: socket.socket
+    address: str
+    since: float
+    rx: bytearray = field(default_factory=bytearray)
+    msgs: list[Any] = field(default_factory=list)
+    px4: bool = False
 
 
 class PX4Link:
@@ -136,6 +173,9 @@ class PX4Link:
         self._events: deque[Event] = deque()
         self._errors = LogThrottle(log)
         self._rx = bytearray()
+        self._candidates: list[_Candidate] = []
+        #: PX4 was dropped: the loss rule (``cfg.on_loss``) is applied at the next turn, under the lock
+        self._loss_pending = False
         #: lockstep actuator commands not stepped yet: (armed, rotor speeds in RotorPy order)
         self._pending: deque[tuple[bool, np.ndarray | None]] = deque()
         self._last_cmd_t_ns: int | None = None
@@ -173,6 +213,8 @@ class PX4Link:
 
     def close(self) -> None:
         """Drop PX4 and stop listening (idempotent)."""
+        for c in list(self._candidates):
+            self._close_candidate(c, "the link closed")
         if self._conn is not None:
             self._drop("the link closed")
         if self._listener is not None:
@@ -209,8 +251,10 @@ class PX4Link:
 
     @property
     def holding(self) -> bool:
-        """True while a connected PX4 has not armed since it connected over a vehicle the simulator
-        was flying: the simulator's controller keeps flying it, PX4's outputs are not applied."""
+        """True while a connected PX4 does not have the rotors: it connected with the vehicle in the air
+        (after the previous PX4 was lost, or while the API flew it), and the vehicle has not been on
+        the ground with PX4 disarmed since. The simulator's controller flies; PX4's outputs are not
+        applied."""
         return self._conn is not None and self._holding
 
     @property
@@ -219,8 +263,11 @@ class PX4Link:
         return self._conn is not None and not self._holding
 
     def take_events(self) -> list[Event]:
-        """The link's events since the last call, oldest first (``px4_connected`` with ``address`` and
-        ``holding``, ``px4_disconnected`` with ``reason``, ``px4_armed``, ``px4_disarmed``)."""
+        """The link's events since the last call, oldest first: ``px4_connected`` (``address``,
+        ``holding``), ``px4_disconnected`` (``reason``), ``px4_lost`` (``action``: land, hold, fall or
+        rest; ``position``; ``spot``, the landing spot, for land), ``px4_armed``, ``px4_disarmed``,
+        ``px4_arm_refused`` (``reason``) and ``px4_in_control`` (a PX4 that connected over an airborne
+        vehicle gets the rotors, the vehicle on the ground)."""
         out = list(self._events)
         self._events.clear()
         return out
@@ -242,6 +289,9 @@ class PX4Link:
         deadline = time.monotonic() + max(0.0, float(timeout))
         polled = False
         while True:
+            if self._loss_pending:
+                with guard:
+                    self._apply_loss()
             wait_step = self._time_to_step() if self._conn is not None else None
             if wait_step is not None and wait_step <= 0.0:
                 return self._step(guard)
@@ -277,6 +327,7 @@ class PX4Link:
         assert self._listener is not None
         conn = self._conn
         socks = [self._listener] if conn is None else [self._listener, conn]
+        socks += [c.sock for c in self._candidates]
         try:
             readable, _, _ = select.select(socks, [], [], wait)
         except (OSError, ValueError) as exc:
@@ -285,8 +336,13 @@ class PX4Link:
             return
         if conn is not None and conn in readable:
             self._receive(conn)
+        for c in list(self._candidates):
+            if c.sock in readable:
+                self._receive_candidate(c)
         if self._listener in readable:
             self._accept(guard)
+        if self._candidates:
+            self._review_candidates(guard)
 
     # ------------------------------------------------------------------ connection
     def _reset_connection(self) -> None:
@@ -299,6 +355,8 @@ class PX4Link:
         self._heartbeat_seen = False
         self._timeout_logged = False
         self._holding = False
+        #: PX4 armed while the simulator flew the vehicle in the air: refused until it disarms
+        self._arm_refused = False
         #: wall time of the first batch sent since PX4's last data (None: PX4 owes no answer)
         self._unanswered_since: float | None = None
         self._next_ns: dict[str, int] = {}
@@ -315,30 +373,50 @@ class PX4Link:
         address = f"{addr[0]}:{addr[1]}"
         if self._conn is not None:
             silent = self._silence()
-            if silent <= LINK_SILENCE_S:
+            if silent <= LINK_SILENCE_S or len(self._candidates) >= MAX_CANDIDATES:
                 with contextlib.suppress(OSError):
                     conn.close()
                 log.warning(
-                    "refused a PX4 connection from %s: PX4 at %s is connected and alive (silent %.2f s)",
+                    "refused a PX4 connection from %s: PX4 at %s is connected and %s",
                     address,
                     self._peer,
-                    silent,
+                    f"alive (silent {silent:.2f} s)"
+                    if silent <= LINK_SILENCE_S
+                    else f"{MAX_CANDIDATES} connections already wait to replace it",
                 )
                 return
-            self._drop(f"silent for {silent:.1f} s; the new connection from {address} replaces it")
+            conn.setblocking(False)
+            self._candidates.append(_Candidate(conn, address, time.monotonic()))
+            log.warning(
+                "PX4 at %s has been silent for %.1f s; the connection from %s replaces it once it shows "
+                "it is a PX4 (a HEARTBEAT from MAV_AUTOPILOT_PX4) and is sent nothing until then",
+                self._peer,
+                silent,
+                address,
+            )
+            return
+        self._install(conn, address, guard)
+
+    def _install(self, conn: socket.socket, address: str, guard: Any) -> None:
+        """Make ``conn`` the PX4 link and send it the boot batch (or step once at t = 0 first)."""
+        conn.setblocking(True)
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         conn.settimeout(SEND_TIMEOUT_S)
         self._conn, self._peer = conn, address
         self._reset_connection()
         with guard:
-            self._holding = self._hold_for_arming()
+            self._apply_loss()
+            self._holding = not self._on_ground()
             t_ns = self.sim.t_ns
             truth = Truth.from_sim(self.sim) if t_ns else None
         log.info(
             "PX4 connected from %s at t=%.3f s%s",
             address,
             t_ns / NS,
-            ": the vehicle is airborne, the simulator holds it until PX4 arms" if self._holding else "",
+            ": the vehicle is in the air, the simulator flies it; PX4 gets the rotors once it is on "
+            "the ground"
+            if self._holding
+            else "",
         )
         self._event("px4_connected", address=address, holding=self._holding)
         if truth is None:
@@ -348,15 +426,60 @@ class PX4Link:
         self._send_batch(truth)
         self._start_boot_grace()
 
-    def _hold_for_arming(self) -> bool:
-        """On a new connection (under the lock): True when the vehicle is in the air under the
-        simulator's controller, or under the outputs of a PX4 that is gone (the simulator then takes
-        over and holds), so a booting, disarmed PX4 does not stop its motors."""
-        if self.sim.mode == Mode.IDLE or self.sim.state.position[2] <= AIRBORNE_Z_M:
-            return False
-        if self.sim.mode == Mode.EXTERNAL:
+    def _on_ground(self) -> bool:
+        """(Under the lock) the vehicle rests on the ground: no PX4 is needed to keep it safe."""
+        return self.sim.state.position[2] <= AIRBORNE_Z_M and self.sim.mode in (Mode.IDLE, Mode.EXTERNAL)
+
+    def _apply_loss(self) -> None:
+        """(Under the lock) after PX4 was dropped while its outputs drove the rotors: ``cfg.on_loss``."""
+        if not self._loss_pending:
+            return
+        self._loss_pending = False
+        if self.sim.mode != Mode.EXTERNAL:
+            return  # PX4 did not have the rotors: whatever flies the vehicle goes on
+        position = self.sim.state.position
+        data: dict[str, Any] = {"position": [round(float(v), 3) for v in position]}
+        if position[2] <= AIRBORNE_Z_M or self.cfg.on_loss == "fall":
+            action = "rest" if position[2] <= AIRBORNE_Z_M else "fall"
+            self.sim.motors_off()
+            log.warning("PX4 lost %s: rotors stopped", "on the ground" if action == "rest" else "in the air")
+        elif self.cfg.on_loss == "hold":
+            action = "hold"
             self.sim.hold()
-        return True
+            log.warning("PX4 lost in the air: the simulator holds the vehicle at %s", data["position"])
+        else:
+            action = "land"
+            spot = self.sim.safe_land()
+            data["spot"] = [round(float(v), 3) for v in spot]
+            log.warning(
+                "PX4 lost in the air: the simulator lands the vehicle at %s (from %s)",
+                data["spot"],
+                data["position"],
+            )
+        self._event("px4_lost", action=action, **data)
+
+    def _update_hold(self, armed: bool) -> None:
+        """(Under the lock, on each actuator command while holding) hand PX4 the rotors once the vehicle
+        is on the ground with PX4 disarmed, or armed there; refuse, and say so, an arm in the air."""
+        down = self.sim.mode == Mode.IDLE and self.sim.state.position[2] <= AIRBORNE_Z_M
+        if not armed:
+            self._arm_refused = False
+            if not down:
+                return
+        elif self._arm_refused or not down:
+            if not self._arm_refused:
+                self._arm_refused = True
+                reason = (
+                    f"PX4 armed with the vehicle in the air ({self.sim.mode.value} under the simulator's "
+                    "controller): its outputs are not applied; it gets the rotors once the vehicle is on "
+                    "the ground and PX4 is disarmed or arms there"
+                )
+                log.warning("%s", reason)
+                self._event("px4_arm_refused", reason=reason)
+            return
+        self._holding = False
+        log.info("the vehicle is on the ground at t=%.3f s: PX4 has the rotors", self.sim.t)
+        self._event("px4_in_control")
 
     def _silence(self) -> float:
         """Wall seconds the connected PX4 has left sensor data unanswered (0 while it owes nothing)."""
@@ -370,6 +493,7 @@ class PX4Link:
     def _drop(self, reason: str) -> None:
         conn, self._conn = self._conn, None
         if conn is not None:
+            self._loss_pending = self._loss_pending or not self._holding
             with contextlib.suppress(OSError):
                 conn.close()
             log.warning("PX4 at %s disconnected (%s) at t=%.3f s", self._peer, reason, self.sim.t)
@@ -390,19 +514,70 @@ class PX4Link:
             return
         self._unanswered_since = None
         self._rx += data
-        for msg in self._extract():
+        for msg in self._extract(self._rx):
             self._handle(msg)
 
+    def _receive_candidate(self, c: _Candidate) -> None:
+        try:
+            data = c.sock.recv(65536)
+        except (BlockingIOError, InterruptedError, TimeoutError):
+            return
+        except OSError as exc:
+            self._close_candidate(c, f"receive failed: {exc}")
+            return
+        if not data:
+            self._close_candidate(c, "it closed before showing it is a PX4")
+            return
+        c.rx += data
+        for msg in self._extract(c.rx):
+            c.msgs.append(msg)
+            if msg.get_type() == "HEARTBEAT" and msg.autopilot == mavlink.MAV_AUTOPILOT_PX4 and not c.px4:
+                c.px4 = True
+                log.info("the waiting connection from %s sent a PX4 HEARTBEAT", c.address)
+
+    def _close_candidate(self, c: _Candidate, reason: str) -> None:
+        self._candidates.remove(c)
+        with contextlib.suppress(OSError):
+            c.sock.close()
+        log.warning("closed the waiting connection from %s: %s", c.address, reason)
+
+    def _review_candidates(self, guard: Any) -> None:
+        """Replace a silent PX4 by the first waiting PX4; drop waiting connections when PX4 speaks
+        again (it was paused, not dead) or when they show no PX4 HEARTBEAT in time."""
+        now = time.monotonic()
+        if self._conn is not None and self._silence() <= LINK_SILENCE_S:
+            for c in list(self._candidates):
+                self._close_candidate(c, f"PX4 at {self._peer} is alive and keeps the link")
+            return
+        for c in list(self._candidates):
+            if not c.px4 and now - c.since > CANDIDATE_TIMEOUT_S:
+                self._close_candidate(c, f"no PX4 HEARTBEAT within {CANDIDATE_TIMEOUT_S:.0f} s")
+        ready = [c for c in self._candidates if c.px4]
+        if not ready and self._conn is None and self._candidates:
+            ready = self._candidates[:1]  # the silent PX4 closed: the next connection gets the link
+        if not ready:
+            return
+        c = ready[0]
+        self._candidates.remove(c)
+        if self._conn is not None:
+            self._drop(f"silent for {self._silence():.1f} s; the PX4 at {c.address} replaces it")
+        self._install(c.sock, c.address, guard)
+        self._rx += c.rx
+        for msg in c.msgs:
+            self._handle(msg)
+        for m in self._extract(self._rx):
+            self._handle(m)
+
     # ------------------------------------------------------------------ parsing
-    def _extract(self) -> list[Any]:
-        """Complete MAVLink messages in the receive buffer, framed and checked by pymavlink.
+    def _extract(self, buf: bytearray) -> list[Any]:
+        """Complete MAVLink messages in ``buf`` (removed from it), framed and checked by pymavlink.
 
         Bytes that cannot start a valid frame are dropped with a logged error. A rejected frame
         costs one byte, not its claimed length, and an incomplete frame is given up once a valid
         frame starts after it, so a valid message inside (or after) a run of garbage is still found:
         in lockstep PX4 sends one message and waits, so nothing else would complete the bogus frame.
         """
-        buf, out = self._rx, []
+        out: list[Any] = []
         while buf:
             found = None
             keep = len(buf)
@@ -478,13 +653,13 @@ class PX4Link:
                 cmd = self._free_cmd
             if cmd is not None:
                 armed, speeds = cmd
-                if armed and speeds is not None:
-                    if self._holding:
-                        self._holding = False
-                        log.info("PX4 armed at t=%.3f s: it takes over from the simulator's hold", self.sim.t)
-                    self.sim.set_rotor_speeds(speeds)
-                elif not self._holding:
-                    self.sim.motors_off()
+                if self._holding:
+                    self._update_hold(armed)  # until it hands over, PX4's outputs are not applied
+                if not self._holding:
+                    if armed and speeds is not None:
+                        self.sim.set_rotor_speeds(speeds)
+                    else:
+                        self.sim.motors_off()
                 if lockstep_cmd is not None:
                     self._last_cmd_t_ns = t_ns
             elif not self._holding and self.sim.mode == Mode.EXTERNAL and not self._fresh(t_ns):
@@ -535,6 +710,7 @@ class PX4Link:
 
     def _sensor_message(self, truth: Truth, t_us: int) -> Any:
         accel, gyro = self.sensors.imu(truth)
+        accel, gyro = fifo_clip(accel, ACCEL_FIFO_SCALE), fifo_clip(gyro, GYRO_FIFO_SCALE)
         fields = SENSOR_ACCEL | SENSOR_GYRO
         if self._due("mag", truth.t_ns, self.cfg.mag_hz):
             self._last_mag = self.sensors.mag(truth)
@@ -545,8 +721,8 @@ class PX4Link:
         b = self._last_baro
         return self._tx.hil_sensor_encode(
             t_us,
-            *accel,
-            *gyro,
+            *(float(v) for v in accel),
+            *(float(v) for v in gyro),
             *self._last_mag,
             b.pressure_hpa,
             0.0,

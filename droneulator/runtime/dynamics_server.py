@@ -32,7 +32,6 @@ from typing import IO
 from droneulator.api.commands import CommandPath
 from droneulator.api.server import ApiServer
 from droneulator.config import SimConfig, from_dict
-from droneulator.controllers.flight import Mode
 from droneulator.ros.publishers import StatePublisher, subscribe_commands
 from droneulator.ros.zenoh_node import RosZenohNode
 from droneulator.runtime.ipc import (
@@ -239,8 +238,9 @@ class DynamicsServer:
     def _px4_turn(self) -> bool:
         """While PX4 is connected its actuator messages drive the clock (lockstep with PX4 and with
         every consumer); True then. While PX4 is in control WebSocket flight commands are refused; a PX4
-        that connected over a vehicle the simulator was flying is not in control until it arms (the
-        simulator holds meanwhile). PX4's connection and arming changes are published as API events."""
+        that connected over a vehicle in the air is not in control until the vehicle is on the ground
+        (the simulator flies it meanwhile, by ``px4.on_loss`` after a loss). The link's events
+        (connection, loss, arming, hand-over) are published as API events."""
         assert self.px4 is not None
         connected = self.px4.connected
         ready = all(r in self.peers for r in ROLES) and len(self.in_flight) < self.window
@@ -263,19 +263,12 @@ class DynamicsServer:
             if self._px4_in_control:
                 self.commands.refuse_flight("PX4 SITL is in control; flight commands come from PX4")
                 log.info("PX4 is in control: it flies the vehicle and drives the simulation clock")
-            else:
-                if not self.px4.connected:
-                    from droneulator.px4.link import AIRBORNE_Z_M
-
-                    with self.lock:  # the internal controller takes over: hover in place, or rest
-                        if self.sim.mode != Mode.IDLE and self.sim.state.position[2] > AIRBORNE_Z_M:
-                            self.sim.hold()
-                        else:
-                            self.sim.motors_off()
+            else:  # the link applied px4.on_loss (land, hold or fall) under the lock
                 self.commands.allow_flight()
                 log.warning(
-                    "PX4 is not in control: the simulator %s until a PX4 connects and arms",
-                    "holds position" if self.sim.mode == Mode.HOLD else "rests on the ground",
+                    "PX4 is not in control: the simulator flies the vehicle (%s); a PX4 gets the rotors "
+                    "once it is on the ground",
+                    self.sim.mode.value,
                 )
         if res is not None:
             self._after_step(res, False, stepped_wall_ns)

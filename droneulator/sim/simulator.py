@@ -9,6 +9,7 @@ around this object.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -21,6 +22,7 @@ from droneulator.frames import quat_from_yaw, transform_from_pose, yaw_of
 from droneulator.frames_numba import world_to_body
 from droneulator.scenes import get_scene
 from droneulator.scenes.base import Scene
+from droneulator.scenes.collision import sdf_lookup_many
 from droneulator.vehicles.dynamics import (
     GRAVITY,
     OUTPUT,
@@ -34,6 +36,8 @@ from droneulator.vehicles.params import get_params
 from droneulator.wind import make_wind
 
 NS = 1_000_000_000
+
+log = logging.getLogger(__name__)
 
 
 class CommandError(ValueError):
@@ -367,6 +371,49 @@ class Simulator:
     def land(self) -> float:
         self._require_airborne("land")
         return self.flight.land(self.s, self.t)
+
+    def landing_spot(self, clearance: float = 0.5, search_radius: float = 10.0) -> np.ndarray:
+        """The nearest (x, y) where the vehicle can descend from its height to the ground keeping
+        ``clearance`` metres (plus its collision radius) from the scene, reached by a level flight
+        that keeps it too: straight below when that is clear, else on rings of growing radius.
+
+        Falls back to straight below (and says so in the log) when nothing within
+        ``search_radius`` is clear.
+        """
+        col = self.scene.collision
+        x = self.s[STATE.x]
+        need = clearance + self.config.vehicle.collision_radius
+        step = max(col.resolution, 0.05)
+
+        def clear(a: np.ndarray, b: np.ndarray) -> bool:
+            n = max(2, int(np.ceil(np.linalg.norm(b - a) / step)) + 1)
+            pts = a + np.linspace(0.0, 1.0, n)[:, None] * (b - a)
+            return bool(np.all(sdf_lookup_many(col.sdf, col.origin, col.resolution, pts) >= need))
+
+        top = x.copy()
+        low = min(need, float(x[2]))  # the ground itself is not an obstacle: stop the column above it
+        lo, hi = self.scene.bounds_min[:2], self.scene.bounds_max[:2]
+        for radius in np.arange(0.0, search_radius + 1e-9, 0.5):
+            count = 1 if radius == 0.0 else max(8, int(2 * math.pi * radius / 0.5))
+            for k in range(count):
+                a = 2 * math.pi * k / count
+                xy = x[:2] + radius * np.array([math.cos(a), math.sin(a)])
+                if np.any(xy < lo) or np.any(xy > hi):
+                    continue
+                above = np.array([xy[0], xy[1], x[2]])
+                if clear(top, above) and clear(above, np.array([xy[0], xy[1], low])):
+                    return xy
+        log.warning("no landing spot clear of the scene within %.0f m of %s: landing straight down",
+                    search_radius, np.round(x, 2).tolist())  # fmt: skip
+        return x[:2].copy()
+
+    def safe_land(self, clearance: float = 0.5) -> np.ndarray:
+        """Land at :meth:`landing_spot` (flying there level first if it is not straight below);
+        returns the spot's (x, y)."""
+        self._require_airborne("land")
+        xy = self.landing_spot(clearance)
+        self.flight.land_at(self.s, self.t, xy)
+        return xy
 
     def motors_off(self) -> None:
         self.flight.motors_off()
