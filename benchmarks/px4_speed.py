@@ -37,7 +37,15 @@ class Px4Peer:
 
     def __init__(self, port: int, home_alt_m: float) -> None:
         self.home_alt_m = home_alt_m
-        self.sock = socket.create_connection(("127.0.0.1", port), timeout=10.0)
+        end = time.monotonic() + 60.0
+        while True:  # as PX4: retry until the simulator listens (once its cameras are warm)
+            try:
+                self.sock = socket.create_connection(("127.0.0.1", port), timeout=10.0)
+                break
+            except ConnectionRefusedError:
+                if time.monotonic() > end:
+                    raise
+                time.sleep(0.01)
         self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self.tx, self.rx = mavlink.MAVLink(None, 1, 1), mavlink.MAVLink(None)
         qp = get_params("px4_quadx")

@@ -112,8 +112,16 @@ def px4_in_the_air(served: Served, position: Any) -> Peer:
 class Peer:
     """Plays PX4: connects as the TCP client, sends HIL_ACTUATOR_CONTROLS, reads the sensor stream."""
 
-    def __init__(self, port: int) -> None:
-        self.sock = socket.create_connection(("127.0.0.1", port), timeout=5.0)
+    def __init__(self, port: int, connect_timeout: float = 30.0) -> None:
+        end = time.monotonic() + connect_timeout
+        while True:  # as PX4's simulator_mavlink: retry until the simulator listens
+            try:
+                self.sock = socket.create_connection(("127.0.0.1", port), timeout=5.0)
+                break
+            except ConnectionRefusedError:
+                if time.monotonic() > end:
+                    raise
+                time.sleep(0.01)
         self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self.mav = mavlink.MAVLink(None, 1, 1)
         self.rx = mavlink.MAVLink(None)

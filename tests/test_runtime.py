@@ -613,3 +613,43 @@ def test_px4_lost_mid_air_is_landed_and_a_restarted_px4_gets_the_rotors_only_on_
     finally:
         listener.close()
         r.close()
+
+
+def test_a_fresh_run_sends_px4_its_sensor_data_without_a_boot_stall():
+    """On a fresh ``run --px4`` PX4 (here a pymavlink peer that boots, then answers in lockstep) must get
+    HIL_SENSOR without a pause: PX4's simulator_mavlink logs ``poll timeout`` after 1 s without data.
+    The run lets PX4 in only once its renderer and bridge are warm (a first frame published), so the
+    first data comes at once and the boot grace is the only wait."""
+    from test_px4 import Peer
+
+    from droneulator.px4.link import BOOT_GRACE_S
+
+    port = free_port()
+    with launch_run(load_config(), ["--px4", "--set", f"px4.base_port={port}"]) as run:
+        peer = Peer(port)  # retries until the simulator listens, as PX4 does
+        t_connect = time.monotonic()
+        peer.hello()
+        arrivals: list[float] = []
+        while time.monotonic() < t_connect + 2.0:  # PX4 boots: no actuator outputs yet
+            try:
+                peer._fill(0.05)
+            except TimeoutError:
+                continue
+            while peer.inbox:
+                m = peer.inbox.popleft()
+                if m.get_type() == "HIL_SENSOR":
+                    arrivals.append(time.monotonic())
+                    peer.t_us = m.time_usec
+        booted = len(arrivals)
+        for _ in range(500):  # PX4 is up: one lockstep step per actuator message
+            peer.actuators([0.0] * 4, armed=False)
+            for m in peer.next(timeout=5.0):
+                if m.get_type() == "HIL_SENSOR":
+                    arrivals.append(time.monotonic())
+        peer.close()
+        gaps = np.diff(arrivals)
+        assert arrivals[0] - t_connect < 0.1, run.log.tail()
+        assert gaps[0] < BOOT_GRACE_S + 0.05  # the boot grace, then free-running sensor data
+        assert booted > 150  # about real time while PX4 boots (250 Hz)
+        assert gaps.max() < 0.5, (gaps.argmax(), gaps.max(), run.log.tail())  # PX4's limit: 1 s
+        assert any("renderer and bridge warm" in line for line in run.log.lines())

@@ -83,7 +83,7 @@ SIM_COMPONENT_ID = mavlink.MAV_COMP_ID_IMU
 #: motors stop when an autopilot's last actuator message is older than this (Gazebo-classic's rule)
 ACTUATOR_TIMEOUT_NS = 200_000_000
 #: wall time a new connection has to answer the first HIL_SENSOR before the link free-runs
-BOOT_GRACE_S = 0.1
+BOOT_GRACE_S = 0.05
 #: a connection whose PX4 left sensor data unanswered this long (wall time) may be replaced by a new one
 LINK_SILENCE_S = 1.0
 #: above this height (m, world z) the vehicle is in the air: a new PX4 does not get its rotors
@@ -168,6 +168,7 @@ class PX4Link:
         self.sensors = SensorSuite(cfg, seed)
         self._tx = mavlink.MAVLink(None, SIM_SYSTEM_ID, SIM_COMPONENT_ID)
         self._listener: socket.socket | None = None
+        self._listening = False
         self._conn: socket.socket | None = None
         self._peer = ""
         self._events: deque[Event] = deque()
@@ -194,22 +195,33 @@ class PX4Link:
         )
 
     # ------------------------------------------------------------------ lifecycle
-    def start(self) -> None:
-        """Listen for PX4 (idempotent)."""
-        if self._listener is not None:
-            return
-        port = 0 if self.cfg.base_port == 0 else self.cfg.base_port + self.cfg.instance
-        sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        try:
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            sock.bind((self.cfg.host, port))
-            sock.listen(1)
-            sock.setblocking(False)
-        except OSError:
-            sock.close()
-            raise
-        self._listener = sock
-        log.info("waiting for PX4 SITL (simulator_mavlink) on tcp://%s:%d", self.cfg.host, self.port)
+    def start(self, listen: bool = True) -> None:
+        """Take the port and, unless ``listen`` is False, listen for PX4 (idempotent).
+
+        Bound but not listening, the port refuses connections, and PX4's simulator_mavlink retries
+        every 0.5 ms: the runtime binds at once (a taken port fails the start) and listens only once
+        its cameras and bridge are warm, so PX4's first sensor data never waits for them.
+        """
+        if self._listener is None:
+            port = 0 if self.cfg.base_port == 0 else self.cfg.base_port + self.cfg.instance
+            sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                sock.bind((self.cfg.host, port))
+                sock.setblocking(False)
+            except OSError:
+                sock.close()
+                raise
+            self._listener = sock
+        if listen and not self._listening:
+            self._listener.listen(1)
+            self._listening = True
+            log.info("waiting for PX4 SITL (simulator_mavlink) on tcp://%s:%d", self.cfg.host, self.port)
+
+    @property
+    def listening(self) -> bool:
+        """True once PX4 can connect (:meth:`start` with ``listen``)."""
+        return self._listening
 
     def close(self) -> None:
         """Drop PX4 and stop listening (idempotent)."""
@@ -220,6 +232,7 @@ class PX4Link:
         if self._listener is not None:
             self._listener.close()
             self._listener = None
+            self._listening = False
 
     def __enter__(self) -> PX4Link:
         self.start()
@@ -283,7 +296,7 @@ class PX4Link:
         step before lockstep starts), or None when nothing stepped within ``timeout``. ``lock`` is
         held around every access to ``sim``.
         """
-        if self._listener is None:
+        if not self._listening:
             raise RuntimeError("PX4Link is not listening: call start() first")
         guard = lock if lock is not None else contextlib.nullcontext()
         deadline = time.monotonic() + max(0.0, float(timeout))

@@ -103,6 +103,7 @@ class DynamicsServer:
         self._scene_key = (cfg.scene, cfg.seed)
         self.stopping = threading.Event()
         self.dropped_frames = 0
+        self.frames_published = 0
         self.px4 = None
         if cfg.px4.enabled:
             from droneulator.px4.link import PX4Link
@@ -185,6 +186,7 @@ class DynamicsServer:
                     self._send("bridge", Publish(seq, item[1]))
             case Published(seq):
                 self.in_flight.pop(seq, None)
+                self.frames_published += 1
             case _:
                 log.error("unexpected message from %s: %r", role, msg)
 
@@ -235,6 +237,12 @@ class DynamicsServer:
         for e in res.events:
             self.api.publish_event(e.to_dict())
 
+    def _pipeline_warm(self) -> bool:
+        """Renderer and bridge connected and a first frame through both (shaders compiled, scene
+        uploaded, encoders and publishers made), or no camera: PX4's sensor data will not wait."""
+        peers = all(r in self.peers for r in ROLES)
+        return peers and (self.frames_published > 0 or not self.sim.camera_schedule)
+
     def _px4_turn(self) -> bool:
         """While PX4 is connected its actuator messages drive the clock (lockstep with PX4 and with
         every consumer); True then. While PX4 is in control WebSocket flight commands are refused; a PX4
@@ -279,8 +287,7 @@ class DynamicsServer:
     def run(self) -> None:
         self._px4_in_control = False
         if self.px4 is not None:
-            self.px4.start()
-            log.info("waiting for PX4 SITL on tcp://%s:%d", self.cfg.px4.host, self.px4.port)
+            self.px4.start(listen=False)  # the port is ours now; PX4 is let in once the pipeline is warm
         self.api.start()
         # the hub socket last: it is the supervisor's sign that every port is bound and the run is up
         self.listener = Listener(self._hub_address, family="AF_UNIX", authkey=self._authkey)
@@ -298,7 +305,16 @@ class DynamicsServer:
         report = time.monotonic() + 5.0
         while not self.stopping.is_set():
             self._take_new_peers()
-            if self.px4 is not None and self._px4_turn():
+            if self.px4 is not None and not self.px4.listening and self._pipeline_warm():
+                self.px4.start()
+                log.info(
+                    "waiting for PX4 SITL on tcp://%s:%d (renderer and bridge warm: the first frame was "
+                    "published at t=%.3f s)",
+                    self.cfg.px4.host,
+                    self.px4.port,
+                    self.sim.t,
+                )
+            if self.px4 is not None and self.px4.listening and self._px4_turn():
                 wall0, sim0 = time.monotonic(), self.sim.t  # realtime pacing restarts here when PX4 leaves
             elif realtime:
                 lag = (time.monotonic() - wall0) * self.cfg.runtime.speed - (self.sim.t - sim0)
