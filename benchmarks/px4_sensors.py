@@ -18,6 +18,7 @@ Runs in well under a minute on one core; writes ``benchmarks/results/px4_sensors
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import time
 from typing import Any
@@ -112,7 +113,8 @@ def accuracy(cfg: PX4Config, seeds: range, minutes: float) -> dict[str, Any]:
     z3, level = np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0])
     home = (cfg.home_lat_deg, cfg.home_lon_deg, cfg.home_alt_m)
     errors, rho = [], []
-    tau_lag = round(cfg.gps_correlation_time_s * 10)
+    tau = cfg.gps_error().correlation_time_s
+    tau_lag = max(1, round(tau * 10))
     for seed in seeds:
         suite = SensorSuite(cfg, seed)
         fixes = [suite.gps(Truth(k * FIX_NS, z3, z3, level, z3, z3, z3)) for k in range(round(minutes * 600))]
@@ -129,11 +131,11 @@ def accuracy(cfg: PX4Config, seeds: range, minutes: float) -> dict[str, Any]:
         "epv_m": round(fixes[0].epv_m, 3),
         "rms_error_north_east_down_m": [round(float(x), 3) for x in rms],
         "autocorrelation_north_lag_0.1s": round(float(np.mean([r for lag, r in rho if lag == 1])), 3),
-        f"autocorrelation_north_lag_{cfg.gps_correlation_time_s:g}s": round(
+        f"autocorrelation_north_lag_{tau:g}s": round(
             float(np.mean([r for lag, r in rho if lag == tau_lag])), 3
         ),
         "expected_at_correlation_time": round(math.exp(-1.0), 3),
-        "note": f"{len(seeds)} x {minutes:g} min at rest; with a {cfg.gps_correlation_time_s:g} s "
+        "note": f"{len(seeds)} x {minutes:g} min at rest; with a {tau:g} s "
         "correlation time the RMS has ~10 % sampling spread",
     }
 
@@ -173,10 +175,12 @@ def main() -> None:
     ap.add_argument("--drop", type=float, default=1.0, help="height the descent starts from (m)")
     ap.add_argument("--minutes", type=float, default=10.0, help="GPS minutes at rest per seed")
     ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--gps-preset", default="realistic", choices=("sitl", "realistic"),
+                    help="GPS error preset to check (px4.gps_preset; the drift checks matter for realistic)")
     ap.add_argument("--out", default=None, help="JSON path (default benchmarks/results/px4_sensors.json)")
     args = ap.parse_args()
     t0 = time.perf_counter()
-    cfg = PX4Config()
+    cfg = PX4Config(gps_preset=args.gps_preset)
     seeds = range(args.seeds)
 
     td = touchdowns(args.speeds, args.drop, 0)
@@ -189,12 +193,13 @@ def main() -> None:
         )
 
     gm = drift_at_rest(cfg, seeds, args.minutes)
-    white_cfg = PX4Config(gps_correlation_time_s=1e-6, gps_jitter_m=0.0)
+    white_cfg = PX4Config(gps_preset=args.gps_preset, gps_correlation_time_s=1e-6, gps_jitter_m=0.0)
     white = drift_at_rest(white_cfg, seeds, args.minutes)
     print(f"\nGPS at rest, EKF2's at-rest checks replayed ({gm['hours']} h per model):")
     head = f"{'hdrift median/p99/max (limit 0.1)':<35} {'vdrift max (0.2)':<18} hspeed max (0.1)"
     print(f"  {'model':<26} {head}")
-    models = ((f"Gauss-Markov, tau {cfg.gps_correlation_time_s:g} s", gm), ("white per fix (before)", white))
+    tau = cfg.gps_error().correlation_time_s
+    models = ((f"Gauss-Markov, tau {tau:g} s", gm), ("white per fix (before)", white))
     for name, r in models:
         h = r["hdrift_m_s"]
         print(
@@ -206,10 +211,10 @@ def main() -> None:
     print("\nGPS accuracy: reported vs actual")
     rms = acc["rms_error_north_east_down_m"]
     print(f"  eph {acc['eph_m']} m, epv {acc['epv_m']} m; RMS error N/E/D {rms} m")
-    lag_key = f"autocorrelation_north_lag_{cfg.gps_correlation_time_s:g}s"
+    lag_key = f"autocorrelation_north_lag_{tau:g}s"
     print(
         f"  autocorrelation at 0.1 s {acc['autocorrelation_north_lag_0.1s']},"
-        f" at {cfg.gps_correlation_time_s:g} s {acc[lag_key]} (first-order Gauss-Markov: e^-1 = 0.368)"
+        f" at {tau:g} s {acc[lag_key]} (first-order Gauss-Markov: e^-1 = 0.368)"
     )
 
     mag = magnetometer(cfg)
@@ -230,12 +235,12 @@ def main() -> None:
             "gps_accuracy": acc,
             "magnetometer": mag,
             "config": {
+                "gps_preset": cfg.gps_preset,
+                "gps_error": dataclasses.asdict(cfg.gps_error()),
+            }
+            | {
                 k: getattr(cfg, k)
                 for k in (
-                    "gps_noise_m",
-                    "gps_vertical_noise_m",
-                    "gps_correlation_time_s",
-                    "gps_jitter_m",
                     "gps_vel_noise",
                     "gps_vel_vertical_noise",
                     "gps_delay_s",

@@ -210,6 +210,27 @@ class BridgeConfig:
 PX4_ON_LOSS = ("land", "hold", "fall")
 
 
+@dataclass(frozen=True)
+class GpsError:
+    """The GPS position error model: Gauss-Markov 1-sigma (horizontal per axis, vertical; m), its
+    correlation time (s) and white per-fix jitter (m)."""
+
+    horizontal_m: float
+    vertical_m: float
+    correlation_time_s: float
+    jitter_m: float
+
+
+#: ``px4.gps_preset``: "sitl" matches PX4's own Gazebo simulation (GZBridge::addGpsNoise: an AR(1) error
+#: of about 2 cm horizontal and 3 cm vertical, correlated over about half a second), what a PX4 user
+#: expects from SITL; "realistic" is a single-frequency receiver (u-blox M8 class) wandering 0.3 m / 0.5 m
+#: over a minute, with which a real PX4's GPS-referenced take-off to 5 m ends 4.6-5.7 m up
+GPS_PRESETS: dict[str, GpsError] = {
+    "sitl": GpsError(horizontal_m=0.02, vertical_m=0.03, correlation_time_s=0.5, jitter_m=0.0),
+    "realistic": GpsError(horizontal_m=0.3, vertical_m=0.5, correlation_time_s=60.0, jitter_m=0.02),
+}
+
+
 @dataclass
 class PX4Config:
     """PX4 SITL simulator interface (``droneulator run --px4``). Noise is deterministic under the seed."""
@@ -236,13 +257,18 @@ class PX4Config:
     gyro_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
     mag_noise: float = 0.002
     baro_noise_hpa: float = 0.01
+    #: GPS position error preset (GPS_PRESETS): "sitl" (the few centimetres PX4's own Gazebo simulation
+    #: gives, so EKF2's GPS-referenced height and position sit on the truth) or "realistic" (a
+    #: single-frequency receiver's 0.3 m / 0.5 m wandering over a minute)
+    gps_preset: str = "sitl"
     #: GPS position error: a first-order Gauss-Markov process per axis with this stationary 1-sigma
     #: (horizontal per axis / vertical, m) and correlation time, plus white per-fix jitter; the fix
-    #: reports eph = sqrt(gps_noise_m^2 + gps_jitter_m^2) and epv likewise (what EKF2 takes as 1-sigma)
-    gps_noise_m: float = 0.3
-    gps_vertical_noise_m: float = 0.5
-    gps_correlation_time_s: float = 60.0
-    gps_jitter_m: float = 0.02
+    #: reports eph = sqrt(gps_noise_m^2 + gps_jitter_m^2) and epv likewise (what EKF2 takes as 1-sigma).
+    #: null: the preset's value (read them resolved with :meth:`gps_error`)
+    gps_noise_m: float | None = None
+    gps_vertical_noise_m: float | None = None
+    gps_correlation_time_s: float | None = None
+    gps_jitter_m: float | None = None
     #: GPS velocity noise (white per fix, 1-sigma m/s): horizontal per axis, vertical
     gps_vel_noise: float = 0.05
     gps_vel_vertical_noise: float = 0.1
@@ -267,6 +293,17 @@ class PX4Config:
     #: vehicle's would). Either way a new PX4 gets the rotors only once the vehicle is on the ground.
     on_loss: str = "land"
 
+    def gps_error(self) -> GpsError:
+        """The GPS position error in effect: ``gps_preset``'s, with every explicitly set field instead."""
+        base = GPS_PRESETS[self.gps_preset]
+        pick = [
+            (self.gps_noise_m, base.horizontal_m),
+            (self.gps_vertical_noise_m, base.vertical_m),
+            (self.gps_correlation_time_s, base.correlation_time_s),
+            (self.gps_jitter_m, base.jitter_m),
+        ]
+        return GpsError(*(float(base_value if value is None else value) for value, base_value in pick))
+
     def __post_init__(self) -> None:
         for name in ("gps_hz", "mag_hz", "baro_hz"):
             if not math.isfinite(getattr(self, name)) or getattr(self, name) <= 0:
@@ -281,18 +318,18 @@ class PX4Config:
             raise ValueError("px4.instance and px4.base_port must give a TCP port in [0, 65535]")
         if not -90.0 <= self.home_lat_deg <= 90.0 or not -180.0 <= self.home_lon_deg <= 180.0:
             raise ValueError("px4.home_lat_deg / home_lon_deg must be a valid WGS84 position")
-        gps_sigmas = (
-            "gps_noise_m",
-            "gps_vertical_noise_m",
-            "gps_jitter_m",
-            "gps_vel_noise",
-            "gps_vel_vertical_noise",
-            "gps_delay_s",
-        )
-        for name in gps_sigmas:
+        if self.gps_preset not in GPS_PRESETS:
+            choices = ", ".join(GPS_PRESETS)
+            raise ValueError(f"px4.gps_preset must be one of {choices}, got {self.gps_preset!r}")
+        for name in ("gps_noise_m", "gps_vertical_noise_m", "gps_jitter_m", "gps_correlation_time_s"):
+            value = getattr(self, name)
+            number = isinstance(value, int | float) and not isinstance(value, bool)
+            if value is not None and not (number and math.isfinite(value) and value >= 0):
+                raise ValueError(f"px4.{name} must be a number >= 0 or null (the preset's), got {value!r}")
+        for name in ("gps_vel_noise", "gps_vel_vertical_noise", "gps_delay_s"):
             if not math.isfinite(getattr(self, name)) or getattr(self, name) < 0:
                 raise ValueError(f"px4.{name} must be a finite number >= 0")
-        if not math.isfinite(self.gps_correlation_time_s) or self.gps_correlation_time_s <= 0:
+        if self.gps_error().correlation_time_s <= 0:
             raise ValueError("px4.gps_correlation_time_s must be a positive time in seconds")
         if not math.isfinite(self.mag_wmm_year):
             raise ValueError("px4.mag_wmm_year must be a decimal year, e.g. 2025.5")

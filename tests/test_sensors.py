@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from droneulator import frames as F
-from droneulator.config import ConfigError, PX4Config, load_config
+from droneulator.config import GPS_PRESETS, ConfigError, PX4Config, load_config
 from droneulator.sensors import SensorSuite, Truth
 from droneulator.sensors.gps import Ekf2DriftCheck, GpsSample
 from droneulator.sensors.mag import Magnetometer, field_elements, wmm_field_ned_gauss
@@ -73,12 +73,31 @@ def test_reported_eph_and_epv_are_the_actual_error_sigma():
     np.testing.assert_allclose(np.std(vel, axis=0), [0.05, 0.05, 0.1], rtol=0.05)
 
 
+def test_gps_presets_give_the_error_model_and_single_fields_override_them():
+    """The default is PX4's own SITL GPS (a few centimetres, so EKF2's GPS height sits on the truth);
+    "realistic" is a single-frequency receiver; a field set explicitly wins over either."""
+    assert PX4Config().gps_error() == GPS_PRESETS["sitl"]
+    assert (PX4Config().gps_error().horizontal_m, PX4Config().gps_error().vertical_m) == (0.02, 0.03)
+    realistic = load_config(overrides=["px4.gps_preset=realistic"]).px4.gps_error()
+    assert (realistic.horizontal_m, realistic.vertical_m, realistic.correlation_time_s) == (0.3, 0.5, 60.0)
+    mixed = load_config(overrides=["px4.gps_preset=realistic", "px4.gps_vertical_noise_m=0.1"]).px4
+    assert mixed.gps_error().vertical_m == 0.1 and mixed.gps_error().horizontal_m == 0.3
+    g = SensorSuite(mixed, seed=1).gps(at_rest(0))
+    assert (g.eph_m, g.epv_m) == (pytest.approx(math.hypot(0.3, 0.02)), pytest.approx(math.hypot(0.1, 0.02)))
+    # what PX4 reads in the default: a fix within centimetres of the truth, every one of 600
+    cfg = PX4Config(mag_field_ned_gauss=(0.2, 0.0, 0.4))
+    err = errors_at_rest(cfg, 60.0)
+    assert np.abs(err[:, :2]).max() < 0.1 and np.abs(err[:, 2]).max() < 0.15
+    with pytest.raises(ValueError, match="gps_preset must be one of sitl, realistic"):
+        load_config(overrides=["px4.gps_preset=rtk"])
+
+
 def test_the_first_fix_already_has_the_stationary_spread():
     """The process starts from its stationary distribution, so eph holds from the first fix on."""
-    cfg = PX4Config(mag_field_ned_gauss=(0.2, 0.0, 0.4))  # no WMM evaluation per suite
+    cfg = PX4Config(gps_preset="realistic", mag_field_ned_gauss=(0.2, 0.0, 0.4))  # no WMM per suite
     first = np.array([fix_error_ned(cfg, SensorSuite(cfg, seed).gps(at_rest(0))) for seed in range(400)])
-    assert np.std(first[:, :2]) == pytest.approx(cfg.gps_noise_m, rel=0.1)
-    assert np.std(first[:, 2]) == pytest.approx(cfg.gps_vertical_noise_m, rel=0.15)
+    assert np.std(first[:, :2]) == pytest.approx(0.3, rel=0.1)
+    assert np.std(first[:, 2]) == pytest.approx(0.5, rel=0.15)
 
 
 # --------------------------------------------------------------------------- fix delay
@@ -150,14 +169,19 @@ def drift_at_rest(cfg: PX4Config, seed: int, minutes: float) -> np.ndarray:
 
 
 def test_drift_rate_at_rest_stays_well_below_px4s_limit():
-    rates = np.concatenate([drift_at_rest(PX4Config(), seed, 6.0) for seed in range(3)])
+    realistic = PX4Config(gps_preset="realistic")
+    rates = np.concatenate([drift_at_rest(realistic, seed, 6.0) for seed in range(3)])
     assert rates[:, 0].max() < 0.06  # EKF2_REQ_HDRIFT 0.1 m/s; PX4's log docs expect ~0.01
     assert rates[:, 1].max() < 0.1  # EKF2_REQ_VDRIFT 0.2 m/s
     assert rates[:, 2].max() < 0.03  # filtered horizontal speed, against EKF2_REQ_HDRIFT
     assert np.median(rates[:, 0]) < 0.025
     # the same 0.3 m as white noise per fix (the old model) drifts ~2.5x faster, as PX4 flight logs showed
-    white = drift_at_rest(PX4Config(gps_correlation_time_s=1e-6, gps_jitter_m=0.0), 0, 6.0)
+    white = drift_at_rest(PX4Config(gps_preset="realistic", gps_correlation_time_s=1e-6, gps_jitter_m=0.0),
+                          0, 6.0)  # fmt: skip
     assert np.median(white[:, 0]) > 2.0 * np.median(rates[:, 0])
+    # the default (PX4's own SITL GPS: a few centimetres) is far below either
+    sitl = drift_at_rest(PX4Config(), 0, 3.0)
+    assert sitl[:, 0].max() < 0.01 and sitl[:, 1].max() < 0.02
 
 
 # --------------------------------------------------------------------------- seeds

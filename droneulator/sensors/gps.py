@@ -4,7 +4,7 @@ The position error follows PX4's Gazebo GPS plugin (``gazebo_gps_plugin.cpp``): 
 bias pulled back over a correlation time (a first-order Gauss-Markov process) plus white noise,
 and fixes leave late from a delay buffer. Unlike the plugin (whose bias update omits ``dt`` in its
 decay term and whose fixed eph/epv of 1 m do not describe its error), the process is integrated
-exactly, so its stationary 1-sigma is ``gps_noise_m`` (vertical ``gps_vertical_noise_m``) and the
+exactly, so its stationary 1-sigma is the model's horizontal (vertical) sigma and the
 reported eph/epv are the actual 1-sigma of the error. A slowly wandering error is what keeps PX4's
 at-rest drift check (EKF2 ``EKF2_REQ_HDRIFT``, a 10 s low-pass of the fix-to-fix position rate)
 quiet: white noise of the same size makes that filtered rate about ``sigma / 10 s`` per axis.
@@ -48,9 +48,9 @@ class GpsSample:
 
 @register("gps")
 class Gps:
-    """``cfg`` gives the home position, ``gps_noise_m``, ``gps_vertical_noise_m``,
-    ``gps_correlation_time_s``, ``gps_jitter_m``, ``gps_vel_noise``, ``gps_vel_vertical_noise``,
-    ``gps_delay_s``, ``gps_bias_m`` and ``gps_satellites``.
+    """``cfg`` (a :class:`~droneulator.config.PX4Config`) gives the home position, the position error
+    (:meth:`~droneulator.config.PX4Config.gps_error`: ``gps_preset`` and the ``gps_*_m`` overrides),
+    ``gps_vel_noise``, ``gps_vel_vertical_noise``, ``gps_delay_s``, ``gps_bias_m`` and ``gps_satellites``.
 
     :meth:`observe` records the truth of every step into the delay line (the sensor suite calls it
     on every sample of any sensor); :meth:`sample` reports the state ``gps_delay_s`` earlier,
@@ -60,6 +60,8 @@ class Gps:
     def __init__(self, cfg: Any, rng: np.random.Generator) -> None:
         self.cfg = cfg
         self.rng = rng
+        #: the position error model in effect (the preset, with explicitly set fields instead)
+        self._model = cfg.gps_error()
         self._delay_ns = round(cfg.gps_delay_s * 1e9)
         #: recorded truths (t_ns, position ENU, velocity ENU), oldest first
         self._history: deque[tuple[int, np.ndarray, np.ndarray]] = deque()
@@ -103,23 +105,23 @@ class Gps:
         """Step the Gauss-Markov error to fix time ``t_ns`` with its exact discretisation
         ``e' = phi e + sigma sqrt(1 - phi^2) n``, ``phi = exp(-dt / tau)``; it starts (and restarts
         after a reset) from its stationary distribution, so eph holds from the first fix."""
-        c = self.cfg
-        sigma = np.array([c.gps_noise_m, c.gps_noise_m, c.gps_vertical_noise_m])
+        e = self._model
+        sigma = np.array([e.horizontal_m, e.horizontal_m, e.vertical_m])
         n = self.rng.standard_normal(3)
         if self._error is None or t_ns < self._error_t_ns:
             self._error = sigma * n
         else:
-            phi = math.exp(-(t_ns - self._error_t_ns) / 1e9 / c.gps_correlation_time_s)
+            phi = math.exp(-(t_ns - self._error_t_ns) / 1e9 / e.correlation_time_s)
             self._error = phi * self._error + sigma * math.sqrt(1.0 - phi * phi) * n
         self._error_t_ns = t_ns
         return self._error
 
     def sample(self, truth: Truth) -> GpsSample:
         """The fix sent at ``truth.t_ns``: the state ``gps_delay_s`` earlier plus the errors."""
-        c, rng = self.cfg, self.rng
+        c, e, rng = self.cfg, self._model, self.rng
         self.observe(truth)
         t_fix, pos_enu, vel_enu = self._delayed(truth.t_ns)
-        error = self._advance_error(t_fix) + c.gps_jitter_m * rng.standard_normal(3)
+        error = self._advance_error(t_fix) + e.jitter_m * rng.standard_normal(3)
         pos_ned = enu_to_ned(pos_enu) + np.asarray(c.gps_bias_m, dtype=float) + error
         vel_sigma = np.array([c.gps_vel_noise, c.gps_vel_noise, c.gps_vel_vertical_noise])
         vel_ned = enu_to_ned(vel_enu) + vel_sigma * rng.standard_normal(3)
@@ -132,8 +134,8 @@ class Gps:
             vel_ned,
             float(math.hypot(vel_ned[0], vel_ned[1])),
             course,
-            eph_m=max(math.hypot(c.gps_noise_m, c.gps_jitter_m), MIN_ACCURACY_M),
-            epv_m=max(math.hypot(c.gps_vertical_noise_m, c.gps_jitter_m), MIN_ACCURACY_M),
+            eph_m=max(math.hypot(e.horizontal_m, e.jitter_m), MIN_ACCURACY_M),
+            epv_m=max(math.hypot(e.vertical_m, e.jitter_m), MIN_ACCURACY_M),
             fix_type=3,
             satellites=c.gps_satellites,
             time_ns=int(t_fix),
