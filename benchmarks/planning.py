@@ -13,6 +13,14 @@ times (median, p99, from its ``--stats`` file) and the real-time factor. Writes
 ``benchmarks/results/planning.json`` (with each flight's 3-D track, its events and, after a collision
 or impact, the last 300 states before it, to trace a failed flight) and a top-down figure of the five
 trajectories (``benchmarks/results/planning.png``).
+
+``--px4 PATH`` flies the paper's way, with PX4 in the loop: the run is ``droneulator run --px4`` and for
+each goal a fresh PX4 SITL (``PATH`` is a ``px4_sitl_default`` build directory; ``--px4 scripted``: the
+PX4-like peer of ``tests/scripted_px4.py``) boots on the ground at the start, takes off to 2.5 m
+(``MIS_TAKEOFF_ALT``) on a ground station's ARM and NAV_TAKEOFF (UDP 14550), and ``droneulator plan --px4``
+flies it in OFFBOARD. Arrival and the goal error are then measured in PX4's own frame (its
+LOCAL_POSITION_NED through its GPS origin, as the planner judges them), clearance and the true goal error
+on the simulator's truth. Each flight ends with NAV_LAND and PX4 stopped on the ground.
 """
 
 from __future__ import annotations
@@ -20,17 +28,24 @@ from __future__ import annotations
 import argparse
 import collections
 import json
+import math
 import os
 import signal
+import struct
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
 import numpy as np
 from _common import write
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import common as mavlink
 
+from droneulator import frames
+from droneulator.api.client import ApiError
 from droneulator.config import load_config
 from droneulator.ros import messages as M
 from droneulator.ros.topics import ODOM_FRAME
@@ -51,15 +66,142 @@ MARGIN = 0.6
 GOALS_XY = ((7.0, 6.0), (7.5, 3.0), (8.0, 0.0), (7.5, -3.0), (7.0, -6.0))
 
 
+#: PX4 parameters for SITL without RC or a watching ground station (docs/px4.md), and the take-off height
+PX4_PARAMS = {"NAV_RCL_ACT": 0, "NAV_DLL_ACT": 0, "COM_RC_IN_MODE": 4, "MIS_TAKEOFF_ALT": ALTITUDE}
+
+
+class PX4:
+    """One PX4 SITL for one flight, with a ground station on UDP 14550: the real binary of a
+    ``px4_sitl_default`` build (``where``), or ``"scripted"`` (tests/scripted_px4.py)."""
+
+    def __init__(self, where: str, sim_port: int, home: tuple[float, float, float], workdir: Path) -> None:
+        self.home = home
+        gcs_id = {"source_system": 255, "source_component": mavlink.MAV_COMP_ID_MISSIONPLANNER}
+        self.gcs = mavutil.mavlink_connection("udpin:127.0.0.1:14550", **gcs_id)
+        self.proc: subprocess.Popen | None = None
+        self.scripted = None
+        self.lock = threading.Lock()
+        self.local: tuple[np.ndarray, float] | None = None  # NED position, monotonic time
+        self.origin: np.ndarray | None = None
+        self.sysid: int | None = None
+        self.armed = False
+        self.acks: dict[int, int] = {}
+        self.texts: list[str] = []
+        self._stop = False
+        if where == "scripted":
+            sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+            from scripted_px4 import ScriptedPX4
+
+            self.scripted = ScriptedPX4(sim_port, 14540, gcs_port=14550)
+        else:
+            build = Path(where)
+            env = {**os.environ, "PX4_SYS_AUTOSTART": "10016", "PX4_SIM_MODEL": "none_iris"}
+            rootfs = workdir / "px4"
+            rootfs.mkdir(parents=True, exist_ok=True)
+            self.log_path = workdir / "px4.log"
+            out = open(self.log_path, "a")  # noqa: SIM115 (closed with the process by the OS)
+            cmd = [str(build / "bin" / "px4"), "-d", str(build / "etc")]
+            self.proc = subprocess.Popen(cmd, cwd=rootfs, env=env, stdout=out, stderr=subprocess.STDOUT)
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        next_hb = 0.0
+        while not self._stop:
+            if time.monotonic() >= next_hb and self.sysid is not None:
+                self.gcs.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+                next_hb = time.monotonic() + 1.0
+            m = self.gcs.recv_match(blocking=True, timeout=0.1)
+            if m is None:
+                continue
+            kind = m.get_type()
+            with self.lock:
+                if kind == "HEARTBEAT" and m.autopilot == mavlink.MAV_AUTOPILOT_PX4:
+                    self.sysid = m.get_srcSystem()
+                    self.armed = bool(m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+                elif kind == "LOCAL_POSITION_NED":
+                    self.local = (np.array([m.x, m.y, m.z]), time.monotonic())
+                elif kind == "GPS_GLOBAL_ORIGIN":
+                    lat, lon, alt = m.latitude * 1e-7, m.longitude * 1e-7, m.altitude * 1e-3
+                    self.origin = frames.geodetic_to_enu(lat, lon, alt, *self.home)
+                elif kind == "COMMAND_ACK":
+                    self.acks[m.command] = m.result
+                elif kind == "STATUSTEXT":
+                    self.texts.append(m.text)
+
+    def _command(self, command: int, *params: float, timeout: float = 2.0) -> int | None:
+        with self.lock:
+            self.acks.pop(command, None)
+        p = list(params) + [0.0] * (7 - len(params))
+        self.gcs.mav.command_long_send(self.sysid, 1, command, 0, *p)
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            with self.lock:
+                if command in self.acks and self.acks[command] != mavlink.MAV_RESULT_IN_PROGRESS:
+                    return self.acks[command]
+            time.sleep(0.02)
+        return None
+
+    def wait_ready(self, timeout: float = 120.0) -> None:
+        """PX4's heartbeat, the SITL parameters set, and its GPS origin known."""
+        end = time.monotonic() + timeout
+        while self.sysid is None:
+            if time.monotonic() > end:
+                raise TimeoutError("no PX4 heartbeat on UDP 14550")
+            time.sleep(0.1)
+        for name, value in PX4_PARAMS.items():
+            # PX4 encodes integer parameters bytewise in PARAM_SET's float
+            real = isinstance(value, float)
+            raw = float(value) if real else struct.unpack("<f", struct.pack("<i", value))[0]
+            kind = mavlink.MAV_PARAM_TYPE_REAL32 if real else mavlink.MAV_PARAM_TYPE_INT32
+            self.gcs.mav.param_set_send(self.sysid, 1, name.encode(), raw, kind)
+        while self.origin is None:
+            if time.monotonic() > end:
+                raise TimeoutError("PX4 sent no GPS_GLOBAL_ORIGIN")
+            origin_id = mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN
+            self._command(mavlink.MAV_CMD_REQUEST_MESSAGE, origin_id, timeout=1)
+
+    def takeoff(self, timeout: float = 120.0) -> None:
+        """Arm (PX4 refuses until its preflight checks pass: retried) and NAV_TAKEOFF to MIS_TAKEOFF_ALT."""
+        end = time.monotonic() + timeout
+        while self._command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0) != mavlink.MAV_RESULT_ACCEPTED:
+            if time.monotonic() > end:
+                raise TimeoutError(f"PX4 would not arm: {self.texts[-5:]}")
+            time.sleep(1.0)
+        result = self._command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, math.nan)
+        if result != mavlink.MAV_RESULT_ACCEPTED:
+            raise RuntimeError(f"PX4 refused NAV_TAKEOFF: {result}; {self.texts[-5:]}")
+
+    def estimate(self) -> np.ndarray | None:
+        """PX4's position estimate in the ENU world (LOCAL_POSITION_NED through its origin)."""
+        with self.lock:
+            if self.local is None or self.origin is None or time.monotonic() - self.local[1] > 1.0:
+                return None
+            return self.origin + frames.ned_to_enu(self.local[0])
+
+    def land(self) -> None:
+        self._command(mavlink.MAV_CMD_NAV_LAND, 0, 0, 0, math.nan, math.nan, math.nan, math.nan)
+
+    def close(self) -> None:
+        if self.scripted is not None:
+            self.scripted.close()
+        if self.proc is not None:
+            self.proc.kill()
+            self.proc.wait(timeout=20)
+        self._stop = True
+        self._reader.join(timeout=2)
+        self.gcs.close()
+
+
 def _pct(values: list[float], q: float) -> float:
     return float(np.percentile(values, q)) if values else float("nan")
 
 
 def _planner(endpoint: str, ns: str, bounds: list[float], stats: Path, log: Path,
-             margin: float) -> subprocess.Popen:  # fmt: skip
+             margin: float, px4: bool) -> subprocess.Popen:  # fmt: skip
     cmd = [sys.executable, "-m", "droneulator.cli", "plan", "--zenoh", endpoint, "--namespace", ns,
            "--bounds", *map(str, bounds), "--ceiling", str(CEILING), "--floor", str(FLOOR),
-           "--margin", str(margin), "--stats", str(stats), "-v"]  # fmt: skip
+           "--margin", str(margin), "--stats", str(stats), "-v"] + ["--px4"] * px4  # fmt: skip
     out = open(log, "w")  # noqa: SIM115 (closed with the process by the OS)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env)
@@ -78,11 +220,46 @@ def _wait_for_line(log: Path, text: str, proc: subprocess.Popen, timeout: float)
 
 def fly_one(run, client, goal_pub, goal: np.ndarray, start: np.ndarray, bounds: list[float], workdir: Path,
             args: argparse.Namespace, index: int) -> dict:  # fmt: skip
-    client.reset(position=[float(start[0]), float(start[1]), 0.0], yaw=0.0)
-    client.takeoff(altitude=ALTITUDE)
-    client.wait_for_event("arrived", timeout=120)
+    deadline = time.monotonic() + 30
+    while True:
+        try:
+            client.reset(position=[float(start[0]), float(start[1]), 0.0], yaw=0.0)
+            break
+        except ApiError as exc:  # the previous flight's PX4 is still being let go
+            if exc.code != "flight_locked" or time.monotonic() > deadline:
+                raise
+            time.sleep(0.2)
+    px4 = None
+    if args.px4:
+        home = (run.config.px4.home_lat_deg, run.config.px4.home_lon_deg, run.config.px4.home_alt_m)
+        px4 = PX4(args.px4, run.config.px4.base_port, home, workdir / f"px4_{index}")
+        px4.wait_ready()
+        px4.takeoff()
+        deadline = time.monotonic() + 120
+        while (est := px4.estimate()) is None or min(est[2], client.state()["position"][2]) < ALTITUDE - 0.2:
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"PX4 did not climb to {ALTITUDE} m: {px4.texts[-5:]}")
+            time.sleep(0.1)
+        time.sleep(2.0)  # settle in AUTO.LOITER
+    else:
+        client.takeoff(altitude=ALTITUDE)
+        client.wait_for_event("arrived", timeout=120)
+    try:
+        return _fly(run, client, goal_pub, goal, bounds, workdir, args, index, px4)
+    finally:
+        if px4 is not None:
+            px4.land()
+            end = time.monotonic() + 60
+            while px4.armed and time.monotonic() < end:
+                time.sleep(0.2)
+            px4.close()
+
+
+def _fly(run, client, goal_pub, goal: np.ndarray, bounds: list[float], workdir: Path,
+         args: argparse.Namespace, index: int, px4: PX4 | None) -> dict:  # fmt: skip
     stats, log = workdir / f"plan_{index}.json", workdir / f"plan_{index}.log"
-    proc = _planner(run.zenoh_endpoint, run.config.bridge.namespace, bounds, stats, log, args.margin)
+    proc = _planner(run.zenoh_endpoint, run.config.bridge.namespace, bounds, stats, log, args.margin,
+                    px4 is not None)  # fmt: skip
     try:
         _wait_for_line(log, "first depth image integrated", proc, 120)
         s0 = client.state()
@@ -90,6 +267,8 @@ def fly_one(run, client, goal_pub, goal: np.ndarray, start: np.ndarray, bounds: 
         goal_pub.publish(M.serialize(M.pose_stamped(0, ODOM_FRAME, goal, (0.0, 0.0, 0.0, 1.0))))
         t0 = s0["t"]
         samples: list[tuple[float, list[float], float]] = []
+        #: (sim t, PX4's estimate): with PX4, arrival and the goal error are PX4's, as the planner judges them
+        estimates: list[tuple[float, np.ndarray]] = []
         collisions = 0
         events: list[dict] = []  # every event, and the states before the first contact, to trace one
         recent: collections.deque[dict] = collections.deque(maxlen=300)
@@ -116,6 +295,12 @@ def fly_one(run, client, goal_pub, goal: np.ndarray, start: np.ndarray, bounds: 
             p = np.array(st["position"])
             speed = float(np.linalg.norm(st["velocity"]))
             samples.append((st["t"], st["position"], speed))
+            if px4 is not None:
+                est = px4.estimate()
+                if est is None:
+                    continue
+                estimates.append((st["t"], est))
+                p = est
             err = float(np.linalg.norm(p - goal))
             if t_arrive is None and err <= args.arrive:
                 t_arrive = st["t"]
@@ -140,13 +325,16 @@ def fly_one(run, client, goal_pub, goal: np.ndarray, start: np.ndarray, bounds: 
     planner = json.loads(stats.read_text()) if stats.exists() else {}
     plan_ms = [1e3 * x for x in planner.get("plan_s", [])]
     map_ms = [1e3 * x for x in planner.get("map_update_s", [])]
+    true_error = float(np.linalg.norm(pos[-1] - goal))
     return {
         "goal": goal.tolist(),
         "reached": t_arrive is not None,
         "flight_time_s": None if t_arrive is None else float(t_arrive - t0),
         "path_length_m": length,
         "straight_line_m": float(np.linalg.norm(goal - pos[0])),
-        "goal_error_m": float(np.linalg.norm(pos[-1] - goal)),
+        # in the frame the vehicle is flown in: PX4's estimate with --px4, else the truth
+        "goal_error_m": float(np.linalg.norm(estimates[-1][1] - goal)) if estimates else true_error,
+        "true_goal_error_m": true_error,
         "min_clearance_m": float(clearance.min()),
         "collisions": collisions,
         "events": events[:100],
@@ -212,7 +400,12 @@ def main() -> None:
     ap.add_argument("--margin", type=float, default=MARGIN, help="planner inflation margin (m)")
     ap.add_argument("--logs", default=None, help="keep the simulator's and the planner's logs and stats here")
     ap.add_argument("--output", default=None, help="JSON path (default benchmarks/results/planning.json)")
+    ap.add_argument("--px4", default=None, metavar="BUILD|scripted",
+                    help="fly with PX4 in the loop: a px4_sitl_default build directory, or 'scripted' for "
+                         "the PX4-like peer of tests/scripted_px4.py (see the module docstring)")  # fmt: skip
     args = ap.parse_args()
+    if args.px4 and args.px4 != "scripted" and not (Path(args.px4) / "bin" / "px4").exists():
+        ap.error(f"--px4 {args.px4}: no bin/px4 there (a px4_sitl_default build directory, or 'scripted')")
 
     scene = get_scene(args.scene, args.seed)
     start = np.asarray(scene.landmarks.get("start", scene.spawn_position), dtype=float)
@@ -220,6 +413,8 @@ def main() -> None:
     bounds = [lo[0], lo[1], 0.5, hi[0], hi[1], min(hi[2], 8.0)]
     picks = args.goals or list(range(1, len(GOALS_XY) + 1))
     cfg = load_config(scene=args.scene, seed=args.seed)
+    if args.px4:  # what `droneulator run --px4` sets; the real PX4 instance 0 connects to 4560
+        cfg.px4.enabled, cfg.vehicle.control_hz, cfg.vehicle.params = True, 250.0, "px4_quadx"
     runs = []
     if args.logs:
         Path(args.logs).mkdir(parents=True, exist_ok=True)
@@ -273,8 +468,10 @@ def main() -> None:
               f"{r['straight_line_m']:.2f} | {r['goal_error_m']:.3f} | {r['min_clearance_m']:.2f} | "
               f"{r['plan_ms_median']:.1f} / {r['plan_ms_p99']:.1f} | {r['rtf']:.2f} |")  # fmt: skip
     print(json.dumps(summary, indent=1))
-    out = write("planning", {"scene": args.scene, "seed": args.seed, "altitude": ALTITUDE, "summary": summary,
-                             "runs": runs}, args.output)  # fmt: skip
+    mode = "api" if not args.px4 else ("px4 scripted" if args.px4 == "scripted" else f"px4 {args.px4}")
+    summary["mean_true_goal_error_m"] = float(np.mean([r["true_goal_error_m"] for r in runs]))
+    out = write("planning", {"scene": args.scene, "seed": args.seed, "altitude": ALTITUDE, "mode": mode,
+                             "summary": summary, "runs": runs}, args.output)  # fmt: skip
     figure(args.scene, args.seed, runs, start, out.with_suffix(".png"))
 
 

@@ -315,7 +315,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
     done = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: done.set())
     with contextlib.ExitStack() as stack:
-        sink = None
+        autopilot = None
         if args.px4 or args.px4_instance is not None:
             from droneulator.workflows.planning.offboard import OffboardConfig, OffboardLink
 
@@ -330,8 +330,8 @@ def cmd_plan(args: argparse.Namespace) -> int:
                 origin_enu=origin,
                 **home,
             )
-            sink = stack.enter_context(OffboardLink(link_cfg)).setpoint
-        node = stack.enter_context(PlanNode(cfg, planner, setpoint_sink=sink))
+            autopilot = stack.enter_context(OffboardLink(link_cfg))
+        node = stack.enter_context(PlanNode(cfg, planner, autopilot=autopilot))
         if args.goal is not None:
             node.set_goal(args.goal)
         try:
@@ -838,7 +838,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--px4",
         action="store_true",
         help="fly PX4 SITL in OFFBOARD (SET_POSITION_TARGET_LOCAL_NED on UDP 14540+N) instead of "
-        "publishing PositionCommand; see docs/planning.md",
+        "publishing PositionCommand: a goal makes PX4 hold where it is in OFFBOARD, then the planner "
+        "plans, checks arrival and tracking on PX4's own position estimate; see docs/planning.md",
     )
     p.add_argument("--px4-instance", type=int, default=None, metavar="N", help="PX4 instance (implies --px4)")
     p.add_argument("--px4-host", default="127.0.0.1", help="address to bind PX4's offboard UDP port on")

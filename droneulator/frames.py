@@ -207,6 +207,11 @@ def yaw_enu_to_ned(yaw_enu: float) -> float:
     return yaw_of(quat_enu_flu_to_ned_frd(quat_from_yaw(yaw_enu)))
 
 
+def yaw_ned_to_enu(yaw_ned: float) -> float:
+    """Inverse of :func:`yaw_enu_to_ned`: heading from north, clockwise -> from east, counter-clockwise."""
+    return yaw_of(quat_ned_frd_to_enu_flu(quat_from_yaw(yaw_ned)))
+
+
 def yaw_rate_enu_to_ned(yaw_rate_enu: float) -> float:
     """Rate about world up -> rate about world down (the z of the ENU angular velocity in NED)."""
     return float(enu_to_ned(np.array([0.0, 0.0, yaw_rate_enu]))[2])

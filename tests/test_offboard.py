@@ -37,16 +37,21 @@ def wait_until(pred: Any, timeout: float = 5.0, what: str = "condition") -> None
 
 class FakePX4:
     """PX4's onboard MAVLink instance as a pymavlink peer: sends to the link's port like PX4 sends to
-    14540+N, HEARTBEATs as MAV_AUTOPILOT_PX4 with its custom mode, acks commands (results per command,
-    accepted by default), answers REQUEST_MESSAGE for GPS_GLOBAL_ORIGIN and records what it gets."""
+    14540+N, HEARTBEATs as MAV_AUTOPILOT_PX4 with its custom mode, LOCAL_POSITION_NED (30 Hz) and
+    ATTITUDE (its estimate, ``local_ned`` and ``yaw_ned``), acks commands (results per command, accepted by
+    default; OFFBOARD only while setpoints stream, as PX4 does), answers REQUEST_MESSAGE for
+    GPS_GLOBAL_ORIGIN and records what it gets. ``silent`` stops its heartbeats and acks, not its estimate."""
 
     def __init__(self, port: int, origin_geodetic: tuple[float, float, float] | None = HOME, sysid: int = 1,
-                 hb_hz: float = 10.0) -> None:  # fmt: skip
+                 hb_hz: float = 10.0, local_ned: Any = (0.0, 0.0, 0.0),
+                 yaw_ned: float = 0.0) -> None:  # fmt: skip
         self.conn = mavutil.mavlink_connection(
             f"udpout:127.0.0.1:{port}", source_system=sysid, source_component=1
         )
         self.origin = origin_geodetic
         self.hb_hz = hb_hz
+        self.local_ned = np.asarray(local_ned, dtype=float)
+        self.yaw_ned = yaw_ned
         self.results: dict[int, int] = {}
         self.custom_mode = POSCTL
         self.armed = False
@@ -54,12 +59,13 @@ class FakePX4:
         self.lock = threading.Lock()
         #: (kind, message, custom_mode when it arrived, monotonic time)
         self.log: list[tuple[str, Any, int, float]] = []
+        self._last_setpoint = -math.inf
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, daemon=True)
         self._thread.start()
 
     def _loop(self) -> None:
-        next_hb = 0.0
+        next_hb = next_pos = 0.0
         while not self._stop.is_set():
             now = time.monotonic()
             if now >= next_hb and not self.silent.is_set():
@@ -69,11 +75,18 @@ class FakePX4:
                 self.conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base,
                                              self.custom_mode, mavlink.MAV_STATE_STANDBY)  # fmt: skip
                 next_hb = now + 1.0 / self.hb_hz
+            if now >= next_pos:
+                x, y, z = (float(v) for v in self.local_ned)
+                self.conn.mav.local_position_ned_send(0, x, y, z, 0.0, 0.0, 0.0)
+                self.conn.mav.attitude_send(0, 0.0, 0.0, self.yaw_ned, 0.0, 0.0, 0.0)
+                next_pos = now + 1.0 / 30.0
             msg = self.conn.recv_match(blocking=True, timeout=0.01)
             if msg is None or msg.get_type() == "BAD_DATA":
                 continue
             with self.lock:
                 self.log.append((msg.get_type(), msg, self.custom_mode, time.monotonic()))
+            if msg.get_type() == "SET_POSITION_TARGET_LOCAL_NED":
+                self._last_setpoint = time.monotonic()
             if msg.get_type() == "COMMAND_LONG" and not self.silent.is_set():
                 self._command(msg)
 
@@ -85,6 +98,10 @@ class FakePX4:
                 self.conn.mav.command_ack_send(msg.command, mavlink.MAV_RESULT_ACCEPTED)
             return
         result = self.results.get(msg.command, mavlink.MAV_RESULT_ACCEPTED)
+        offboard = msg.command == mavlink.MAV_CMD_DO_SET_MODE and int(msg.param2) == 6
+        no_signal = time.monotonic() - self._last_setpoint > 0.5
+        if offboard and result == mavlink.MAV_RESULT_ACCEPTED and no_signal:
+            result = mavlink.MAV_RESULT_TEMPORARILY_REJECTED  # PX4: no offboard signal, no OFFBOARD
         if result == mavlink.MAV_RESULT_ACCEPTED:
             if msg.command == mavlink.MAV_CMD_DO_SET_MODE:
                 self.custom_mode = (int(msg.param2) << 16) | (int(msg.param3) << 24)
@@ -135,7 +152,15 @@ def _stream_hover(link: OffboardLink, p: np.ndarray, stop: threading.Event) -> N
         time.sleep(0.01)
 
 
-def test_engages_offboard_then_arms_with_setpoints_streaming_before_and_after(px4_pair):
+PX4_AT = {"peer": {"local_ned": (2.0, 1.0, -3.0), "yaw_ned": 0.3}}
+
+
+@pytest.mark.parametrize("px4_pair", [PX4_AT], indirect=True)
+def test_holds_where_px4_is_until_offboard_shows_then_flies_the_planner(px4_pair):
+    """Asked for control, the link streams a hold at PX4's own position and heading, switches to OFFBOARD,
+    arms, and passes the planner's samples only once PX4's heartbeat shows OFFBOARD: the plan starts
+    where PX4 holds (a real PX4 took the 1 m-ahead reference of a prestreamed plan and the planner
+    judged itself off track at once)."""
     link, peer = px4_pair
     wait_until(lambda: link.connected, what="the PX4 heartbeat")
     assert (link.sysid, link.compid) == (1, 1)
@@ -144,17 +169,17 @@ def test_engages_offboard_then_arms_with_setpoints_streaming_before_and_after(px
     hb = peer.messages("HEARTBEAT")[0][0]
     assert hb.type == mavlink.MAV_TYPE_ONBOARD_CONTROLLER and hb.autopilot == mavlink.MAV_AUTOPILOT_INVALID
     assert (hb.get_srcSystem(), hb.get_srcComponent()) == (1, mavlink.MAV_COMP_ID_ONBOARD_COMPUTER)
-    # the origin request came before any setpoint, and nothing is armed without a setpoint
+    # the origin request came before any setpoint, and nothing happens until control is asked for
     wait_until(lambda: link.origin_enu is not None, what="the origin")
     np.testing.assert_allclose(link.origin_enu, 0.0, atol=1e-3)
     time.sleep(0.5)
-    assert not peer.commands(mavlink.MAV_CMD_DO_SET_MODE) and not peer.messages(
-        "SET_POSITION_TARGET_LOCAL_NED"
-    )
+    assert not peer.commands(mavlink.MAV_CMD_DO_SET_MODE)
+    assert not peer.messages("SET_POSITION_TARGET_LOCAL_NED")
+    assert link.estimate() is None
 
     stop = threading.Event()
-    feeder = threading.Thread(target=_stream_hover, args=(link, np.array([1.0, 2.0, 3.0]), stop), daemon=True)
-    feeder.start()
+    feeder = threading.Thread(target=_stream_hover, args=(link, np.array([1.5, 2.5, 3.0]), stop), daemon=True)
+    feeder.start()  # the planner streams from the start; none of it may reach PX4 before OFFBOARD
     try:
         assert link.engaged.wait(5), link.error
         time.sleep(0.5)
@@ -171,15 +196,37 @@ def test_engages_offboard_then_arms_with_setpoints_streaming_before_and_after(px
 
     sps = peer.messages("SET_POSITION_TARGET_LOCAL_NED")
     t_mode = next(t for m, _, t in peer.messages("COMMAND_LONG") if m.command == mavlink.MAV_CMD_DO_SET_MODE)
-    before = [t for _, _, t in sps if t < t_mode]
-    # streamed for prestream_s (0.3 s) at 50 Hz before the switch, and on at >= 20 Hz after it
-    assert len(before) >= 10 and before[-1] - before[0] >= 0.25
-    after = [t for _, mode, t in sps if mode == OFFBOARD]
-    assert len(after) >= 15 and np.max(np.diff(after)) < 0.05
-    m = sps[-1][0]
+    before = [(m, t) for m, _, t in sps if t < t_mode]
+    # streamed for prestream_s (0.3 s) at 50 Hz before the switch: a hold at PX4's position and heading
+    assert len(before) >= 10 and before[-1][1] - before[0][1] >= 0.25
+    for m, _ in before:
+        assert m.type_mask == TYPE_MASK_HOLD
+        np.testing.assert_allclose([m.x, m.y, m.z, m.yaw], [2.0, 1.0, -3.0, 0.3], atol=1e-5)
+    # the planner's samples only once PX4's heartbeat said OFFBOARD, then at >= 20 Hz
+    planned = [(m, mode, t) for m, mode, t in sps if m.type_mask == TYPE_MASK_TRAJECTORY]
+    assert planned and all(mode == OFFBOARD for _, mode, _ in planned)
+    assert len(planned) >= 15 and np.max(np.diff([t for _, _, t in planned])) < 0.05
+    m = planned[-1][0]
     assert m.coordinate_frame == mavlink.MAV_FRAME_LOCAL_NED and m.type_mask == TYPE_MASK_TRAJECTORY == 0
     assert (m.target_system, m.target_component) == (1, 1)
-    np.testing.assert_allclose([m.x, m.y, m.z], [2.0, 1.0, -3.0], atol=1e-6)  # ENU (1, 2, 3) -> NED
+    np.testing.assert_allclose([m.x, m.y, m.z], [2.5, 1.5, -3.0], atol=1e-6)  # ENU (1.5, 2.5, 3) -> NED
+
+
+@pytest.mark.parametrize("px4_pair", [{"peer": {"local_ned": (4.0, -1.0, -2.5)}}], indirect=True)
+def test_the_estimate_is_px4s_local_position_in_the_world_once_engaged(px4_pair):
+    """What the planner plans from with --px4: PX4's LOCAL_POSITION_NED through its origin (from
+    GPS_GLOBAL_ORIGIN; at the world origin here) into the ENU world, and PX4's heading."""
+    link, peer = px4_pair
+    wait_until(lambda: link.origin_enu is not None, what="the origin")
+    assert link.estimate() is None  # not engaged: no plan may start from it
+    link.engage()
+    assert link.engaged.wait(5), link.error
+    est = link.estimate()
+    np.testing.assert_allclose(est.position, [-1.0, 4.0, 2.5], atol=6e-3)  # (n, e, d) -> (e, n, -d)
+    np.testing.assert_allclose(est.velocity, 0.0, atol=1e-9)
+    assert est.yaw == pytest.approx(math.pi / 2)  # NED yaw 0 (north) is ENU +90 deg
+    peer.local_ned = np.array([5.0, -1.0, -2.5])
+    wait_until(lambda: link.estimate().position[1] > 4.9, what="the new estimate")
 
 
 EXPLICIT_ORIGIN = {"peer": {"origin_geodetic": None}, "link": {"origin_enu": (5.0, -8.0, 0.2)}}
@@ -188,11 +235,16 @@ EXPLICIT_ORIGIN = {"peer": {"origin_geodetic": None}, "link": {"origin_enu": (5.
 @pytest.mark.parametrize("px4_pair", [EXPLICIT_ORIGIN], indirect=True)
 def test_setpoint_fields_are_ned_about_the_origin(px4_pair):
     link, peer = px4_pair
-    wait_until(lambda: link.connected)
+    link.engage()
+    assert link.engaged.wait(5), link.error
     p, v, a = np.array([3.0, -6.0, 2.2]), np.array([1.0, 0.5, -0.25]), np.array([0.2, -0.4, 0.8])
-    link.setpoint(12.345, p, v, a, 0.3, 0.5)
-    wait_until(lambda: peer.messages("SET_POSITION_TARGET_LOCAL_NED"), what="a setpoint")
-    m = peer.messages("SET_POSITION_TARGET_LOCAL_NED")[-1][0]
+
+    def planned() -> list[Any]:
+        link.setpoint(12.345, p, v, a, 0.3, 0.5)
+        return [m for m, _, _ in peer.messages("SET_POSITION_TARGET_LOCAL_NED") if m.type_mask == 0]
+
+    wait_until(planned, what="the planner's setpoint")
+    m = planned()[-1]
     # written out by hand: NED = (north, east, down) = (y, x, -z) of the ENU offset from the origin
     np.testing.assert_allclose([m.x, m.y, m.z], [2.0, -2.0, -2.0], atol=1e-6)
     np.testing.assert_allclose([m.vx, m.vy, m.vz], [0.5, 1.0, 0.25], atol=1e-6)
@@ -215,16 +267,22 @@ def test_yaw_enu_to_ned_at_several_headings(yaw_enu: float, yaw_ned: float):
     assert math.cos(got - yaw_ned) == pytest.approx(1.0, abs=1e-12)
 
 
-def test_hold_after_the_planner_goes_quiet_streams_the_last_position_only(px4_pair, caplog):
-    link, peer = px4_pair
-    caplog.set_level(logging.INFO, logger="droneulator.plan.offboard")
-    wait_until(lambda: link.connected)
+def _follow_then_stop(link: OffboardLink) -> None:
+    """Engage, then 0.4 s of a planner flying north at 1 m/s from (0, 0, 2) (ENU), then silence."""
+    link.engage()
+    assert link.engaged.wait(5), link.error
     for i in range(40):
         link.setpoint(
             i * 0.01, np.array([0.0, 0.1 * i, 2.0]), np.array([0.0, 1.0, 0.0]), np.zeros(3), 0.0, 0.1
         )
         time.sleep(0.01)
-    assert link.engaged.wait(5), link.error
+
+
+def test_hold_after_the_planner_goes_quiet_streams_the_last_position_only(px4_pair, caplog):
+    link, peer = px4_pair
+    caplog.set_level(logging.INFO, logger="droneulator.plan.offboard")
+    wait_until(lambda: link.connected)
+    _follow_then_stop(link)
     wait_until(lambda: "holding at the last position" in caplog.text, what="the hold")
     time.sleep(0.2)
     m = peer.messages("SET_POSITION_TARGET_LOCAL_NED")[-1][0]
@@ -239,8 +297,7 @@ def test_hold_after_the_planner_goes_quiet_streams_the_last_position_only(px4_pa
 def test_on_stop_land_switches_px4_to_auto_land(px4_pair):
     link, peer = px4_pair
     wait_until(lambda: link.connected)
-    link.setpoint(0.0, np.array([0.0, 0.0, 2.0]), np.zeros(3), np.zeros(3), 0.0, 0.0)
-    assert link.engaged.wait(5), link.error
+    _follow_then_stop(link)
     wait_until(lambda: len(peer.commands(mavlink.MAV_CMD_DO_SET_MODE)) == 2, what="the land mode")
     land = peer.commands(mavlink.MAV_CMD_DO_SET_MODE)[-1]
     assert (land.param2, land.param3) == (4, 6)  # AUTO.LAND
@@ -380,17 +437,20 @@ def test_plan_node_sends_its_trajectory_to_px4_as_ned_setpoints_on_a_real_run(ca
     with launch_run(cfg) as run:
         client = run.client()
         link = OffboardLink(fast_cfg())
-        peer = FakePX4(link.address[1], origin_geodetic=frames.enu_to_geodetic(origin, *HOME))
+        peer = None
         # the vehicle does not follow (no PX4 flies it), so the off-track rule is off
         node_cfg = PlanNodeConfig(zenoh=run.zenoh_endpoint, namespace=cfg.bridge.namespace, camera=cam.name,
                                   max_tracking_error=math.inf)  # fmt: skip
-        node = PlanNode(node_cfg, setpoint_sink=link.setpoint)
+        node = PlanNode(node_cfg, autopilot=link)
         try:
             client.reset(position=origin.tolist(), yaw=0.0)
             client.subscribe(["events"])
             client.takeoff(altitude=2.0)
             client.wait_for_event("arrived", timeout=60)
             start = np.array(client.state()["position"])
+            # PX4's estimate: where the vehicle hovers, about the origin, facing east (ENU yaw 0)
+            peer = FakePX4(link.address[1], origin_geodetic=frames.enu_to_geodetic(origin, *HOME),
+                           local_ned=frames.enu_to_ned(start - origin), yaw_ned=math.pi / 2)  # fmt: skip
             goal = start + [3.0, 0.0, 0.0]
             node.set_goal(goal)
             # ENU offset from the origin (e, n, u) -> NED (n, e, -u), written out
@@ -425,5 +485,6 @@ def test_plan_node_sends_its_trajectory_to_px4_as_ned_setpoints_on_a_real_run(ca
         finally:
             node.close()
             link.close()
-            peer.close()
+            if peer is not None:
+                peer.close()
             client.close()

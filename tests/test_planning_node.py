@@ -7,6 +7,7 @@ import math
 import threading
 import time
 from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 import pytest
@@ -115,6 +116,80 @@ def test_plan_node_flies_round_the_tree_and_refuses_an_occupied_or_far_goal():
             sender.close()
             node.close()
             client.close()
+
+
+@pytest.mark.slow
+def test_plan_px4_plans_checks_arrival_and_tracking_on_px4s_own_estimate():
+    """`droneulator plan --px4` as a companion computer: `droneulator run --px4` flown by a PX4-like peer
+    (tests/scripted_px4.py: it flies its own GPS-based estimate) whose GPS reads 0.15 m east of the
+    truth. A goal makes PX4 hold in OFFBOARD where it is, then the node plans from, arrives on and judges
+    tracking by PX4's estimate: the planner never finds itself off track, arrival is PX4's position
+    within 0.1 m of the goal, and the vehicle itself stops the GPS bias short of it, clear of the tree
+    (the planner maps with the depth images' true poses). Judged by the old rule (true odometry within
+    0.1 m) the goal would never count as reached."""
+    from scripted_px4 import ScriptedPX4
+
+    from droneulator.workflows.planning.offboard import OffboardConfig, OffboardLink
+
+    cfg = _run_config()
+    cfg.px4.enabled, cfg.px4.base_port = True, free_port()
+    cfg.vehicle.control_hz, cfg.vehicle.params = 250.0, "px4_quadx"
+    bias_ned = np.array([0.0, 0.15, 0.0])  # east
+    cfg.px4.gps_bias_m = tuple(bias_ned)
+    planner = PlannerConfig(ceiling=4.0, floor=1.5, inflation_margin=0.6)  # the benchmark's
+    col = get_scene("planning", 0).collision
+    with contextlib.ExitStack() as stack:
+        run = stack.enter_context(launch_run(cfg))
+        client = run.client()
+        stack.callback(client.close)
+        client.reset(position=[-5.0, 0.0, 0.0], yaw=0.0)  # before PX4 connects: then the clock is PX4's
+        link = stack.enter_context(OffboardLink(OffboardConfig(base_port=free_port(), prestream_s=0.5)))
+        px4 = ScriptedPX4(cfg.px4.base_port, link.address[1])
+        stack.callback(px4.close)
+        client.subscribe(["state", "events"], rate_hz=50)
+        track, events = [], []
+
+        def follow(until: Any, sim_s: float, what: str) -> None:
+            t0, deadline = None, time.monotonic() + 600
+            while not until():
+                assert px4.error is None, px4.error
+                msg = client.next_message(timeout=1.0)
+                if msg is not None and msg.get("type") == "event":
+                    events.append(msg["event"])
+                elif msg is not None and msg.get("type") == "state":
+                    track.append(msg["state"]["position"])
+                    t0 = msg["state"]["t"] if t0 is None else t0
+                    assert msg["state"]["t"] - t0 < sim_s, f"{what}: not after {sim_s} s of sim time"
+                assert time.monotonic() < deadline, f"{what}: stalled\n{run.log.tail()}"
+
+        follow(lambda: link.origin_enu is not None and px4.origin is not None, 60, "PX4's origin")
+        px4.takeoff()
+        loiter = 4 << 16 | 3 << 24  # AUTO.LOITER: the take-off is done
+        follow(lambda: track and track[-1][2] > 2.4 and px4.custom_mode == loiter, 30, "take-off")
+        node = stack.enter_context(PlanNode(
+            PlanNodeConfig(zenoh=run.zenoh_endpoint, namespace=cfg.bridge.namespace, camera=CAM.name),
+            planner, autopilot=link,
+        ))  # fmt: skip
+        goal = np.array([4.0, 0.0, 2.5])
+        node.set_goal(goal)
+        follow(link.engaged.is_set, 30, "OFFBOARD")
+        n_before = len(track)
+        follow(node.reached.is_set, 25, "the goal")  # the issue's limit on a flight
+        n_arrived = len(track)
+        follow(lambda: len(track) > n_arrived + 100, 5, "2 s of hovering at the goal")  # 50 Hz states
+        truth = np.array(track[-1])
+        est = link.estimate().position
+        assert np.linalg.norm(est - goal) <= 0.1, est  # arrived in PX4's frame, and stays
+        bias_enu = frames.ned_to_enu(bias_ned)
+        np.testing.assert_allclose(truth, est - bias_enu, atol=0.05)  # PX4 flies its estimate: truth + bias
+        assert np.linalg.norm(truth - goal) > 0.1  # the old true-odometry rule would still wait
+        assert node.off_track == 0 and node.plans >= 1, node.stats()
+        flown = np.array(track[n_before:])
+        assert sdf_lookup_many(col.sdf, col.origin, col.resolution, np.linspace(flown[0], goal, 50)).min() < 0
+        clearance = sdf_lookup_many(col.sdf, col.origin, col.resolution, flown)
+        assert clearance.min() >= 0.5, f"{clearance.min():.2f} m from the tree at {flown[clearance.argmin()]}"
+        bumps = [e for e in events if e.get("type") in ("collision", "impact")]
+        assert not bumps, bumps
 
 
 class ScriptedSim:

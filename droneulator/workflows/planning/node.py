@@ -9,8 +9,14 @@ Two threads besides Zenoh's callbacks: the planning thread integrates the newest
 (re)plans, and the trajectory server samples the current B-spline each time ``/clock`` has advanced
 10 ms (in lockstep the simulator waits only for its cameras, so sim time, not the wall clock, paces
 the commands). With no depth for 1 s of sim time it stops publishing, so the simulator's
-``track_timeout`` holds the vehicle. With a ``setpoint_sink`` (``droneulator plan --px4``: PX4 offboard,
-see :mod:`droneulator.workflows.planning.offboard`) the same samples go there instead of the topic.
+``track_timeout`` holds the vehicle.
+
+With an ``autopilot`` (``droneulator plan --px4``: PX4 in OFFBOARD through
+:class:`~droneulator.workflows.planning.offboard.OffboardLink`) the samples go to it instead of the
+topic, and the node works in the frame the autopilot flies, as a companion computer does: it plans
+from, checks arrival on and judges tracking by the autopilot's own estimate (PX4's local position),
+not the simulator's true odometry, and plans nothing until the autopilot has taken control and
+holds (a goal asks it to). The map is still built from the depth images' poses.
 """
 
 from __future__ import annotations
@@ -20,9 +26,8 @@ import math
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -44,6 +49,9 @@ from droneulator.workflows.planning.bspline import BSpline
 from droneulator.workflows.planning.config import PlannerConfig
 from droneulator.workflows.planning.planner import Planner
 
+if TYPE_CHECKING:
+    from droneulator.workflows.planning.offboard import Estimate
+
 log = logging.getLogger("droneulator.plan")
 
 GOAL_TYPE = "geometry_msgs/msg/PoseStamped"
@@ -51,8 +59,22 @@ GOAL_TYPE = "geometry_msgs/msg/PoseStamped"
 COMMAND_PERIOD_NS = 10_000_000
 #: after a failed plan, the next attempt waits this long (sim time)
 RETRY_PERIOD_NS = 100_000_000
-#: where setpoints go instead of PositionCommand: ``(t_s, p, v, a, yaw, yaw_rate)``, world frame, sim time
-SetpointSink = Callable[[float, np.ndarray, np.ndarray, np.ndarray, float, float], None]
+
+
+class Autopilot(Protocol):
+    """What flies the planner's setpoints instead of the simulator's track mode (PX4 offboard:
+    :class:`~droneulator.workflows.planning.offboard.OffboardLink`)."""
+
+    def engage(self) -> None:
+        """Take control of the vehicle (a goal is active)."""
+
+    def estimate(self) -> Estimate | None:
+        """The autopilot's estimate of the vehicle (ENU world) once it holds under our control; else None."""
+
+    def setpoint(
+        self, t: float, p: np.ndarray, v: np.ndarray, a: np.ndarray, yaw: float, yaw_rate: float
+    ) -> None:
+        """A trajectory-server sample: sim time (s), world position, velocity, acceleration, yaw, yaw rate."""
 
 
 @dataclass
@@ -104,14 +126,14 @@ class PlanNode:
         self,
         config: PlanNodeConfig | None = None,
         planner: PlannerConfig | None = None,
-        setpoint_sink: SetpointSink | None = None,
+        autopilot: Autopilot | None = None,
     ) -> None:
-        """``setpoint_sink``: receives each trajectory-server sample ``(t_s, p, v, a, yaw, yaw_rate)`` (sim
-        time, world frame) instead of the PositionCommand topic, e.g. ``OffboardLink.setpoint`` for PX4."""
+        """``autopilot``: flies the trajectory-server samples instead of the PositionCommand topic, and its
+        estimate replaces the odometry for planning (see the module docstring)."""
         self.cfg = config or PlanNodeConfig()
         # the optimiser's vectors are small: BLAS threads only contend with the simulator for the cores
         self._blas_limit = threadpool_limits(limits=1, user_api="blas")
-        self._sink = setpoint_sink
+        self._autopilot = autopilot
         self._setpoint: tuple[np.ndarray, np.ndarray, np.ndarray, float, float] | None = None
         self.planner = Planner(planner)
         log.info("planner kernels ready in %.1f s", self.planner.warm_up())
@@ -219,6 +241,8 @@ class PlanNode:
             self._new_goal = True
             self.reached.clear()
             self._wake.notify_all()
+        if self._autopilot is not None:
+            self._autopilot.engage()
 
     # ------------------------------------------------------------------ public
     def set_goal(self, goal: np.ndarray) -> None:
@@ -296,6 +320,7 @@ class PlanNode:
                 with self._lock:  # the state the plan starts from is the one after the map update
                     odom, now = self._odom, self._now_ns
                     traj, t0 = self._traj, self._traj_t0_ns
+            odom = self._flown_state(odom)
             if goal is None or odom is None or now is None or self.reached.is_set():
                 continue
             if new_goal and not self._goal_allowed(goal):
@@ -315,7 +340,8 @@ class PlanNode:
             if ended and self._traj_goal is goal:
                 # the final leg is flown: wait at its end point for the odometry to converge
                 if np.linalg.norm(odom[1] - goal) <= self.cfg.goal_tolerance:
-                    log.info("goal %s reached (odometry %s)", goal.round(3), odom[1].round(3))
+                    source = "odometry" if self._autopilot is None else "the autopilot's estimate"
+                    log.info("goal %s reached (%s %s)", goal.round(3), source, odom[1].round(3))
                     self.reached.set()
                 continue
             if due and traj is not None and not new_goal and self._traj_goal is goal:
@@ -327,6 +353,19 @@ class PlanNode:
                 continue  # after a failed plan, retry at most every RETRY_PERIOD_NS, not in a busy loop
             self._replan(goal, odom, now, traj, t_rel, new_goal)
             last_plan_ns = now
+
+    def _flown_state(self, odom: tuple | None) -> tuple | None:
+        """(stamp, position, attitude, world velocity) of the vehicle in the frame its setpoints are
+        flown in: the odometry, or with an autopilot its estimate (None until it holds under our control)."""
+        if self._autopilot is None:
+            return odom
+        est = self._autopilot.estimate()
+        if est is None:
+            return None
+        q = frames.quat_from_yaw(est.yaw) if est.yaw is not None else (None if odom is None else odom[2])
+        if q is None:
+            return None
+        return (0 if odom is None else odom[0], est.position, q, est.velocity)
 
     def _replan(self, goal: np.ndarray, odom: tuple, now: int, traj: BSpline | None, t_rel: float,
                 new_goal: bool, from_odom: bool = False) -> None:  # fmt: skip
@@ -422,8 +461,8 @@ class PlanNode:
                     continue
                 self._last_cmd_ns = now
                 setpoint = self._setpoint
-            if self._sink is not None:
-                self._sink(ns_to_seconds(now), *setpoint)
+            if self._autopilot is not None:
+                self._autopilot.setpoint(ns_to_seconds(now), *setpoint)
             else:
                 self._pub.publish(messages.serialize(cmd), now)
             self.commands += 1
@@ -449,7 +488,8 @@ class PlanNode:
             return None
         yaw_prev = self._yaw
         if yaw_prev is None:
-            yaw_prev = frames.yaw_of(self._odom[2]) if self._odom else 0.0
+            flown = self._flown_state(self._odom)
+            yaw_prev = frames.yaw_of(flown[2]) if flown else 0.0
         want = self._traj.yaw(t, yaw_prev) if self._traj is not None else yaw_prev
         dt = COMMAND_PERIOD_NS / 1e9
         step = float(np.clip(frames.wrap_angle(want - yaw_prev), -self.cfg.max_yaw_rate * dt,

@@ -12,12 +12,21 @@ socket:
 3. learn PX4's local origin: ``GPS_GLOBAL_ORIGIN`` (asked for with ``MAV_CMD_REQUEST_MESSAGE``) is
    the geodetic point of EKF2's local NED (0, 0, 0); with the simulator's home (the geodetic point of
    the world origin, ``px4.home_*``) it is a point of the ENU world (``frames.geodetic_to_enu``);
-4. once the planner gives its first setpoint, stream them at ``rate_hz`` (wall clock; PX4 needs more
-   than 2 Hz before and during OFFBOARD), after ``prestream_s`` switch to OFFBOARD
-   (``MAV_CMD_DO_SET_MODE``, custom main mode 6) and arm (``MAV_CMD_COMPONENT_ARM_DISARM``), each
-   checked against its COMMAND_ACK;
+4. when asked for control (:meth:`OffboardLink.engage`, or the first setpoint): wait for PX4's own
+   position estimate (``LOCAL_POSITION_NED``, which PX4 streams at 30 Hz on this link, with
+   ``ATTITUDE`` for the heading), stream a hold at that position and heading at ``rate_hz`` (wall
+   clock; PX4 needs more than 2 Hz before and during OFFBOARD), after ``prestream_s`` switch to
+   OFFBOARD (``MAV_CMD_DO_SET_MODE``, custom main mode 6) and arm if needed
+   (``MAV_CMD_COMPONENT_ARM_DISARM``), each checked against its COMMAND_ACK, and wait until PX4's
+   HEARTBEAT shows OFFBOARD. Only then is the link :attr:`~OffboardLink.engaged` and
+   :meth:`~OffboardLink.estimate` answers, so a planner starts from where PX4 holds, not from where
+   the vehicle was a second earlier; the planner's samples replace the hold once they come;
 5. no setpoint for ``stale_s``: hold (stream the last position, velocity and acceleration ignored),
    or switch PX4 to AUTO.LOITER / AUTO.LAND (``on_stop``); on :meth:`close`, loiter or land.
+
+A companion computer knows where the vehicle is from PX4, not from the simulator: the planner plans,
+checks arrival and judges tracking on :meth:`~OffboardLink.estimate` (PX4's local NED position and
+velocity, through the origin into the ENU world), the frame PX4 flies its setpoints in.
 
 Frames go through :mod:`droneulator.frames` only: positions, velocities and accelerations ENU world
 -> NED, heading ENU (from +x/east, counter-clockwise) -> NED (from north, clockwise).
@@ -89,6 +98,16 @@ def _result_name(result: int) -> str:
 
 class OffboardError(RuntimeError):
     """PX4 could not be put under offboard control (no PX4, a refused command, no origin)."""
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """PX4's own estimate of the vehicle, in the simulator's ENU world (through PX4's local origin)."""
+
+    position: np.ndarray
+    velocity: np.ndarray
+    #: heading (rad from +x, counter-clockwise); None before PX4's first ATTITUDE
+    yaw: float | None
 
 
 @dataclass
@@ -202,9 +221,18 @@ class OffboardLink:
         self.armed = False
         self.origin_enu: np.ndarray | None = None if c.origin_enu is None else np.asarray(c.origin_enu, float)
         self._acks: dict[int, int] = {}
+        #: the planner's latest sample
         self._sample: _Sample | None = None
-        self._holding = False
+        #: what is streamed while holding (PX4's position when asked for control, later the last sample)
+        self._hold: _Sample | None = None
+        self._holding = True
         self._streaming = False
+        self._want = threading.Event()
+        #: PX4's LOCAL_POSITION_NED: (monotonic time received, position NED, velocity NED), and its yaw (NED)
+        self._local: tuple[float, np.ndarray, np.ndarray] | None = None
+        self._yaw_ned: float | None = None
+        #: monotonic time the link was engaged; planner samples older than it are not streamed
+        self._engaged_at = math.inf
         #: PX4's heartbeat showed OFFBOARD since PX4 last accepted a mode from us
         self._seen_offboard = False
         self.engaged = threading.Event()
@@ -231,11 +259,30 @@ class OffboardLink:
         """PX4's flight mode from its last HEARTBEAT."""
         return px4_mode_name(self.custom_mode)
 
+    def engage(self) -> None:
+        """Take control of PX4 (step 4 of the module docstring); idempotent. The first setpoint does too."""
+        self._want.set()
+
+    def estimate(self) -> Estimate | None:
+        """PX4's estimate in the ENU world once the link is engaged (PX4 in OFFBOARD holding where it
+        was, or flying our setpoints); None before that, or when PX4's LOCAL_POSITION_NED is older
+        than ``link_timeout_s``."""
+        with self._lock:
+            local, yaw_ned, origin = self._local, self._yaw_ned, self.origin_enu
+        if not self.engaged.is_set() or local is None or origin is None:
+            return None
+        received, p_ned, v_ned = local
+        if time.monotonic() - received > self.cfg.link_timeout_s:
+            return None
+        yaw = None if yaw_ned is None else frames.yaw_ned_to_enu(yaw_ned)
+        return Estimate(origin + frames.ned_to_enu(p_ned), frames.ned_to_enu(v_ned), yaw)
+
     def setpoint(
         self, t: float, p: np.ndarray, v: np.ndarray, a: np.ndarray, yaw: float, yaw_rate: float
     ) -> None:
         """The planner's sample at sim time ``t`` (s): ENU world position, velocity, acceleration,
-        heading (rad from +x, counter-clockwise) and its rate. Sent at the next stream tick."""
+        heading (rad from +x, counter-clockwise) and its rate. Streamed from the next tick once the link
+        is engaged; asks for control (:meth:`engage`) if nothing did."""
         vecs = [np.asarray(x, dtype=float).reshape(-1) for x in (p, v, a)]
         if any(x.shape != (3,) or not np.all(np.isfinite(x)) for x in vecs):
             raise ValueError(f"setpoint needs finite 3-vectors p, v, a; got {p}, {v}, {a}")
@@ -244,6 +291,7 @@ class OffboardLink:
         with self._lock:
             self._sample = _Sample(float(t), *vecs, float(yaw), float(yaw_rate), time.monotonic())
             self._lock.notify_all()
+        self._want.set()
 
     def local_ned(self, p_enu: np.ndarray) -> np.ndarray:
         """An ENU world point in PX4's local NED frame (needs the origin)."""
@@ -333,6 +381,14 @@ class OffboardLink:
             with self._lock:
                 self._acks[msg.command] = msg.result
                 self._lock.notify_all()
+        elif kind == "LOCAL_POSITION_NED":
+            local = (time.monotonic(), np.array([msg.x, msg.y, msg.z]), np.array([msg.vx, msg.vy, msg.vz]))
+            with self._lock:
+                self._local = local
+                self._lock.notify_all()
+        elif kind == "ATTITUDE":
+            with self._lock:
+                self._yaw_ned = float(msg.yaw)
         elif kind == "GPS_GLOBAL_ORIGIN" and self.cfg.origin_enu is None:
             origin = frames.geodetic_to_enu(
                 msg.latitude * 1e-7,
@@ -395,8 +451,9 @@ class OffboardLink:
         while not self._stop.is_set():
             now = time.monotonic()
             with self._lock:
-                sysid, last_hb, sample = self.sysid, self._last_hb, self._sample
+                sysid, last_hb = self.sysid, self._last_hb
                 streaming, holding = self._streaming, self._holding
+                sample = self._hold if holding else self._sample
                 if last_hb is not None and not self._lost and now - last_hb > self.cfg.link_timeout_s:
                     self._lost = True
                     lost_now = True
@@ -494,11 +551,28 @@ class OffboardLink:
                 return
         if self.origin_enu is None and not self._learn_origin():
             return
-        with self._lock:
-            if not self._wait(lambda: self._sample is not None, None):
+        while not self._want.wait(0.1):
+            if self._stop.is_set():
                 return
-            self._streaming = True
-        log.info("streaming setpoints to PX4 at %.0f Hz; OFFBOARD in %.1f s", c.rate_hz, c.prestream_s)
+        def fresh() -> bool:
+            return self._local is not None and time.monotonic() - self._local[0] < c.link_timeout_s
+
+        with self._lock:
+            if not self._wait(fresh, c.origin_timeout_s):
+                if not self._stop.is_set():
+                    self._fail(
+                        f"PX4 sent no LOCAL_POSITION_NED within {c.origin_timeout_s:.0f} s (no position "
+                        "estimate yet, or its onboard MAVLink streams are off): not taking control"
+                    )
+                return
+            _, p_ned, _ = self._local
+            yaw_ned = 0.0 if self._yaw_ned is None else self._yaw_ned
+            p = self.origin_enu + frames.ned_to_enu(p_ned)
+            self._hold = _Sample(0.0, p, np.zeros(3), np.zeros(3), frames.yaw_ned_to_enu(yaw_ned), 0.0,
+                                 time.monotonic())  # fmt: skip
+            self._holding = self._streaming = True
+        log.info("streaming a hold at PX4's position %s (ENU world) at %.0f Hz; OFFBOARD in %.1f s",
+                 p.round(2), c.rate_hz, c.prestream_s)  # fmt: skip
         if self._stop.wait(c.prestream_s):
             return
         if not self._set_mode(PX4_MAIN_MODE_OFFBOARD, 0, "OFFBOARD"):
@@ -513,7 +587,15 @@ class OffboardLink:
                 why = "no COMMAND_ACK" if result is None else _result_name(result)
                 self._fail(f"PX4 refused to arm: {why} (see PX4's console for the failed preflight check)")
             return
-        log.info("PX4 armed in OFFBOARD: flying the planner's setpoints")
+        shown = max(3.0, 2.0 * c.link_timeout_s)  # PX4's heartbeat is 1 Hz
+        with self._lock:
+            if not self._wait(lambda: self._seen_offboard, shown):
+                if not self._stop.is_set():
+                    self._fail(f"PX4 accepted OFFBOARD; its HEARTBEAT did not show it within {shown:.0f} s")
+                return
+            self._engaged_at = time.monotonic()
+        log.info("PX4 is in OFFBOARD and armed, holding at %s: flying the planner's setpoints from here",
+                 p.round(2))  # fmt: skip
         self.engaged.set()
         self._supervise()
 
@@ -549,13 +631,16 @@ class OffboardLink:
         return False
 
     def _supervise(self) -> None:
-        """Apply ``on_stop`` while the planner is silent, and note when PX4 leaves OFFBOARD."""
+        """Follow the planner once it sends, apply ``on_stop`` while it is silent, and note when PX4
+        leaves OFFBOARD."""
         c = self.cfg
         left_offboard = False
         while not self._stop.wait(0.02):
             with self._lock:
                 sample, holding = self._sample, self._holding
                 mode, seen_offboard = self.custom_mode, self._seen_offboard
+            if sample is not None and sample.wall < self._engaged_at:
+                sample = None  # sent before PX4 held where it is: not a plan from here
             stale = sample is None or time.monotonic() - sample.wall > c.stale_s
             main = (mode >> 16) & 0xFF
             if seen_offboard and main != PX4_MAIN_MODE_OFFBOARD and not holding and not left_offboard:
@@ -563,7 +648,7 @@ class OffboardLink:
                 left_offboard = True
             if stale and not holding:
                 with self._lock:
-                    self._holding = True
+                    self._holding, self._hold = True, sample
                 if c.on_stop == "hold":
                     log.warning(
                         "no setpoint for %.1f s: holding at the last position %s",
@@ -578,10 +663,13 @@ class OffboardLink:
                         self._streaming = False
                     self._set_mode(PX4_MAIN_MODE_AUTO, sub, name, fatal=False)
             elif not stale and holding:
+                followed = self._hold is not None and self._hold.wall >= self._engaged_at
                 with self._lock:
                     self._holding = False
                     self._streaming = True
-                if c.on_stop == "hold":
+                if not followed:
+                    log.info("the planner's first setpoint: following it")
+                elif c.on_stop == "hold":
                     log.info("setpoints are back: following the planner again")
                 elif c.on_stop == "loiter" and not left_offboard:
                     log.info("setpoints are back: asking for OFFBOARD again")

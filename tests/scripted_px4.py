@@ -1,0 +1,383 @@
+"""A PX4 SITL stand-in for CI, where the real PX4 cannot be built: what the simulator and an offboard
+client see of PX4 v1.16, scripted in Python with the real MAVLink codec (pymavlink).
+
+It plays both of PX4's links, as ``px4 -i N`` does:
+
+* **simulator_mavlink** (TCP client of ``127.0.0.1:sim_port``, retrying until the simulator listens):
+  a HEARTBEAT from ``MAV_AUTOPILOT_PX4`` on connecting, then one lockstep HIL_ACTUATOR_CONTROLS
+  (``flags`` bit 0, ``mode`` bit 7 while armed) per HIL_SENSOR, with quad-X motor outputs in [0, 1].
+* **the onboard/offboard MAVLink instance** (UDP, sending to ``offboard_port`` as PX4 sends to
+  14540+N and answering whoever talks to it) and, with ``gcs_port``, the ground-station instance (as
+  PX4 sends to 14550): HEARTBEAT (1 Hz, custom mode and armed flag), LOCAL_POSITION_NED (30 Hz) and
+  ATTITUDE (50 Hz) of its own estimate, GPS_GLOBAL_ORIGIN on request, COMMAND_ACKs (ARM,
+  DO_SET_MODE, NAV_TAKEOFF, NAV_LAND), and SET_POSITION_TARGET_LOCAL_NED in OFFBOARD.
+
+What it does as PX4 does, because the simulator and the planner depend on it:
+
+* it flies **its estimate**, not the truth: the local origin is its first GPS fix (EKF2 does the same),
+  position and velocity come from the accelerometer propagated between GPS fixes and corrected
+  towards each fix (a complementary filter in place of EKF2), so a GPS error or bias shows up as the
+  difference between where it thinks it is and where the vehicle is; the attitude is the simulator's
+  HIL_STATE_QUATERNION (EKF2's attitude is close to the truth);
+* it boots disarmed believing it is on the ground, arms only on command, outputs idle while armed and
+  landed, accepts OFFBOARD only while setpoints stream (its offboard signal: one within 0.5 s of
+  sim time), falls back to holding (AUTO.LOITER) when they stop, and flies MAV_CMD_NAV_TAKEOFF up to
+  ``MIS_TAKEOFF_ALT`` (2.5 m) at PX4's climb speed;
+* its position controller is the simulator's own SE(3) controller with PX4-like tilt and thrust
+  bounds on its estimated state, allocated to motor outputs through the inverse of the simulator's
+  output -> rotor speed map, so its outputs are what PX4 with its default mixer would send for
+  those thrusts.
+
+Its clock is the HIL_SENSOR ``time_usec`` (lockstep), as PX4's is: its streams and timeouts run in
+sim time.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+import threading
+import time
+from typing import Any
+
+import numpy as np
+from pymavlink.dialects.v20 import common as mavlink
+from scipy.spatial.transform import Rotation
+
+from droneulator import frames
+from droneulator.controllers.se3 import FLAT_SIZE, FastSE3Control
+from droneulator.px4.mixing import MotorMap
+from droneulator.vehicles.dynamics import STATE, STATE_SIZE
+from droneulator.vehicles.params import get_params
+
+#: PX4 custom main modes (px4_custom_mode.h) and the AUTO sub modes used here
+MAIN_AUTO, MAIN_OFFBOARD = 4, 6
+SUB_TAKEOFF, SUB_LOITER, SUB_LAND = 2, 3, 6
+G = 9.80665
+#: MIS_TAKEOFF_ALT, MPC_TKO_SPEED, MPC_LAND_SPEED of PX4's defaults
+TAKEOFF_ALT, TAKEOFF_SPEED, LAND_SPEED = 2.5, 1.5, 0.7
+#: PX4's offboard signal: a setpoint within this much sim time (COM_OF_LOSS_T is 1 s; the mode check 0.5 s)
+OFFBOARD_SIGNAL_S = 0.5
+#: complementary filter gains per GPS fix (10 Hz): position and velocity towards the fix
+GAIN_P, GAIN_V = 0.15, 0.25
+
+
+def custom_mode(main: int, sub: int = 0) -> int:
+    return (main << 16) | (sub << 24)
+
+
+class ScriptedPX4:
+    """Connect to the simulator on ``sim_port`` and send offboard MAVLink to ``offboard_port``; runs in a
+    thread until :meth:`close`. ``params``: the run's vehicle parameter set (``px4_quadx`` with --px4)."""
+
+    def __init__(self, sim_port: int, offboard_port: int, params: str = "px4_quadx", sysid: int = 1,
+                 connect_timeout: float = 60.0, gcs_port: int | None = None) -> None:  # fmt: skip
+        quad = get_params(params)
+        self.motors = MotorMap(quad)
+        self.se3 = FastSE3Control(quad, max_tilt_deg=35.0, min_lift=0.2)
+        self.w_min, self.w_max = float(quad["rotor_speed_min"]), float(quad["rotor_speed_max"])
+        self.sysid = sysid
+        self._tx = mavlink.MAVLink(None, sysid, 1)
+        self._rx = mavlink.MAVLink(None)
+        self._rx.robust_parsing = True
+        #: MAVLink instances: [socket, where it sends, its parser]
+        self._links: list[list[Any]] = []
+        for port in (offboard_port, gcs_port):
+            if port is not None:
+                udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                udp.bind(("127.0.0.1", 0))
+                udp.setblocking(False)
+                parser = mavlink.MAVLink(None)
+                parser.robust_parsing = True
+                self._links.append([udp, ("127.0.0.1", port), parser])
+        self._sim_port, self._connect_timeout = sim_port, connect_timeout
+        self._sock: socket.socket | None = None
+        self.lock = threading.Lock()
+        # flight state (under lock)
+        self.armed = False
+        self.landed = True
+        self.mode = custom_mode(MAIN_AUTO, SUB_LOITER)
+        self.t = 0.0
+        self.origin: tuple[float, float, float] | None = None  # geodetic of the local NED origin
+        self.p = np.zeros(3)  # estimate, local ENU about the origin
+        self.v = np.zeros(3)
+        self.q = np.array([0.0, 0.0, 0.0, 1.0])  # FLU -> ENU
+        self.w = np.zeros(3)  # body rates FLU
+        self._hold = np.zeros(3)
+        self._hold_yaw = 0.0
+        self._climb_to = 0.0
+        self._setpoint: tuple[float, np.ndarray, np.ndarray, np.ndarray, float, float] | None = None
+        self._next = {"heartbeat": 0.0, "local": 0.0, "attitude": 0.0}
+        self._last_t_us: int | None = None
+        #: every (sim t, mode, armed) change and every command result, for tests
+        self.log: list[tuple[float, str, Any]] = []
+        self.error: BaseException | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="scripted-px4", daemon=True)
+        self._thread.start()
+
+    # ------------------------------------------------------------------ public (a PX4 shell's commands)
+    def takeoff(self) -> None:
+        """``commander takeoff``: arm and climb to MIS_TAKEOFF_ALT above the take-off point."""
+        with self.lock:
+            self._takeoff()
+
+    def estimate_world(self, origin_enu: np.ndarray) -> np.ndarray:
+        """The position estimate in the simulator's world, given the world position of its origin."""
+        with self.lock:
+            return np.asarray(origin_enu, dtype=float) + self.p
+
+    @property
+    def custom_mode(self) -> int:
+        return self.mode
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        for s in (self._sock, *(link[0] for link in self._links)):
+            if s is not None:
+                with contextlib.suppress(OSError):
+                    s.close()
+
+    # ------------------------------------------------------------------ the loop
+    def _run(self) -> None:
+        try:
+            self._connect()
+            buf = bytearray()
+            while not self._stop.is_set():
+                self._offboard_rx()
+                try:
+                    data = self._sock.recv(65536)
+                except TimeoutError:
+                    continue
+                if not data:
+                    return
+                buf += data
+                for msg in self._rx.parse_buffer(bytes(buf)) or []:
+                    self._on_sim(msg)
+                buf.clear()
+        except OSError:
+            if not self._stop.is_set():
+                raise
+        except BaseException as exc:  # a test reads it: the thread must not die silently
+            self.error = exc
+            raise
+
+    def _connect(self) -> None:
+        end = time.monotonic() + self._connect_timeout
+        while not self._stop.is_set():
+            try:
+                self._sock = socket.create_connection(("127.0.0.1", self._sim_port), timeout=5.0)
+                break
+            except ConnectionRefusedError:
+                if time.monotonic() > end:
+                    raise
+                time.sleep(0.005)
+        self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._sock.settimeout(0.05)
+        hello = self._tx.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, 0, 0, 0)
+        self._sock.sendall(hello.pack(self._tx))
+
+    def _on_sim(self, msg: Any) -> None:
+        kind = msg.get_type()
+        if kind == "HIL_STATE_QUATERNION":
+            q_ned = frames.wxyz_to_xyzw(np.array(msg.attitude_quaternion))
+            with self.lock:
+                self.q = frames.quat_ned_frd_to_enu_flu(q_ned)
+        elif kind == "HIL_GPS":
+            self._on_gps(msg)
+        elif kind == "HIL_SENSOR":
+            self._on_imu(msg)
+
+    # ------------------------------------------------------------------ estimator
+    def _on_gps(self, msg: Any) -> None:
+        lat, lon, alt = msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3
+        v_gps = frames.ned_to_enu(np.array([msg.vn, msg.ve, msg.vd]) / 100.0)
+        with self.lock:
+            if self.origin is None:
+                self.origin = (lat, lon, alt)  # EKF2: the local origin is the first good fix
+                self.log.append((self.t, "origin", self.origin))
+            p_gps = frames.geodetic_to_enu(lat, lon, alt, *self.origin)
+            self.p += GAIN_P * (p_gps - self.p)
+            self.v += GAIN_V * (v_gps - self.v)
+
+    def _on_imu(self, msg: Any) -> None:
+        dt = 0.0 if self._last_t_us is None else (msg.time_usec - self._last_t_us) * 1e-6
+        self._last_t_us = msg.time_usec
+        with self.lock:
+            self.t = msg.time_usec * 1e-6
+            self.w = frames.frd_to_flu(np.array([msg.xgyro, msg.ygyro, msg.zgyro]))
+            f_body = frames.frd_to_flu(np.array([msg.xacc, msg.yacc, msg.zacc]))
+            if self.origin is not None and 0.0 < dt < 0.1:
+                a = frames.quat_to_matrix(self.q) @ f_body + np.array([0.0, 0.0, -9.81])
+                self.p += self.v * dt + 0.5 * a * dt * dt
+                self.v += a * dt
+            u = self._control(dt)
+            armed = self.armed
+        self._offboard_tx()
+        controls = [float(x) for x in u] + [0.0] * 12
+        out = self._tx.hil_actuator_controls_encode(msg.time_usec, controls, 128 * armed, 1)
+        self._sock.sendall(out.pack(self._tx))
+
+    # ------------------------------------------------------------------ control (lock held)
+    def _flat(self, dt: float) -> np.ndarray | None:
+        """The reference the position controller tracks, or None for idle outputs."""
+        f = np.zeros(FLAT_SIZE)
+        main, sub = (self.mode >> 16) & 0xFF, (self.mode >> 24) & 0xFF
+        if not self.armed:
+            return None
+        if main == MAIN_OFFBOARD:
+            sp = self._setpoint
+            if sp is None or self.t - sp[0] > OFFBOARD_SIGNAL_S:
+                self._set_mode(custom_mode(MAIN_AUTO, SUB_LOITER), "offboard signal lost")
+                self._hold, self._hold_yaw = self.p.copy(), frames.yaw_of(self.q)
+            else:
+                _, p, v, a, yaw, yaw_rate = sp
+                f[0:3], f[3:6], f[6:9], f[9], f[10] = p, v, a, yaw, yaw_rate
+                return f
+        if main == MAIN_AUTO and sub == SUB_TAKEOFF:
+            self._hold[2] = min(self._climb_to, self._hold[2] + TAKEOFF_SPEED * dt)
+            f[5] = TAKEOFF_SPEED if self._hold[2] < self._climb_to else 0.0
+            if self._hold[2] >= self._climb_to and abs(self.p[2] - self._climb_to) < 0.1:
+                self._set_mode(custom_mode(MAIN_AUTO, SUB_LOITER), "take-off done")
+        elif main == MAIN_AUTO and sub == SUB_LAND:
+            self._hold[2] -= LAND_SPEED * dt
+            f[5] = -LAND_SPEED
+            if self.p[2] < 0.05 and abs(self.v[2]) < 0.2:
+                self.landed = True
+                self.armed = False
+                self._set_mode(custom_mode(MAIN_AUTO, SUB_LOITER), "landed: disarmed")
+                return None
+        elif self.landed:
+            return None  # armed on the ground with nothing to do: idle
+        f[0:3], f[9] = self._hold, self._hold_yaw
+        return f
+
+    def _control(self, dt: float) -> np.ndarray:
+        flat = self._flat(dt)
+        if flat is None:
+            return np.zeros(4)
+        s = np.zeros(STATE_SIZE)
+        s[STATE.x], s[STATE.v], s[STATE.q], s[STATE.w] = self.p, self.v, self.q, self.w
+        w = np.clip(self.se3.motor_speeds(s, flat), self.w_min, self.w_max)
+        return self.motors.speed_to_output(w[list(self.motors.order)])
+
+    def _set_mode(self, mode: int, why: str) -> None:
+        if mode != self.mode:
+            self.mode = mode
+            self.log.append((self.t, "mode", (mode, why)))
+
+    def _takeoff(self) -> None:
+        if self.origin is None:
+            raise RuntimeError("no position estimate yet: PX4 refuses to take off")
+        self.armed, self.landed = True, False
+        self._hold, self._hold_yaw = self.p.copy(), frames.yaw_of(self.q)
+        self._climb_to = self.p[2] + TAKEOFF_ALT
+        self._set_mode(custom_mode(MAIN_AUTO, SUB_TAKEOFF), "takeoff")
+
+    # ------------------------------------------------------------------ offboard link
+    def _send(self, msg: Any, link: list[Any] | None = None) -> None:
+        """To one MAVLink instance's peer, or to every instance's."""
+        data = msg.pack(self._tx)
+        for sock, peer, _ in [link] if link is not None else self._links:
+            with contextlib.suppress(OSError):
+                sock.sendto(data, peer)
+
+    def _due(self, name: str, hz: float) -> bool:
+        if self.t < self._next[name]:
+            return False
+        self._next[name] = self.t + 1.0 / hz
+        return True
+
+    def _offboard_tx(self) -> None:
+        with self.lock:
+            t, mode, armed, origin = self.t, self.mode, self.armed, self.origin
+            p, v, q = self.p.copy(), self.v.copy(), self.q.copy()
+        if self._due("heartbeat", 1.0):
+            base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED * armed)
+            kind, autopilot = mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4
+            self._send(self._tx.heartbeat_encode(kind, autopilot, base, mode, mavlink.MAV_STATE_ACTIVE))
+        if origin is not None and self._due("local", 30.0):
+            pn, vn = frames.enu_to_ned(p), frames.enu_to_ned(v)
+            self._send(self._tx.local_position_ned_encode(round(t * 1000), *map(float, pn), *map(float, vn)))
+        if self._due("attitude", 50.0):
+            yaw, pitch, roll = Rotation.from_quat(frames.quat_enu_flu_to_ned_frd(q)).as_euler("ZYX")
+            self._send(self._tx.attitude_encode(round(t * 1000), roll, pitch, yaw, 0.0, 0.0, 0.0))
+
+    def _offboard_rx(self) -> None:
+        for link in self._links:
+            while True:
+                try:
+                    data, addr = link[0].recvfrom(65535)
+                except (BlockingIOError, OSError):
+                    break
+                link[1] = addr  # PX4 answers whoever talks to it
+                for msg in link[2].parse_buffer(data) or []:
+                    if msg.get_type() == "COMMAND_LONG":
+                        self._command(msg, link)
+                    elif msg.get_type() == "SET_POSITION_TARGET_LOCAL_NED":
+                        self._on_setpoint(msg)
+
+    def _on_setpoint(self, m: Any) -> None:
+        mask = m.type_mask
+        p = frames.ned_to_enu(np.array([m.x, m.y, m.z]))
+        v = np.zeros(3) if mask & mavlink.POSITION_TARGET_TYPEMASK_VX_IGNORE else frames.ned_to_enu(
+            np.array([m.vx, m.vy, m.vz]))  # fmt: skip
+        a = np.zeros(3) if mask & mavlink.POSITION_TARGET_TYPEMASK_AX_IGNORE else frames.ned_to_enu(
+            np.array([m.afx, m.afy, m.afz]))  # fmt: skip
+        yaw_rate = 0.0 if mask & mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE else -m.yaw_rate
+        with self.lock:
+            self._setpoint = (self.t, p, v, a, frames.yaw_ned_to_enu(m.yaw), yaw_rate)
+
+    def _ack(self, msg: Any, result: int, link: list[Any]) -> None:
+        self._send(self._tx.command_ack_encode(msg.command, result, 0, 0, msg.get_srcSystem(),
+                                               msg.get_srcComponent()), link)  # fmt: skip
+        with self.lock:
+            self.log.append((self.t, "ack", (msg.command, result)))
+
+    def _command(self, msg: Any, link: list[Any]) -> None:
+        c = msg.command
+        ok, denied = mavlink.MAV_RESULT_ACCEPTED, mavlink.MAV_RESULT_DENIED
+        if c == mavlink.MAV_CMD_REQUEST_MESSAGE:
+            if int(msg.param1) == mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN and self.origin is not None:
+                lat, lon, alt = self.origin
+                self._send(self._tx.gps_global_origin_encode(round(lat * 1e7), round(lon * 1e7),
+                                                             round(alt * 1e3)), link)  # fmt: skip
+                self._ack(msg, ok, link)
+            else:
+                self._ack(msg, denied, link)
+            return
+        with self.lock:
+            if c == mavlink.MAV_CMD_DO_SET_MODE:
+                main, sub = int(msg.param2), int(msg.param3)
+                signal = self._setpoint is not None and self.t - self._setpoint[0] <= OFFBOARD_SIGNAL_S
+                if main == MAIN_OFFBOARD and not signal:
+                    result = mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+                else:
+                    result = ok
+                    if main == MAIN_AUTO and sub == SUB_LAND:
+                        self._hold = self.p.copy()
+                    elif main == MAIN_AUTO:
+                        self._hold, self._hold_yaw = self.p.copy(), frames.yaw_of(self.q)
+                    self._set_mode(custom_mode(main, sub if main == MAIN_AUTO else 0), "commanded")
+            elif c == mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
+                if msg.param1 == 1.0:
+                    result = ok if self.origin is not None else denied
+                    if result == ok:
+                        self.armed = True
+                        self._hold, self._hold_yaw = self.p.copy(), frames.yaw_of(self.q)
+                else:
+                    result = ok if self.landed else denied
+                    self.armed = self.armed and not self.landed
+            elif c == mavlink.MAV_CMD_NAV_TAKEOFF:
+                result = ok if self.origin is not None and self.armed else denied  # PX4: arm first
+                if result == ok:
+                    self._takeoff()
+            elif c == mavlink.MAV_CMD_NAV_LAND:
+                result = ok if self.armed else denied
+                if result == ok:
+                    self._hold = self.p.copy()
+                    self._set_mode(custom_mode(MAIN_AUTO, SUB_LAND), "land")
+            else:
+                result = mavlink.MAV_RESULT_UNSUPPORTED
+        self._ack(msg, result, link)
