@@ -445,6 +445,11 @@ def test_px4_status_and_flight_controls_locked_while_px4_flies(stack: Stack) -> 
         page.wait_for_function(
             "document.getElementById('px4-status').textContent.includes('disconnected')", timeout=30000
         )
+        # PX4 was lost with the vehicle on the ground: the link's px4_lost event says so after it
+        page.wait_for_function(
+            "document.getElementById('px4-status').textContent.includes('the vehicle rests on the ground')",
+            timeout=30000,
+        )
         assert not page.is_disabled("#btn-takeoff")
         assert page.is_hidden("#lock-reason")
         assert not errors, f"JavaScript errors in the page: {errors}"

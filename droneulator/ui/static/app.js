@@ -279,16 +279,23 @@ function onEvent(ev) {
 }
 
 // PX4's status as the simulator runs it (docs/px4.md): a connected PX4 drives the vehicle, armed or not
-// (disarmed: motors off), and flight commands are refused meanwhile; only a PX4 that connected over a
-// vehicle the simulator was flying waits, holding it, until it arms. A page opened while PX4 is already
-// connected learns of it from the API's flight_locked answer to its first command.
+// (disarmed: motors off), and flight commands are refused meanwhile. A PX4 lost in the air leaves the
+// vehicle to the simulator (px4.on_loss: land, hold or fall); a PX4 that connects over a vehicle in the
+// air gets the rotors only once it is on the ground, its arm refused until then. A page opened while PX4
+// is already connected learns of it from the API's flight_locked answer to its first command.
 const PX4_IN_CONTROL = "PX4 SITL is in control; flight commands come from PX4"; // the runtime's words
+const PX4_LOSS = {
+  land: "the simulator lands the vehicle clear of the scene",
+  hold: "the simulator holds the vehicle where it is",
+  fall: "its rotors stopped: the vehicle falls",
+  rest: "the vehicle rests on the ground",
+};
 
 function onPx4Event(ev) {
   $("px4").hidden = false;
   let status = ev.type;
   if (ev.type === "px4_connected") {
-    status = ev.holding ? "PX4 connected; the simulator holds the vehicle until PX4 arms"
+    status = ev.holding ? "PX4 connected over a vehicle in the air: the simulator flies it; PX4 gets the rotors once it is on the ground"
       : "PX4 connected and in control (disarmed: motors off)";
     setLocked(ev.holding ? null : PX4_IN_CONTROL);
   } else if (ev.type === "px4_armed") {
@@ -300,6 +307,13 @@ function onPx4Event(ev) {
   } else if (ev.type === "px4_disconnected") {
     status = `PX4 disconnected (${ev.reason || "no reason given"}): the UI may fly`;
     setLocked(null);
+  } else if (ev.type === "px4_lost") {
+    status = `${$("px4-status").textContent}; PX4 was lost: ${PX4_LOSS[ev.action] || ev.action}`;
+  } else if (ev.type === "px4_arm_refused") {
+    status = "PX4 armed with the vehicle in the air: refused (the simulator flies it until it is on the ground)";
+  } else if (ev.type === "px4_in_control") {
+    status = "PX4 is in control (it took over on the ground)";
+    setLocked(PX4_IN_CONTROL);
   }
   $("px4-status").textContent = status;
 }
