@@ -113,7 +113,9 @@ def px4_in_the_air(served: Served, position: Any) -> Peer:
 class Peer:
     """Plays PX4: connects as the TCP client, sends HIL_ACTUATOR_CONTROLS, reads the sensor stream."""
 
-    def __init__(self, port: int, connect_timeout: float = 30.0) -> None:
+    def __init__(self, port: int, connect_timeout: float = 30.0, px4: bool = True) -> None:
+        """``px4``: send the HEARTBEAT PX4's simulator_mavlink sends the moment it connects (False: a
+        client that has not said what it is)."""
         end = time.monotonic() + connect_timeout
         while True:  # as PX4's simulator_mavlink: retry until the simulator listens
             try:
@@ -128,6 +130,9 @@ class Peer:
         self.rx = mavlink.MAVLink(None)
         self.inbox: deque[Any] = deque()
         self.t_us = 0
+        if px4:
+            kind, autopilot = mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4
+            self.send(self.mav.heartbeat_encode(kind, autopilot, 0, 0, 0))
 
     def send(self, msg: Any) -> None:
         self.sock.sendall(msg.pack(self.mav))
@@ -515,7 +520,7 @@ def test_a_paused_px4_keeps_its_link_against_a_stray_connection_and_flies_on(ser
     first.next()
     t = first.step(armed=False)[-1].time_usec
     time.sleep(LINK_SILENCE_S + 0.5)  # paused: its last sensor data unanswered
-    stray = Peer(served.link.port)
+    stray = Peer(served.link.port, px4=False)
     stray.send(stray.mav.heartbeat_encode(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0))
     with pytest.raises(TimeoutError):
         stray.next(timeout=1.0)  # nothing is streamed to it
@@ -537,11 +542,11 @@ def test_a_silent_px4_is_replaced_by_the_next_one_that_shows_it_is_a_px4(served,
     first.next()
     t = first.step(armed=False)[-1].time_usec
     time.sleep(LINK_SILENCE_S + 0.3)  # the first PX4 died without closing its socket
-    stray = Peer(served.link.port)  # a port scanner: connects, says nothing
+    stray = Peer(served.link.port, px4=False)  # a port scanner: connects, says nothing
     with pytest.raises(ConnectionError):
         stray.next(timeout=CANDIDATE_TIMEOUT_S + 1.0)  # given nothing, then closed
     assert stray.inbox == deque() and "no PX4 HEARTBEAT within" in caplog.text
-    newer = Peer(served.link.port)
+    newer = Peer(served.link.port, px4=False)
     with pytest.raises(TimeoutError):
         newer.next(timeout=0.5)  # sent nothing until it shows it is a PX4
     newer.hello()  # PX4's first message on connecting: HEARTBEAT from MAV_AUTOPILOT_PX4
@@ -554,6 +559,40 @@ def test_a_silent_px4_is_replaced_by_the_next_one_that_shows_it_is_a_px4(served,
     assert kinds == [("px4_connected", False), ("px4_disconnected", None), ("px4_connected", False)]
     for p in (newer, stray, first):
         p.close()
+
+
+def test_a_stray_client_on_an_empty_port_gets_nothing_and_owns_nothing(served, sim, caplog):
+    """With no PX4 connected, a client that never shows it is a PX4 is not taken for one (a real PX4
+    found it locked the API's flight commands for as long as it stayed open): it is sent nothing, the
+    link stays unconnected, it is closed after CANDIDATE_TIMEOUT_S, and a PX4 arriving meanwhile gets
+    the link at once; the stray is closed all the same."""
+    caplog.set_level(logging.INFO, logger="droneulator.px4")
+    served.reset()
+    stray = Peer(served.link.port, px4=False)
+    with pytest.raises(TimeoutError):
+        stray.next(timeout=0.5)
+    assert not served.link.connected and not served.link.in_control
+    px4 = Peer(served.link.port)  # sends PX4's HEARTBEAT on connecting
+    px4.next()
+    assert served.link.connected and served.link.in_control
+    with pytest.raises(ConnectionError):
+        stray.next(timeout=CANDIDATE_TIMEOUT_S + 1.0)  # given nothing, then closed
+    assert stray.inbox == deque()
+    wait_until(lambda: "closed the waiting connection" in caplog.text)
+    assert [e.type for e in served.link.take_events()] == ["px4_connected"]
+    stray.close()
+    px4.close()
+    wait_until(lambda: not served.link.connected)
+    served.link.take_events()
+    # alone, a stray is closed once CANDIDATE_TIMEOUT_S has passed without a PX4 HEARTBEAT
+    served.reset()
+    stray = Peer(served.link.port, px4=False)
+    with pytest.raises(ConnectionError):
+        stray.next(timeout=CANDIDATE_TIMEOUT_S + 1.0)
+    assert stray.inbox == deque()
+    wait_until(lambda: "no PX4 HEARTBEAT within" in caplog.text)
+    assert not served.link.connected and served.link.take_events() == []
+    stray.close()
 
 
 def test_a_quiet_link_is_kept_while_the_simulator_is_the_one_that_waits(served, sim):

@@ -20,11 +20,13 @@ by exactly one control period, and without one simulation time stops.
 
 One PX4 at a time: while the connected PX4 is alive (it sent data within ``LINK_SILENCE_S``, or owes
 no answer because the simulator has sent it nothing since its last message) a new connection to the
-port is closed at once, so a second client cannot take the vehicle from it. A connection that closed
-is replaced by the next one. A connection that arrives while PX4 is silent (paused in a debugger,
-stopped, or dead without closing) is sent nothing and replaces it only once it has shown it is a PX4
-(its first message, a HEARTBEAT from ``MAV_AUTOPILOT_PX4``): a stray client cannot take the link
-from a paused PX4, which resumes into it (PX4's simulator_mavlink never reconnects).
+port is closed at once, so a second client cannot take the vehicle from it. Any other connection (no
+PX4 connected, or the connected one silent: paused in a debugger, stopped, or dead without closing)
+is sent nothing and becomes the PX4 link only once it has shown it is a PX4 with a HEARTBEAT from
+``MAV_AUTOPILOT_PX4``, which PX4's simulator_mavlink sends the moment it connects; one that shows
+none within ``CANDIDATE_TIMEOUT_S`` is closed. So a stray client can neither take the link from a
+paused PX4, which resumes into it (PX4's simulator_mavlink never reconnects), nor lock the API's
+flight commands as a "PX4" on an empty port.
 
 PX4 lost while its outputs drive the rotors in the air: ``px4.on_loss`` says what the simulator does
 (``land``: its controller lands the vehicle at a spot clear of the scene; ``hold``; ``fall``: rotors
@@ -88,9 +90,9 @@ BOOT_GRACE_S = 0.05
 LINK_SILENCE_S = 1.0
 #: above this height (m, world z) the vehicle is in the air: a new PX4 does not get its rotors
 AIRBORNE_Z_M = 0.05
-#: a connection waiting to replace a silent PX4 is closed when it shows no PX4 HEARTBEAT within this (wall s)
+#: a new connection is closed when it shows no PX4 HEARTBEAT within this (wall s)
 CANDIDATE_TIMEOUT_S = 3.0
-#: at most this many connections wait to replace a silent PX4 at once; more are closed
+#: at most this many connections wait to show they are a PX4 at once; more are closed
 MAX_CANDIDATES = 4
 #: PX4 stores accel 0 and gyro 0 as int16 FIFO counts of these sizes (SimulatorMavlink::update_sensors)
 ACCEL_FIFO_SCALE = np.float32(G0 / 2048.0)
@@ -142,8 +144,8 @@ def _parse_frame(data: bytes) -> tuple[Any, int] | bool | None:
 
 @dataclass
 class _Candidate:
-    """A connection that arrived while the connected PX4 was silent: it is sent nothing and replaces
-    that PX4 only once it has shown it is one (a HEARTBEAT from ``MAV_AUTOPILOT_PX4``)."""
+    """A connection that has not shown it is a PX4 yet: it is sent nothing and becomes the link (replacing
+    a silent PX4, if one is connected) only once it has (a HEARTBEAT from ``MAV_AUTOPILOT_PX4``)."""
 
     sock: socket.socket
     address: str
@@ -384,22 +386,24 @@ class PX4Link:
         except OSError:
             return
         address = f"{addr[0]}:{addr[1]}"
+        silent = self._silence() if self._conn is not None else math.inf
+        if silent <= LINK_SILENCE_S or len(self._candidates) >= MAX_CANDIDATES:
+            with contextlib.suppress(OSError):
+                conn.close()
+            log.warning(
+                "refused a PX4 connection from %s: %s",
+                address,
+                f"PX4 at {self._peer} is connected and alive (silent {silent:.2f} s)"
+                if silent <= LINK_SILENCE_S
+                else f"{MAX_CANDIDATES} connections already wait to show they are a PX4",
+            )
+            return
+        # PX4's simulator_mavlink sends a HEARTBEAT the moment it connects ("to initiate the SITL
+        # simulator"): until a connection has, it is sent nothing and owns nothing, so a stray client
+        # can neither take a paused PX4's link nor lock the API's flight commands as a "PX4"
+        conn.setblocking(False)
+        self._candidates.append(_Candidate(conn, address, time.monotonic()))
         if self._conn is not None:
-            silent = self._silence()
-            if silent <= LINK_SILENCE_S or len(self._candidates) >= MAX_CANDIDATES:
-                with contextlib.suppress(OSError):
-                    conn.close()
-                log.warning(
-                    "refused a PX4 connection from %s: PX4 at %s is connected and %s",
-                    address,
-                    self._peer,
-                    f"alive (silent {silent:.2f} s)"
-                    if silent <= LINK_SILENCE_S
-                    else f"{MAX_CANDIDATES} connections already wait to replace it",
-                )
-                return
-            conn.setblocking(False)
-            self._candidates.append(_Candidate(conn, address, time.monotonic()))
             log.warning(
                 "PX4 at %s has been silent for %.1f s; the connection from %s replaces it once it shows "
                 "it is a PX4 (a HEARTBEAT from MAV_AUTOPILOT_PX4) and is sent nothing until then",
@@ -407,8 +411,6 @@ class PX4Link:
                 silent,
                 address,
             )
-            return
-        self._install(conn, address, guard)
 
     def _install(self, conn: socket.socket, address: str, guard: Any) -> None:
         """Make ``conn`` the PX4 link and send it the boot batch (or step once at t = 0 first)."""
@@ -566,8 +568,6 @@ class PX4Link:
             if not c.px4 and now - c.since > CANDIDATE_TIMEOUT_S:
                 self._close_candidate(c, f"no PX4 HEARTBEAT within {CANDIDATE_TIMEOUT_S:.0f} s")
         ready = [c for c in self._candidates if c.px4]
-        if not ready and self._conn is None and self._candidates:
-            ready = self._candidates[:1]  # the silent PX4 closed: the next connection gets the link
         if not ready:
             return
         c = ready[0]
