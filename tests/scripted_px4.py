@@ -45,9 +45,9 @@ from pymavlink.dialects.v20 import common as mavlink
 from scipy.spatial.transform import Rotation
 
 from droneulator import frames
-from droneulator.controllers.se3 import FLAT_SIZE, FastSE3Control
+from droneulator.controllers.se3 import FastSE3Control
 from droneulator.px4.mixing import MotorMap
-from droneulator.vehicles.dynamics import STATE, STATE_SIZE
+from droneulator.state import FLAT_SIZE, STATE, STATE_SIZE
 from droneulator.vehicles.params import get_params
 
 #: PX4 custom main modes (px4_custom_mode.h) and the AUTO sub modes used here

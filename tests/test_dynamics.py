@@ -6,8 +6,9 @@ from rotorpy.controllers.quadrotor_control import SE3Control
 from rotorpy.trajectories.minsnap import MinSnap
 from rotorpy.vehicles.multirotor import Multirotor
 
-from droneulator.controllers.se3 import FastSE3Control, pack_flat
+from droneulator.controllers.se3 import FastSE3Control
 from droneulator.frames import yaw_of
+from droneulator.state import pack_flat
 from droneulator.trajectories.minsnap import PolyTrajectory, goto_trajectory, rest_to_rest
 from droneulator.vehicles.dynamics import STATE, FastMultirotor, pack_state, state_derivative, unpack_state
 from droneulator.vehicles.params import PARAMETER_SETS, get_params

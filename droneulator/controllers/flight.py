@@ -22,11 +22,11 @@ from typing import Any
 import numpy as np
 
 from droneulator.config import FlightConfig
-from droneulator.controllers.se3 import FLAT_SIZE, FastSE3Control
+from droneulator.controllers.se3 import FastSE3Control
 from droneulator.controllers.velocity import VelocityReference
 from droneulator.frames import yaw_of
+from droneulator.state import FLAT_SIZE, STATE
 from droneulator.trajectories.minsnap import PolyTrajectory, goto_trajectory, hold_trajectory
-from droneulator.vehicles.dynamics import STATE
 
 LAND_SPEED = 0.6
 TOUCHDOWN_ALTITUDE = 0.03

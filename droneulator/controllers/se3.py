@@ -25,10 +25,7 @@ import numpy as np
 from rotorpy.controllers.quadrotor_control import SE3Control
 
 from droneulator.frames_numba import quat_to_matrix
-from droneulator.vehicles.dynamics import STATE
-
-# Packed flat output: x(3) x_dot(3) x_ddot(3) yaw yaw_dot
-FLAT_SIZE = 11
+from droneulator.state import STATE
 
 
 @numba.njit(cache=True)
@@ -105,17 +102,6 @@ def se3_motor_speeds(
         c = f[i] / k_eta
         out[i] = math.copysign(math.sqrt(abs(c)), c)
     return out
-
-
-def pack_flat(flat_output: dict[str, Any]) -> np.ndarray:
-    """RotorPy flat-output dict -> packed vector used by :class:`FastSE3Control`."""
-    f = np.zeros(FLAT_SIZE)
-    f[0:3] = flat_output["x"]
-    f[3:6] = flat_output["x_dot"]
-    f[6:9] = flat_output["x_ddot"]
-    f[9] = flat_output["yaw"]
-    f[10] = flat_output["yaw_dot"]
-    return f
 
 
 class FastSE3Control:

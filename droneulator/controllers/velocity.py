@@ -9,7 +9,7 @@ import math
 import numpy as np
 
 from droneulator.config import FlightConfig
-from droneulator.controllers.se3 import FLAT_SIZE
+from droneulator.state import FLAT_SIZE
 
 
 class VelocityReference:

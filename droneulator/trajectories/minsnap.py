@@ -16,7 +16,7 @@ import numba
 import numpy as np
 from rotorpy.trajectories.minsnap import MinSnap
 
-from droneulator.controllers.se3 import FLAT_SIZE
+from droneulator.state import FLAT_SIZE
 
 #: time scaling of the rest-to-rest 7th-order polynomial s(tau) = 35t^4 - 84t^5 + 70t^6 - 20t^7
 _REST_TO_REST = np.array([-20.0, 70.0, -84.0, 35.0, 0.0, 0.0, 0.0, 0.0])

@@ -14,8 +14,8 @@ asymmetric dampers and regularised Coulomb friction, so a touchdown decelerates 
 sub-steps. Their forces are exactly zero while every foot and hub is above the ground.
 
 State vector layout (RotorPy's ``_pack_state``): ``x[0:3] v[3:6] q[6:10] (x,y,z,w) w[10:13]
-wind[13:16] rotor_speeds[16:20]``. Code outside :mod:`droneulator.vehicles` names these fields
-through :data:`STATE` (``s[STATE.q]``) instead of writing the slices; the compiled kernels below
+wind[13:16] rotor_speeds[16:20]``, defined in :mod:`droneulator.state`. Code outside the kernels names
+these fields through :data:`~droneulator.state.STATE` (``s[STATE.q]``); the compiled kernels below
 index the vector directly. Each step also accumulates the IMU quantities and touchdowns into an
 output vector laid out as :data:`OUTPUT`.
 """
@@ -31,6 +31,7 @@ import numpy as np
 
 from droneulator.frames_numba import quat_to_matrix
 from droneulator.scenes.collision import sdf_lookup
+from droneulator.state import STATE, STATE_SIZE
 
 #: gravity of the model (m/s^2), as in RotorPy
 GRAVITY = 9.81
@@ -46,33 +47,6 @@ _INERTIA = 23  # 9 entries, row-major
 _INV_INERTIA = 32  # 9 entries
 _N_PARAMS = 41
 
-
-class StateLayout(NamedTuple):
-    """Named slices of the packed state vector, with RotorPy's field names and order.
-
-    ``x`` position (world, m), ``v`` velocity (world, m/s), ``q`` attitude ``[x, y, z, w]`` (body FLU
-    to world), ``w`` body rates (rad/s), ``wind`` wind velocity (world, m/s), ``rotor_speeds`` (rad/s).
-    """
-
-    x: slice = slice(0, 3)
-    v: slice = slice(3, 6)
-    q: slice = slice(6, 10)
-    w: slice = slice(10, 13)
-    wind: slice = slice(13, 16)
-    rotor_speeds: slice = slice(16, 20)
-
-    @property
-    def names(self) -> tuple[str, ...]:
-        return self._fields
-
-    @property
-    def size(self) -> int:
-        return max(part.stop for part in self)
-
-
-#: the packed state's layout: ``s[STATE.x]`` is the position, ``s[STATE.rotor_speeds]`` the rotors
-STATE = StateLayout()
-STATE_SIZE = STATE.size
 
 # Layout of the step output vector (sums over the integrated time since the caller zeroed it).
 _OUT_SF, _OUT_ACC, _OUT_T, _OUT_TD_SPEED, _OUT_TD_T, _OUT_TD_X = 0, 3, 6, 7, 8, 9
