@@ -66,8 +66,7 @@ def test_cli_config_prints_effective_json_and_reports_errors(capsys):
 
 
 def test_workflow_sections_keep_their_keys_in_files_and_overrides(tmp_path):
-    from droneulator.workflows.photogrammetry.config import CaptureConfig
-    from droneulator.workflows.rl.config import RLConfig
+    from droneulator.config import CaptureConfig, RLConfig
 
     f = tmp_path / "c.toml"
     f.write_text('[capture]\nviews = 36\naltitudes = [4.0, 6.0]\n[rl]\nheading = "goal"\n')

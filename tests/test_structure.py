@@ -75,6 +75,37 @@ def test_no_import_circle(a: str, b: str) -> None:
     assert not (_reaches(graph, a, b) and _reaches(graph, b, a)), f"{a} and {b} import each other"
 
 
+#: the package's layers, bottom up (docs/architecture.md): a module may import its own layer and those
+#: below, never one above, not even lazily or for type checking
+LAYERS: dict[str, int] = {
+    "frames": 0, "frames_numba": 0, "state": 0, "config": 0,
+    "scenes": 1, "wind": 1, "trajectories": 1, "sensors": 1, "commands": 1,
+    "controllers": 2,
+    "vehicles": 3,
+    "world": 4, "sim": 4, "render": 4, "imaging": 4,
+    "api": 5, "ros": 5, "px4": 5, "recording": 5,
+    "runtime": 6, "ui": 6,
+    "workflows": 7,
+    "cli": 8, "": 8,
+}  # fmt: skip
+
+
+def _layer(module: str) -> int:
+    top = module.split(".")[1] if "." in module else ""
+    assert top in LAYERS, f"{module}: its package {top!r} has no layer in LAYERS"
+    return LAYERS[top]
+
+
+def test_no_module_imports_a_layer_above_its_own() -> None:
+    upward = sorted(
+        f"{m} (layer {_layer(m)}) imports {d} (layer {_layer(d)})"
+        for m, deps in _import_graph().items()
+        for d in deps
+        if d != "droneulator" and _layer(d) > _layer(m)  # `from droneulator import frames` names the module
+    )
+    assert not upward, "\n".join(upward)
+
+
 @pytest.mark.parametrize(
     "module",
     [

@@ -14,7 +14,7 @@ never runs backwards, not even across a reset.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -39,11 +39,18 @@ if TYPE_CHECKING:
     from droneulator.api.commands import CommandPath
     from droneulator.config import CameraConfig, SimConfig
     from droneulator.ros.zenoh_node import RosZenohNode
-    from droneulator.runtime.ipc import CameraImages
     from droneulator.sim.simulator import VehicleState
 
 _IDENTITY_Q = np.array([0.0, 0.0, 0.0, 1.0])
 _IMAGES = ("rgb", "depth", "seg")
+
+
+class CameraImages(Protocol):
+    """One camera's images at one instant: a renderer's frame, or the runtime's shared-memory views."""
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    seg: np.ndarray
 
 
 def static_transforms(cameras: list[CameraConfig]) -> list[tuple[str, str, np.ndarray, np.ndarray]]:

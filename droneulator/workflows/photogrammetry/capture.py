@@ -32,11 +32,10 @@ import numpy as np
 from tqdm import tqdm
 
 from droneulator.api.client import DroneulatorClient
-from droneulator.config import CameraConfig, SimConfig
+from droneulator.config import CameraConfig, CaptureConfig, SimConfig
 from droneulator.ros.topics import BASE_FRAME, ns_to_seconds
 from droneulator.ros.zenoh_node import RosZenohNode
 from droneulator.runtime.launch import launch_run
-from droneulator.workflows.photogrammetry.config import CaptureConfig
 from droneulator.workflows.photogrammetry.dataset import CaptureDataset, plan_settings
 from droneulator.workflows.photogrammetry.fly import Flyer
 from droneulator.workflows.photogrammetry.plan import (

@@ -17,9 +17,9 @@ from typing import Any
 import numpy as np
 
 from droneulator.api.client import DroneulatorClient
+from droneulator.config import CaptureConfig
 from droneulator.frames import wrap_angle, yaw_of
 from droneulator.ros.topics import ns_to_seconds, seconds_to_ns
-from droneulator.workflows.photogrammetry.config import CaptureConfig
 from droneulator.workflows.photogrammetry.plan import (
     Viewpoint,
     arc_waypoints,

@@ -38,12 +38,11 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from droneulator.config import CameraConfig, SimConfig, load_config
+from droneulator.config import CameraConfig, RLConfig, SimConfig, load_config
 from droneulator.frames import wrap_angle
 from droneulator.scenes.base import Scene
 from droneulator.workflows.rl.astar import DistanceField, OccupancyGrid, occupancy_from_scene
 from droneulator.workflows.rl.backend import CAMERA_NAME, SCENE, Backend, Kinematics
-from droneulator.workflows.rl.config import RLConfig
 
 STRIP_SAMPLES = 32
 OBS_SIZE = STRIP_SAMPLES + 3

@@ -1,22 +1,13 @@
-"""All configuration in one typed place.
-
-Every option is a dataclass field. A config is built from defaults, then a JSON or TOML file
-(``--config FILE``), then ``--set section.key=value`` overrides from the command line, in that order.
-"""
+"""The simulator's configuration sections and :class:`SimConfig`, which holds them all."""
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import math
 import re
-import tomllib
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, get_type_hints
 
-from droneulator.workflows.photogrammetry.config import CaptureConfig
-from droneulator.workflows.rl.config import RLConfig
+from droneulator.config.capture import CaptureConfig
+from droneulator.config.rl import RLConfig
 
 
 @dataclass
@@ -386,108 +377,3 @@ class SimConfig:
     capture: CaptureConfig = field(default_factory=CaptureConfig)
     rl: RLConfig = field(default_factory=RLConfig)
     ui: UIConfig = field(default_factory=UIConfig)
-
-
-# --------------------------------------------------------------------------- loading & overrides
-class ConfigError(ValueError):
-    """A bad option value or name; the message names the option by its dotted key (``runtime.api_port``)."""
-
-
-def _coerce(value: Any, typ: Any, key: str) -> Any:
-    origin = getattr(typ, "__origin__", None)
-    if dataclasses.is_dataclass(typ):
-        if isinstance(value, typ):
-            return value
-        return from_dict(typ, value, f"{key}.")
-    if origin in (list, tuple):
-        if not isinstance(value, list | tuple):
-            raise ConfigError(f"{key}: expected a list, got {value!r}")
-        if origin is list:
-            (inner,) = typ.__args__
-            return [_coerce(v, inner, f"{key}[{i}]") for i, v in enumerate(value)]
-        if len(value) != len(typ.__args__):
-            raise ConfigError(f"{key}: expected {len(typ.__args__)} values, got {len(value)}")
-        pairs = enumerate(zip(value, typ.__args__, strict=True))
-        return tuple(_coerce(v, t, f"{key}[{i}]") for i, (v, t) in pairs)
-    if typ is bool and isinstance(value, str):
-        if value.lower() in ("1", "true", "yes", "on"):
-            return True
-        if value.lower() in ("0", "false", "no", "off"):
-            return False
-        raise ConfigError(f"{key}: not a boolean: {value!r}")
-    if typ in (int, float, str, bool):
-        if isinstance(value, dict | list | tuple) or value is None:
-            raise ConfigError(f"{key}: expected {typ.__name__}, got {value!r}")
-        if typ is int and isinstance(value, float) and not value.is_integer():
-            raise ConfigError(f"{key}: expected an integer, got {value!r}")
-        try:
-            return typ(value)
-        except ValueError:
-            raise ConfigError(f"{key}: expected {typ.__name__}, got {value!r}") from None
-    return value
-
-
-def from_dict(cls: type, data: dict[str, Any], prefix: str = "") -> Any:
-    """Build dataclass ``cls`` from a (possibly partial) nested dict; unknown keys and values of the
-    wrong type are :class:`ConfigError` naming the key (under ``prefix``, e.g. ``"render."``)."""
-    if not isinstance(data, dict):
-        where = prefix.rstrip(".") or "the configuration"
-        raise ConfigError(f"{where}: expected a table of {cls.__name__} options, got {data!r}")
-    hints = get_type_hints(cls)
-    names = [f.name for f in dataclasses.fields(cls)]
-    unknown = sorted(set(data) - set(names))
-    if unknown:
-        raise ConfigError(
-            f"unknown {cls.__name__} option(s): {', '.join(prefix + k for k in unknown)}; "
-            f"known: {', '.join(names)}"
-        )
-    return cls(**{k: _coerce(v, hints[k], prefix + k) for k, v in data.items()})
-
-
-def to_dict(cfg: Any) -> dict[str, Any]:
-    return dataclasses.asdict(cfg)
-
-
-def load_file(path: str | Path) -> dict[str, Any]:
-    path = Path(path)
-    text = path.read_text()
-    if path.suffix == ".toml":
-        return tomllib.loads(text)
-    return json.loads(text)
-
-
-def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
-    out = dict(base)
-    for k, v in over.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
-
-
-def apply_override(data: dict[str, Any], assignment: str) -> dict[str, Any]:
-    """Apply one ``a.b.c=value`` override (value parsed as JSON when possible) to a config dict."""
-    if "=" not in assignment:
-        raise ValueError(f"override must look like section.key=value, got {assignment!r}")
-    key, raw = assignment.split("=", 1)
-    try:
-        value = json.loads(raw)
-    except json.JSONDecodeError:
-        value = raw
-    node: dict[str, Any] = {}
-    leaf = node
-    parts = key.strip().split(".")
-    for p in parts[:-1]:
-        leaf[p] = {}
-        leaf = leaf[p]
-    leaf[parts[-1]] = value
-    return _merge(data, node)
-
-
-def load_config(path: str | Path | None = None, overrides: list[str] | None = None, **top: Any) -> SimConfig:
-    """Defaults, then ``path``, then ``overrides``, then keyword arguments for top-level fields."""
-    data = to_dict(SimConfig())
-    if path is not None:
-        data = _merge(data, load_file(path))
-    for o in overrides or []:
-        data = apply_override(data, o)
-    data.update({k: v for k, v in top.items() if v is not None})
-    return from_dict(SimConfig, data)

@@ -1,0 +1,58 @@
+"""All configuration in one typed place.
+
+Every option is a dataclass field of :class:`SimConfig`, one section per concern
+(:mod:`~droneulator.config.sections`; the capture and learning workflows' sections in
+:mod:`~droneulator.config.capture` and :mod:`~droneulator.config.rl`). A config is built from the
+defaults, then a JSON or TOML file (``--config FILE``), then ``--set section.key=value`` overrides
+from the command line, in that order (:mod:`~droneulator.config.loading`).
+"""
+
+from droneulator.config.capture import CaptureConfig
+from droneulator.config.loading import (
+    ConfigError,
+    apply_override,
+    from_dict,
+    load_config,
+    load_file,
+    to_dict,
+)
+from droneulator.config.rl import RLConfig
+from droneulator.config.sections import (
+    GPS_PRESETS,
+    PX4_ON_LOSS,
+    WIND_MODELS,
+    BridgeConfig,
+    CameraConfig,
+    FlightConfig,
+    GpsError,
+    PX4Config,
+    RenderConfig,
+    RuntimeConfig,
+    SimConfig,
+    UIConfig,
+    VehicleConfig,
+)
+
+__all__ = [
+    "GPS_PRESETS",
+    "PX4_ON_LOSS",
+    "WIND_MODELS",
+    "BridgeConfig",
+    "CameraConfig",
+    "CaptureConfig",
+    "ConfigError",
+    "FlightConfig",
+    "GpsError",
+    "PX4Config",
+    "RLConfig",
+    "RenderConfig",
+    "RuntimeConfig",
+    "SimConfig",
+    "UIConfig",
+    "VehicleConfig",
+    "apply_override",
+    "from_dict",
+    "load_config",
+    "load_file",
+    "to_dict",
+]
