@@ -19,8 +19,8 @@ from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import ClientConnection, connect
 
 from droneulator.api import ApiError, ApiServer, DroneulatorClient, handle_request
-from droneulator.api.commands import CommandPath
-from droneulator.api.protocol import ERROR_CODES, OPS, ops_markdown
+from droneulator.commands import CommandPath
+from droneulator.commands.ops import ERROR_CODES, OPS, ops_markdown
 from droneulator.sim.simulator import Simulator
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "api.md"
@@ -38,7 +38,7 @@ def bare_sim() -> Iterator[Simulator]:
 
 def test_docs_carry_the_generated_op_reference():
     docs = DOCS.read_text()
-    assert ops_markdown() in docs, "regenerate the section from droneulator.api.protocol.ops_markdown()"
+    assert ops_markdown() in docs, "regenerate the section from droneulator.commands.ops.ops_markdown()"
     for name in OPS:
         assert f"### `{name}`" in docs
     for code in ERROR_CODES:

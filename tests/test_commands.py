@@ -12,8 +12,7 @@ import pytest
 import zenoh
 from rosbags.typesys import Stores, get_typestore
 
-from droneulator.api.commands import CommandPath
-from droneulator.api.protocol import make_request
+from droneulator.commands import CommandPath, make_request
 from droneulator.config import load_config
 from droneulator.ros import messages as M
 from droneulator.ros.publishers import subscribe_commands

@@ -5,7 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from droneulator.sim.simulator import CommandError, Simulator
+from droneulator.commands import CommandError
+from droneulator.sim.simulator import Simulator
 
 
 @pytest.fixture()

@@ -14,12 +14,13 @@ import pytest
 import zenoh
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from droneulator.commands import CommandError
 from droneulator.config import CameraConfig, load_config
 from droneulator.frames import quat_slerp, quat_to_matrix, transform_from_pose
 from droneulator.ros import messages as M
 from droneulator.ros.topics import TYPES, topic_names, vehicle_topics
 from droneulator.runtime.launch import launch_run
-from droneulator.sim.simulator import CommandError, Simulator
+from droneulator.sim.simulator import Simulator
 
 # The upstream definition, typed out here from ZJU-FAST-Lab/ego-planner-swarm
 # src/uav_simulator/Utils/quadrotor_msgs/msg/PositionCommand.msg, so the decoder below is independent

@@ -5,9 +5,9 @@ Importing this package does not import the simulator, so clients stay light.
 """
 
 from droneulator.api.client import ConnectionLostError, DroneulatorClient
-from droneulator.api.commands import CommandPath
 from droneulator.api.protocol import ERROR_CODES, OPS, ApiError, handle_request
 from droneulator.api.server import ApiServer
+from droneulator.commands import CommandPath
 
 __all__ = [
     "ERROR_CODES",

@@ -22,7 +22,6 @@ import asyncio
 import contextlib
 import functools
 import logging
-import queue
 import threading
 from collections import deque
 from collections.abc import Callable, Coroutine, Mapping
@@ -32,7 +31,6 @@ from websockets.asyncio.server import ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 from websockets.frames import CloseCode
 
-from droneulator.api.commands import CommandPath
 from droneulator.api.protocol import (
     OPS,
     STREAMS,
@@ -44,6 +42,8 @@ from droneulator.api.protocol import (
     ok_reply,
     parse_request,
 )
+from droneulator.commands import CommandPath
+from droneulator.threads import DaemonWorker
 
 if TYPE_CHECKING:
     from droneulator.sim.simulator import VehicleState
@@ -53,46 +53,11 @@ log = logging.getLogger(__name__)
 #: smallest transport limit (bytes): below it a too-long message is still answered, not disconnected
 MIN_TRANSPORT_LIMIT = 1 << 20
 _SERVER_OPS = ("subscribe", "unsubscribe")
-_Job = tuple[asyncio.AbstractEventLoop, asyncio.Future[Any], Callable[[], Any]]
 
 
-class _Worker:
-    """A daemon thread running blocking jobs in submission order, resolving asyncio futures.
-
-    A daemon (unlike the default executor's threads) so that a job stuck waiting for the simulation
-    lock can never hold up interpreter exit.
-    """
-
-    def __init__(self, name: str) -> None:
-        self._jobs: queue.SimpleQueue[_Job | None] = queue.SimpleQueue()
-        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
-        self._thread.start()
-
-    def submit(self, loop: asyncio.AbstractEventLoop, fn: Callable[[], Any]) -> asyncio.Future[Any]:
-        fut = loop.create_future()
-        self._jobs.put((loop, fut, fn))
-        return fut
-
-    def close(self) -> None:
-        self._jobs.put(None)
-
-    def _run(self) -> None:
-        while (job := self._jobs.get()) is not None:
-            loop, fut, fn = job
-            try:
-                ok, value = True, fn()
-            except Exception as e:
-                ok, value = False, e
-            with contextlib.suppress(RuntimeError):  # the loop is closed: nobody waits any more
-                loop.call_soon_threadsafe(_settle, fut, ok, value)
-
-
-def _settle(fut: asyncio.Future[Any], ok: bool, value: Any) -> None:
+def _resolve(fut: asyncio.Future[Any]) -> None:
     if not fut.done():
-        if ok:
-            fut.set_result(value)
-        else:
-            fut.set_exception(value)
+        fut.set_result(None)
 
 
 class _Session:
@@ -168,7 +133,8 @@ class ApiServer:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stop_fut: asyncio.Future[None] | None = None
         self._thread: threading.Thread | None = None
-        self._worker: _Worker | None = None
+        #: runs commands that wait for the simulation lock, off the event loop, in arrival order
+        self._worker: DaemonWorker | None = None
         self._ready = threading.Event()
         self._closing = threading.Event()
         self._start_error: BaseException | None = None
@@ -197,7 +163,7 @@ class ApiServer:
         self._ready.clear()
         self._closing.clear()
         self._start_error = None
-        self._worker = _Worker("droneulator-api-worker")
+        self._worker = DaemonWorker("droneulator-api-worker")
         self._thread = threading.Thread(target=self._thread_main, name="droneulator-api", daemon=True)
         self._thread.start()
         self._ready.wait()
@@ -216,7 +182,7 @@ class ApiServer:
         self._closing.set()
         if loop is not None and stop_fut is not None:
             with contextlib.suppress(RuntimeError):
-                loop.call_soon_threadsafe(_settle, stop_fut, True, None)
+                loop.call_soon_threadsafe(_resolve, stop_fut)
         if threading.current_thread() is not thread:
             thread.join(self.stop_timeout + 5.0)
             if thread.is_alive():
@@ -390,9 +356,7 @@ class ApiServer:
         if req.op in OPS and not OPS[req.op].locked:
             return self.commands.execute(req), None
         assert self._worker is not None and self._stop_fut is not None
-        fut = self._worker.submit(
-            asyncio.get_running_loop(), functools.partial(self._run_command, req, extra)
-        )
+        fut = asyncio.wrap_future(self._worker.submit(self._run_command, req, extra))
         await asyncio.wait((fut, self._stop_fut), return_when=asyncio.FIRST_COMPLETED)
         if not fut.done():
             fut.cancel()

@@ -55,7 +55,8 @@ from pymavlink.dialects.v20 import common as mavlink
 from droneulator.config import PX4Config
 from droneulator.controllers.flight import Event, Mode
 from droneulator.frames import enu_to_geodetic, enu_to_ned, xyzw_to_wxyz
-from droneulator.px4.mixing import LogThrottle, MotorMap
+from droneulator.logs import LogThrottle
+from droneulator.px4.mixing import MotorMap
 from droneulator.sensors import SensorSuite, Truth
 from droneulator.sensors.baro import BaroSample
 
@@ -174,7 +175,7 @@ class PX4Link:
         self._conn: socket.socket | None = None
         self._peer = ""
         self._events: deque[Event] = deque()
-        self._errors = LogThrottle(log)
+        self._errors = LogThrottle(log, period=1.0)
         self._rx = bytearray()
         self._candidates: list[_Candidate] = []
         #: PX4 was dropped: the loss rule (``cfg.on_loss``) is applied at the next turn, under the lock

@@ -24,11 +24,12 @@ Output -> speed
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+from droneulator.logs import LogThrottle
 
 log = logging.getLogger(__name__)
 
@@ -50,26 +51,6 @@ PX4_QUAD_X: tuple[PX4Motor, ...] = (
     PX4Motor(3, "front-left", +1, -1, "CW"),
     PX4Motor(4, "rear-right", -1, +1, "CW"),
 )
-
-
-class LogThrottle:
-    """Log an error at once, then at most once per ``period`` seconds per kind with a repeat count."""
-
-    def __init__(self, logger: logging.Logger, period: float = 1.0) -> None:
-        self.logger = logger
-        self.period = period
-        self._last: dict[str, float] = {}
-        self._suppressed: dict[str, int] = {}
-
-    def error(self, kind: str, msg: str, *args: Any) -> None:
-        now = time.monotonic()
-        last = self._last.get(kind)
-        if last is not None and now - last < self.period:
-            self._suppressed[kind] = self._suppressed.get(kind, 0) + 1
-            return
-        n = self._suppressed.pop(kind, 0)
-        self._last[kind] = now
-        self.logger.error(msg + (f" ({n} more since the last report)" if n else ""), *args)
 
 
 def _spin(direction: float) -> str:
@@ -128,7 +109,7 @@ class MotorMap:
         if not self.w_max > self.w_min >= 0.0:
             raise ValueError("need 0 <= rotor_speed_min < rotor_speed_max to map PX4 outputs to rotor speeds")
         self._last_valid = np.zeros(4)
-        self._errors = LogThrottle(log)
+        self._errors = LogThrottle(log, period=1.0)
 
     def output_to_speed(self, u: Any) -> np.ndarray:
         """Rotor speed (rad/s) whose thrust is the fraction ``(1 - k) u + k u^2`` of full thrust."""

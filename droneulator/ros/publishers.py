@@ -36,7 +36,7 @@ from droneulator.sensors.camera import intrinsics
 if TYPE_CHECKING:
     import zenoh
 
-    from droneulator.api.commands import CommandPath
+    from droneulator.commands import CommandPath
     from droneulator.config import CameraConfig, SimConfig
     from droneulator.ros.zenoh_node import RosZenohNode
     from droneulator.sim.simulator import VehicleState

@@ -29,8 +29,8 @@ from multiprocessing.connection import Connection, Listener, wait
 from pathlib import Path
 from typing import IO
 
-from droneulator.api.commands import CommandPath
 from droneulator.api.server import ApiServer
+from droneulator.commands import CommandPath
 from droneulator.config import SimConfig, from_dict
 from droneulator.ros.publishers import StatePublisher, subscribe_commands
 from droneulator.ros.zenoh_node import RosZenohNode

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from droneulator.commands.errors import CommandError
 from droneulator.config import SimConfig, load_config
 from droneulator.controllers.flight import TRACK_MAX_ACCEL, Event, FlightController, Mode
 from droneulator.frames import quat_from_yaw, transform_from_pose, yaw_of
@@ -38,15 +39,6 @@ from droneulator.wind import make_wind
 NS = 1_000_000_000
 
 log = logging.getLogger(__name__)
-
-
-class CommandError(ValueError):
-    """A rejected command; ``code`` is machine readable, the message says what to fix."""
-
-    def __init__(self, code: str, message: str) -> None:
-        super().__init__(message)
-        self.code = code
-        self.message = message
 
 
 @dataclass

@@ -18,7 +18,7 @@ import numpy as np
 from PIL import Image
 
 from droneulator.config import CameraConfig
-from droneulator.ui.worker import DaemonWorker
+from droneulator.threads import DaemonWorker
 
 #: preview camera: a 16:9 card picture looking 25 degrees down from above the spawn point
 PREVIEW_CAMERA = CameraConfig(name="preview", width=480, height=270, hfov_deg=80.0, rpy_deg=(0.0, 25.0, 0.0))

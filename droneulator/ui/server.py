@@ -46,9 +46,9 @@ from websockets.http11 import Request, Response
 from droneulator.config import BridgeConfig, UIConfig
 from droneulator.imaging import depth_to_rgb
 from droneulator.scenes.base import SEGMENTATION_PALETTE
+from droneulator.threads import DaemonWorker, lower_priority
 from droneulator.ui.images import Frame, ImageHub
 from droneulator.ui.scenes import ScenePictures
-from droneulator.ui.worker import DaemonWorker, lower_priority
 
 log = logging.getLogger("droneulator.ui")
 

@@ -1,8 +1,8 @@
-"""The one command path: every command source (WebSocket API, ROS topics, and later the planner and
-the UI) reaches the simulator through :class:`CommandPath`.
+"""The one command path: every command source (WebSocket API, ROS topics, the planner, the browser
+UI, and PX4's ownership of the vehicle) reaches the simulator through :class:`CommandPath`.
 
 It applies the same rules to all of them: arguments validated against the op table
-(:data:`~droneulator.api.protocol.OPS`), flight commands refused with ``flight_locked`` while another
+(:data:`~droneulator.commands.ops.OPS`), flight commands refused with ``flight_locked`` while another
 controller (PX4) is in control, and every simulator op run while holding the simulation lock, so a
 command never interleaves with a physics step. Sources that have nobody to answer (ROS topics) have
 their rejections logged, once per burst, with the error code.
@@ -12,23 +12,21 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from collections.abc import Collection, Mapping
 from contextlib import AbstractContextManager
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-from droneulator.api.protocol import (
+from droneulator.commands.ops import (
     OPS,
     ExtraOp,
     Request,
     RequestError,
+    Simulation,
     error_reply,
     execute,
     make_request,
 )
-
-if TYPE_CHECKING:
-    from droneulator.sim.simulator import Simulator
+from droneulator.logs import LogThrottle
 
 log = logging.getLogger("droneulator.commands")
 
@@ -36,49 +34,16 @@ log = logging.getLogger("droneulator.commands")
 BURST_GAP_S = 2.0
 
 
-class _RejectionLog:
-    """Log a rejected command once per burst: the first rejection in full, then a count when it ends."""
-
-    def __init__(self, gap_s: float = BURST_GAP_S) -> None:
-        self.gap_s = gap_s
-        self._lock = threading.Lock()
-        self._key: tuple[str, str, str] | None = None
-        self._last = 0.0
-        self._suppressed = 0
-
-    def rejected(self, source: str, op: str, code: str, message: str) -> None:
-        now = time.monotonic()
-        with self._lock:
-            key = (source, op, code)
-            if key == self._key and now - self._last < self.gap_s:
-                self._suppressed += 1
-                self._last = now
-                return
-            self._flush()
-            self._key, self._last = key, now
-        log.warning("%s %s command rejected (%s): %s", source, op, code, message)
-
-    def accepted(self) -> None:
-        with self._lock:
-            self._flush()
-            self._key = None
-
-    def _flush(self) -> None:
-        if self._suppressed and self._key is not None:
-            source, op, code = self._key
-            log.warning("%d more %s %s commands rejected (%s)", self._suppressed, source, op, code)
-        self._suppressed = 0
-
-
 class CommandPath:
     """Validation, flight lock and simulation lock for every command source (see the module docstring)."""
 
-    def __init__(self, sim: Simulator, lock: AbstractContextManager[Any] | None = None) -> None:
+    def __init__(self, sim: Simulation, lock: AbstractContextManager[Any] | None = None) -> None:
         self.sim = sim
         self.lock = lock if lock is not None else threading.Lock()
         self._flight_locked: str | None = None
         self._locked_ops: frozenset[str] | None = None  # None: every flight op
-        self._rejections = _RejectionLog()
+        #: one line per burst of the same (source, op, code) rejection, then how many followed
+        self._rejections = LogThrottle(log, gap=BURST_GAP_S, one_at_a_time=True)
 
     # ------------------------------------------------------------------ flight lock
     def refuse_flight(self, reason: str, ops: Collection[str] | None = None) -> None:
@@ -133,11 +98,20 @@ class CommandPath:
         except RequestError as e:
             reply = error_reply(None, e.code, e.message)
         if reply["ok"]:
-            self._rejections.accepted()
+            self._rejections.end()
         else:
             self.reject(source, op, reply["error"]["code"], reply["error"]["message"])
         return reply
 
     def reject(self, source: str, op: str, code: str, message: str) -> None:
         """Record a command a source refused before submitting it (e.g. a goal in an unknown frame)."""
-        self._rejections.rejected(source, op, code, message)
+        self._rejections.log(
+            (source, op, code),
+            logging.WARNING,
+            "%s %s command rejected (%s): %s",
+            source,
+            op,
+            code,
+            message,
+            summary=f"{{n}} more {source} {op} commands rejected ({code})",
+        )

@@ -1,8 +1,9 @@
-"""The UI's threads: one daemon thread running blocking jobs in order (GL rendering, Zenoh session calls),
-and the lower scheduling priority every UI thread takes.
+"""Threads for blocking work beside an asyncio loop or a simulation: a daemon thread running jobs in
+order (the API's commands waiting for the simulation lock, the UI's GL rendering and Zenoh calls),
+and a lower scheduling priority for threads that must only take the CPU the simulation leaves.
 
 Unlike asyncio's default executor or a ThreadPoolExecutor, nothing waits for a :class:`DaemonWorker` when
-the process ends, so a render or a Zenoh call in progress never holds up Ctrl-C or SIGTERM.
+the process ends, so a job in progress never holds up Ctrl-C or SIGTERM.
 """
 
 from __future__ import annotations
@@ -28,7 +29,8 @@ def lower_priority(nice: int) -> None:
 
 
 class DaemonWorker:
-    """Runs ``submit``-ted callables one at a time on a daemon thread; each returns a Future."""
+    """Runs ``submit``-ted callables one at a time on a daemon thread; each returns a Future
+    (``asyncio.wrap_future`` makes it awaitable)."""
 
     def __init__(self, name: str, nice: int = 0) -> None:
         self._todo: queue.Queue[tuple[Future[Any], Callable[..., Any], tuple[Any, ...]] | None]

@@ -1,0 +1,40 @@
+"""What a refused command is: :class:`CommandError` with a machine-readable code from :data:`ERROR_CODES`.
+
+The core (a vehicle refusing a goto below the ground), the command path (a flight locked by PX4) and
+the transports (a WebSocket message that is not JSON) all answer with these codes, listed once here
+and rendered into docs/api.md.
+"""
+
+from __future__ import annotations
+
+#: every error code a reply can carry, with when it happens (rendered into docs/api.md)
+ERROR_CODES: dict[str, str] = {
+    "parse_error": "the message is not valid UTF-8 JSON (this includes binary frames holding anything else)",
+    "invalid_request": "the JSON is not an object, `op` is missing or not a string, or `id` is neither "
+    "an integer nor a string",
+    "unknown_op": "`op` names no operation; the message lists the known ones",
+    "invalid_argument": "a required field is missing, a field is not accepted by the op, a value has the "
+    "wrong type (`true`/`false` are not numbers), or a number is `NaN`, `Infinity` or `-Infinity`",
+    "out_of_range": "a number lies outside its allowed range (speed, duration, velocity limits, seed, "
+    "rate_hz); the message gives the range",
+    "below_ground": "a target altitude is not above the ground (z <= 0; a reset position may be z = 0)",
+    "out_of_bounds": "a target lies outside the scene's flyable bounds (see `scene_info`)",
+    "not_airborne": "`velocity`, `track`, `hold` or `land` while the motors are off: take off first",
+    "flight_locked": "flight commands are refused because another controller (e.g. PX4) is in control; "
+    "the message says why",
+    "message_too_large": "the message is longer than the server's limit (64 KiB by default); it is "
+    "discarded unread, so the reply's `id` is null",
+    "unsupported": "`subscribe`/`unsubscribe` sent to a transport without streams (in-process use of "
+    "`handle_request`); the WebSocket server always supports them",
+    "internal_error": "an unexpected failure inside the server; the message says what, the server "
+    "keeps running and the traceback is logged",
+}
+
+
+class CommandError(ValueError):
+    """A rejected command; ``code`` is one of :data:`ERROR_CODES`, the message says what to fix."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(f"{code}: {message}")
+        self.code = code
+        self.message = message

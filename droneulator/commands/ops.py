@@ -1,0 +1,534 @@
+"""Every command, once: the op table (:data:`OPS`) with each op's fields, its rules and what it runs.
+
+Every command source builds its requests with :func:`make_request` (the WebSocket server after parsing
+JSON, ROS topics from their messages) and runs them with :func:`execute`, normally through the
+:class:`~droneulator.commands.path.CommandPath`. The table checks what a field can be (a finite number,
+three of them, a known stream); what a value may be for the vehicle (inside the scene, above the
+ground, under the speed limit) the core checks itself, for in-process callers too. The reference in
+docs/api.md is generated from the same table (:func:`ops_markdown`).
+
+The world is known here only as the interface the ops call: nothing imports the simulator.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from collections.abc import Callable, Collection, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from droneulator.commands.errors import ERROR_CODES, CommandError
+
+#: what the ops run on: the simulation's command surface (the in-process ``Simulator``: reset, state,
+#: scene, config, t, stamp_ns and the flight commands). Known by that interface only, never imported:
+#: the command path sits below the world in the package's layers.
+Simulation = Any
+
+log = logging.getLogger(__name__)
+
+#: stream names accepted by ``subscribe``
+STREAMS = ("state", "events")
+
+
+class RequestError(CommandError):
+    """A request rejected before dispatch; ``request_id`` is the id to echo (None if unknown)."""
+
+    def __init__(self, code: str, message: str, request_id: int | str | None = None) -> None:
+        super().__init__(code, message)
+        self.request_id = request_id
+
+
+# --------------------------------------------------------------------------- the op table
+#: argument types: what JSON each accepts (``null`` for an optional field means "absent")
+TYPES: dict[str, str] = {
+    "number": "JSON number (not a boolean), finite",
+    "integer": "JSON integer (not a boolean)",
+    "boolean": "`true` or `false`",
+    "string": "JSON string",
+    "vec3": "array of 3 finite numbers",
+    "streams": 'non-empty array of `"state"` and/or `"events"`',
+}
+
+
+@dataclass(frozen=True)
+class Arg:
+    """One request field: its JSON type, whether it is required, inclusive bounds, a doc line."""
+
+    name: str
+    type: str
+    doc: str
+    required: bool = False
+    bounds: tuple[float, float] | None = None
+
+
+@dataclass(frozen=True)
+class Op:
+    """One operation.
+
+    ``run(sim, args)`` executes it with validated arguments and returns the result object;
+    ``run=None`` means the transport handles it (subscriptions). ``flight`` ops are refused while
+    flight is locked; ``locked`` ops must run while holding the simulation lock.
+    """
+
+    name: str
+    doc: str
+    result: str
+    args: tuple[Arg, ...] = ()
+    run: Callable[[Simulation, dict[str, Any]], dict[str, Any]] | None = None
+    flight: bool = False
+    locked: bool = True
+
+
+def _when(sim: Simulation) -> dict[str, Any]:
+    """When a command was accepted: episode time ``t`` (s) and the ROS clock ``stamp_ns``."""
+    return {"t": sim.t, "stamp_ns": sim.stamp_ns}
+
+
+def _takeoff(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+    return {"duration": float(sim.takeoff(a.get("altitude"))), **_when(sim)}
+
+
+def _land(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+    return {"duration": float(sim.land()), **_when(sim)}
+
+
+def _goto(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+    duration = sim.goto(a["position"], a.get("yaw"), a.get("speed"), a.get("duration"))
+    return {"duration": float(duration), **_when(sim)}
+
+
+def _velocity(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+    sim.velocity(a["forward"], a["yaw_rate"])
+    return _when(sim)
+
+
+def _track(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+    sim.track(a["position"], a.get("velocity"), a.get("acceleration"), a.get("yaw"), a.get("yaw_rate", 0.0))
+    return _when(sim)
+
+
+def _hold(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+    sim.hold()
+    return _when(sim)
+
+
+def _motors_off(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+    sim.motors_off()
+    return _when(sim)
+
+
+def _reset(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+    from droneulator.scenes import list_scenes
+
+    scene = a.get("scene")
+    if scene is not None and scene not in list_scenes():
+        raise CommandError(
+            "invalid_argument", f"unknown scene {scene!r}; known scenes: {', '.join(list_scenes())}"
+        )
+    state = sim.reset(
+        seed=a.get("seed"),
+        position=a.get("position"),
+        yaw=a.get("yaw"),
+        scene=scene,
+        airborne=a.get("airborne"),
+    )
+    return {"scene": sim.scene.name, "seed": sim.config.seed, "state": state.to_dict()}
+
+
+def _state(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+    return sim.state.to_dict()
+
+
+def _ping(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+    return {"pong": True, "time": time.time()}
+
+
+def _scene_info(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+    from droneulator.scenes import list_scenes
+
+    sc, fl = sim.scene, sim.config.flight
+    return {
+        "name": sc.name,
+        "seed": sc.seed,
+        "bounds_min": _plain(sc.bounds_min),
+        "bounds_max": _plain(sc.bounds_max),
+        "spawn_position": _plain(sc.spawn_position),
+        "spawn_yaw": float(sc.spawn_yaw),
+        "landmarks": {k: _plain(v) for k, v in sc.landmarks.items()},
+        "scenes": list(list_scenes()),
+        "limits": {
+            "max_speed": fl.max_speed,
+            "max_yaw_rate": math.pi,
+            "default_speed": fl.default_speed,
+            "takeoff_altitude": fl.takeoff_altitude,
+            "goto_duration": [0.2, 3600.0],
+        },
+    }
+
+
+_T = (
+    "sim time (s) when the command was accepted; `stamp_ns`: the same instant on the ROS clock (integer ns), "
+    "so a client can wait for the first image stamped after it"
+)
+
+OPS: dict[str, Op] = {
+    op.name: op
+    for op in (
+        Op(
+            "takeoff",
+            "Climb vertically from the current x, y to `altitude` on a min-snap path; an `arrived` "
+            "event follows, then the vehicle holds.",
+            f"`duration`: planned climb time (s); `t`: {_T}",
+            (
+                Arg(
+                    "altitude", "number", "target altitude above the ground, m (default 2.0, from the config)"
+                ),
+            ),
+            _takeoff,
+            flight=True,
+        ),
+        Op(
+            "land",
+            "Descend at 0.6 m/s to the ground below; a `landed` event follows and the motors stop "
+            "(mode `idle`).",
+            f"`duration`: planned descent time (s); `t`: {_T}",
+            (),
+            _land,
+            flight=True,
+        ),
+        Op(
+            "goto",
+            "Fly a minimum-snap trajectory to `position`, ending at rest with heading `yaw`; an "
+            "`arrived` event follows, then the vehicle holds. A new command replaces the move.",
+            f"`duration`: planned flight time (s); `t`: {_T}",
+            (
+                Arg("position", "vec3", "target [x, y, z] in the world frame (ENU, z up), m", required=True),
+                Arg("yaw", "number", "final heading, rad about +z, 0 = +x, CCW positive (default: kept)"),
+                Arg("speed", "number", "peak speed, m/s, in (0, max_speed] (default 1.0)"),
+                Arg("duration", "number", "flight time, s, in [0.2, 3600]; overrides `speed`"),
+            ),
+            _goto,
+            flight=True,
+        ),
+        Op(
+            "velocity",
+            "Velocity mode at constant altitude: move along the body x axis at `forward` while turning "
+            "at `yaw_rate`, until another command.",
+            f"`t`: {_T}",
+            (
+                Arg("forward", "number", "speed along the body x axis, m/s, |forward| <= max_speed", True),
+                Arg("yaw_rate", "number", "turn rate about +z, rad/s, CCW positive, |yaw_rate| <= pi", True),
+            ),
+            _velocity,
+            flight=True,
+        ),
+        Op(
+            "track",
+            "Track one setpoint of a stream (e.g. a planner's, like EGO-Planner's PositionCommand on "
+            "`/<ns>/position_cmd`): the SE(3) controller takes it as its reference, propagated with "
+            "constant acceleration and yaw rate until the next one. The controller bounds what it asks "
+            "of the vehicle as an autopilot does (thrust tilt at most `flight.max_tilt_deg`, 45 deg; "
+            "vertical thrust at least `flight.min_lift`, 0.2 g; yaw moment reduced first when a rotor "
+            "saturates), so a setpoint far from the vehicle brings it there without turning it over. "
+            "Send them at 20 Hz or more: after "
+            "0.5 s of sim time without one the vehicle holds where it is and a `track_timeout` event "
+            "follows. Needs the vehicle airborne.",
+            f"`t`: {_T}",
+            (
+                Arg("position", "vec3", "reference [x, y, z] in the world frame (ENU, z up), m", True),
+                Arg("velocity", "vec3", "velocity feed-forward, m/s, world, norm <= max_speed (default 0)"),
+                Arg("acceleration", "vec3", "acceleration feed-forward, m/s^2, world, |a| <= 10 (default 0)"),
+                Arg("yaw", "number", "heading, rad about +z, 0 = +x, CCW positive (default: kept)"),
+                Arg("yaw_rate", "number", "heading rate feed-forward, rad/s, |yaw_rate| <= pi (default 0)"),
+            ),
+            _track,
+            flight=True,
+        ),
+        Op(
+            "hold",
+            "Hover at the current position and heading.",
+            f"`t`: {_T}",
+            (),
+            _hold,
+            flight=True,
+        ),
+        Op(
+            "motors_off",
+            "Stop the motors at once (the vehicle falls if airborne) and end any command.",
+            f"`t`: {_T}",
+            (),
+            _motors_off,
+            flight=True,
+        ),
+        Op(
+            "reset",
+            "Restart the flight at t = 0, optionally in another scene or with another seed. A "
+            "`position` above the ground starts hovering there unless `airborne` is false.",
+            "`scene`, `seed`: what is loaded now; `state`: the new vehicle state (as `state`)",
+            (
+                Arg("scene", "string", "scene name, see `scene_info.scenes` (default: keep)"),
+                Arg("seed", "integer", "scene layout and noise seed (default: keep)", bounds=(0, 2**32 - 1)),
+                Arg("position", "vec3", "start [x, y, z], world frame, m (default: the scene's spawn)"),
+                Arg("yaw", "number", "start heading, rad (default: the scene's spawn yaw)"),
+                Arg("airborne", "boolean", "hover at the start (default: true if z > 0.05 m)"),
+            ),
+            _reset,
+            flight=True,
+        ),
+        Op(
+            "state",
+            "The current ground-truth vehicle state.",
+            "`t` (s) and `t_ns` (integer ns) since the last reset; `stamp_ns` (integer ns): the "
+            "simulator's monotonic clock, which keeps counting across resets and stamps every ROS message "
+            "(equal to `t_ns` before the first reset); `position` [x, y, z] (m, world); "
+            "`velocity` (m/s, world); `quaternion` [x, y, z, w] (body FLU to world); `angular_velocity` "
+            "(rad/s, body); `yaw` (rad); `mode` (`idle`, `takeoff`, `goto`, `hold`, `velocity`, `track`, "
+            "`land`, `collided`)",
+            (),
+            _state,
+        ),
+        Op(
+            "ping",
+            "Liveness check; answered without waiting for the simulation.",
+            "`pong`: true; `time`: server wall-clock time (Unix s)",
+            (),
+            _ping,
+            locked=False,
+        ),
+        Op(
+            "scene_info",
+            "Describe the loaded scene and the command limits.",
+            "`name`, `seed`; `bounds_min`, `bounds_max` (flyable box, m); `spawn_position`, `spawn_yaw`; "
+            "`landmarks` (name -> nested lists); `scenes` (loadable names); `limits` (`max_speed`, "
+            "`max_yaw_rate`, `default_speed`, `takeoff_altitude`, `goto_duration` range)",
+            (),
+            _scene_info,
+        ),
+        Op(
+            "subscribe",
+            "Start pushed streams on this connection, replacing its previous subscription: `state` "
+            "messages at up to `rate_hz` (latest value only) and every `event` in order.",
+            "`streams`: the streams now active; `rate_hz`: the state rate (null without `state`)",
+            (
+                Arg("streams", "streams", 'streams to receive (default ["state", "events"])'),
+                Arg(
+                    "rate_hz",
+                    "number",
+                    "maximum state rate, Hz (default: the server's, 30)",
+                    bounds=(0.1, 1000),
+                ),
+            ),
+            None,
+            locked=False,
+        ),
+        Op(
+            "unsubscribe",
+            "Stop pushed streams on this connection.",
+            "`streams`: the streams still active",
+            (Arg("streams", "streams", "streams to stop (default: all)"),),
+            None,
+            locked=False,
+        ),
+    )
+}
+
+
+# --------------------------------------------------------------------------- parsing & validation
+@dataclass
+class Request:
+    """A parsed request: ``args`` are validated and normalised for table ops, raw for extra ops."""
+
+    id: int | str | None
+    op: str
+    args: dict[str, Any]
+
+
+def _plain(v: Any) -> Any:
+    """numpy arrays and scalars as plain lists and numbers."""
+    return v.tolist() if hasattr(v, "tolist") else v
+
+
+def encode(message: Mapping[str, Any]) -> str:
+    """Compact strict JSON (no NaN); numpy values become plain numbers and lists."""
+    return json.dumps(message, separators=(",", ":"), allow_nan=False, default=_json_default)
+
+
+def _json_default(o: Any) -> Any:
+    if hasattr(o, "tolist"):
+        return o.tolist()
+    raise TypeError(f"{type(o).__name__} is not JSON serialisable")
+
+
+def ok_reply(request_id: int | str | None, result: Any) -> dict[str, Any]:
+    return {"id": request_id, "ok": True, "result": {} if result is None else result}
+
+
+def error_reply(request_id: int | str | None, code: str, message: str) -> dict[str, Any]:
+    return {"id": request_id, "ok": False, "error": {"code": code, "message": message}}
+
+
+def _non_finite(value: Any) -> str | None:
+    """Path of the first NaN/Infinity inside ``value`` (iterative: no recursion limit), else None."""
+    stack: list[tuple[str, Any]] = [("", value)]
+    while stack:
+        path, v = stack.pop()
+        if isinstance(v, float) and not math.isfinite(v):
+            return path
+        if isinstance(v, dict):
+            stack.extend((f"{path}.{k}" if path else str(k), x) for k, x in v.items())
+        elif isinstance(v, list):
+            stack.extend((f"{path}[{i}]", x) for i, x in enumerate(v))
+    return None
+
+
+def _number(value: Any, what: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise CommandError("invalid_argument", f"{what} must be a number, got {json.dumps(value)[:40]}")
+    try:
+        x = float(value)
+    except OverflowError:
+        x = math.inf
+    if not math.isfinite(x):
+        raise CommandError("invalid_argument", f"{what} must be a finite number")
+    return x
+
+
+def _validate(arg: Arg, value: Any) -> Any:
+    what = f"`{arg.name}`"
+    if arg.type == "number":
+        out: Any = _number(value, what)
+    elif arg.type == "integer":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise CommandError("invalid_argument", f"{what} must be an integer, got {json.dumps(value)[:40]}")
+        out = value
+    elif arg.type == "boolean":
+        if not isinstance(value, bool):
+            got = json.dumps(value)[:40]
+            raise CommandError("invalid_argument", f"{what} must be true or false, got {got}")
+        out = value
+    elif arg.type == "string":
+        if not isinstance(value, str):
+            raise CommandError("invalid_argument", f"{what} must be a string, got {json.dumps(value)[:40]}")
+        out = value
+    elif arg.type == "vec3":
+        if not isinstance(value, list) or len(value) != 3:
+            raise CommandError("invalid_argument", f"{what} must be an array of 3 numbers [x, y, z]")
+        out = [_number(v, f"{what}[{i}]") for i, v in enumerate(value)]
+    elif arg.type == "streams":
+        if not isinstance(value, list) or not value or any(s not in STREAMS for s in value):
+            streams = " and/or ".join(f'"{s}"' for s in STREAMS)
+            raise CommandError("invalid_argument", f"{what} must be a non-empty array of {streams}")
+        out = tuple(s for s in STREAMS if s in value)
+    else:
+        raise AssertionError(f"unknown argument type {arg.type!r}")
+    if arg.bounds is not None and not arg.bounds[0] <= out <= arg.bounds[1]:
+        raise CommandError("out_of_range", f"{what} must lie in [{arg.bounds[0]:g}, {arg.bounds[1]:g}]")
+    return out
+
+
+def make_request(
+    op: str, args: Mapping[str, Any], request_id: int | str | None = None, extra_ops: Collection[str] = ()
+) -> Request:
+    """Validate ``args`` of ``op`` against :data:`OPS` (raw for extra ops); raises :class:`RequestError`.
+
+    Every command source builds its requests here (the WebSocket server through :func:`parse_request`,
+    ROS topics directly), so one set of rules applies to all of them.
+    """
+    if op not in OPS and op not in extra_ops:
+        known = ", ".join([*OPS, *sorted(extra_ops)])
+        raise RequestError("unknown_op", f"unknown op {op[:64]!r}; known ops: {known}", request_id)
+    bad = _non_finite(dict(args))
+    if bad is not None:
+        raise RequestError(
+            "invalid_argument", f"`{bad}` must be a finite number (NaN/Infinity not allowed)", request_id
+        )
+    if op not in OPS:
+        return Request(request_id, op, dict(args))
+    spec = OPS[op]
+    names = {a.name for a in spec.args}
+    extra = sorted(set(args) - names)
+    if extra:
+        accepted = ", ".join(sorted(names)) or "none"
+        raise RequestError(
+            "invalid_argument",
+            f"unexpected field(s) {', '.join(extra)} for {op}; accepted: {accepted}",
+            request_id,
+        )
+    out: dict[str, Any] = {}
+    try:
+        for a in spec.args:
+            value = args.get(a.name)
+            if value is None:
+                if a.required:
+                    raise CommandError("invalid_argument", f"missing required field `{a.name}` for {op}")
+                continue
+            out[a.name] = _validate(a, value)
+    except CommandError as e:
+        raise RequestError(e.code, e.message, request_id) from None
+    return Request(request_id, op, out)
+
+
+# --------------------------------------------------------------------------- execution
+ExtraOp = Callable[[dict[str, Any]], Any]
+
+
+def execute(
+    sim: Simulation | None,
+    request: Request,
+    extra_ops: Mapping[str, ExtraOp] | None = None,
+    flight_locked: str | None = None,
+) -> dict[str, Any]:
+    """Run a parsed request and build its reply; never raises.
+
+    The caller holds the simulation lock when ``OPS[op].locked``. ``flight_locked`` (a reason) makes
+    flight ops answer ``flight_locked``. ``extra_ops`` get the raw arguments and may return any
+    JSON-able value (None means ``{}``).
+    """
+    try:
+        if extra_ops and request.op in extra_ops:
+            result = extra_ops[request.op](request.args)
+        else:
+            spec = OPS[request.op]
+            if spec.run is None:
+                raise CommandError(
+                    "unsupported", f"{request.op} needs a streaming connection (the WebSocket server)"
+                )
+            if spec.flight and flight_locked is not None:
+                raise CommandError("flight_locked", flight_locked)
+            result = spec.run(sim, request.args)  # type: ignore[arg-type]
+        reply = ok_reply(request.id, result)
+        encode(reply)  # fail here, with a proper error, rather than in the transport
+        return reply
+    except CommandError as e:
+        return error_reply(request.id, e.code, e.message)
+    except Exception as e:
+        log.exception("op %r failed", request.op)
+        return error_reply(request.id, "internal_error", f"{request.op} failed: {type(e).__name__}: {e}")
+
+
+# --------------------------------------------------------------------------- documentation
+def ops_markdown() -> str:
+    """The op and error reference of docs/api.md, generated from :data:`OPS` and :data:`ERROR_CODES`."""
+    lines: list[str] = []
+    for op in OPS.values():
+        lines += [f"### `{op.name}`", "", op.doc]
+        if op.flight:
+            lines[-1] += " Refused with `flight_locked` while another controller is in control."
+        lines.append("")
+        if op.args:
+            lines += ["| field | type | required | meaning |", "|---|---|---|---|"]
+            for a in op.args:
+                req = "yes" if a.required else "no"
+                lines.append(f"| `{a.name}` | {a.type} | {req} | {a.doc} |")
+            lines.append("")
+        else:
+            lines += ["No fields.", ""]
+        lines += [f"Result: {op.result}.", ""]
+    lines += ["### Argument types", "", "| type | JSON |", "|---|---|"]
+    lines += [f"| {name} | {desc} |" for name, desc in TYPES.items()]
+    lines += ["", "### Error codes", "", "| code | when |", "|---|---|"]
+    lines += [f"| `{code}` | {when} |" for code, when in ERROR_CODES.items()]
+    return "\n".join(lines) + "\n"
