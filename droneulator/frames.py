@@ -169,6 +169,11 @@ def T_world_optical(T_world_body: np.ndarray, T_body_link: np.ndarray) -> np.nda
     return T_world_body @ T_body_link @ T_link_optical()
 
 
+def gl_model_matrix(T_world_body: np.ndarray) -> np.ndarray:
+    """OpenGL model matrix of a body posed in the Z-up world: body-frame points -> the Y-up GL world."""
+    return make_transform(R_GL_ZUP, np.zeros(3)) @ np.asarray(T_world_body, dtype=float)
+
+
 def gl_view_matrix(T_world_optical_: np.ndarray) -> np.ndarray:
     """OpenGL view matrix (Y-up GL world -> GL camera) for an optical frame posed in the Z-up world."""
     T_gl_world = make_transform(R_GL_ZUP, np.zeros(3))

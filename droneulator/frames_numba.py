@@ -15,11 +15,11 @@ import numpy as np
 
 
 @numba.njit(cache=True)
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of quaternion ``[x, y, z, w]``, normalising it first (as SciPy does)."""
+def quat_to_matrix_into(q: np.ndarray, R: np.ndarray) -> None:
+    """Write the rotation matrix of quaternion ``[x, y, z, w]`` into ``R`` (3x3), normalising it first
+    (as SciPy does); allocation free, for kernels that step many vehicles."""
     n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
     x, y, z, w = q[0] / n, q[1] / n, q[2] / n, q[3] / n
-    R = np.empty((3, 3))
     R[0, 0] = 1 - 2 * (y * y + z * z)
     R[0, 1] = 2 * (x * y - z * w)
     R[0, 2] = 2 * (x * z + y * w)
@@ -29,6 +29,13 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     R[2, 0] = 2 * (x * z - y * w)
     R[2, 1] = 2 * (y * z + x * w)
     R[2, 2] = 1 - 2 * (x * x + y * y)
+
+
+@numba.njit(cache=True)
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of quaternion ``[x, y, z, w]``, normalising it first (as SciPy does)."""
+    R = np.empty((3, 3))
+    quat_to_matrix_into(q, R)
     return R
 
 

@@ -249,7 +249,7 @@ def test_an_explicit_field_overrides_the_wmm_and_bad_values_are_named():
     cfg = load_config(overrides=["px4.mag_field_ned_gauss=[0.2, 0.0, 0.4]"]).px4
     assert cfg.mag_field_ned_gauss == (0.2, 0.0, 0.4)
     np.testing.assert_array_equal(Magnetometer(cfg, np.random.default_rng(0)).field_ned, [0.2, 0.0, 0.4])
-    with pytest.raises(ValueError, match="mag_field_ned_gauss must be three finite numbers"):
+    with pytest.raises(ValueError, match=r"px4\.mag_field_ned_gauss: expected 3 values, got 2"):
         load_config(overrides=["px4.mag_field_ned_gauss=[0.2, 0.4]"])
     with pytest.raises(ValueError, match=r"px4\.mag_wmm_year=2031.0: Invalid year"):
         Magnetometer(PX4Config(mag_wmm_year=2031.0), np.random.default_rng(0))

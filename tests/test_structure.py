@@ -155,6 +155,34 @@ def test_import_droneulator_without_gymnasium_registers_nothing() -> None:
     assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr
 
 
+def test_cli_command_modules_import_no_other_command() -> None:
+    """Of droneulator/cli/, a command module imports only common.py (what several commands share)."""
+    graph = _import_graph()
+    cli = [m for m in graph if m.startswith("droneulator.cli.")]
+    commands = [m for m in cli if not m.endswith((".common", ".__main__"))]
+    assert len(commands) >= 14, commands
+    wrong = {
+        m: sorted(d for d in graph[m] if d.startswith("droneulator.cli") and d != "droneulator.cli.common")
+        for m in commands
+    }
+    assert not any(wrong.values()), {m: d for m, d in wrong.items() if d}
+
+
+def test_cli_help_imports_no_simulator() -> None:
+    """Every ``--help`` of the command line is built without numba, the renderer, torch or the simulator."""
+    r = _fresh(
+        "import argparse, sys\n"
+        "from droneulator.cli import build_parser\n"
+        "ap = build_parser()\n"
+        "sub = next(a for a in ap._actions if isinstance(a, argparse._SubParsersAction))\n"
+        "for p in (ap, *sub.choices.values()):\n"
+        "    p.format_help()\n"
+        "heavy = ('numba', 'moderngl', 'torch', 'rotorpy', 'droneulator.sim', 'droneulator.vehicles')\n"
+        "print(sorted(m for m in heavy if m in sys.modules))"
+    )
+    assert r.returncode == 0 and r.stdout.strip() == "[]", r.stderr or r.stdout
+
+
 # --------------------------------------------------------------------------- sensors
 def test_every_sensor_kind_is_registered_and_unknown_kinds_are_named() -> None:
     assert {"imu", "mag", "baro", "gps", "airspeed", "camera"} <= set(SENSORS)

@@ -18,6 +18,7 @@ from droneulator.config.loading import (
 )
 from droneulator.config.rl import RLConfig
 from droneulator.config.sections import (
+    CONTROLLERS,
     GPS_PRESETS,
     PX4_ON_LOSS,
     WIND_MODELS,
@@ -31,9 +32,12 @@ from droneulator.config.sections import (
     SimConfig,
     UIConfig,
     VehicleConfig,
+    VehicleSpec,
+    fleet,
 )
 
 __all__ = [
+    "CONTROLLERS",
     "GPS_PRESETS",
     "PX4_ON_LOSS",
     "WIND_MODELS",
@@ -50,7 +54,9 @@ __all__ = [
     "SimConfig",
     "UIConfig",
     "VehicleConfig",
+    "VehicleSpec",
     "apply_override",
+    "fleet",
     "from_dict",
     "load_config",
     "load_file",

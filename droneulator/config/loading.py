@@ -6,6 +6,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import tomllib
+import types
+import typing
 from pathlib import Path
 from typing import Any, get_type_hints
 
@@ -17,6 +19,13 @@ class ConfigError(ValueError):
 
 
 def _coerce(value: Any, typ: Any, key: str) -> Any:
+    if isinstance(typ, types.UnionType) or getattr(typ, "__origin__", None) is typing.Union:
+        members = [t for t in typ.__args__ if t is not type(None)]
+        if value is None and len(members) < len(typ.__args__):
+            return None  # an optional field left unset
+        if len(members) == 1:
+            return _coerce(value, members[0], key)
+        return value
     origin = getattr(typ, "__origin__", None)
     if dataclasses.is_dataclass(typ):
         if isinstance(value, typ):

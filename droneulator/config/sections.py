@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from dataclasses import dataclass, field
@@ -364,6 +365,50 @@ class UIConfig:
             raise ValueError("ui.depth_max_m must be positive")
 
 
+#: who flies a vehicle (``VehicleSpec.controlled_by``): the simulator's own flight controller (driven by
+#: the API, ROS topics and the workflows) or a PX4 SITL instance over its simulator link
+CONTROLLERS = ("internal", "px4")
+
+#: a vehicle name is also a ROS namespace and a TF frame prefix
+_VEHICLE_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+
+
+@dataclass
+class VehicleSpec:
+    """One vehicle of the world (``vehicles``). Unset fields take the single-vehicle sections' values:
+    ``params`` from ``vehicle.params``, ``cameras`` from ``render.cameras``, ``flight`` from ``flight``;
+    ``spawn`` null: the scene's spawn pattern (its spawn point for the first vehicle, free points near it
+    for the others), on the ground; ``yaw`` null: the scene's spawn heading."""
+
+    name: str = "uav0"
+    params: str | None = None
+    spawn: tuple[float, float, float] | None = None
+    yaw: float | None = None
+    cameras: list[CameraConfig] | None = None
+    flight: FlightConfig | None = None
+    controlled_by: str = "internal"
+
+    def __post_init__(self) -> None:
+        if not _VEHICLE_NAME.match(self.name):
+            raise ValueError(
+                f"vehicle name {self.name!r} must start with a letter and hold only letters, digits and _ "
+                "(it names the vehicle's ROS namespace and TF frames)"
+            )
+        if self.controlled_by not in CONTROLLERS:
+            raise ValueError(f"vehicle {self.name!r}: controlled_by must be one of {', '.join(CONTROLLERS)}")
+        if self.spawn is not None and not all(math.isfinite(v) for v in self.spawn):
+            raise ValueError(f"vehicle {self.name!r}: spawn must be three finite numbers")
+        if self.yaw is not None and not math.isfinite(self.yaw):
+            raise ValueError(f"vehicle {self.name!r}: yaw must be finite")
+
+
+def fleet(n: int, prefix: str = "uav") -> list[VehicleSpec]:
+    """``n`` vehicles named ``uav0`` .. ``uav<n-1>`` on the scene's spawn pattern (``--vehicles N``)."""
+    if n < 1:
+        raise ValueError(f"need at least one vehicle, got {n}")
+    return [VehicleSpec(name=f"{prefix}{i}") for i in range(n)]
+
+
 @dataclass
 class SimConfig:
     scene: str = "default"
@@ -377,3 +422,25 @@ class SimConfig:
     capture: CaptureConfig = field(default_factory=CaptureConfig)
     rl: RLConfig = field(default_factory=RLConfig)
     ui: UIConfig = field(default_factory=UIConfig)
+    #: the vehicles of the world; empty: one vehicle, ``uav0``, from the single-vehicle sections (so
+    #: every single-vehicle config file keeps working)
+    vehicles: list[VehicleSpec] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        names = [v.name for v in self.vehicles]
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:
+            raise ValueError(f"vehicle names must be unique: {', '.join(twice)} given more than once")
+
+    def vehicle_specs(self) -> list[VehicleSpec]:
+        """Every vehicle with its unset fields filled from the single-vehicle sections (copies)."""
+        specs = self.vehicles or [VehicleSpec()]
+        return [
+            dataclasses.replace(
+                v,
+                params=v.params or self.vehicle.params,
+                cameras=list(self.render.cameras if v.cameras is None else v.cameras),
+                flight=v.flight or self.flight,
+            )
+            for v in specs
+        ]

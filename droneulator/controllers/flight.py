@@ -60,9 +60,12 @@ class Event:
     type: str
     t: float
     data: dict[str, Any] = field(default_factory=dict)
+    #: the vehicle it happened to (set by the world)
+    vehicle: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        return {"type": self.type, "t": self.t, **self.data}
+        named = {} if self.vehicle is None else {"vehicle": self.vehicle}
+        return {"type": self.type, "t": self.t, **named, **self.data}
 
 
 class FlightController:
@@ -83,6 +86,8 @@ class FlightController:
         self._track_flat = np.zeros(FLAT_SIZE)
         #: land on arriving at the current goto's target (:meth:`land_at`)
         self._then_land = False
+        #: counts the commands taken: a world skipping :attr:`steady` vehicles sees when one arrives
+        self.version = 0
 
     @property
     def airborne_modes(self) -> tuple[Mode, ...]:
@@ -90,6 +95,7 @@ class FlightController:
 
     # ------------------------------------------------------------------ commands
     def motors_off(self) -> None:
+        self.version += 1
         self.mode, self.trajectory, self.velocity_ref, self.target = Mode.IDLE, None, None, None
         self._then_land = False
 
@@ -104,6 +110,7 @@ class FlightController:
         mode: Mode = Mode.GOTO,
     ) -> float:
         """Start a min-snap move to ``position`` (yaw kept if None); returns the planned duration."""
+        self.version += 1
         self._then_land = False
         yaw0 = yaw_of(s[STATE.q])
         yaw1 = yaw0 if yaw is None else float(yaw)
@@ -148,6 +155,7 @@ class FlightController:
         return duration
 
     def hold(self, s: np.ndarray, t: float) -> None:
+        self.version += 1
         self._then_land = False
         self.trajectory = hold_trajectory(s[STATE.x].copy(), yaw_of(s[STATE.q]), t)
         self.target, self.target_yaw = s[STATE.x].copy(), yaw_of(s[STATE.q])
@@ -165,6 +173,7 @@ class FlightController:
             speed0 = float(s[STATE.v][:2] @ (c, sn)) if self.mode != Mode.COLLIDED else 0.0
             self.velocity_ref = VelocityReference(self.cfg, pos, yaw, speed=speed0)
         self.velocity_ref.command(forward, yaw_rate)
+        self.version += 1
         self._then_land = False
         self.trajectory, self.target = None, None
         self.mode = Mode.VELOCITY
@@ -184,6 +193,7 @@ class FlightController:
         latest one (a 100 Hz planner and a faster control loop stay smooth); after
         :data:`TRACK_TIMEOUT` s without a new one, :meth:`update` switches to ``hold``.
         """
+        self.version += 1
         f = self._setpoint
         f[0:3], f[3:6], f[6:9] = position, velocity, acceleration
         f[9], f[10] = yaw, yaw_rate
@@ -205,17 +215,29 @@ class FlightController:
 
     def external(self, rotor_speeds: np.ndarray) -> None:
         """Hand the rotors to an external controller: these speeds (rad/s, RotorPy order) until changed."""
+        self.version += 1
         self._external[:] = rotor_speeds
         self._then_land = False
         self.mode, self.trajectory, self.velocity_ref, self.target = Mode.EXTERNAL, None, None, None
 
     def collided(self) -> None:
+        self.version += 1
         self._then_land = False
         self.mode, self.trajectory, self.velocity_ref, self.target = Mode.COLLIDED, None, None, None
 
     # ------------------------------------------------------------------ control tick
-    def update(self, s: np.ndarray, t: float, dt: float) -> tuple[np.ndarray, np.ndarray | None, list[Event]]:
-        """Rotor speed command for the coming ``dt``, the packed reference used (or None), and events."""
+    @property
+    def steady(self) -> bool:
+        """True while :meth:`update` would return the same command or reference and raise nothing (motors
+        off, or holding): a world of many vehicles skips them until the next command."""
+        return self.mode in (Mode.IDLE, Mode.COLLIDED, Mode.HOLD)
+
+    def update(
+        self, s: np.ndarray, t: float, dt: float
+    ) -> tuple[np.ndarray | None, np.ndarray | None, list[Event]]:
+        """For the coming ``dt``: ``(rotor speeds, None, events)`` where the rotors are set directly (motors
+        off, an autopilot), or ``(None, flat reference, events)`` for the SE(3) controller to track (the
+        world runs it for every vehicle at once; :meth:`command` here for one)."""
         events: list[Event] = []
         if self.mode in (Mode.IDLE, Mode.COLLIDED):
             return self._zero, None, events
@@ -243,8 +265,7 @@ class FlightController:
             if done and self.mode == Mode.GOTO and self._then_land and self._settled(s):
                 self.land(s, t)  # the landing spot is reached: the second leg starts now
                 assert self.trajectory is not None
-                flat = self.trajectory.flat(t)
-                return self.se3.motor_speeds(s, flat), flat, events
+                return None, self.trajectory.flat(t), events
             if done and self.mode in (Mode.GOTO, Mode.TAKEOFF) and self._settled(s):
                 events.append(
                     Event(
@@ -258,7 +279,14 @@ class FlightController:
                     )
                 )
                 self.mode = Mode.HOLD
-        return self.se3.motor_speeds(s, flat), flat, events
+        return None, flat, events
+
+    def command(
+        self, s: np.ndarray, t: float, dt: float
+    ) -> tuple[np.ndarray, np.ndarray | None, list[Event]]:
+        """:meth:`update` with the SE(3) controller run here: rotor speeds, the reference, events."""
+        cmd, flat, events = self.update(s, t, dt)
+        return (self.se3.motor_speeds(s, flat) if cmd is None else cmd), flat, events
 
     def _settled(self, s: np.ndarray) -> bool:
         assert self.target is not None

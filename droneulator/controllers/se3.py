@@ -24,84 +24,124 @@ import numba
 import numpy as np
 from rotorpy.controllers.quadrotor_control import SE3Control
 
-from droneulator.frames_numba import quat_to_matrix
+from droneulator.frames_numba import quat_to_matrix_into
 from droneulator.state import STATE
+
+# Layout of a packed gain vector (:meth:`FastSE3Control.gains`): what the kernel needs of one airframe.
+_G_MASS, _G_J, _G_KP, _G_KD, _G_KPATT, _G_KDATT, _G_TM, _G_KETA, _G_TAN, _G_LIFT, _G_FMIN, _G_FMAX = (
+    0, 1, 10, 13, 16, 17, 18, 34, 35, 36, 37, 38,
+)  # fmt: skip
+GAINS_SIZE = 39
+#: where the attitude quaternion starts in the packed state (the kernel indexes the state directly)
+_Q = STATE.q.start
 
 
 @numba.njit(cache=True)
-def se3_motor_speeds(
-    x: np.ndarray,
-    v: np.ndarray,
-    q: np.ndarray,
-    w: np.ndarray,
-    flat: np.ndarray,
-    mass: float,
-    inertia: np.ndarray,
-    kp_pos: np.ndarray,
-    kd_pos: np.ndarray,
-    kp_att: float,
-    kd_att: float,
-    TM_to_f: np.ndarray,
-    k_eta: float,
-    tan_max_tilt: float,
-    min_lift: float,
-    f_min: float,
-    f_max: float,
-) -> np.ndarray:
+def se3_into(s: np.ndarray, flat: np.ndarray, k: np.ndarray, out: np.ndarray, R: np.ndarray) -> None:
+    """Write the commanded rotor speeds (rad/s, unclipped) for packed state ``s`` tracking the packed
+    flat output ``flat`` into ``out`` (4), with the packed gains ``k``; ``R`` is 3x3 scratch. Allocation
+    free, so that many vehicles can be controlled in one compiled loop."""
     g = 9.81
-    F_des = np.empty(3)
-    for i in range(3):
-        F_des[i] = mass * (-kp_pos[i] * (x[i] - flat[i]) - kd_pos[i] * (v[i] - flat[3 + i]) + flat[6 + i])
-    F_des[2] += mass * g
+    mass = k[_G_MASS]
+    F0 = mass * (-k[_G_KP] * (s[0] - flat[0]) - k[_G_KD] * (s[3] - flat[3]) + flat[6])
+    F1 = mass * (-k[_G_KP + 1] * (s[1] - flat[1]) - k[_G_KD + 1] * (s[4] - flat[4]) + flat[7])
+    F2 = mass * (-k[_G_KP + 2] * (s[2] - flat[2]) - k[_G_KD + 2] * (s[5] - flat[5]) + flat[8])
+    F2 += mass * g
+    tan_max_tilt = k[_G_TAN]
     if tan_max_tilt > 0.0:  # the autopilot's thrust bounds: vertical part first, then the tilt
-        F_des[2] = max(F_des[2], min_lift * mass * g)
-        horizontal = math.sqrt(F_des[0] ** 2 + F_des[1] ** 2)
-        most = F_des[2] * tan_max_tilt
+        F2 = max(F2, k[_G_LIFT] * mass * g)
+        horizontal = math.sqrt(F0**2 + F1**2)
+        most = F2 * tan_max_tilt
         if horizontal > most:
-            F_des[0] *= most / horizontal
-            F_des[1] *= most / horizontal
-    R = quat_to_matrix(q)
-    u1 = F_des[0] * R[0, 2] + F_des[1] * R[1, 2] + F_des[2] * R[2, 2]
+            F0 *= most / horizontal
+            F1 *= most / horizontal
+    quat_to_matrix_into(s[_Q : _Q + 4], R)
+    u1 = F0 * R[0, 2] + F1 * R[1, 2] + F2 * R[2, 2]
 
-    b3 = F_des / math.sqrt(F_des[0] ** 2 + F_des[1] ** 2 + F_des[2] ** 2)
+    nF = math.sqrt(F0**2 + F1**2 + F2**2)
+    b30, b31, b32 = F0 / nF, F1 / nF, F2 / nF
     yaw = flat[9]
-    c1 = np.array([math.cos(yaw), math.sin(yaw), 0.0])
-    b2 = np.array(
-        [b3[1] * c1[2] - b3[2] * c1[1], b3[2] * c1[0] - b3[0] * c1[2], b3[0] * c1[1] - b3[1] * c1[0]]
-    )
-    b2 /= math.sqrt(b2[0] ** 2 + b2[1] ** 2 + b2[2] ** 2)
-    b1 = np.array(
-        [b2[1] * b3[2] - b2[2] * b3[1], b2[2] * b3[0] - b2[0] * b3[2], b2[0] * b3[1] - b2[1] * b3[0]]
-    )
-    R_des = np.empty((3, 3))
-    R_des[:, 0] = b1
-    R_des[:, 1] = b2
-    R_des[:, 2] = b3
-    S = 0.5 * (R_des.T @ R - R.T @ R_des)
-    att_err = np.array([-S[1, 2], S[0, 2], -S[0, 1]])
-    w_err = np.array([w[0], w[1], w[2] - flat[10]])
-    Jw = inertia @ w
-    gyro = np.array([w[1] * Jw[2] - w[2] * Jw[1], w[2] * Jw[0] - w[0] * Jw[2], w[0] * Jw[1] - w[1] * Jw[0]])
-    u2 = inertia @ (-kp_att * att_err - kd_att * w_err) + gyro
-    TM = np.array([u1, u2[0], u2[1], u2[2]])
-    f = TM_to_f @ TM
+    c10, c11, c12 = math.cos(yaw), math.sin(yaw), 0.0
+    b20 = b31 * c12 - b32 * c11
+    b21 = b32 * c10 - b30 * c12
+    b22 = b30 * c11 - b31 * c10
+    n2 = math.sqrt(b20**2 + b21**2 + b22**2)
+    b20 /= n2
+    b21 /= n2
+    b22 /= n2
+    b10 = b21 * b32 - b22 * b31
+    b11 = b22 * b30 - b20 * b32
+    b12 = b20 * b31 - b21 * b30
+    # R_des = [b1 b2 b3] (columns); S = (R_des^T R - R^T R_des) / 2 with (R_des^T R)_ij = b_i . R[:, j]
+    # and (R^T R_des)_ij = R[:, i] . b_j; the attitude error is vee(S) = (-S_12, S_02, -S_01)
+    b2R2 = b20 * R[0, 2] + b21 * R[1, 2] + b22 * R[2, 2]
+    R1b3 = R[0, 1] * b30 + R[1, 1] * b31 + R[2, 1] * b32
+    b1R2 = b10 * R[0, 2] + b11 * R[1, 2] + b12 * R[2, 2]
+    R0b3 = R[0, 0] * b30 + R[1, 0] * b31 + R[2, 0] * b32
+    b1R1 = b10 * R[0, 1] + b11 * R[1, 1] + b12 * R[2, 1]
+    R0b2 = R[0, 0] * b20 + R[1, 0] * b21 + R[2, 0] * b22
+    e1 = -0.5 * (b2R2 - R1b3)
+    e2 = 0.5 * (b1R2 - R0b3)
+    e3 = -0.5 * (b1R1 - R0b2)
+    wx, wy, wz = s[10], s[11], s[12]
+    J = _G_J
+    Jw0 = k[J] * wx + k[J + 1] * wy + k[J + 2] * wz
+    Jw1 = k[J + 3] * wx + k[J + 4] * wy + k[J + 5] * wz
+    Jw2 = k[J + 6] * wx + k[J + 7] * wy + k[J + 8] * wz
+    a0 = -k[_G_KPATT] * e1 - k[_G_KDATT] * wx
+    a1 = -k[_G_KPATT] * e2 - k[_G_KDATT] * wy
+    a2 = -k[_G_KPATT] * e3 - k[_G_KDATT] * (wz - flat[10])
+    u20 = k[J] * a0 + k[J + 1] * a1 + k[J + 2] * a2 + (wy * Jw2 - wz * Jw1)
+    u21 = k[J + 3] * a0 + k[J + 4] * a1 + k[J + 5] * a2 + (wz * Jw0 - wx * Jw2)
+    u22 = k[J + 6] * a0 + k[J + 7] * a1 + k[J + 8] * a2 + (wx * Jw1 - wy * Jw0)
+    T = _G_TM
+    for i in range(4):
+        out[i] = k[T + 4 * i] * u1 + k[T + 4 * i + 1] * u20 + k[T + 4 * i + 2] * u21 + k[T + 4 * i + 3] * u22
+    f_min, f_max = k[_G_FMIN], k[_G_FMAX]
     if f_max > f_min:  # yaw desaturation: scale the yaw moment down until every rotor is in range
         keep = 1.0
         for i in range(4):
-            yaw_part = TM_to_f[i, 3] * TM[3]
-            rest = f[i] - yaw_part
-            if yaw_part < 0.0 and f[i] < f_min:
+            yaw_part = k[T + 4 * i + 3] * u22
+            rest = out[i] - yaw_part
+            if yaw_part < 0.0 and out[i] < f_min:
                 keep = min(keep, max(0.0, (f_min - rest) / yaw_part))
-            elif yaw_part > 0.0 and f[i] > f_max:
+            elif yaw_part > 0.0 and out[i] > f_max:
                 keep = min(keep, max(0.0, (f_max - rest) / yaw_part))
         if keep < 1.0:
             for i in range(4):
-                f[i] -= (1.0 - keep) * TM_to_f[i, 3] * TM[3]
-    out = np.empty(4)
+                out[i] -= (1.0 - keep) * k[T + 4 * i + 3] * u22
     for i in range(4):
-        c = f[i] / k_eta
+        c = out[i] / k[_G_KETA]
         out[i] = math.copysign(math.sqrt(abs(c)), c)
-    return out
+
+
+@numba.njit(cache=True)
+def _se3_serial(states, flats, active, gains, gidx, out, R):  # fmt: skip
+    for r in range(states.shape[0]):
+        if active[r]:
+            se3_into(states[r], flats[r], gains[gidx[r]], out[r], R[r])
+
+
+@numba.njit(cache=True, parallel=True)
+def _se3_parallel(states, flats, active, gains, gidx, out, R):  # fmt: skip
+    for r in numba.prange(states.shape[0]):
+        if active[r]:
+            se3_into(states[r], flats[r], gains[gidx[r]], out[r], R[r])
+
+
+def se3_rows(
+    states: np.ndarray,
+    flats: np.ndarray,
+    active: np.ndarray,
+    gains: np.ndarray,
+    gidx: np.ndarray,
+    out: np.ndarray,
+    R: np.ndarray,
+    parallel: bool = False,
+) -> None:
+    """:func:`se3_into` for every ``active`` row: ``states`` (rows, STATE_SIZE) tracking ``flats`` (rows,
+    FLAT_SIZE) with the gain vectors ``gains[gidx[row]]``; rotor speeds into ``out`` (rows, 4)."""
+    (_se3_parallel if parallel else _se3_serial)(states, flats, active, gains, gidx, out, R)
 
 
 class FastSE3Control:
@@ -134,25 +174,24 @@ class FastSE3Control:
         self.kd_att = float(ref.kd_att)
         self.TM_to_f = np.ascontiguousarray(ref.TM_to_f, dtype=float)
         self.k_eta = float(ref.k_eta)
+        self._gains = self.gains()
+        self._R = np.empty((3, 3))
+
+    def gains(self) -> np.ndarray:
+        """The packed gain vector :func:`se3_into` reads (GAINS_SIZE floats)."""
+        k = np.zeros(GAINS_SIZE)
+        k[_G_MASS] = self.mass
+        k[_G_J : _G_J + 9] = self.inertia.ravel()
+        k[_G_KP : _G_KP + 3] = self.kp_pos
+        k[_G_KD : _G_KD + 3] = self.kd_pos
+        k[_G_KPATT], k[_G_KDATT] = self.kp_att, self.kd_att
+        k[_G_TM : _G_TM + 16] = self.TM_to_f.ravel()
+        k[_G_KETA], k[_G_TAN], k[_G_LIFT] = self.k_eta, self.tan_max_tilt, self.min_lift
+        k[_G_FMIN], k[_G_FMAX] = self.f_min, self.f_max
+        return k
 
     def motor_speeds(self, s: np.ndarray, flat: np.ndarray) -> np.ndarray:
         """Commanded rotor speeds (rad/s, unclipped) for packed state ``s`` and packed flat output."""
-        return se3_motor_speeds(
-            s[STATE.x],
-            s[STATE.v],
-            s[STATE.q],
-            s[STATE.w],
-            flat,
-            self.mass,
-            self.inertia,
-            self.kp_pos,
-            self.kd_pos,
-            self.kp_att,
-            self.kd_att,
-            self.TM_to_f,
-            self.k_eta,
-            self.tan_max_tilt,
-            self.min_lift,
-            self.f_min,
-            self.f_max,
-        )
+        out = np.empty(4)
+        se3_into(s, flat, self._gains, out, self._R)
+        return out

@@ -26,8 +26,10 @@ from PIL import Image
 
 from droneulator import frames
 from droneulator.config import CameraConfig
-from droneulator.scenes.base import Scene
+from droneulator.scenes.base import MeshPart, Scene
 from droneulator.sensors.camera import gl_projection, intrinsics
+from droneulator.vehicles.mesh import TEXTURE as VEHICLE_TEXTURE
+from droneulator.vehicles.mesh import vehicle_texture
 
 #: Target number of ground tiles along the longer side of the scene.
 TILES_PER_SIDE = 12
@@ -68,8 +70,17 @@ uniform mat4 u_light;
 uniform float u_normal_offset;
 #endif
 
+#ifdef MODEL
+uniform mat4 u_model;  // a vehicle's body frame -> the GL world
+#endif
+
 void main() {
-    vec4 eye = u_view * vec4(in_pos, 1.0);
+#ifdef MODEL
+    vec3 pos = (u_model * vec4(in_pos, 1.0)).xyz;
+#else
+    vec3 pos = in_pos;
+#endif
+    vec4 eye = u_view * vec4(pos, 1.0);
     gl_Position = u_proj * eye;
     v_meta = in_meta;
     v_depth_shadow = vec4(0.0, 0.0, 0.0, -eye.z);
@@ -77,11 +88,15 @@ void main() {
     v_uv_light = vec4(in_uv, 0.0, 0.0);
 #endif
 #ifdef COLOR
+#ifdef MODEL
+    vec3 n = mat3(u_model) * in_normal;
+#else
     vec3 n = in_normal;
-    if (dot(n, u_eye - in_pos) < 0.0) n = -n;  // two-sided: light the side the camera sees
+#endif
+    if (dot(n, u_eye - pos) < 0.0) n = -n;  // two-sided: light the side the camera sees
     v_uv_light.zw = vec2(0.5 + 0.5 * n.y, max(dot(n, u_sun), 0.0));
 #ifdef SHADOWS
-    v_depth_shadow.xyz = (u_light * vec4(in_pos + n * u_normal_offset, 1.0)).xyz;
+    v_depth_shadow.xyz = (u_light * vec4(pos + n * u_normal_offset, 1.0)).xyz;
 #endif
 #endif
 }
@@ -230,9 +245,10 @@ def _source(body: str, defines: tuple[str, ...]) -> str:
 
 
 class _Target:
-    """Per-camera framebuffer and readback buffers."""
+    """Per-camera framebuffer and readback buffers (``vehicle``: the rig the camera is mounted on)."""
 
-    def __init__(self, ctx: moderngl.Context, cam: CameraConfig) -> None:
+    def __init__(self, ctx: moderngl.Context, cam: CameraConfig, vehicle: str = "") -> None:
+        self.vehicle = vehicle
         self.cam = cam
         size = (cam.width, cam.height)
         self.K = intrinsics(cam)
@@ -253,21 +269,51 @@ class _Target:
             obj.release()
 
 
+class _Body:
+    """A vehicle body's mesh on the GPU (its own small vertex and index buffers, drawn per pose)."""
+
+    def __init__(self, ctx: moderngl.Context, part: MeshPart, layer: int) -> None:
+        vertex = np.dtype([("pos", "3f4"), ("normal", "3f4"), ("uv", "2f4"), ("meta", "2u2")])
+        v = np.empty(len(part.positions), dtype=vertex)
+        v["pos"], v["normal"], v["uv"] = part.positions, part.normals, part.uvs
+        v["meta"][:, 0] = part.class_ids
+        v["meta"][:, 1] = layer
+        self.vbo = ctx.buffer(v.tobytes())
+        self.ibo = ctx.buffer(np.asarray(part.indices, dtype=np.uint32).tobytes())
+        self.count = part.triangle_count * 3
+        self.vaos: dict[tuple[str, ...], moderngl.VertexArray] = {}
+
+    def release(self) -> None:
+        for obj in (*self.vaos.values(), self.vbo, self.ibo):
+            obj.release()
+
+
 class Renderer:
-    """Renders RGB, depth and segmentation for a rig of body-mounted cameras in a static scene."""
+    """Renders RGB, depth and segmentation for rigs of body-mounted cameras in a static scene.
+
+    ``rigs`` maps each vehicle to its cameras, ``bodies`` each vehicle to its body mesh (body frame, see
+    :func:`~droneulator.vehicles.mesh.vehicle_mesh`; drawn in every other vehicle's cameras; vehicles
+    given the same mesh share its buffers); ``cameras`` alone is one rig, :meth:`render`'s."""
 
     def __init__(
         self,
         scene: Scene,
-        cameras: list[CameraConfig],
+        cameras: list[CameraConfig] | None = None,
         shadows: bool = True,
         shadow_map_size: int = 2048,
         ctx: moderngl.Context | None = None,
+        *,
+        rigs: dict[str, list[CameraConfig]] | None = None,
+        bodies: dict[str, MeshPart] | None = None,
     ) -> None:
         """Upload ``scene`` and render its shadow map; ``ctx`` defaults to a new headless EGL context."""
-        names = [c.name for c in cameras]
-        if len(set(names)) != len(names):
-            raise ValueError(f"camera names must be unique, got {names}")
+        if (rigs is None) == (cameras is None):
+            raise ValueError("give the cameras of one rig, or rigs, not both")
+        rigs = {"": list(cameras or [])} if rigs is None else rigs
+        for vehicle, cams in rigs.items():
+            names = [c.name for c in cams]
+            if len(set(names)) != len(names):
+                raise ValueError(f"camera names must be unique per vehicle, got {names} for {vehicle!r}")
         self._own_ctx = ctx is None
         self.ctx = moderngl.create_context(standalone=True, backend="egl") if ctx is None else ctx
         self.scene = scene
@@ -283,13 +329,20 @@ class Renderer:
         self._light = np.eye(4)
         self._normal_offset = 0.0
         with self.ctx:  # current for this thread even when other renderers made their own contexts
-            self._upload_textures(scene)
+            self._upload_textures(scene, with_bodies=bool(bodies))
             self._upload_geometry(scene)
             if shadows and self._n_triangles:
                 self._render_shadow_map(shadow_map_size)
             self._sky_vao = self.ctx.vertex_array(self._program(_SKY_VS, _SKY_FS, ("COLOR",)), [])
             self._sky_geometry_vao = self.ctx.vertex_array(self._program(_SKY_VS, _SKY_FS, ()), [])
-            self.targets = [_Target(self.ctx, cam) for cam in cameras]
+            self.targets = [_Target(self.ctx, cam, vehicle) for vehicle, cams in rigs.items() for cam in cams]
+            # one set of buffers per mesh, shared by every vehicle given the same one
+            meshes: dict[int, _Body] = {}
+            self._bodies: dict[str, _Body] = {}
+            for vehicle, part in (bodies or {}).items():
+                if id(part) not in meshes:
+                    meshes[id(part)] = _Body(self.ctx, part, self._layers[VEHICLE_TEXTURE])
+                self._bodies[vehicle] = meshes[id(part)]
 
     # ------------------------------------------------------------------------------------ setup
     def _program(self, vs: str, fs: str, defines: tuple[str, ...]) -> moderngl.Program:
@@ -300,16 +353,22 @@ class Renderer:
             )
         return self._programs[key]
 
-    def _upload_textures(self, scene: Scene) -> None:
-        """All scene textures as layers of one mipmapped RGBA8 array (resized to a common square)."""
-        self._layers = {name: i for i, name in enumerate(scene.textures)}
-        images = list(scene.textures.values()) or [np.full((1, 1, 4), 255, dtype=np.uint8)]
+    def _upload_textures(self, scene: Scene, with_bodies: bool = False) -> None:
+        """All scene textures (and the vehicles' when they are drawn) as layers of one mipmapped RGBA8
+        array (resized to a common square)."""
+        textures = dict(scene.textures)
+        if with_bodies:
+            textures[VEHICLE_TEXTURE] = vehicle_texture()
+        self._layers = {name: i for i, name in enumerate(textures)}
+        images = list(textures.values()) or [np.full((1, 1, 4), 255, dtype=np.uint8)]
         size = min(MAX_TEXTURE_SIZE, max(max(img.shape[:2]) for img in images))
         data = np.empty((len(images), size, size, 4), dtype=np.uint8)
         for i, img in enumerate(images):
             img = np.ascontiguousarray(img, dtype=np.uint8)
             if img.shape[:2] != (size, size):
-                img = np.asarray(Image.fromarray(img, "RGBA").resize((size, size), Image.Resampling.BILINEAR))
+                # nearest for the vehicles' two-texel colour table, bilinear for the scene's textures
+                smooth = Image.Resampling.NEAREST if img.shape[:2] == (2, 2) else Image.Resampling.BILINEAR
+                img = np.asarray(Image.fromarray(img, "RGBA").resize((size, size), smooth))
             data[i] = img
         self._texture_size = float(size)
         self._texture = self.ctx.texture_array((size, size, len(images)), 4, data.tobytes())
@@ -381,6 +440,15 @@ class Renderer:
             fmt = " ".join(fmt if n in prog else pad for n, fmt, pad in _ATTRIBUTES)
             self._vaos[key] = self.ctx.vertex_array(prog, [(self._vbo, fmt, *names)], self._ibo, 4)
         return self._vaos[key]
+
+    def _body_vao(self, body: _Body, defines: tuple[str, ...]) -> moderngl.VertexArray:
+        """Vertex array of a vehicle body's buffers bound to the program compiled with ``defines``."""
+        if defines not in body.vaos:
+            prog = self._program(_GEOMETRY_VS, _GEOMETRY_FS, defines)
+            names = [n for n, _, _ in _ATTRIBUTES if n in prog]
+            fmt = " ".join(fmt if n in prog else pad for n, fmt, pad in _ATTRIBUTES)
+            body.vaos[defines] = self.ctx.vertex_array(prog, [(body.vbo, fmt, *names)], body.ibo, 4)
+        return body.vaos[defines]
 
     def _render_shadow_map(self, size: int) -> None:
         """Orthographic depth map of the scene seen from the sun, rendered once (alpha-tested cards cast
@@ -457,25 +525,37 @@ class Renderer:
         return visible[np.lexsort((dist, self._tile_alpha[visible]))]
 
     def render(self, T_world_body: np.ndarray, rgb: bool = True) -> dict[str, CameraFrame]:
-        """Render every camera for the body pose ``T_world_body`` (4x4, Z-up world).
+        """Render every camera of the one rig (``cameras``) for the body pose ``T_world_body`` (4x4, Z-up
+        world). With ``rgb=False`` only depth and segmentation are drawn and read back (faster)."""
+        return self.render_rigs({"": T_world_body}, rgb)[""]
 
-        With ``rgb=False`` only depth and segmentation are drawn and read back (faster).
-        """
+    def render_rigs(
+        self, poses: dict[str, np.ndarray], rgb: bool = True
+    ) -> dict[str, dict[str, CameraFrame]]:
+        """Render every camera of every rig in ``poses`` (vehicle -> body pose, 4x4, Z-up world) in one
+        call, each vehicle's body drawn in the other vehicles' cameras: vehicle -> camera -> frame. The
+        scene's buffers are shared by all; nothing is uploaded per frame but the poses."""
         if self.ctx is None:
             raise RuntimeError("renderer is closed")
-        out: dict[str, CameraFrame] = {}
+        models = {v: frames.gl_model_matrix(T) for v, T in poses.items() if v in self._bodies}
+        targets = [t for t in self.targets if t.vehicle in poses]
+        out: dict[str, dict[str, CameraFrame]] = {v: {} for v in poses}
         with self.ctx:
             # Draw every camera before reading any back, so one camera's rasterisation overlaps the
             # next camera's vertex work (llvmpipe) or GPU execution (hardware drivers).
-            poses = [self._draw(t, T_world_body, rgb) for t in self.targets]
-            for t, T_wo in zip(self.targets, poses, strict=True):
+            drawn = [self._draw(t, poses[t.vehicle], rgb, models) for t in targets]
+            for t, T_wo in zip(targets, drawn, strict=True):
                 self._read(t, rgb)
                 rgb_image = t.rgb if rgb else None
-                out[t.cam.name] = CameraFrame(t.cam.name, rgb_image, t.depth, t.seg, t.K.copy(), T_wo)
+                frame = CameraFrame(t.cam.name, rgb_image, t.depth, t.seg, t.K.copy(), T_wo)
+                out[t.vehicle][t.cam.name] = frame
         return out
 
-    def _draw(self, t: _Target, T_world_body: np.ndarray, rgb: bool) -> np.ndarray:
-        """Draw one camera's targets; returns its ``T_world_optical``."""
+    def _draw(
+        self, t: _Target, T_world_body: np.ndarray, rgb: bool, models: dict[str, np.ndarray] | None = None
+    ) -> np.ndarray:
+        """Draw one camera's targets (the scene, then the other vehicles' bodies in ``models``); returns
+        its ``T_world_optical``."""
         ctx = self.ctx
         T_wo = frames.T_world_optical(np.asarray(T_world_body, dtype=float), t.T_body_link)
         view = frames.gl_view_matrix(T_wo)
@@ -502,6 +582,16 @@ class Renderer:
                     vao.render(
                         moderngl.TRIANGLES, vertices=int(self._tile_count[i]), first=int(self._tile_first[i])
                     )
+        others = [v for v in (models or {}) if v != t.vehicle]
+        if others:
+            defines = ("COLOR", "TEXCOORD", "MODEL") if rgb else ("MODEL",)
+            if rgb and self._shadow_map is not None:
+                defines += ("SHADOWS",)
+            for v in others:
+                vao = self._body_vao(self._bodies[v], defines)
+                self._set_uniforms(vao.program, view, t.proj, eye)
+                vao.program["u_model"].write(_mat(models[v]))
+                vao.render(moderngl.TRIANGLES)
         ctx.depth_func = "<="
         sky = self._sky_vao if rgb else self._sky_geometry_vao
         if rgb:
@@ -610,6 +700,8 @@ class Renderer:
         with self.ctx:
             for t in self.targets:
                 t.release()
+            for body in set(self._bodies.values()):
+                body.release()
             buffers = (
                 getattr(self, "_vbo", None),
                 getattr(self, "_ibo", None),

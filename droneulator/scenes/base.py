@@ -23,6 +23,8 @@ class SemanticClass(IntEnum):
     WIRE = 6
     FRUIT = 7
     ROCK = 8
+    #: another vehicle of the world (its body, arms and rotors)
+    VEHICLE = 9
 
 
 #: RGB palette for the segmentation PNG, indexed by class id (documented in docs/segmentation.md).
@@ -36,6 +38,7 @@ SEGMENTATION_PALETTE: dict[SemanticClass, tuple[int, int, int]] = {
     SemanticClass.WIRE: (255, 255, 0),
     SemanticClass.FRUIT: (220, 20, 60),
     SemanticClass.ROCK: (90, 90, 110),
+    SemanticClass.VEHICLE: (255, 0, 255),
 }
 
 
@@ -86,9 +89,46 @@ class Scene:
     #: named points of interest, e.g. the centre tree of tree_inspection
     landmarks: dict[str, np.ndarray] = field(default_factory=dict)
 
+    #: where further vehicles stand, in order, before the free points of :meth:`spawn_points` (e.g. one
+    #: per orchard row); on the ground, z = 0
+    spawn_candidates: list[np.ndarray] = field(default_factory=list)
+
     @property
     def triangle_count(self) -> int:
         return sum(p.triangle_count for p in self.parts)
+
+    def spawn_points(self, n: int, spacing: float = 2.0, clearance: float = 1.5) -> list[np.ndarray]:
+        """``n`` ground points for ``n`` vehicles: the spawn first, then the scene's candidates, then free
+        points on a grid round the spawn, nearest first; each at least ``spacing`` m from the others and
+        ``clearance`` m from the scene up to 3 m above the ground, inside the flyable bounds.
+
+        Raises ValueError when the scene has no room for ``n``."""
+        from droneulator.scenes.collision import sdf_lookup_many
+
+        col = self.collision
+        heights = np.linspace(0.3, 3.0, 4)
+
+        def free(p: np.ndarray) -> bool:
+            if np.any(p[:2] < self.bounds_min[:2]) or np.any(p[:2] > self.bounds_max[:2]):
+                return False
+            column = np.column_stack([np.full(4, p[0]), np.full(4, p[1]), heights])
+            return bool(sdf_lookup_many(col.sdf, col.origin, col.resolution, column).min() >= clearance)
+
+        chosen = [np.asarray(self.spawn_position, dtype=float)]
+        side = spacing * np.arange(-12, 13)
+        grid = np.array([[x, y, 0.0] for x in side for y in side]) + chosen[0] * [1.0, 1.0, 0.0]
+        grid = grid[np.argsort(np.linalg.norm(grid - chosen[0], axis=1), kind="stable")]
+        for p in [*map(np.asarray, self.spawn_candidates), *grid]:
+            if len(chosen) >= n:
+                break
+            if min(np.linalg.norm(p[:2] - q[:2]) for q in chosen) >= spacing - 1e-9 and free(p):
+                chosen.append(np.array([p[0], p[1], 0.0]))
+        if len(chosen) < n:
+            raise ValueError(
+                f"scene {self.name!r} has room near its spawn for {len(chosen)} vehicles {spacing:g} m "
+                f"apart, not {n}: give the others a spawn"
+            )
+        return chosen[:n]
 
     def in_bounds(self, p: np.ndarray) -> bool:
         p = np.asarray(p, dtype=float)

@@ -29,7 +29,7 @@ from typing import Any, NamedTuple
 import numba
 import numpy as np
 
-from droneulator.frames_numba import quat_to_matrix
+from droneulator.frames_numba import quat_to_matrix_into
 from droneulator.scenes.collision import sdf_lookup
 from droneulator.state import STATE, STATE_SIZE
 
@@ -177,9 +177,13 @@ def _derivative(
     dirs: np.ndarray,
     ds: np.ndarray,
     fb: np.ndarray,
+    R: np.ndarray,
 ) -> None:
-    """Write d/dt of the packed state into ``ds`` and the body specific force (m/s^2) into ``fb``."""
-    R = quat_to_matrix(s[6:10])
+    """Write d/dt of the packed state into ``ds`` and the body specific force (m/s^2) into ``fb``.
+
+    Allocation free (``R`` is a 3x3 scratch for the attitude matrix), so that many vehicles can be
+    integrated in parallel without touching the allocator."""
+    quat_to_matrix_into(s[6:10], R)
     qx, qy, qz, qw = s[6], s[7], s[8], s[9]
     wx, wy, wz = s[10], s[11], s[12]
     mass = p[_MASS]
@@ -199,24 +203,26 @@ def _derivative(
     for i in range(4):
         ds[16 + i] = (cmd[i] - s[16 + i]) / p[_TAU]
 
-    # airspeed in the body frame
-    rel = s[3:6] - s[13:16]
-    va = R.T @ rel
-    F = np.zeros(3)
-    M = np.zeros(3)
+    # airspeed in the body frame: R^T (v - wind)
+    rx0, rx1, rx2 = s[3] - s[13], s[4] - s[14], s[5] - s[15]
+    va0 = R[0, 0] * rx0 + R[1, 0] * rx1 + R[2, 0] * rx2
+    va1 = R[0, 1] * rx0 + R[1, 1] * rx1 + R[2, 1] * rx2
+    va2 = R[0, 2] * rx0 + R[1, 2] * rx1 + R[2, 2] * rx2
+    F0 = F1 = F2 = 0.0
+    M0 = M1 = M2 = 0.0
     aero = p[_AERO] > 0.5
     if aero:
-        vn = math.sqrt(va[0] * va[0] + va[1] * va[1] + va[2] * va[2])
-        F[0] -= vn * p[_CD] * va[0]
-        F[1] -= vn * p[_CD + 1] * va[1]
-        F[2] -= vn * p[_CD + 2] * va[2]
+        vn = math.sqrt(va0 * va0 + va1 * va1 + va2 * va2)
+        F0 -= vn * p[_CD] * va0
+        F1 -= vn * p[_CD + 1] * va1
+        F2 -= vn * p[_CD + 2] * va2
     for i in range(4):
         om = s[16 + i]
         rx, ry, rz = geom[i, 0], geom[i, 1], geom[i, 2]
         # local airspeed at the hub: va + w x r
-        lx = va[0] + wy * rz - wz * ry
-        ly = va[1] + wz * rx - wx * rz
-        lz = va[2] + wx * ry - wy * rx
+        lx = va0 + wy * rz - wz * ry
+        ly = va1 + wz * rx - wx * rz
+        lz = va2 + wx * ry - wy * rx
         fx = 0.0
         fy = 0.0
         fz = p[_KETA] * om * om
@@ -225,39 +231,49 @@ def _derivative(
             fy = -om * p[_KD] * ly
             fz += -om * p[_KZ] * lz + p[_KH] * (lx * lx + ly * ly)
             # flapping moment: -k_flap * om * (local x e3)
-            M[0] += -p[_KFLAP] * om * ly
-            M[1] += p[_KFLAP] * om * lx
-        F[0] += fx
-        F[1] += fy
-        F[2] += fz
+            M0 += -p[_KFLAP] * om * ly
+            M1 += p[_KFLAP] * om * lx
+        F0 += fx
+        F1 += fy
+        F2 += fz
         # moment of the hub force about the CoM, plus the rotor's reaction torque
-        M[0] += ry * fz - rz * fy
-        M[1] += rz * fx - rx * fz
-        M[2] += rx * fy - ry * fx + dirs[i] * p[_KM] * om * om
+        M0 += ry * fz - rz * fy
+        M1 += rz * fx - rx * fz
+        M2 += rx * fy - ry * fx + dirs[i] * p[_KM] * om * om
 
     if p[_GROUND] > 0.5 and s[2] < p[_REACH]:
-        _contact(s, R, p, geom, F, M)
+        c0, c1, c2, m0, m1, m2 = _contact(s, R, p, geom)
+        F0 += c0
+        F1 += c1
+        F2 += c2
+        M0 += m0
+        M1 += m1
+        M2 += m2
 
-    fb[0] = F[0] / mass
-    fb[1] = F[1] / mass
-    fb[2] = F[2] / mass
-    Fw = R @ F
-    Fw[2] -= mass * p[_G]
-    ds[3:6] = Fw / mass
+    fb[0] = F0 / mass
+    fb[1] = F1 / mass
+    fb[2] = F2 / mass
+    ds[3] = (R[0, 0] * F0 + R[0, 1] * F1 + R[0, 2] * F2) / mass
+    ds[4] = (R[1, 0] * F0 + R[1, 1] * F1 + R[1, 2] * F2) / mass
+    ds[5] = (R[2, 0] * F0 + R[2, 1] * F1 + R[2, 2] * F2 - mass * p[_G]) / mass
 
-    J = p[_INERTIA : _INERTIA + 9].reshape(3, 3)
-    Jinv = p[_INV_INERTIA : _INV_INERTIA + 9].reshape(3, 3)
-    w = s[10:13]
-    Jw = J @ w
-    gyro = np.array([wy * Jw[2] - wz * Jw[1], wz * Jw[0] - wx * Jw[2], wx * Jw[1] - wy * Jw[0]])
-    ds[10:13] = Jinv @ (M - gyro)
+    J, Ji = _INERTIA, _INV_INERTIA
+    Jw0 = p[J] * wx + p[J + 1] * wy + p[J + 2] * wz
+    Jw1 = p[J + 3] * wx + p[J + 4] * wy + p[J + 5] * wz
+    Jw2 = p[J + 6] * wx + p[J + 7] * wy + p[J + 8] * wz
+    t0 = M0 - (wy * Jw2 - wz * Jw1)
+    t1 = M1 - (wz * Jw0 - wx * Jw2)
+    t2 = M2 - (wx * Jw1 - wy * Jw0)
+    ds[10] = p[Ji] * t0 + p[Ji + 1] * t1 + p[Ji + 2] * t2
+    ds[11] = p[Ji + 3] * t0 + p[Ji + 4] * t1 + p[Ji + 5] * t2
+    ds[12] = p[Ji + 6] * t0 + p[Ji + 7] * t1 + p[Ji + 8] * t2
 
 
 @numba.njit(cache=True)
 def _contact(
-    s: np.ndarray, R: np.ndarray, p: np.ndarray, geom: np.ndarray, F: np.ndarray, M: np.ndarray
-) -> None:
-    """Add the ground forces of the contact points (body frame) to ``F`` and their moments to ``M``.
+    s: np.ndarray, R: np.ndarray, p: np.ndarray, geom: np.ndarray
+) -> tuple[float, float, float, float, float, float]:
+    """Ground force (body frame) and its moment from the contact points: ``(F, M)`` as six floats.
 
     The points are the four feet under the rotor hubs and the four hubs themselves, which catch a
     vehicle that tips over or lands upside down. Each point below z = 0 gets a normal force from its spring
@@ -270,6 +286,7 @@ def _contact(
     share = 0.25 * (p[_MASS] * p[_G])
     ax = ay = az = 0.0  # points 0, 2, 4, 6
     bx_ = by_ = bz_ = 0.0  # points 1, 3, 5, 7
+    M0 = M1 = M2 = 0.0
     for k in range(8):
         bx, by = geom[k % 4, 0], geom[k % 4, 1]
         bz = -p[_FOOT] if k < 4 else 0.0
@@ -302,12 +319,10 @@ def _contact(
             bx_ += gx
             by_ += gy
             bz_ += gz
-        M[0] += by * gz - bz * gy
-        M[1] += bz * gx - bx * gz
-        M[2] += bx * gy - by * gx
-    F[0] += ax + bx_
-    F[1] += ay + by_
-    F[2] += az + bz_
+        M0 += by * gz - bz * gy
+        M1 += bz * gx - bx * gz
+        M2 += bx * gy - by * gx
+    return ax + bx_, ay + by_, az + bz_, M0, M1, M2
 
 
 @numba.njit(cache=True)
@@ -316,7 +331,7 @@ def state_derivative(
 ) -> np.ndarray:
     """d/dt of the packed state for constant commanded rotor speeds (RotorPy ``_s_dot_fn`` in the air)."""
     ds = np.empty(STATE_SIZE)
-    _derivative(s, cmd, p, geom, dirs, ds, np.empty(3))
+    _derivative(s, cmd, p, geom, dirs, ds, np.empty(3), np.empty((3, 3)))
     return ds
 
 
@@ -336,6 +351,17 @@ def _touching(s: np.ndarray, p: np.ndarray, geom: np.ndarray) -> bool:
     return lowest < 0.0
 
 
+#: rows of an integration work array (:func:`work_arrays`): the four RK4 stages, the stage input,
+#: the state before the sub-step, the clamped command, then the four stages' specific forces
+_K1, _K2, _K3, _K4, _TMP, _PREV, _CMD, _F1 = 0, 1, 2, 3, 4, 5, 6, 7
+_WORK_ROWS = 11
+
+
+def work_arrays(rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """Scratch space for :func:`integrate_rows` (one set per row, reused every step)."""
+    return np.zeros((rows, _WORK_ROWS, STATE_SIZE)), np.zeros((rows, 3, 3))
+
+
 @numba.njit(cache=True)
 def integrate(
     s: np.ndarray,
@@ -350,41 +376,46 @@ def integrate(
     res: float,
     radius: float,
     out: np.ndarray,
+    work: np.ndarray,
+    R: np.ndarray,
 ) -> bool:
     """Advance ``s`` in place by ``dt`` with ``n_sub`` RK4 steps under constant rotor commands.
 
     The collision model is queried after every sub-step; on contact the state is rolled back to
     the last collision-free sub-step and True is returned. ``out`` (:data:`OUTPUT` layout)
     accumulates the RK4-weighted specific force and velocity change of every completed sub-step and
-    records the fastest touchdown of the feet on the ground.
+    records the fastest touchdown of the feet on the ground. ``work`` and ``R`` are scratch
+    (:func:`work_arrays`): nothing is allocated.
     """
-    cmd = np.empty(4)
+    cmd = work[_CMD]
     for i in range(4):
         cmd[i] = min(max(cmd_in[i], p[_WMIN]), p[_WMAX])
     h = dt / n_sub
     check = sdf.shape[0] > 1
     n = STATE_SIZE
-    k1, k2, k3, k4 = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
-    f1, f2, f3, f4 = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
-    tmp = np.empty(n)
-    prev = np.empty(n)
+    k1, k2, k3, k4 = work[_K1], work[_K2], work[_K3], work[_K4]
+    f1, f2, f3, f4 = work[_F1], work[_F1 + 1], work[_F1 + 2], work[_F1 + 3]
+    tmp = work[_TMP]
+    prev = work[_PREV]
     touching = _touching(s, p, geom)
     for _ in range(n_sub):
-        prev[:] = s
-        _derivative(s, cmd, p, geom, dirs, k1, f1)
+        for j in range(n):
+            prev[j] = s[j]
+        _derivative(s, cmd, p, geom, dirs, k1, f1, R)
         for j in range(n):
             tmp[j] = s[j] + 0.5 * h * k1[j]
-        _derivative(tmp, cmd, p, geom, dirs, k2, f2)
+        _derivative(tmp, cmd, p, geom, dirs, k2, f2, R)
         for j in range(n):
             tmp[j] = s[j] + 0.5 * h * k2[j]
-        _derivative(tmp, cmd, p, geom, dirs, k3, f3)
+        _derivative(tmp, cmd, p, geom, dirs, k3, f3, R)
         for j in range(n):
             tmp[j] = s[j] + h * k3[j]
-        _derivative(tmp, cmd, p, geom, dirs, k4, f4)
+        _derivative(tmp, cmd, p, geom, dirs, k4, f4, R)
         for j in range(n):
             s[j] += (h / 6.0) * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j])
         if check and sdf_lookup(sdf, origin, res, s[0:3]) < radius:
-            s[:] = prev
+            for j in range(n):
+                s[j] = prev[j]
             return True
         for j in range(3):
             out[_OUT_SF + j] += (h / 6.0) * (f1[j] + 2.0 * f2[j] + 2.0 * f3[j] + f4[j])
@@ -398,10 +429,81 @@ def integrate(
         touching = now
         out[_OUT_T] += h
     qn = math.sqrt(s[6] * s[6] + s[7] * s[7] + s[8] * s[8] + s[9] * s[9])
-    s[6:10] /= qn
+    for j in range(6, 10):
+        s[j] /= qn
     for i in range(4):
         s[16 + i] = min(max(s[16 + i], p[_WMIN]), p[_WMAX])
     return False
+
+
+@numba.njit(cache=True)
+def _integrate_serial(states, cmds, active, dt, n_sub, P, G, D, pidx, sdf, origin, res, radius, out, hit,
+                      work, R):  # fmt: skip
+    for r in range(states.shape[0]):
+        if active[r]:
+            k = pidx[r]
+            hit[r] = integrate(states[r], cmds[r], dt, n_sub, P[k], G[k], D[k], sdf, origin, res, radius[r],
+                               out[r], work[r], R[r])  # fmt: skip
+
+
+@numba.njit(cache=True, parallel=True)
+def _integrate_parallel(states, cmds, active, dt, n_sub, P, G, D, pidx, sdf, origin, res, radius, out, hit,
+                        work, R):  # fmt: skip
+    for r in numba.prange(states.shape[0]):
+        if active[r]:
+            k = pidx[r]
+            hit[r] = integrate(states[r], cmds[r], dt, n_sub, P[k], G[k], D[k], sdf, origin, res, radius[r],
+                               out[r], work[r], R[r])  # fmt: skip
+
+
+#: from this many rows on, :func:`integrate_rows` spreads them over the cores (below, threads cost more
+#: than they save: one vehicle's step is a few microseconds)
+PARALLEL_ROWS = 32
+
+
+def integrate_rows(
+    states: np.ndarray,
+    cmds: np.ndarray,
+    active: np.ndarray,
+    dt: float,
+    n_sub: int,
+    table: ParamTable,
+    pidx: np.ndarray,
+    sdf: np.ndarray,
+    origin: np.ndarray,
+    res: float,
+    radius: np.ndarray,
+    out: np.ndarray,
+    hit: np.ndarray,
+    work: np.ndarray,
+    R: np.ndarray,
+) -> None:
+    """:func:`integrate` for every ``active`` row of ``states`` (rows, STATE_SIZE), each with the parameter
+    set ``table[pidx[row]]``, its commanded rotor speeds ``cmds[row]`` and collision radius ``radius[row]``;
+    ``hit[row]`` says whether the row touched the scene. ``out`` rows accumulate as :func:`integrate`'s."""
+    run = _integrate_parallel if states.shape[0] >= PARALLEL_ROWS else _integrate_serial
+    run(states, cmds, active, dt, n_sub, table.params, table.geometry, table.directions, pidx, sdf, origin,
+        res, radius, out, hit, work, R)  # fmt: skip
+
+
+class ParamTable:
+    """Packed parameter sets, one row per airframe (:func:`pack_params`), for the batched kernels."""
+
+    def __init__(self) -> None:
+        self.params = np.zeros((0, _N_PARAMS))
+        self.geometry = np.zeros((0, 4, 3))
+        self.directions = np.zeros((0, 4))
+        self._index: dict[tuple[Any, ...], int] = {}
+
+    def add(self, key: tuple[Any, ...], packed: tuple[np.ndarray, np.ndarray, np.ndarray]) -> int:
+        """Row of the set packed as ``packed`` under ``key`` (added once; equal keys share a row)."""
+        if key not in self._index:
+            p, g, d = packed
+            self.params = np.vstack([self.params, p[None]])
+            self.geometry = np.concatenate([self.geometry, g[None]])
+            self.directions = np.vstack([self.directions, d[None]])
+            self._index[key] = len(self.params) - 1
+        return self._index[key]
 
 
 _NO_SDF = np.ones((1, 1, 1), dtype=np.float32)
@@ -430,6 +532,8 @@ class FastMultirotor:
         self._res = 1.0
         self._radius = 0.0
         self._scratch = np.zeros(OUTPUT_SIZE)
+        work, R = work_arrays(1)
+        self._work, self._R = work[0], R[0]
 
     def set_collision(self, sdf: np.ndarray, origin: np.ndarray, resolution: float, radius: float) -> None:
         """Query this signed distance grid after every sub-step (sphere of ``radius``)."""
@@ -441,7 +545,7 @@ class FastMultirotor:
     @property
     def hover_speed(self) -> float:
         """Rotor speed (rad/s) that balances the weight."""
-        return math.sqrt(self.params[_MASS] * self.params[_G] / (4 * self.params[_KETA]))
+        return hover_speed(self.params)
 
     def step(
         self, s: np.ndarray, cmd_motor_speeds: np.ndarray, dt: float, out: np.ndarray | None = None
@@ -456,12 +560,11 @@ class FastMultirotor:
             out[:] = 0.0
         elif out.shape != (OUTPUT_SIZE,) or out.dtype != np.float64:
             raise ValueError(f"out must be a float64 vector of {OUTPUT_SIZE} (OUTPUT layout)")
-        n_sub = max(1, math.ceil(dt / self.substep - 1e-9))
         return integrate(
             s,
             np.asarray(cmd_motor_speeds, dtype=np.float64),
             dt,
-            n_sub,
+            substeps(dt, self.substep),
             self.params,
             self.geometry,
             self.directions,
@@ -470,7 +573,19 @@ class FastMultirotor:
             self._res,
             self._radius,
             out,
+            self._work,
+            self._R,
         )
+
+
+def substeps(dt: float, substep: float) -> int:
+    """RK4 sub-steps for an interval of ``dt`` s at most ``substep`` s long each."""
+    return max(1, math.ceil(dt / substep - 1e-9))
+
+
+def hover_speed(params: np.ndarray) -> float:
+    """Rotor speed (rad/s) that balances the weight of a packed parameter set."""
+    return math.sqrt(params[_MASS] * params[_G] / (4 * params[_KETA]))
 
 
 def pack_state(state: dict[str, np.ndarray]) -> np.ndarray:

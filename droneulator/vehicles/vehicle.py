@@ -1,0 +1,418 @@
+"""A vehicle of the world: its airframe, its row of the world's state array, its flight controller, its
+wind, its cameras and sensors, and the commands it takes.
+
+The world steps every vehicle at once (one compiled physics step over all rows); a :class:`Vehicle` is
+the handle the API, ROS, PX4 and the workflows hold for one of them. Its commands check what the
+vehicle can do (finite values, the scene's bounds, the speed limits, in the air or not) and raise
+:class:`~droneulator.commands.errors.CommandError` with a code otherwise.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+from droneulator.commands.errors import CommandError
+from droneulator.config import FlightConfig, SimConfig, VehicleSpec
+from droneulator.controllers.flight import TRACK_MAX_ACCEL, Event, FlightController, Mode
+from droneulator.frames import quat_from_yaw, transform_from_pose, yaw_of
+from droneulator.frames_numba import world_to_body
+from droneulator.scenes.base import Scene
+from droneulator.scenes.collision import sdf_lookup_many
+from droneulator.state import STATE
+from droneulator.vehicles.dynamics import GRAVITY, OUTPUT, GroundContact, hover_speed, pack_params
+from droneulator.vehicles.params import get_params
+from droneulator.wind import make_wind
+
+NS = 1_000_000_000
+
+log = logging.getLogger("droneulator.sim")
+
+
+@dataclass
+class VehicleState:
+    """Ground-truth vehicle state in the Z-up world (body FLU, quaternion [x, y, z, w]).
+
+    ``t_ns`` is sim time since the last reset (the API's episode clock); ``stamp_ns`` is the simulator's
+    monotonic clock, which keeps counting across resets and stamps everything published to ROS.
+    This one object is the state message between the processes (picklable, no list round trips).
+    """
+
+    t_ns: int
+    stamp_ns: int
+    position: np.ndarray
+    velocity: np.ndarray
+    quaternion: np.ndarray
+    angular_velocity: np.ndarray  # body frame, rad/s
+    rotor_speeds: np.ndarray
+    mode: str
+    reference: np.ndarray | None = None  # packed flat output being tracked
+    vehicle: str = "uav0"
+
+    @property
+    def t(self) -> float:
+        return self.t_ns / NS
+
+    @property
+    def yaw(self) -> float:
+        return yaw_of(self.quaternion)
+
+    @property
+    def T_world_body(self) -> np.ndarray:
+        return transform_from_pose(self.position, self.quaternion)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The API's state object (``state`` op, state stream, ``reset`` result): plain JSON values."""
+        return {
+            "t": self.t,
+            "t_ns": int(self.t_ns),
+            "stamp_ns": int(self.stamp_ns),
+            "vehicle": self.vehicle,
+            "position": self.position.tolist(),
+            "velocity": self.velocity.tolist(),
+            "quaternion": self.quaternion.tolist(),
+            "angular_velocity": self.angular_velocity.tolist(),
+            "yaw": self.yaw,
+            "mode": self.mode,
+        }
+
+
+class Surroundings(Protocol):
+    """What a vehicle needs of its world: the clocks and the scene (bounds, collision model)."""
+
+    @property
+    def t(self) -> float: ...
+
+    @property
+    def t_ns(self) -> int: ...
+
+    @property
+    def stamp_ns(self) -> int: ...
+
+    @property
+    def scene(self) -> Scene: ...
+
+
+def _contact(cfg: SimConfig) -> GroundContact:
+    v = cfg.vehicle
+    return GroundContact(
+        v.contact_frequency_hz,
+        v.contact_damping_ratio,
+        v.contact_rebound_damping_ratio,
+        v.ground_friction,
+        v.friction_slip_speed,
+    )
+
+
+class Vehicle:
+    """One vehicle: ``s`` is its row of the world's state array (a view the world integrates)."""
+
+    def __init__(self, world: Surroundings, config: SimConfig, spec: VehicleSpec, row: np.ndarray) -> None:
+        assert spec.params is not None and spec.cameras is not None and spec.flight is not None
+        self.world = world
+        self.config = config
+        self.spec = spec
+        self.name = spec.name
+        self.quad_params = get_params(spec.params)
+        #: the packed airframe the physics kernel reads (:func:`~droneulator.vehicles.dynamics.pack_params`)
+        #: the legs' spring-damper ground contact
+        self.contact = _contact(config)
+        self.packed = pack_params(self.quad_params, config.vehicle.aero, True, self.contact)
+        self.hover_speed = hover_speed(self.packed[0])
+        self.flight_config: FlightConfig = spec.flight
+        self.flight = FlightController(self.quad_params, spec.flight)
+        self.cameras = spec.cameras
+        self.collision_radius = config.vehicle.collision_radius
+        self.s = row
+        self.wind = make_wind(config.vehicle, config.seed, 1.0 / config.vehicle.control_hz)
+        self.collisions = 0
+        self._reference: np.ndarray | None = None
+        #: world-frame acceleration, mean over the last control period (m/s^2)
+        self.acceleration = np.zeros(3)
+        self._specific_force = np.zeros(3)
+
+    # ------------------------------------------------------------------ state
+    @property
+    def t(self) -> float:
+        return self.world.t
+
+    @property
+    def mode(self) -> Mode:
+        return self.flight.mode
+
+    @property
+    def specific_force(self) -> np.ndarray:
+        """What the IMU's accelerometer measures (body FLU, m/s^2): the force per unit mass from
+        thrust, drag and ground contact, gravity excluded, averaged over the last control period
+        like an IMU's output filter. 9.81 up in hover and at rest on the ground, ~0 in free fall."""
+        return self._specific_force.copy()
+
+    @property
+    def wind_velocity(self) -> np.ndarray:
+        """Wind velocity (world frame, m/s) over the current control step, rotor wakes of the vehicles
+        above included: a sensor model input (airspeed) that :attr:`state` does not carry."""
+        return self.s[STATE.wind].copy()
+
+    @property
+    def state(self) -> VehicleState:
+        s = self.s
+        return VehicleState(
+            self.world.t_ns,
+            self.world.stamp_ns,
+            s[STATE.x].copy(),
+            s[STATE.v].copy(),
+            s[STATE.q].copy(),
+            s[STATE.w].copy(),
+            s[STATE.rotor_speeds].copy(),
+            self.flight.mode.value,
+            None if self._reference is None else self._reference.copy(),
+            self.name,
+        )
+
+    @property
+    def thrust(self) -> float:
+        """Total rotor thrust now (N): the strength of the wake below the vehicle."""
+        w = self.s[STATE.rotor_speeds]
+        return float(self.quad_params["k_eta"] * np.dot(w, w))
+
+    @property
+    def disk_area(self) -> float:
+        """Total rotor disk area (m^2), from the rotor radius (or, without one, 45 % of the arm length)."""
+        arm = float(np.linalg.norm(np.asarray(self.quad_params["rotor_pos"]["r1"], dtype=float)[:2]))
+        radius = float(self.quad_params.get("rotor_radius", 0.45 * arm))
+        return 4.0 * math.pi * radius * radius
+
+    # ------------------------------------------------------------------ placing
+    def place(self, position: Any, yaw: float, airborne: bool | None = None) -> None:
+        """Put the vehicle at rest at ``position`` (checked against the scene) with heading ``yaw``; a
+        position above the ground hovers there unless ``airborne`` is False. Motors off otherwise."""
+        pos = np.array(position, dtype=float)
+        if pos.shape != (3,) or not np.all(np.isfinite(pos)):
+            raise CommandError("invalid_argument", "reset position must be three finite numbers")
+        if not math.isfinite(yaw):
+            raise CommandError("invalid_argument", "reset yaw must be finite")
+        self._check_position(pos, allow_ground=True)
+        self.wind = make_wind(self.config.vehicle, self.config.seed, 1.0 / self.config.vehicle.control_hz)
+        s = self.s
+        s[:] = 0.0
+        s[STATE.x] = pos
+        s[STATE.q] = quat_from_yaw(yaw)
+        self.flight.motors_off()
+        self._reference = None
+        self.collisions = 0
+        self.acceleration = np.zeros(3)
+        # until the first step: what a vehicle at rest on its legs or hovering measures
+        self._specific_force = self._holding_force()
+        if pos[2] > 0.05 if airborne is None else airborne:
+            s[STATE.rotor_speeds] = self.hover_speed
+            self.flight.hold(s, 0.0)
+
+    # ------------------------------------------------------------------ commands
+    def _finite(self, name: str, *values: float | None) -> None:
+        for v in values:
+            if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v)):
+                raise CommandError("invalid_argument", f"{name} must be finite numbers, got {v!r}")
+
+    def _check_position(self, p: np.ndarray, allow_ground: bool = False) -> None:
+        scene = self.world.scene
+        lo, hi = scene.bounds_min, scene.bounds_max
+        if p[2] < 0 or (p[2] == 0 and not allow_ground):
+            raise CommandError("below_ground", f"target altitude {p[2]:.3f} m is not above the ground")
+        if np.any(p[:2] < lo[:2]) or np.any(p[:2] > hi[:2]) or p[2] > hi[2]:
+            raise CommandError(
+                "out_of_bounds",
+                f"target {np.round(p, 3).tolist()} is outside the scene bounds "
+                f"{lo.tolist()} .. {hi.tolist()}",
+            )
+
+    def _require_airborne(self, op: str) -> None:
+        if self.flight.mode == Mode.IDLE:
+            raise CommandError("not_airborne", f"{op} needs the vehicle in the air: take off first")
+
+    def takeoff(self, altitude: float | None = None) -> float:
+        """Climb vertically to ``altitude`` (default from config); returns the planned duration."""
+        self._finite("altitude", altitude)
+        alt = self.flight_config.takeoff_altitude if altitude is None else float(altitude)
+        self._check_position(np.array([*self.s[STATE.x][:2], alt]))
+        return self.flight.takeoff(self.s, self.t, alt)
+
+    def goto(
+        self,
+        position: Any,
+        yaw: float | None = None,
+        speed: float | None = None,
+        duration: float | None = None,
+    ) -> float:
+        """Min-snap move to ``position`` with heading ``yaw`` (radians, kept if None)."""
+        try:
+            p = np.asarray(position, dtype=float)
+        except (TypeError, ValueError):
+            raise CommandError("invalid_argument", "position must be three numbers [x, y, z]") from None
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise CommandError("invalid_argument", "position must be three finite numbers [x, y, z]")
+        self._finite("yaw/speed/duration", yaw, speed, duration)
+        if speed is not None and not 0 < speed <= self.flight_config.max_speed:
+            raise CommandError("out_of_range", f"speed must lie in (0, {self.flight_config.max_speed}] m/s")
+        if duration is not None and not 0.2 <= duration <= 3600:
+            raise CommandError("out_of_range", "duration must lie in [0.2, 3600] s")
+        self._check_position(p)
+        return self.flight.goto(self.s, self.t, p, yaw, speed, duration)
+
+    def velocity(self, forward: float, yaw_rate: float) -> None:
+        """Velocity mode: forward speed (m/s, body x) and yaw rate (rad/s) at constant altitude."""
+        self._finite("forward/yaw_rate", forward, yaw_rate)
+        lim = self.flight_config.max_speed
+        if abs(forward) > lim or abs(yaw_rate) > math.pi:
+            raise CommandError("out_of_range", f"need |forward| <= {lim} m/s and |yaw_rate| <= pi rad/s")
+        self._require_airborne("velocity")
+        self.flight.velocity(self.s, self.t, float(forward), float(yaw_rate))
+
+    def track(
+        self,
+        position: Any,
+        velocity: Any = None,
+        acceleration: Any = None,
+        yaw: float | None = None,
+        yaw_rate: float = 0.0,
+    ) -> None:
+        """Track mode: one setpoint (position, velocity and acceleration feed-forward, yaw, yaw rate;
+        world frame) for the SE(3) controller, e.g. from a planner's PositionCommand stream.
+
+        ``yaw`` None keeps the current heading. A stream must keep coming: after
+        :data:`~droneulator.controllers.flight.TRACK_TIMEOUT` s of sim time without one the vehicle holds.
+        """
+        vecs = []
+        for name, v in (("position", position), ("velocity", velocity), ("acceleration", acceleration)):
+            try:
+                a = np.zeros(3) if v is None and name != "position" else np.asarray(v, dtype=float)
+            except (TypeError, ValueError):
+                raise CommandError("invalid_argument", f"{name} must be three numbers [x, y, z]") from None
+            if a.shape != (3,) or not np.all(np.isfinite(a)):
+                raise CommandError("invalid_argument", f"{name} must be three finite numbers [x, y, z]")
+            vecs.append(a)
+        p, v, acc = vecs
+        self._finite("yaw/yaw_rate", yaw, yaw_rate)
+        lim = self.flight_config.max_speed
+        if float(np.linalg.norm(v)) > lim:
+            raise CommandError(
+                "out_of_range", f"track velocity {np.linalg.norm(v):.3f} m/s exceeds {lim} m/s"
+            )
+        if float(np.linalg.norm(acc)) > TRACK_MAX_ACCEL:
+            raise CommandError(
+                "out_of_range",
+                f"track acceleration {np.linalg.norm(acc):.3f} m/s^2 exceeds {TRACK_MAX_ACCEL} m/s^2",
+            )
+        if abs(yaw_rate) > math.pi:
+            raise CommandError("out_of_range", "need |yaw_rate| <= pi rad/s")
+        self._check_position(p)
+        self._require_airborne("track")
+        heading = yaw_of(self.s[STATE.q]) if yaw is None else float(yaw)
+        self.flight.track(self.t, p, v, acc, heading, float(yaw_rate))
+
+    def hold(self) -> None:
+        self._require_airborne("hold")
+        self.flight.hold(self.s, self.t)
+
+    def land(self) -> float:
+        self._require_airborne("land")
+        return self.flight.land(self.s, self.t)
+
+    def landing_spot(self, clearance: float = 0.5, search_radius: float = 10.0) -> np.ndarray:
+        """The nearest (x, y) where the vehicle can descend from its height to the ground keeping
+        ``clearance`` metres (plus its collision radius) from the scene, reached by a level flight
+        that keeps it too: straight below when that is clear, else on rings of growing radius.
+
+        Falls back to straight below (and says so in the log) when nothing within
+        ``search_radius`` is clear.
+        """
+        scene = self.world.scene
+        col = scene.collision
+        x = self.s[STATE.x]
+        need = clearance + self.collision_radius
+        step = max(col.resolution, 0.05)
+
+        def clear(a: np.ndarray, b: np.ndarray) -> bool:
+            n = max(2, int(np.ceil(np.linalg.norm(b - a) / step)) + 1)
+            pts = a + np.linspace(0.0, 1.0, n)[:, None] * (b - a)
+            return bool(np.all(sdf_lookup_many(col.sdf, col.origin, col.resolution, pts) >= need))
+
+        top = x.copy()
+        low = min(need, float(x[2]))  # the ground itself is not an obstacle: stop the column above it
+        lo, hi = scene.bounds_min[:2], scene.bounds_max[:2]
+        for radius in np.arange(0.0, search_radius + 1e-9, 0.5):
+            count = 1 if radius == 0.0 else max(8, int(2 * math.pi * radius / 0.5))
+            for k in range(count):
+                a = 2 * math.pi * k / count
+                xy = x[:2] + radius * np.array([math.cos(a), math.sin(a)])
+                if np.any(xy < lo) or np.any(xy > hi):
+                    continue
+                above = np.array([xy[0], xy[1], x[2]])
+                if clear(top, above) and clear(above, np.array([xy[0], xy[1], low])):
+                    return xy
+        log.warning("no landing spot clear of the scene within %.0f m of %s: landing straight down",
+                    search_radius, np.round(x, 2).tolist())  # fmt: skip
+        return x[:2].copy()
+
+    def safe_land(self, clearance: float = 0.5) -> np.ndarray:
+        """Land at :meth:`landing_spot` (flying there level first if it is not straight below);
+        returns the spot's (x, y)."""
+        self._require_airborne("land")
+        xy = self.landing_spot(clearance)
+        self.flight.land_at(self.s, self.t, xy)
+        return xy
+
+    def motors_off(self) -> None:
+        self.flight.motors_off()
+
+    def set_rotor_speeds(self, rotor_speeds: Any) -> None:
+        """Command the rotors directly (rad/s, RotorPy rotor order), bypassing the flight controller.
+
+        Used by autopilots in the loop (PX4 SITL); any flight command or ``motors_off`` ends it.
+        """
+        w = np.asarray(rotor_speeds, dtype=float)
+        if w.shape != (4,) or not np.all(np.isfinite(w)):
+            raise CommandError("invalid_argument", "rotor_speeds must be four finite numbers (rad/s)")
+        self.flight.external(
+            np.clip(w, self.quad_params["rotor_speed_min"], self.quad_params["rotor_speed_max"])
+        )
+
+    # ------------------------------------------------------------------ the world's hooks
+    def on_collision(self, with_: str | None = None) -> Event:
+        """The vehicle touched the scene (or ``with_``, another vehicle): it stops where it is, level."""
+        s = self.s
+        s[STATE.v] = 0.0
+        s[STATE.w] = 0.0
+        s[STATE.q] = quat_from_yaw(yaw_of(s[STATE.q]))
+        self.flight.collided()
+        self.collisions += 1
+        data: dict[str, Any] = {"position": s[STATE.x].tolist()}
+        if with_ is not None:
+            data["vehicles"] = [self.name, with_]
+        return Event("collision", self.t, data, self.name)
+
+    def finish_period(self, imu: np.ndarray, dt: float, t_start: float, events: list[Event]) -> None:
+        """IMU means over the period just stepped, and an ``impact`` event for a hard touchdown."""
+        sf = imu[OUTPUT.specific_force] / dt
+        held = dt - imu[OUTPUT.elapsed]
+        if held > 1e-12:  # time not integrated (stopped against the scene) is spent held by the obstacle
+            sf += (held / dt) * self._holding_force()
+        self._specific_force = sf
+        self.acceleration = imu[OUTPUT.delta_v] / dt
+        speed = float(imu[OUTPUT.touchdown_speed])
+        if speed > self.config.vehicle.impact_speed:
+            events.append(
+                Event(
+                    "impact",
+                    t_start + float(imu[OUTPUT.touchdown_time]),
+                    {"position": imu[OUTPUT.touchdown_position].tolist(), "speed": speed},
+                    self.name,
+                )
+            )
+
+    def _holding_force(self) -> np.ndarray:
+        """Specific force of the vehicle held still against gravity, in the body frame."""
+        return world_to_body(self.s[STATE.q], np.array([0.0, 0.0, GRAVITY]))

@@ -1,0 +1,347 @@
+"""The world: one scene, one clock and every vehicle in it, stepped together in lockstep.
+
+Simulation time is an integer count of nanoseconds. :meth:`World.step` advances one control period:
+
+1. every vehicle's flight controller gives its rotor command or its reference (vehicles holding or with
+   the motors off keep the last one, without a call);
+2. the SE(3) controller turns every reference into rotor commands in one compiled loop;
+3. each vehicle's wind is its own wind model's sample plus the rotor wakes of the vehicles above it
+   (:mod:`droneulator.world.downwash`);
+4. one compiled step integrates every vehicle's row of the state array (``states``, laid out
+   ``(worlds, vehicles, STATE_SIZE)`` with one world here), split at camera instants so that every
+   frame is rendered from the exact state at ``k / camera_hz``, with the scene's collisions per row;
+5. vehicles whose bodies overlap collide (:mod:`droneulator.world.contact`): one ``collision`` event
+   names both, and both stop where they were at the start of the period;
+6. each vehicle's IMU means and hard touchdowns.
+
+One vehicle is the default (:class:`~droneulator.config.SimConfig` with no ``vehicles``) and flies
+exactly as the single-vehicle simulator did; :class:`~droneulator.sim.simulator.Simulator` is the
+single-vehicle face of a world.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from droneulator.commands.errors import CommandError
+from droneulator.config import SimConfig, load_config
+from droneulator.controllers.flight import Event, Mode
+from droneulator.controllers.se3 import se3_rows
+from droneulator.scenes import get_scene
+from droneulator.scenes.base import MeshPart, Scene
+from droneulator.state import FLAT_SIZE, STATE, STATE_SIZE
+from droneulator.vehicles.dynamics import (
+    OUTPUT_SIZE,
+    PARALLEL_ROWS,
+    ParamTable,
+    integrate_rows,
+    substeps,
+    work_arrays,
+)
+from droneulator.vehicles.mesh import vehicle_mesh
+from droneulator.vehicles.vehicle import Vehicle, VehicleState
+from droneulator.world.contact import contacts
+from droneulator.world.downwash import WakeModel, downwash
+
+NS = 1_000_000_000
+
+log = logging.getLogger("droneulator.sim")
+
+
+@dataclass
+class FrameSet:
+    """Every camera of every vehicle rendered at one instant, with the states they were rendered from.
+
+    ``states`` and ``cameras`` are keyed by vehicle name; ``cameras[name]`` by camera name."""
+
+    t_ns: int
+    states: dict[str, VehicleState]
+    cameras: dict[str, dict[str, Any]]  # vehicle -> camera -> droneulator.render.CameraFrame
+
+
+@dataclass
+class StepResult:
+    frames: list[FrameSet] = field(default_factory=list)
+    events: list[Event] = field(default_factory=list)
+    #: every vehicle's state at each camera instant, when an external renderer draws them
+    #: (``external_cameras=True``)
+    camera_states: list[dict[str, VehicleState]] = field(default_factory=list)
+
+
+class World:
+    """A scene, a clock and the vehicles of ``config.vehicles`` (one by default), stepped in lockstep.
+
+    ``render=False`` skips the renderer entirely (physics-only use, e.g. benchmarks);
+    ``external_cameras=True`` (with ``render=False``) still splits the physics at camera instants and
+    hands every vehicle's state at them out in :attr:`StepResult.camera_states` for a render server.
+    """
+
+    def __init__(
+        self,
+        config: SimConfig | None = None,
+        scene: str | None = None,
+        seed: int | None = None,
+        render: bool = True,
+        external_cameras: bool = False,
+    ) -> None:
+        self.config = config or load_config()
+        if scene is not None:
+            self.config.scene = scene
+        if seed is not None:
+            self.config.seed = seed
+        cfg = self.config
+        self.specs = cfg.vehicle_specs()
+        n = len(self.specs)
+        #: every vehicle's state, ``(worlds, vehicles, STATE_SIZE)``: one world here
+        self.states = np.zeros((1, n, STATE_SIZE))
+        self._rows = self.states[0]
+        self.vehicles: dict[str, Vehicle] = {}
+        self.table = ParamTable()
+        for i, spec in enumerate(self.specs):
+            self.vehicles[spec.name] = Vehicle(self, cfg, spec, self._rows[i])
+        vs = list(self.vehicles.values())
+        self._pidx = np.array([self.table.add((v.spec.params,), v.packed) for v in vs], dtype=np.int64)
+        self._gains = np.stack([v.flight.se3.gains() for v in vs])
+        self._gidx = np.arange(n, dtype=np.int64)
+        self._radius = np.array([v.collision_radius for v in vs])
+        self._wake = WakeModel.of(vs)
+        # per-row scratch and outputs of the compiled steps, reused every step
+        self._cmds = np.zeros((n, 4))
+        self._flats = np.zeros((n, FLAT_SIZE))
+        self._se3 = np.zeros(n, dtype=bool)
+        self._imu = np.zeros((n, OUTPUT_SIZE))
+        self._hit = np.zeros(n, dtype=bool)
+        self._active = np.ones(n, dtype=bool)
+        self._work, self._R = work_arrays(n)
+        self._Rc = np.zeros((n, 3, 3))
+        #: the flight controller's command count when its vehicle's command was last computed
+        self._version = np.full(n, -1, dtype=np.int64)
+        self._period_start = np.zeros((n, STATE_SIZE))
+        self.control_period_ns = round(NS / cfg.vehicle.control_hz)
+        self.camera_period_ns = round(NS / cfg.render.camera_hz)
+        self._substep = 1.0 / (cfg.vehicle.control_hz * cfg.vehicle.substeps)
+        self.render_enabled = render
+        self.camera_schedule = render or external_cameras
+        self.renderer = None
+        self.scene: Scene
+        self.t_ns = 0
+        self._load_scene(cfg.scene, cfg.seed)
+        self.reset()
+
+    # ------------------------------------------------------------------ setup
+    def _load_scene(self, name: str, seed: int) -> None:
+        self.scene = get_scene(name, seed)
+        if self.renderer is not None:
+            self.renderer.close()
+            self.renderer = None
+        if self.render_enabled:
+            from droneulator.render import Renderer
+
+            rc = self.config.render
+            rigs = {v.name: v.cameras for v in self.vehicles.values()}
+            meshes: dict[str, MeshPart] = {}  # one per airframe; alone, a vehicle never sees its own body
+            bodies = {
+                v.name: meshes.setdefault(v.spec.params, vehicle_mesh(v.quad_params))
+                for v in self.vehicles.values()
+                if len(self.vehicles) > 1
+            }
+            self.renderer = Renderer(
+                self.scene, rigs=rigs, bodies=bodies, shadows=rc.shadows, shadow_map_size=rc.shadow_map_size
+            )
+
+    @property
+    def vehicle_list(self) -> list[Vehicle]:
+        return list(self.vehicles.values())
+
+    def vehicle(self, name: str | None = None) -> Vehicle:
+        """The vehicle called ``name`` (the first one for None); an unknown name is a CommandError."""
+        if name is None:
+            return next(iter(self.vehicles.values()))
+        try:
+            return self.vehicles[name]
+        except KeyError:
+            known = ", ".join(self.vehicles)
+            raise CommandError("invalid_argument", f"no vehicle {name!r}; the vehicles are {known}") from None
+
+    def spawns(self) -> list[tuple[np.ndarray, float]]:
+        """Each vehicle's start (position, yaw): its spec's, or the scene's spawn pattern."""
+        points = self.scene.spawn_points(len(self.specs))
+        return [
+            (
+                np.asarray(spec.spawn if spec.spawn is not None else points[i], dtype=float),
+                self.scene.spawn_yaw if spec.yaw is None else float(spec.yaw),
+            )
+            for i, spec in enumerate(self.specs)
+        ]
+
+    def reset(
+        self,
+        seed: int | None = None,
+        position: np.ndarray | None = None,
+        yaw: float | None = None,
+        scene: str | None = None,
+        airborne: bool | None = None,
+        vehicle: str | None = None,
+    ) -> VehicleState:
+        """Restart at t = 0: every vehicle at its start (on the ground), the first one (or ``vehicle``) at
+        ``position`` / ``yaw`` if given. A position above the ground starts hovering there (mode ``hold``)
+        unless ``airborne=False``. Returns that vehicle's state."""
+        target = self.vehicle(vehicle)
+        if scene is not None or (seed is not None and seed != self.config.seed):
+            new = (scene or self.config.scene, self.config.seed if seed is None else seed)
+            self._load_scene(*new)  # raises for an unknown scene before anything changes
+            self.config.scene, self.config.seed = new
+        starts = dict(zip(self.vehicles, self.spawns(), strict=True))
+        if position is not None or yaw is not None:
+            pos, yaw0 = starts[target.name]
+            starts[target.name] = (
+                pos if position is None else np.asarray(position),
+                yaw0 if yaw is None else yaw,
+            )
+        # the ROS clock never runs backwards: a reset continues it one control period after the last stamp
+        self._stamp_base_ns = self.stamp_ns + self.control_period_ns if hasattr(self, "_stamp_base_ns") else 0
+        self.t_ns = 0
+        self._next_frame_ns = self.camera_period_ns
+        self.frame_count = 0
+        for v in self.vehicles.values():
+            pos, heading = starts[v.name]
+            v.place(pos, float(heading), airborne if v is target else None)
+        return target.state
+
+    # ------------------------------------------------------------------ clocks
+    @property
+    def t(self) -> float:
+        return self.t_ns / NS
+
+    @property
+    def stamp_ns(self) -> int:
+        """The monotonic sim clock (ns): ``t_ns`` plus the time of every earlier episode."""
+        return self._stamp_base_ns + self.t_ns
+
+    def states_now(self) -> dict[str, VehicleState]:
+        return {name: v.state for name, v in self.vehicles.items()}
+
+    # ------------------------------------------------------------------ stepping
+    def step(self, n: int = 1) -> StepResult:
+        """Advance ``n`` control periods; returns the frames rendered and events raised meanwhile."""
+        out = StepResult()
+        dt = self.control_period_ns / NS
+        vs = self.vehicle_list
+        rows, cmds, flats = self._rows, self._cmds, self._flats
+        parallel = len(vs) >= PARALLEL_ROWS
+        for _ in range(n):
+            t = self.t
+            for i, v in enumerate(vs):
+                if v.flight.steady and self._version[i] == v.flight.version:
+                    continue  # holding or motors off, no new command: the reference or command stands
+                cmd, ref, events = v.flight.update(rows[i], t, dt)
+                for e in events:
+                    e.vehicle = v.name
+                out.events.extend(events)
+                v._reference = ref
+                self._se3[i] = cmd is None
+                if cmd is None:
+                    flats[i] = ref
+                else:
+                    cmds[i] = cmd
+                self._version[i] = v.flight.version
+            if self._se3.any():
+                se3_rows(rows, flats, self._se3, self._gains, self._gidx, cmds, self._Rc, parallel)
+            for i, v in enumerate(vs):
+                rows[i, STATE.wind] = v.wind.update(t, rows[i, STATE.x])
+            if self._wake.active:
+                downwash(rows, self._wake)
+            self._imu[:] = 0.0
+            self._period_start[:] = rows
+            t_start = t
+            t_end = self.t_ns + self.control_period_ns
+            while self.t_ns < t_end:
+                t_next = min(t_end, self._next_frame_ns) if self.camera_schedule else t_end
+                h = (t_next - self.t_ns) / NS
+                for i, v in enumerate(vs):
+                    self._active[i] = v.flight.mode != Mode.COLLIDED
+                self._hit[:] = False
+                col = self.scene.collision
+                n_sub = substeps(h, self._substep)
+                integrate_rows(
+                    rows, cmds, self._active, h, n_sub, self.table, self._pidx, col.sdf, col.origin,
+                    col.resolution, self._radius, self._imu, self._hit, self._work, self._R,
+                )  # fmt: skip
+                for i in np.flatnonzero(self._hit):
+                    out.events.append(vs[i].on_collision())
+                self.t_ns = t_next
+                if self.camera_schedule and self.t_ns == self._next_frame_ns:
+                    if self.renderer is not None:
+                        out.frames.append(self.render())
+                    else:
+                        out.camera_states.append(self.states_now())
+                    self.frame_count += 1
+                    self._next_frame_ns += self.camera_period_ns
+            if len(vs) > 1:
+                self._vehicle_contacts(vs, out.events)
+            for i, v in enumerate(vs):
+                v.finish_period(self._imu[i], dt, t_start, out.events)
+        return out
+
+    def _vehicle_contacts(self, vs: list[Vehicle], events: list[Event]) -> None:
+        """Vehicles whose bodies overlap stop where they were at the start of the period (both)."""
+        rows = self._rows
+        pairs = contacts(rows[:, 0:3], self._radius, self._active)
+        for a, b in pairs:
+            for i in (a, b):
+                rows[i] = self._period_start[i]
+            vs[a].on_collision(with_=vs[b].name)
+            vs[b].on_collision(with_=vs[a].name)
+            mid = 0.5 * (rows[a, STATE.x] + rows[b, STATE.x])
+            names = [vs[a].name, vs[b].name]
+            events.append(Event("collision", self.t, {"position": mid.tolist(), "vehicles": names}, names[0]))
+
+    def run(self, seconds: float) -> StepResult:
+        """Step for ``seconds`` of simulated time, collecting frames and events."""
+        return self.step(max(1, round(seconds * NS / self.control_period_ns)))
+
+    def run_until(self, predicate: Any, timeout: float, events: list[Event] | None = None) -> bool:
+        """Step until ``predicate(world)`` holds or ``timeout`` sim seconds pass; events are appended."""
+        end = self.t_ns + round(timeout * NS)
+        while self.t_ns < end:
+            res = self.step()
+            if events is not None:
+                events.extend(res.events)
+            if predicate(self):
+                return True
+        return False
+
+    # ------------------------------------------------------------------ rendering
+    def render(self) -> FrameSet:
+        """Render every camera of every vehicle from the current states in one call (also usable outside
+        the camera schedule). The images are copies the caller owns."""
+        if self.renderer is None:
+            raise RuntimeError("this World was created with render=False")
+        states = self.states_now()
+        drawn = self.renderer.render_rigs({name: st.T_world_body for name, st in states.items()})
+        cams = {
+            name: {
+                cam: dataclasses.replace(
+                    f, rgb=None if f.rgb is None else f.rgb.copy(), depth=f.depth.copy(), seg=f.seg.copy()
+                )
+                for cam, f in frames_.items()
+            }
+            for name, frames_ in drawn.items()
+        }
+        return FrameSet(self.t_ns, states, cams)
+
+    def close(self) -> None:
+        if self.renderer is not None:
+            self.renderer.close()
+            self.renderer = None
+
+    def __enter__(self) -> World:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
