@@ -1,0 +1,100 @@
+"""What several commands share: the configuration options and their loading, the bag options and report."""
+
+from __future__ import annotations
+
+import argparse
+
+from droneulator.config import SimConfig
+from droneulator.runtime import preflight
+from droneulator.runtime.preflight import StartupError
+
+#: commands the PyInstaller bundle leaves out (torch, pycolmap), with the pip extra each needs
+PIP_ONLY = {"train": "rl", "evaluate": "rl", "reconstruct": "colmap"}
+#: the Zenoh endpoint of a run's bridge by default (bridge.listen)
+DEFAULT_ZENOH = "tcp/127.0.0.1:7448"
+
+
+def add_file_args(p: argparse.ArgumentParser, example: str) -> None:
+    """``--config FILE`` and repeatable ``--set KEY=VALUE`` (applied in that order over the defaults)."""
+    p.add_argument("--config", default=None, help="JSON or TOML file with SimConfig fields")
+    p.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help=f"override one option, e.g. {example}",
+    )
+
+
+def add_config_args(p: argparse.ArgumentParser, scene_default: str | None = None) -> None:
+    """``--scene``, ``--seed`` and the file arguments: what :func:`config_from_args` reads."""
+    p.add_argument("--scene", default=scene_default, help="scene name (see `droneulator scenes`)")
+    p.add_argument("--seed", type=int, default=None, help="scene and noise seed (default 0)")
+    add_file_args(p, "--set render.shadows=false --set vehicle.params=crazyflie")
+
+
+def add_rl_config_args(p: argparse.ArgumentParser) -> None:
+    """``--scene-seed`` and the file arguments of ``train`` and ``evaluate``."""
+    p.add_argument("--scene-seed", type=int, default=None, help="vineyard scene seed (default 0)")
+    add_file_args(p, "--set rl.heading=goal --set rl.safety_margin=0.4")
+
+
+def config_from_args(args: argparse.Namespace) -> SimConfig:
+    """The configuration of :func:`add_config_args`'s options, checked (a :class:`StartupError`)."""
+    return preflight.load(args.config, args.overrides, scene=args.scene, seed=args.seed)
+
+
+def simulation_config(args: argparse.Namespace) -> SimConfig:
+    """The config of an in-process simulator (snapshot, demo), checked with its output folder and EGL."""
+    cfg = config_from_args(args)
+    preflight.check_simulation(cfg)
+    preflight.check_output_dir(args.out)
+    preflight.check_egl()
+    return cfg
+
+
+def add_compression_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--compression",
+        choices=("zstd", "lz4", "none"),
+        default="zstd",
+        help="MCAP chunk compression of the bag (default zstd)",
+    )
+
+
+def add_key_mode_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--key-mode", choices=("ros2dds", "rmw_zenoh"), default="ros2dds", help="the run's bridge.key_mode"
+    )
+    p.add_argument("--domain-id", type=int, default=0, help="rmw_zenoh key mode: the ROS domain id")
+    p.add_argument(
+        "--ros2dds-namespace", default="/", help="ros2dds key mode: the run's bridge.ros2dds_namespace"
+    )
+
+
+def check_bag_output(path: str, option: str) -> None:
+    """A bag that cannot be written at ``path`` is a usage error naming ``option``."""
+    from droneulator.recording.bag import check_output
+
+    try:
+        check_output(path)
+    except ValueError as exc:
+        raise StartupError(f"{option}: {exc}", preflight.USAGE) from None
+
+
+def report_recording(stats: object) -> None:
+    """Print what a recorder wrote (its ``close()``): messages per topic, and the topics left out."""
+    from droneulator.recording.recorder import RecordingStats
+
+    assert isinstance(stats, RecordingStats)
+    total = sum(stats.written.values())
+    print(
+        f"recorded {total} messages on {len(stats.written)} topics to {stats.path} "
+        f"({stats.bytes / 1e6:.1f} MB)",
+        flush=True,
+    )
+    for topic, n in sorted(stats.written.items()):
+        print(f"  {n:8d}  {topic}", flush=True)
+    for topic, n in sorted(stats.untyped.items()):
+        print(f"  {n:8d}  {topic}  NOT RECORDED: its type was never announced", flush=True)

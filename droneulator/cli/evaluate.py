@@ -1,0 +1,60 @@
+"""``droneulator evaluate``: a trained policy rolled out on held-out seeds (needs the rl extra)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from droneulator.cli.common import add_rl_config_args
+from droneulator.runtime import preflight
+
+
+def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "evaluate",
+        help="evaluate a trained policy on held-out seeds; writes evaluation.json and the paper's figures",
+        description="Roll the policy out (deterministic actions) on seeds not used in training and write "
+        "evaluation.json, trajectories.png and training_curves.png (from the run's monitor.csv).",
+    )
+    p.add_argument("model", help="model .zip written by `droneulator train`, or its run folder")
+    p.add_argument("--episodes", type=int, default=10, help="episodes (default 10)")
+    p.add_argument("--seed", type=int, default=1_000_000, help="first evaluation seed (default 1000000)")
+    p.add_argument("--out", default=None, help="output folder (default: the model's folder)")
+    p.add_argument("--logs", default=None, help="training run folder for the curves (default: the model's)")
+    p.add_argument("--stochastic", action="store_true", help="sample actions instead of the policy mean")
+    p.add_argument("--url", default=None, help="evaluate against a running `droneulator run` at this URL")
+    p.add_argument("--zenoh", default=None, help="with --url: Zenoh endpoint of its bridge")
+    add_rl_config_args(p)
+    p.set_defaults(func=cmd_evaluate)
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from droneulator.workflows.rl.evaluate import evaluate, load_run_config, resolve_model
+
+    model = resolve_model(args.model)
+    cfg = load_run_config(model)
+    if args.config or args.overrides or args.scene_seed is not None:
+        base = model.parent / "config.json"
+        cfg = preflight.load(
+            args.config or (base if base.exists() else None), args.overrides, seed=args.scene_seed
+        )
+    summary = evaluate(
+        model,
+        episodes=args.episodes,
+        seed=args.seed,
+        out=Path(args.out) if args.out else None,
+        cfg=cfg,
+        logs=Path(args.logs) if args.logs else None,
+        mode="remote" if args.url else "local",
+        url=args.url,
+        zenoh=args.zenoh,
+        deterministic=not args.stochastic,
+    )
+    for i, e in enumerate(summary["per_episode"]):
+        print(
+            f"episode {i} (seed {e['seed']}): {e['termination']:13s} {e['sim_time_s']:6.1f} s "
+            f"return {e['return']:7.1f}  path {e['shortest_path_m']:5.1f} m  flown {e['flown_m']:5.1f} m"
+        )
+    where = Path(summary["figures"]["trajectories"]).parent
+    print(f"success rate {summary['successes']}/{summary['episodes']}; evaluation.json and figures: {where}")
+    return 0
