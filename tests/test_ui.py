@@ -25,8 +25,8 @@ from droneulator.config import CameraConfig, load_config
 from droneulator.imaging import depth_to_rgb
 from droneulator.runtime.launch import LaunchedRun, LaunchError, free_port, launch_run
 from droneulator.scenes import list_scenes
-from droneulator.ui.images import pack_frame, unpack_frame
 from droneulator.threads import DaemonWorker
+from droneulator.ui.images import pack_frame, unpack_frame
 
 playwright = pytest.importorskip("playwright.sync_api")
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")

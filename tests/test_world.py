@@ -233,14 +233,17 @@ def test_a_vehicle_below_another_feels_its_wake_as_the_model_says() -> None:
     assert down.thrust > 1.02 * down.quad_params["mass"] * 9.81
 
 
-def test_contacts_are_every_overlapping_pair() -> None:
+@pytest.mark.parametrize("spread", [10.0, 2000.0])  # a dense grid of cells; too thin for one: sweep and prune
+def test_contacts_are_every_overlapping_pair(spread: float) -> None:
     rng = np.random.default_rng(3)
-    pos = rng.uniform([-5, -5, 0], [5, 5, 3], (300, 3))
-    radius = rng.uniform(0.1, 0.4, 300)
-    active = rng.random(300) > 0.1
+    n = 300
+    pos = rng.uniform([-spread / 2, -spread / 2, 0], [spread / 2, spread / 2, 3], (n, 3))
+    pos[n // 2 :] = pos[: n - n // 2] + rng.normal(0.0, 0.3, (n - n // 2, 3))  # close pairs, also when thin
+    radius = rng.uniform(0.1, 0.4, n)
+    active = rng.random(n) > 0.1
     brute = sorted(
         (i, j)
-        for i, j in itertools.combinations(range(300), 2)
+        for i, j in itertools.combinations(range(n), 2)
         if active[i] and active[j] and np.linalg.norm(pos[i] - pos[j]) < radius[i] + radius[j]
     )
     assert brute and contacts(pos, radius, active) == brute

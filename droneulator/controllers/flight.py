@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
@@ -86,16 +87,20 @@ class FlightController:
         self._track_flat = np.zeros(FLAT_SIZE)
         #: land on arriving at the current goto's target (:meth:`land_at`)
         self._then_land = False
-        #: counts the commands taken: a world skipping :attr:`steady` vehicles sees when one arrives
-        self.version = 0
+        #: called on every command taken: a world skipping :attr:`steady` vehicles hears when one arrives
+        self.on_command: Callable[[], None] | None = None
 
     @property
     def airborne_modes(self) -> tuple[Mode, ...]:
         return (Mode.TAKEOFF, Mode.GOTO, Mode.HOLD, Mode.VELOCITY, Mode.TRACK, Mode.LAND, Mode.COLLIDED)
 
     # ------------------------------------------------------------------ commands
+    def _commanded(self) -> None:
+        if self.on_command is not None:
+            self.on_command()
+
     def motors_off(self) -> None:
-        self.version += 1
+        self._commanded()
         self.mode, self.trajectory, self.velocity_ref, self.target = Mode.IDLE, None, None, None
         self._then_land = False
 
@@ -110,7 +115,7 @@ class FlightController:
         mode: Mode = Mode.GOTO,
     ) -> float:
         """Start a min-snap move to ``position`` (yaw kept if None); returns the planned duration."""
-        self.version += 1
+        self._commanded()
         self._then_land = False
         yaw0 = yaw_of(s[STATE.q])
         yaw1 = yaw0 if yaw is None else float(yaw)
@@ -155,7 +160,7 @@ class FlightController:
         return duration
 
     def hold(self, s: np.ndarray, t: float) -> None:
-        self.version += 1
+        self._commanded()
         self._then_land = False
         self.trajectory = hold_trajectory(s[STATE.x].copy(), yaw_of(s[STATE.q]), t)
         self.target, self.target_yaw = s[STATE.x].copy(), yaw_of(s[STATE.q])
@@ -173,7 +178,7 @@ class FlightController:
             speed0 = float(s[STATE.v][:2] @ (c, sn)) if self.mode != Mode.COLLIDED else 0.0
             self.velocity_ref = VelocityReference(self.cfg, pos, yaw, speed=speed0)
         self.velocity_ref.command(forward, yaw_rate)
-        self.version += 1
+        self._commanded()
         self._then_land = False
         self.trajectory, self.target = None, None
         self.mode = Mode.VELOCITY
@@ -193,7 +198,7 @@ class FlightController:
         latest one (a 100 Hz planner and a faster control loop stay smooth); after
         :data:`TRACK_TIMEOUT` s without a new one, :meth:`update` switches to ``hold``.
         """
-        self.version += 1
+        self._commanded()
         f = self._setpoint
         f[0:3], f[3:6], f[6:9] = position, velocity, acceleration
         f[9], f[10] = yaw, yaw_rate
@@ -215,13 +220,13 @@ class FlightController:
 
     def external(self, rotor_speeds: np.ndarray) -> None:
         """Hand the rotors to an external controller: these speeds (rad/s, RotorPy order) until changed."""
-        self.version += 1
+        self._commanded()
         self._external[:] = rotor_speeds
         self._then_land = False
         self.mode, self.trajectory, self.velocity_ref, self.target = Mode.EXTERNAL, None, None, None
 
     def collided(self) -> None:
-        self.version += 1
+        self._commanded()
         self._then_land = False
         self.mode, self.trajectory, self.velocity_ref, self.target = Mode.COLLIDED, None, None, None
 

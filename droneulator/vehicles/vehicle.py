@@ -24,7 +24,7 @@ from droneulator.frames_numba import world_to_body
 from droneulator.scenes.base import Scene
 from droneulator.scenes.collision import sdf_lookup_many
 from droneulator.state import STATE
-from droneulator.vehicles.dynamics import GRAVITY, OUTPUT, GroundContact, hover_speed, pack_params
+from droneulator.vehicles.dynamics import GRAVITY, GroundContact, hover_speed, pack_params
 from droneulator.vehicles.params import get_params
 from droneulator.wind import make_wind
 
@@ -111,7 +111,11 @@ def _contact(cfg: SimConfig) -> GroundContact:
 class Vehicle:
     """One vehicle: ``s`` is its row of the world's state array (a view the world integrates)."""
 
-    def __init__(self, world: Surroundings, config: SimConfig, spec: VehicleSpec, row: np.ndarray) -> None:
+    def __init__(
+        self, world: Surroundings, config: SimConfig, spec: VehicleSpec, row: np.ndarray, motion: np.ndarray
+    ) -> None:
+        """``row``: the vehicle's row of the world's state array; ``motion``: its row of the world's IMU
+        means (specific force, then acceleration), both views the world writes."""
         assert spec.params is not None and spec.cameras is not None and spec.flight is not None
         self.world = world
         self.config = config
@@ -131,9 +135,7 @@ class Vehicle:
         self.wind = make_wind(config.vehicle, config.seed, 1.0 / config.vehicle.control_hz)
         self.collisions = 0
         self._reference: np.ndarray | None = None
-        #: world-frame acceleration, mean over the last control period (m/s^2)
-        self.acceleration = np.zeros(3)
-        self._specific_force = np.zeros(3)
+        self._motion = motion
 
     # ------------------------------------------------------------------ state
     @property
@@ -149,7 +151,12 @@ class Vehicle:
         """What the IMU's accelerometer measures (body FLU, m/s^2): the force per unit mass from
         thrust, drag and ground contact, gravity excluded, averaged over the last control period
         like an IMU's output filter. 9.81 up in hover and at rest on the ground, ~0 in free fall."""
-        return self._specific_force.copy()
+        return self._motion[0:3].copy()
+
+    @property
+    def acceleration(self) -> np.ndarray:
+        """World-frame acceleration, mean over the last control period (m/s^2)."""
+        return self._motion[3:6].copy()
 
     @property
     def wind_velocity(self) -> np.ndarray:
@@ -204,9 +211,9 @@ class Vehicle:
         self.flight.motors_off()
         self._reference = None
         self.collisions = 0
-        self.acceleration = np.zeros(3)
         # until the first step: what a vehicle at rest on its legs or hovering measures
-        self._specific_force = self._holding_force()
+        self._motion[0:3] = self.holding_force()
+        self._motion[3:6] = 0.0
         if pos[2] > 0.05 if airborne is None else airborne:
             s[STATE.rotor_speeds] = self.hover_speed
             self.flight.hold(s, 0.0)
@@ -394,25 +401,6 @@ class Vehicle:
             data["vehicles"] = [self.name, with_]
         return Event("collision", self.t, data, self.name)
 
-    def finish_period(self, imu: np.ndarray, dt: float, t_start: float, events: list[Event]) -> None:
-        """IMU means over the period just stepped, and an ``impact`` event for a hard touchdown."""
-        sf = imu[OUTPUT.specific_force] / dt
-        held = dt - imu[OUTPUT.elapsed]
-        if held > 1e-12:  # time not integrated (stopped against the scene) is spent held by the obstacle
-            sf += (held / dt) * self._holding_force()
-        self._specific_force = sf
-        self.acceleration = imu[OUTPUT.delta_v] / dt
-        speed = float(imu[OUTPUT.touchdown_speed])
-        if speed > self.config.vehicle.impact_speed:
-            events.append(
-                Event(
-                    "impact",
-                    t_start + float(imu[OUTPUT.touchdown_time]),
-                    {"position": imu[OUTPUT.touchdown_position].tolist(), "speed": speed},
-                    self.name,
-                )
-            )
-
-    def _holding_force(self) -> np.ndarray:
+    def holding_force(self) -> np.ndarray:
         """Specific force of the vehicle held still against gravity, in the body frame."""
         return world_to_body(self.s[STATE.q], np.array([0.0, 0.0, GRAVITY]))

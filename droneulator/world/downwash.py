@@ -33,7 +33,7 @@ import numpy as np
 
 from droneulator.frames_numba import quat_to_matrix_into
 from droneulator.state import STATE
-from droneulator.world.contact import cell_list, neighbours
+from droneulator.world.contact import cell_key, cell_list
 
 RHO = 1.225
 #: spreading rate of a round turbulent jet: its half-width grows by this much per metre downstream
@@ -86,32 +86,57 @@ class WakeModel:
 @numba.njit(cache=True)
 def _downwash(rows: np.ndarray, k_eta: np.ndarray, area: np.ndarray, out: np.ndarray) -> None:
     n = rows.shape[0]
+    zmin, zmax = rows[:, 2].min(), rows[:, 2].max()
+    if zmax - zmin < 1e-6:
+        return  # everyone at one height: nobody is below anybody
     order, keys, cells = cell_list(rows[:, 0:2], CELL)
-    near = np.empty(n, dtype=np.int64)
+    # each occupied cell once: its key, its first row in ``order``, and the lowest vehicle in it
+    starts = [0]
+    for k in range(1, n):
+        if keys[k] != keys[k - 1]:
+            starts.append(k)
+    m = len(starts)
+    ukeys = np.empty(m, dtype=np.int64)
+    first = np.empty(m + 1, dtype=np.int64)
+    lowest = np.empty(m)
+    for c in range(m):
+        first[c] = starts[c]
+        ukeys[c] = keys[starts[c]]
+    first[m] = n
+    for c in range(m):
+        lo = math.inf
+        for k in range(first[c], first[c + 1]):
+            lo = min(lo, rows[order[k], 2])
+        lowest[c] = lo
     R = np.empty((3, 3))
     for u in range(n):  # the upper vehicle: its wake onto everyone below
         w = rows[u, _W : _W + 4]
         thrust = k_eta[u] * (w[0] * w[0] + w[1] * w[1] + w[2] * w[2] + w[3] * w[3])
-        if thrust <= 0.0:
+        if thrust <= 0.0 or rows[u, 2] <= zmin:
             continue
         quat_to_matrix_into(rows[u, _Q : _Q + 4], R)
         ax, ay, az = R[0, 2], R[1, 2], R[2, 2]  # thrust axis (body z) in the world
-        m = min(neighbours(order, keys, cells, u, near), n)
-        for k in range(m):
-            lo = near[k]
-            if lo == u:
-                continue
-            dx = rows[lo, 0] - rows[u, 0]
-            dy = rows[lo, 1] - rows[u, 1]
-            dz = rows[lo, 2] - rows[u, 2]
-            z = -(dx * ax + dy * ay + dz * az)  # distance below the rotor plane, along the axis
-            if z <= 0.0:
-                continue
-            px, py, pz = dx + z * ax, dy + z * ay, dz + z * az
-            speed = wake_speed(thrust, area[u], z, math.sqrt(px * px + py * py + pz * pz))
-            out[lo, 0] -= speed * ax
-            out[lo, 1] -= speed * ay
-            out[lo, 2] -= speed * az
+        for dx_ in range(-1, 2):
+            for dy_ in range(-1, 2):
+                key = cell_key(cells[u, 0] + dx_, cells[u, 1] + dy_)
+                c = np.searchsorted(ukeys, key)
+                if c >= m or ukeys[c] != key or lowest[c] >= rows[u, 2]:
+                    continue  # an empty cell, or nobody in it lower than the upper vehicle
+                for k in range(first[c], first[c + 1]):
+                    lo = order[k]
+                    if lo == u:
+                        continue
+                    dx = rows[lo, 0] - rows[u, 0]
+                    dy = rows[lo, 1] - rows[u, 1]
+                    dz = rows[lo, 2] - rows[u, 2]
+                    z = -(dx * ax + dy * ay + dz * az)  # distance below the rotor plane, along the axis
+                    if z <= 0.0:
+                        continue
+                    px, py, pz = dx + z * ax, dy + z * ay, dz + z * az
+                    speed = wake_speed(thrust, area[u], z, math.sqrt(px * px + py * py + pz * pz))
+                    out[lo, 0] -= speed * ax
+                    out[lo, 1] -= speed * ay
+                    out[lo, 2] -= speed * az
 
 
 def downwash(rows: np.ndarray, model: WakeModel) -> None:

@@ -22,6 +22,7 @@ single-vehicle face of a world.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 from dataclasses import dataclass, field
 from typing import Any
@@ -36,6 +37,7 @@ from droneulator.scenes import get_scene
 from droneulator.scenes.base import MeshPart, Scene
 from droneulator.state import FLAT_SIZE, STATE, STATE_SIZE
 from droneulator.vehicles.dynamics import (
+    OUTPUT,
     OUTPUT_SIZE,
     PARALLEL_ROWS,
     ParamTable,
@@ -102,13 +104,18 @@ class World:
         self._rows = self.states[0]
         self.vehicles: dict[str, Vehicle] = {}
         self.table = ParamTable()
+        #: each vehicle's IMU means over the last period: specific force (body), acceleration (world)
+        self._motion = np.zeros((n, 6))
         for i, spec in enumerate(self.specs):
-            self.vehicles[spec.name] = Vehicle(self, cfg, spec, self._rows[i])
+            self.vehicles[spec.name] = Vehicle(self, cfg, spec, self._rows[i], self._motion[i])
         vs = list(self.vehicles.values())
         self._pidx = np.array([self.table.add((v.spec.params,), v.packed) for v in vs], dtype=np.int64)
         self._gains = np.stack([v.flight.se3.gains() for v in vs])
         self._gidx = np.arange(n, dtype=np.int64)
         self._radius = np.array([v.collision_radius for v in vs])
+        self._impact_speed = cfg.vehicle.impact_speed
+        #: no wind model: every vehicle's wind is zero (but for the wakes), set at once
+        self._still_air = cfg.vehicle.wind == "none"
         self._wake = WakeModel.of(vs)
         # per-row scratch and outputs of the compiled steps, reused every step
         self._cmds = np.zeros((n, 4))
@@ -119,8 +126,11 @@ class World:
         self._active = np.ones(n, dtype=bool)
         self._work, self._R = work_arrays(n)
         self._Rc = np.zeros((n, 3, 3))
-        #: the flight controller's command count when its vehicle's command was last computed
-        self._version = np.full(n, -1, dtype=np.int64)
+        #: vehicles whose command must be computed next period: not :attr:`FlightController.steady`, or
+        #: commanded since (each flight controller reports its commands); the others keep theirs
+        self._busy: set[int] = set(range(n))
+        for i, v in enumerate(vs):
+            v.flight.on_command = functools.partial(self._busy.add, i)
         self._period_start = np.zeros((n, STATE_SIZE))
         self.control_period_ns = round(NS / cfg.vehicle.control_hz)
         self.camera_period_ns = round(NS / cfg.render.camera_hz)
@@ -170,13 +180,14 @@ class World:
 
     def spawns(self) -> list[tuple[np.ndarray, float]]:
         """Each vehicle's start (position, yaw): its spec's, or the scene's spawn pattern."""
-        points = self.scene.spawn_points(len(self.specs))
+        unplaced = [spec for spec in self.specs if spec.spawn is None]
+        points = iter(self.scene.spawn_points(len(unplaced)) if unplaced else [])
         return [
             (
-                np.asarray(spec.spawn if spec.spawn is not None else points[i], dtype=float),
+                np.asarray(spec.spawn if spec.spawn is not None else next(points), dtype=float),
                 self.scene.spawn_yaw if spec.yaw is None else float(spec.yaw),
             )
-            for i, spec in enumerate(self.specs)
+            for spec in self.specs
         ]
 
     def reset(
@@ -236,9 +247,8 @@ class World:
         parallel = len(vs) >= PARALLEL_ROWS
         for _ in range(n):
             t = self.t
-            for i, v in enumerate(vs):
-                if v.flight.steady and self._version[i] == v.flight.version:
-                    continue  # holding or motors off, no new command: the reference or command stands
+            for i in sorted(self._busy):
+                v = vs[i]
                 cmd, ref, events = v.flight.update(rows[i], t, dt)
                 for e in events:
                     e.vehicle = v.name
@@ -249,24 +259,28 @@ class World:
                     flats[i] = ref
                 else:
                     cmds[i] = cmd
-                self._version[i] = v.flight.version
+                self._active[i] = v.flight.mode != Mode.COLLIDED
+                if v.flight.steady:  # holding or motors off: this command stands until the next one
+                    self._busy.discard(i)
             if self._se3.any():
                 se3_rows(rows, flats, self._se3, self._gains, self._gidx, cmds, self._Rc, parallel)
-            for i, v in enumerate(vs):
-                rows[i, STATE.wind] = v.wind.update(t, rows[i, STATE.x])
+            if self._still_air:
+                rows[:, STATE.wind] = 0.0
+            else:
+                for i, v in enumerate(vs):
+                    rows[i, STATE.wind] = v.wind.update(t, rows[i, STATE.x])
             if self._wake.active:
                 downwash(rows, self._wake)
             self._imu[:] = 0.0
-            self._period_start[:] = rows
+            if len(vs) > 1:
+                self._period_start[:] = rows
             t_start = t
             t_end = self.t_ns + self.control_period_ns
+            col = self.scene.collision
             while self.t_ns < t_end:
                 t_next = min(t_end, self._next_frame_ns) if self.camera_schedule else t_end
                 h = (t_next - self.t_ns) / NS
-                for i, v in enumerate(vs):
-                    self._active[i] = v.flight.mode != Mode.COLLIDED
                 self._hit[:] = False
-                col = self.scene.collision
                 n_sub = substeps(h, self._substep)
                 integrate_rows(
                     rows, cmds, self._active, h, n_sub, self.table, self._pidx, col.sdf, col.origin,
@@ -274,6 +288,7 @@ class World:
                 )  # fmt: skip
                 for i in np.flatnonzero(self._hit):
                     out.events.append(vs[i].on_collision())
+                    self._active[i] = False
                 self.t_ns = t_next
                 if self.camera_schedule and self.t_ns == self._next_frame_ns:
                     if self.renderer is not None:
@@ -284,9 +299,24 @@ class World:
                     self._next_frame_ns += self.camera_period_ns
             if len(vs) > 1:
                 self._vehicle_contacts(vs, out.events)
-            for i, v in enumerate(vs):
-                v.finish_period(self._imu[i], dt, t_start, out.events)
+            self._finish_period(vs, dt, t_start, out.events)
         return out
+
+    def _finish_period(self, vs: list[Vehicle], dt: float, t_start: float, events: list[Event]) -> None:
+        """Every vehicle's IMU means over the period just stepped, and ``impact`` events for hard
+        touchdowns."""
+        imu = self._imu
+        sf = imu[:, OUTPUT.specific_force] / dt
+        held = dt - imu[:, OUTPUT.elapsed]
+        for i in np.flatnonzero(held > 1e-12):  # time not integrated (stopped) is spent held by the obstacle
+            sf[i] += (held[i] / dt) * vs[i].holding_force()
+        self._motion[:, 0:3] = sf
+        self._motion[:, 3:6] = imu[:, OUTPUT.delta_v] / dt
+        for i in np.flatnonzero(imu[:, OUTPUT.touchdown_speed] > self._impact_speed):
+            where = imu[i, OUTPUT.touchdown_position].tolist()
+            speed = float(imu[i, OUTPUT.touchdown_speed])
+            events.append(Event("impact", t_start + float(imu[i, OUTPUT.touchdown_time]),
+                                {"position": where, "speed": speed}, vs[i].name))  # fmt: skip
 
     def _vehicle_contacts(self, vs: list[Vehicle], events: list[Event]) -> None:
         """Vehicles whose bodies overlap stop where they were at the start of the period (both)."""
@@ -297,6 +327,7 @@ class World:
                 rows[i] = self._period_start[i]
             vs[a].on_collision(with_=vs[b].name)
             vs[b].on_collision(with_=vs[a].name)
+            self._active[a] = self._active[b] = False
             mid = 0.5 * (rows[a, STATE.x] + rows[b, STATE.x])
             names = [vs[a].name, vs[b].name]
             events.append(Event("collision", self.t, {"position": mid.tolist(), "vehicles": names}, names[0]))
