@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import socket
 import subprocess
@@ -346,3 +347,42 @@ def test_reconstruct_help_states_the_dense_scale_default() -> None:
     sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
     action = next(a for a in sub.choices["reconstruct"]._actions if a.dest == "dense_scale")
     assert action.default is None and f"{MvsOptions().scale}" in action.help
+
+
+# --------------------------------------------------------------------------- --vehicles N
+def test_vehicles_shorthand_names_a_fleet_that_inherits_the_single_vehicle_sections() -> None:
+    out = droneulator("config", "--vehicles", "3", "--set", "vehicle.params=crazyflie")
+    assert out.code == 0, out.stderr
+    cfg = json.loads(out.stdout)
+    assert [v["name"] for v in cfg["vehicles"]] == ["uav0", "uav1", "uav2"]
+    assert all(v["params"] is None and v["spawn"] is None for v in cfg["vehicles"])
+    specs = load_config(overrides=["vehicle.params=crazyflie", f"vehicles={json.dumps(cfg['vehicles'])}"])
+    assert [s.params for s in specs.vehicle_specs()] == ["crazyflie"] * 3
+
+
+@pytest.mark.parametrize(
+    ("args", "needles"),
+    [
+        (("--vehicles", "0"), ("--vehicles 0", "at least one")),
+        (("--vehicles", "2", "--set", 'vehicles=[{"name": "a"}]'), ("--vehicles 2", "'vehicles' list")),
+        (("--vehicles", "2000"), ("room near its spawn", "not 2000")),
+    ],
+)
+def test_bad_vehicle_count(args: tuple[str, ...], needles: tuple[str, ...], tmp_path: Path) -> None:
+    out = droneulator("snapshot", "--out", str(tmp_path / "out"), *args)
+    assert_one_line_error(out, 2, *needles)
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+def test_snapshot_of_a_fleet_writes_each_vehicles_cameras_from_its_own_start(tmp_path: Path) -> None:
+    out = droneulator("snapshot", "--vehicles", "2", "--out", str(tmp_path), "--set", "render.shadows=false")
+    assert out.code == 0, out.stderr
+    optical = {}
+    for name in ("uav0", "uav1"):
+        files = {p.name for p in (tmp_path / name).iterdir()}
+        assert {"front_rgb.png", "front_depth.npy", "front_seg_ids.png", "front_camera_info.json"} <= files
+        info = json.loads((tmp_path / name / "front_camera_info.json").read_text())
+        optical[name] = info["optical_position"]
+    (x0, y0, z0), (x1, y1, z1) = optical.values()
+    assert math.hypot(x1 - x0, y1 - y0) >= 2.0 - 1e-9  # the scene's spawn pattern: 2 m apart
+    assert z0 == pytest.approx(z1)

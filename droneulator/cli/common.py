@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from droneulator.config import SimConfig
+from droneulator.config import SimConfig, fleet
 from droneulator.runtime import preflight
 from droneulator.runtime.preflight import StartupError
 
@@ -27,10 +27,22 @@ def add_file_args(p: argparse.ArgumentParser, example: str) -> None:
     )
 
 
-def add_config_args(p: argparse.ArgumentParser, scene_default: str | None = None) -> None:
-    """``--scene``, ``--seed`` and the file arguments: what :func:`config_from_args` reads."""
+def add_config_args(
+    p: argparse.ArgumentParser, scene_default: str | None = None, fleet: bool = False
+) -> None:
+    """``--scene``, ``--seed`` and the file arguments: what :func:`config_from_args` reads; ``fleet``:
+    also ``--vehicles N``, for the commands that handle a world of several vehicles."""
     p.add_argument("--scene", default=scene_default, help="scene name (see `droneulator scenes`)")
     p.add_argument("--seed", type=int, default=None, help="scene and noise seed (default 0)")
+    if fleet:
+        p.add_argument(
+            "--vehicles",
+            type=int,
+            default=None,
+            metavar="N",
+            help="N vehicles, uav0 .. uav<N-1>, on free points near the scene's spawn, each with the "
+            "single-vehicle sections' settings (default: the config's 'vehicles' list, or one)",
+        )
     add_file_args(p, "--set render.shadows=false --set vehicle.params=crazyflie")
 
 
@@ -42,7 +54,19 @@ def add_rl_config_args(p: argparse.ArgumentParser) -> None:
 
 def config_from_args(args: argparse.Namespace) -> SimConfig:
     """The configuration of :func:`add_config_args`'s options, checked (a :class:`StartupError`)."""
-    return preflight.load(args.config, args.overrides, scene=args.scene, seed=args.seed)
+    cfg = preflight.load(args.config, args.overrides, scene=args.scene, seed=args.seed)
+    n = getattr(args, "vehicles", None)
+    if n is not None:
+        if n < 1:
+            raise StartupError(f"--vehicles {n}: need at least one vehicle", preflight.USAGE)
+        if cfg.vehicles:
+            raise StartupError(
+                f"--vehicles {n} and the config's 'vehicles' list ({len(cfg.vehicles)} named) both say "
+                "which vehicles fly: give one of them",
+                preflight.USAGE,
+            )
+        cfg.vehicles = fleet(n)
+    return cfg
 
 
 def simulation_config(args: argparse.Namespace) -> SimConfig:

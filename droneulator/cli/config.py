@@ -10,7 +10,7 @@ from droneulator.cli.common import add_config_args, config_from_args
 
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("config", help="print the effective configuration as JSON")
-    add_config_args(p)
+    add_config_args(p, fleet=True)
     p.set_defaults(func=cmd_config)
 
 

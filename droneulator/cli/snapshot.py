@@ -12,7 +12,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "snapshot", help="save RGB, depth, segmentation and camera info from a scene's spawn pose"
     )
-    add_config_args(p, "default")
+    add_config_args(p, "default", fleet=True)
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--altitude", type=float, default=1.5, help="camera height above the spawn point (m)")
     p.set_defaults(func=cmd_snapshot)

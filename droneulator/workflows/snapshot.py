@@ -1,4 +1,4 @@
-"""``droneulator snapshot``: every sensor image of every camera from a scene's spawn pose."""
+"""``droneulator snapshot``: every image of every camera (of every vehicle) from a scene's spawn pose."""
 
 from __future__ import annotations
 
@@ -61,7 +61,21 @@ def save_frames(frames: FrameSet, out: Path, prefix: str = "") -> dict[str, Path
 
 
 def snapshot(config: SimConfig, out: Path, altitude: float = 1.5) -> dict[str, Path]:
-    """Render the rig at the scene's spawn pose lifted to ``altitude`` (hovering) and save it."""
+    """Render the rig at the scene's spawn pose lifted to ``altitude`` (hovering) and save it.
+
+    With several vehicles (config ``vehicles``), each hovers ``altitude`` above its own start and its
+    images go to ``out/<vehicle>/``: every vehicle is drawn in the others' cameras."""
     with Simulator(config=config) as sim:
-        sim.reset(position=sim.scene.spawn_position + np.array([0.0, 0.0, altitude]))
-        return save_frames(sim.render(), out)
+        world = sim.world
+        if len(world.vehicles) == 1:
+            sim.reset(position=sim.scene.spawn_position + np.array([0.0, 0.0, altitude]))
+            return save_frames(sim.render(), out)
+        lift = np.array([0.0, 0.0, altitude])
+        for v, (pos, yaw) in zip(world.vehicle_list, world.spawns(), strict=True):
+            v.place(pos + lift, yaw)
+        frames = world.render()
+        written: dict[str, Path] = {}
+        for name, cams in frames.cameras.items():
+            one = FrameSet(frames.t_ns, frames.states[name], cams)
+            written.update({f"{name}/{k}": p for k, p in save_frames(one, out / name).items()})
+        return written

@@ -145,7 +145,10 @@ class World:
 
     # ------------------------------------------------------------------ setup
     def _load_scene(self, name: str, seed: int) -> None:
-        self.scene = get_scene(name, seed)
+        scene = get_scene(name, seed)
+        # a scene without room for the fleet fails here (ValueError), before anything changes
+        scene.spawn_points(sum(spec.spawn is None for spec in self.specs))
+        self.scene = scene
         if self.renderer is not None:
             self.renderer.close()
             self.renderer = None
