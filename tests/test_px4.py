@@ -41,8 +41,15 @@ def isa_hpa(alt_msl: float) -> float:
     return 1013.25 * (1.0 - 0.0065 * alt_msl / 288.15) ** 5.25588
 
 
-def make_sim(params: str) -> Simulator:
-    cfg = load_config(overrides=["vehicle.control_hz=250", f"vehicle.params={params}"])
+def make_sim(
+    params: str, px4: PX4Config | None = None, seed: int = 0, sensors: list[str] | None = None
+) -> Simulator:
+    """A 250 Hz simulator of airframe ``params`` whose vehicle's sensors read ``px4`` (noise, biases)."""
+    cfg = load_config(overrides=["vehicle.control_hz=250", f"vehicle.params={params}"], seed=seed)
+    if px4 is not None:
+        cfg.px4 = px4
+    if sensors is not None:
+        cfg.vehicle.sensors = sensors
     return Simulator(scene="default", render=False, config=cfg)
 
 
@@ -60,15 +67,13 @@ def wait_until(pred: Any, timeout: float = 5.0) -> None:
 class Served:
     """A PX4Link served from a background thread, as the dynamics server does."""
 
-    def __init__(
-        self, sim: Simulator, cfg: PX4Config | None = None, seed: int = 0, run_alone: bool = False
-    ) -> None:
+    def __init__(self, sim: Simulator, cfg: PX4Config | None = None, run_alone: bool = False) -> None:
         """``run_alone``: step the simulation while no PX4 is connected and the vehicle is not at rest
         (as the dynamics server does); otherwise time stands still without PX4."""
         self.sim = sim
         self.run_alone = run_alone
         self.lock = threading.Lock()
-        self.link = PX4Link(sim, cfg or px4_cfg(), seed=seed)
+        self.link = PX4Link(sim, cfg or px4_cfg())
         self.link.start()
         self._stop = threading.Event()
         #: the simulator's events (impact, landed, ...) from every step the link took
@@ -285,13 +290,14 @@ def test_full_scale_imu_values_fit_px4s_int16_fifo_without_wrapping(sim):
     """+16 g and +2000 deg/s are 32768 FIFO counts, one past int16: the link sends at most 32767."""
     g_scale, w_scale = 9.80665 / 2048.0, math.radians(2000.0 / 32768.0)
     assert _px4_fifo_counts([16 * 9.80665], g_scale)[0] == -32768  # what the unclipped value became
-    sim.reset()
     bias = {"accel_bias": (500.0, -500.0, 0.0), "gyro_bias": (100.0, -100.0, 0.0), "accel_noise": 0.0}
-    served = Served(sim, px4_cfg(**bias, gyro_noise=0.0))
+    biased = make_sim("px4_quadx", px4_cfg(**bias, gyro_noise=0.0))  # the vehicle's IMU reads the biases
+    served = Served(biased)
     try:
         s = first_batch(served)["HIL_SENSOR"]
     finally:
         served.close()
+        biased.close()
     accel = _px4_fifo_counts([s.xacc, s.yacc, s.zacc], g_scale)
     gyro = _px4_fifo_counts([s.xgyro, s.ygyro, s.zgyro], w_scale)
     assert accel[0] == 32767 and accel[1] == -32768  # saturated both ways, no sign flip
@@ -781,10 +787,10 @@ def test_garbage_and_bad_actuator_values_are_rejected_and_the_link_keeps_working
     peer.close()
 
 
-def test_same_seed_gives_identical_sensor_streams(sim):
+def test_same_seed_gives_identical_sensor_streams():
     def run(seed: int) -> list[bytes]:
-        sim.reset()
-        served = Served(sim, seed=seed)
+        sim = make_sim("px4_quadx", seed=seed)
+        served = Served(sim)
         peer = px4_in_the_air(served, sim.scene.spawn_position + [0.0, 0.0, 3.0])
         msgs = peer.next()
         u = float(served.link.motor_map.speed_to_output(sim.vehicle.hover_speed))
@@ -792,6 +798,7 @@ def test_same_seed_gives_identical_sensor_streams(sim):
             msgs += peer.step([u + 0.02 * math.sin(0.3 * k), u, u, u - 0.02 * math.sin(0.3 * k)])
         peer.close()
         served.close()
+        sim.close()
         return [bytes(m.get_msgbuf()) for m in msgs]
 
     a, b, c = run(5), run(5), run(6)
@@ -818,3 +825,34 @@ def test_split_frames_and_a_corrupted_copy_before_a_valid_frame_are_handled(serv
     assert peer.next()[-1].time_usec == t + 2 * STEP_US
     assert "not valid MAVLink" in caplog.text and served.link.connected
     peer.close()
+
+
+def test_a_vehicle_without_gps_sends_no_fix_and_one_without_a_magnetometer_is_refused():
+    """The link sends what the vehicle's rig carries: no GPS, no HIL_GPS; no airspeed sensor, zero
+    airspeeds; PX4 cannot fly without a magnetometer, so that rig is refused."""
+
+    def messages(sensors: list[str] | None) -> list[Any]:
+        sim = make_sim("px4_quadx", sensors=sensors)
+        sim.config.vehicle.wind, sim.config.vehicle.wind_velocity = "constant", (3.0, 0.0, 0.0)
+        sim.reset()  # in a 3 m/s breeze: a true airspeed to report
+        served = Served(sim)
+        try:
+            peer = px4_in_the_air(served, sim.scene.spawn_position + [0.0, 0.0, 3.0])
+            msgs = peer.next()
+            u = float(served.link.motor_map.speed_to_output(sim.vehicle.hover_speed))
+            for _ in range(100):  # 0.4 s: four GPS periods at 10 Hz
+                msgs += peer.step([u] * 4)
+            peer.close()
+        finally:
+            served.close()
+            sim.close()
+        return msgs
+
+    full, bare = messages(None), messages(["imu", "mag", "baro"])
+    assert len(by_type(full, "HIL_GPS")) >= 4 and not by_type(bare, "HIL_GPS")
+    assert min(m.true_airspeed for m in by_type(full, "HIL_STATE_QUATERNION")[-50:]) > 250  # cm/s
+    assert all(m.ind_airspeed == 0 == m.true_airspeed for m in by_type(bare, "HIL_STATE_QUATERNION"))
+    sim = make_sim("px4_quadx", sensors=["imu", "baro", "gps"])
+    with pytest.raises(ValueError, match="has no mag: PX4 needs imu, mag, baro"):
+        PX4Link(sim, px4_cfg())
+    sim.close()

@@ -256,3 +256,52 @@ def test_an_explicit_field_overrides_the_wmm_and_bad_values_are_named():
     for bad in ("gps_noise_m=-0.1", "gps_correlation_time_s=0", "gps_delay_s=nan", "gps_jitter_m=-1"):
         with pytest.raises((ValueError, ConfigError), match=r"px4\.gps_"):
             load_config(overrides=[f"px4.{bad}"])
+
+
+# --------------------------------------------------------------------------- a vehicle's rig
+def test_each_vehicle_carries_its_own_rig_from_its_config_table():
+    """The first vehicle's noise is the world seed's (what one vehicle read before worlds held several),
+    every other vehicle's is its own; a rig's sensors are those its config lists; a sensor left out
+    does not shift another's noise; cameras come from the camera model with their mounts."""
+    from droneulator.sensors.camera import Camera
+    from droneulator.world import World
+
+    cfg = load_config(
+        overrides=[
+            'vehicles=[{"name": "a"}, {"name": "b"}, {"name": "c", "sensors": ["imu", "baro"],'
+            ' "cameras": [{"name": "down", "rpy_deg": [0, 90, 0], "position": [0, 0, -0.05]}]}]'
+        ],
+        seed=11,
+    )
+    world = World(cfg, render=False)
+    a, b, c = (world.vehicle(n).rig for n in "abc")
+    assert a.suite.kinds == ("imu", "mag", "baro", "gps", "airspeed") and c.suite.kinds == ("imu", "baro")
+    assert list(c.cameras) == ["down"] and list(a.cameras) == [cam.name for cam in cfg.render.cameras]
+    down = c.cameras["down"]
+    assert isinstance(down, Camera)
+    np.testing.assert_allclose(down.T_body_link[:3, 3], [0, 0, -0.05])
+    np.testing.assert_allclose(down.T_body_link[:3, 0], [0, 0, -1], atol=1e-6)  # pitched to look down
+
+    truth = Truth(0, Z3, Z3, LEVEL, Z3, Z3, Z3)
+    alone = SensorSuite(cfg.px4, 11)
+    reads = [s.imu(truth)[0] for s in (alone, a.suite, b.suite, c.suite)]
+    np.testing.assert_array_equal(reads[0], reads[1])  # the first vehicle: the world's seed
+    assert not np.allclose(reads[1], reads[2])  # the others: their own streams
+    np.testing.assert_array_equal(  # c's IMU without a mag or GPS: the same stream as with them
+        reads[3], SensorSuite(cfg.px4, np.random.SeedSequence([11, 2])).imu(truth)[0]
+    )
+    with pytest.raises(KeyError):
+        c.suite.gps(truth)
+
+
+@pytest.mark.parametrize(
+    ("sensors", "message"),
+    [
+        (["imu", "lidar"], "unknown sensor kind 'lidar'; registered: airspeed, baro, camera"),
+        (["camera"], "cameras are configured under 'cameras'"),
+        (["imu", "imu"], "each kind at most once"),
+    ],
+)
+def test_a_bad_sensor_list_is_refused_with_the_kinds(sensors: list[str], message: str):
+    with pytest.raises(ValueError, match=message):
+        SensorSuite(PX4Config(), 0, sensors)

@@ -2,7 +2,7 @@
 
 Threading: the dynamics server steps the :class:`~droneulator.sim.simulator.Simulator` in its main
 thread while holding the simulation lock. Commands go through the one
-:class:`~droneulator.api.commands.CommandPath` (validation, flight lock, simulation lock), one at a
+:class:`~droneulator.commands.path.CommandPath` (validation, flight lock, simulation lock), one at a
 time in a worker thread of this server, so they never interleave with a physics step and never stall
 the event loop; ``ping`` and subscriptions are answered on the loop without the lock. The stepping
 loop pushes data with the thread-safe :meth:`ApiServer.publish_state` and

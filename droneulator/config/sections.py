@@ -78,6 +78,9 @@ class VehicleConfig:
     friction_slip_speed: float = 0.05
     #: a touchdown faster than this (m/s, downward) raises an "impact" event
     impact_speed: float = 1.5
+    #: the noisy sensors the vehicle carries (kinds of ``droneulator.sensors``; their noise and rates are
+    #: in ``px4``): PX4 needs imu, mag and baro; without gps it gets no GPS fix (as under a dense canopy)
+    sensors: list[str] = field(default_factory=lambda: ["imu", "mag", "baro", "gps", "airspeed"])
 
     def __post_init__(self) -> None:
         if self.wind not in WIND_MODELS:
@@ -376,7 +379,8 @@ _VEHICLE_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 @dataclass
 class VehicleSpec:
     """One vehicle of the world (``vehicles``). Unset fields take the single-vehicle sections' values:
-    ``params`` from ``vehicle.params``, ``cameras`` from ``render.cameras``, ``flight`` from ``flight``;
+    ``params`` from ``vehicle.params``, ``cameras`` from ``render.cameras``, ``sensors`` from
+    ``vehicle.sensors``, ``flight`` from ``flight``;
     ``spawn`` null: the scene's spawn pattern (its spawn point for the first vehicle, free points near it
     for the others), on the ground; ``yaw`` null: the scene's spawn heading."""
 
@@ -385,6 +389,7 @@ class VehicleSpec:
     spawn: tuple[float, float, float] | None = None
     yaw: float | None = None
     cameras: list[CameraConfig] | None = None
+    sensors: list[str] | None = None
     flight: FlightConfig | None = None
     controlled_by: str = "internal"
 
@@ -440,6 +445,7 @@ class SimConfig:
                 v,
                 params=v.params or self.vehicle.params,
                 cameras=list(self.render.cameras if v.cameras is None else v.cameras),
+                sensors=list(self.vehicle.sensors if v.sensors is None else v.sensors),
                 flight=v.flight or self.flight,
             )
             for v in specs

@@ -59,6 +59,7 @@ from droneulator.logs import LogThrottle
 from droneulator.px4.mixing import MotorMap
 from droneulator.sensors import SensorSuite, Truth
 from droneulator.sensors.baro import BaroSample
+from droneulator.sensors.suite import PX4_SENSORS
 
 if TYPE_CHECKING:
     import threading
@@ -162,13 +163,24 @@ class PX4Link:
     The caller owns the loop: :meth:`serve_once` accepts PX4, reads its messages and, when one
     HIL_ACTUATOR_CONTROLS arrives, steps ``sim`` once and sends the new sensor data back.
     ``base_port = 0`` listens on a free port (see :attr:`port`).
+
+    ``cfg`` holds the link's settings (address, speed factor, rates, ``on_loss``; default: the
+    simulator's ``px4`` section). What PX4 reads comes from the vehicle's sensor rig, built from the
+    simulator's config: an IMU, magnetometer and barometer it must have; without a GPS no HIL_GPS is
+    sent, without an airspeed sensor HIL_STATE_QUATERNION's airspeeds are zero.
     """
 
-    def __init__(self, sim: Simulator, cfg: PX4Config, seed: int = 0) -> None:
+    def __init__(self, sim: Simulator, cfg: PX4Config | None = None) -> None:
         self.sim = sim
-        self.cfg = cfg
+        self.cfg = cfg = sim.config.px4 if cfg is None else cfg
         self.motor_map = MotorMap(sim.quad_params, cfg.thrust_model_factor)
-        self.sensors = SensorSuite(cfg, seed)
+        self.sensors: SensorSuite = sim.vehicle.rig.suite
+        missing = [kind for kind in PX4_SENSORS if kind not in self.sensors]
+        if missing:
+            raise ValueError(
+                f"vehicle {sim.vehicle.name!r} has no {', '.join(missing)}: PX4 needs "
+                f"{', '.join(PX4_SENSORS)} (its 'sensors' list: {', '.join(self.sensors.kinds)})"
+            )
         self._tx = mavlink.MAVLink(None, SIM_SYSTEM_ID, SIM_COMPONENT_ID)
         self._listener: socket.socket | None = None
         self._listening = False
@@ -716,7 +728,7 @@ class PX4Link:
                     mavlink.MAV_TYPE_GENERIC, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE
                 )
             )
-        if self._due("gps", t_ns, self.cfg.gps_hz):
+        if "gps" in self.sensors and self._due("gps", t_ns, self.cfg.gps_hz):
             msgs.append(self._gps_message(truth, t_us))
         msgs.append(self._state_message(truth, t_us))
         msgs.append(self._sensor_message(truth, t_us))
@@ -767,7 +779,7 @@ class PX4Link:
     def _state_message(self, truth: Truth, t_us: int) -> Any:
         c = self.cfg
         lat, lon, alt = enu_to_geodetic(truth.position, c.home_lat_deg, c.home_lon_deg, c.home_alt_m)
-        ias, tas = self.sensors.airspeed(truth)
+        ias, tas = self.sensors.airspeed(truth) if "airspeed" in self.sensors else (0.0, 0.0)
         acc_mg = truth.acceleration_frd / G0 * 1000.0
         return self._tx.hil_state_quaternion_encode(
             t_us,

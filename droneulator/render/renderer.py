@@ -27,7 +27,7 @@ from PIL import Image
 from droneulator import frames
 from droneulator.config import CameraConfig
 from droneulator.scenes.base import MeshPart, Scene
-from droneulator.sensors.camera import gl_projection, intrinsics
+from droneulator.sensors.camera import Camera, gl_projection
 from droneulator.vehicles.mesh import TEXTURE as VEHICLE_TEXTURE
 from droneulator.vehicles.mesh import vehicle_texture
 
@@ -251,8 +251,9 @@ class _Target:
         self.vehicle = vehicle
         self.cam = cam
         size = (cam.width, cam.height)
-        self.K = intrinsics(cam)
-        self.T_body_link = frames.camera_mount(np.asarray(cam.position, dtype=float), cam.rpy)
+        camera = Camera(cam)
+        self.K = camera.K
+        self.T_body_link = camera.T_body_link
         self.proj = _FLIP_Y @ gl_projection(cam)
         self.color = ctx.renderbuffer(size, 4)
         self.seg_rb = ctx.renderbuffer(size, 1, dtype="u1")

@@ -5,7 +5,7 @@
   state, so odometry never waits for another process.
 * :class:`FramePublisher`: every camera's images, camera_info and optical-frame pose (the bridge process).
 * :func:`subscribe_commands`: ``/<ns>/cmd_vel``, ``/<ns>/goal_pose`` and ``/<ns>/position_cmd`` into the
-  one :class:`~droneulator.api.commands.CommandPath`, with the WebSocket API's validation and flight lock.
+  one :class:`~droneulator.commands.path.CommandPath`, with the WebSocket API's validation and flight lock.
 
 Everything is stamped with the simulator's monotonic clock (:attr:`VehicleState.stamp_ns`), which
 never runs backwards, not even across a reset.
@@ -21,7 +21,6 @@ import numpy as np
 from droneulator.frames import (
     T_link_optical,
     T_world_optical,
-    camera_mount,
     pose_from_transform,
     transform_from_pose,
     yaw_of,
@@ -31,7 +30,7 @@ from droneulator.imaging import encode_jpeg, encode_png
 from droneulator.ros import messages as M
 from droneulator.ros.topics import BASE_FRAME, MAP_FRAME, ODOM_FRAME, TYPES, optical_frame, topic_names
 from droneulator.ros.topics import vehicle_topics as _vehicle_topics
-from droneulator.sensors.camera import intrinsics
+from droneulator.sensors.camera import Camera
 
 if TYPE_CHECKING:
     import zenoh
@@ -59,7 +58,7 @@ def static_transforms(cameras: list[CameraConfig]) -> list[tuple[str, str, np.nd
     tfs = [(MAP_FRAME, ODOM_FRAME, np.zeros(3), _IDENTITY_Q)]
     for cam in cameras:
         link = f"{cam.name}_link"
-        tfs.append((BASE_FRAME, link, *pose_from_transform(camera_mount(np.array(cam.position), cam.rpy))))
+        tfs.append((BASE_FRAME, link, *pose_from_transform(Camera(cam).T_body_link)))
         tfs.append((link, optical_frame(cam.name), *pose_from_transform(T_link_optical())))
     return tfs
 
@@ -123,8 +122,8 @@ class FramePublisher:
                 k: node.publisher(names[k], TYPES[k], congestion_control=policy if k in _IMAGES else None)
                 for k in names
             }
-            mount = camera_mount(np.array(cam.position), cam.rpy)
-            self.cams.append((cam, optical_frame(cam.name), intrinsics(cam), mount, pubs))
+            camera = Camera(cam)
+            self.cams.append((cam, optical_frame(cam.name), camera.K, camera.T_body_link, pubs))
 
     def publish(self, st: VehicleState, images: dict[str, CameraImages], mark: Any = None) -> None:
         """Publish one frame set, every image stamped ``st.stamp_ns`` with its optical frame id.

@@ -11,7 +11,7 @@ published with ``DROP``.
 
 Odometry, TF and ``/clock`` leave from here, right after the physics step that produced the state
 (no process hop). ROS commands (``cmd_vel``, ``goal_pose``) arrive here too and go through the same
-:class:`~droneulator.api.commands.CommandPath` as WebSocket commands. The Zenoh session of this
+:class:`~droneulator.commands.path.CommandPath` as WebSocket commands. The Zenoh session of this
 process is the run's hub on Zenoh as well: by default a router listening on ``bridge.listen``, which
 the bridge process reaches over a private Unix socket.
 """
@@ -108,7 +108,7 @@ class DynamicsServer:
         if cfg.px4.enabled:
             from droneulator.px4.link import PX4Link
 
-            self.px4 = PX4Link(self.sim, cfg.px4, seed=cfg.seed)
+            self.px4 = PX4Link(self.sim)
 
     # ------------------------------------------------------------------ peers
     def _accept_loop(self) -> None:

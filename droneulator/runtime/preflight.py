@@ -128,7 +128,8 @@ def check_scene(name: str) -> None:
 
 
 def check_vehicle(cfg: SimConfig) -> None:
-    """The vehicle parameter set exists and the wind model's dependencies are installed."""
+    """The vehicle parameter set exists, every vehicle's sensors are known kinds (with those PX4 needs
+    when PX4 flies), and the wind model's dependencies are installed."""
     from droneulator.vehicles.params import PARAMETER_SETS
 
     if cfg.vehicle.params not in PARAMETER_SETS:
@@ -137,6 +138,20 @@ def check_vehicle(cfg: SimConfig) -> None:
             "(choose with --set vehicle.params=NAME)",
             USAGE,
         )
+    from droneulator.sensors.suite import PX4_SENSORS, check_kinds
+
+    for spec in cfg.vehicle_specs():
+        assert spec.sensors is not None
+        where = "vehicle.sensors" if not cfg.vehicles else f"vehicle {spec.name!r}: sensors"
+        try:
+            check_kinds(spec.sensors)
+        except ValueError as exc:
+            raise StartupError(f"{where}: {exc}", USAGE) from None
+        missing = [k for k in PX4_SENSORS if k not in spec.sensors]
+        if cfg.px4.enabled and missing:
+            raise StartupError(
+                f"{where}: PX4 needs {', '.join(PX4_SENSORS)}; {', '.join(missing)} missing", USAGE
+            )
     if cfg.vehicle.wind == "dryden" and importlib.util.find_spec("torch") is None:
         raise StartupError(
             "vehicle.wind=dryden needs torch: pip install 'droneulator[rl]', or choose another wind model "

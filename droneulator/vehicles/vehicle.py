@@ -17,12 +17,13 @@ from typing import Any, Protocol
 import numpy as np
 
 from droneulator.commands.errors import CommandError
-from droneulator.config import FlightConfig, SimConfig, VehicleSpec
+from droneulator.config import CameraConfig, FlightConfig, SimConfig, VehicleSpec
 from droneulator.controllers.flight import TRACK_MAX_ACCEL, Event, FlightController, Mode
 from droneulator.frames import quat_from_yaw, transform_from_pose, yaw_of
 from droneulator.frames_numba import world_to_body
 from droneulator.scenes.base import Scene
 from droneulator.scenes.collision import sdf_lookup_many
+from droneulator.sensors.rig import build_rig
 from droneulator.state import STATE
 from droneulator.vehicles.dynamics import GRAVITY, GroundContact, hover_speed, pack_params
 from droneulator.vehicles.params import get_params
@@ -112,11 +113,19 @@ class Vehicle:
     """One vehicle: ``s`` is its row of the world's state array (a view the world integrates)."""
 
     def __init__(
-        self, world: Surroundings, config: SimConfig, spec: VehicleSpec, row: np.ndarray, motion: np.ndarray
+        self,
+        world: Surroundings,
+        config: SimConfig,
+        spec: VehicleSpec,
+        row: np.ndarray,
+        motion: np.ndarray,
+        index: int = 0,
     ) -> None:
         """``row``: the vehicle's row of the world's state array; ``motion``: its row of the world's IMU
-        means (specific force, then acceleration), both views the world writes."""
+        means (specific force, then acceleration), both views the world writes; ``index``: its place
+        in the world (seeds its sensor noise)."""
         assert spec.params is not None and spec.cameras is not None and spec.flight is not None
+        assert spec.sensors is not None
         self.world = world
         self.config = config
         self.spec = spec
@@ -129,7 +138,8 @@ class Vehicle:
         self.hover_speed = hover_speed(self.packed[0])
         self.flight_config: FlightConfig = spec.flight
         self.flight = FlightController(self.quad_params, spec.flight)
-        self.cameras = spec.cameras
+        #: its cameras and noisy sensors, from its config table (:mod:`droneulator.sensors.rig`)
+        self.rig = build_rig(spec.cameras, spec.sensors, config.px4, config.seed, index)
         self.collision_radius = config.vehicle.collision_radius
         self.s = row
         self.wind = make_wind(config.vehicle, config.seed, 1.0 / config.vehicle.control_hz)
@@ -138,6 +148,10 @@ class Vehicle:
         self._motion = motion
 
     # ------------------------------------------------------------------ state
+    @property
+    def cameras(self) -> list[CameraConfig]:
+        return self.rig.camera_configs
+
     @property
     def t(self) -> float:
         return self.world.t

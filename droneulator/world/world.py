@@ -107,15 +107,13 @@ class World:
         #: each vehicle's IMU means over the last period: specific force (body), acceleration (world)
         self._motion = np.zeros((n, 6))
         for i, spec in enumerate(self.specs):
-            self.vehicles[spec.name] = Vehicle(self, cfg, spec, self._rows[i], self._motion[i])
+            self.vehicles[spec.name] = Vehicle(self, cfg, spec, self._rows[i], self._motion[i], i)
         vs = list(self.vehicles.values())
         self._pidx = np.array([self.table.add((v.spec.params,), v.packed) for v in vs], dtype=np.int64)
         self._gains = np.stack([v.flight.se3.gains() for v in vs])
         self._gidx = np.arange(n, dtype=np.int64)
         self._radius = np.array([v.collision_radius for v in vs])
         self._impact_speed = cfg.vehicle.impact_speed
-        #: no wind model: every vehicle's wind is zero (but for the wakes), set at once
-        self._still_air = cfg.vehicle.wind == "none"
         self._wake = WakeModel.of(vs)
         # per-row scratch and outputs of the compiled steps, reused every step
         self._cmds = np.zeros((n, 4))
@@ -225,6 +223,8 @@ class World:
         for v in self.vehicles.values():
             pos, heading = starts[v.name]
             v.place(pos, float(heading), airborne if v is target else None)
+        #: no wind model: every vehicle's wind is zero (but for the wakes), set at once
+        self._still_air = self.config.vehicle.wind == "none"
         return target.state
 
     # ------------------------------------------------------------------ clocks
