@@ -200,11 +200,18 @@ def test_bad_config_file(command: str, kind: str, tmp_path: Path) -> None:
         ("vehicle.wind=gale", ("vehicle.wind", "dryden")),
         ("vehicle.params=zeppelin", ("vehicle parameter set 'zeppelin'", "hummingbird", "vehicle.params")),
         ("no_equals_sign", ("section.key=value",)),
+        ('vehicle.sensors=["imu", "lidar"]', ("vehicle.sensors", "unknown sensor kind 'lidar'")),
+        ('vehicles=[{"name": "a", "sensors": ["camera"]}]', ("vehicle 'a': sensors", "under 'cameras'")),
     ],
 )
 def test_bad_set_value(override: str, needles: tuple[str, ...]) -> None:
     out = droneulator("run", *FREE_PORTS, "--set", override)
     assert_one_line_error(out, 2, *needles)
+
+
+def test_a_px4_vehicle_without_a_magnetometer_is_caught_before_the_children() -> None:
+    out = droneulator("run", *FREE_PORTS, "--px4", "--set", 'vehicle.sensors=["imu", "baro", "gps"]')
+    assert_one_line_error(out, 2, "vehicle.sensors", "PX4 needs imu, mag, baro", "mag missing")
 
 
 def test_px4_instance_out_of_range_is_caught_before_the_children() -> None:
