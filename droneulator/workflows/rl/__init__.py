@@ -2,6 +2,8 @@
 
 * :mod:`.env` is the Gymnasium environment ``droneulator/VineyardNav-v0``, stepping the in-process
   simulator in lockstep, one step per camera frame;
+* :mod:`.multi` is the PettingZoo parallel environment ``droneulator_vineyard_nav_v0``: the same task
+  for N vehicles sharing one world;
 * :mod:`.remote` is the same environment driving a running ``droneulator run`` over WebSocket and Zenoh;
 * :mod:`.backend` holds what both share (scene, camera, the state an observation needs);
 * :mod:`.astar` holds the occupancy grid, A* and the per-episode goal distance field of the reward;

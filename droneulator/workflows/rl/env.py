@@ -33,6 +33,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -125,45 +126,27 @@ class LocalBackend:
         self.sim.close()
 
 
-class VineyardNavEnv(gym.Env[np.ndarray, np.ndarray]):
-    """Vineyard point-to-point navigation (see the module docstring for spaces, reward and episodes).
+class NavTask:
+    """One vehicle's navigation task: the spaces, the action mapping, the observation, task sampling and
+    the reward and termination of a step, with that vehicle's episode state.
 
-    ``config``: a :class:`SimConfig` (its ``rl`` section and vehicle/flight settings are used);
-    ``mode``: "local" or "remote" (then ``url`` of the WebSocket API and ``zenoh`` endpoint of the
-    bridge); further keyword arguments replace fields of ``config.rl``.
+    Kept apart from any backend so that :class:`VineyardNavEnv` (which is one) and
+    :class:`~droneulator.workflows.rl.multi.VineyardNavParallelEnv` (which holds one per vehicle) share
+    every rule of the task.
     """
 
-    metadata = {"render_modes": [], "render_fps": 30}
-
-    def __init__(
-        self,
-        config: SimConfig | None = None,
-        mode: str = "local",
-        url: str | None = None,
-        zenoh: str | None = None,
-        **rl_overrides: Any,
-    ) -> None:
-        super().__init__()
-        self.config = env_config(config, **rl_overrides)
-        self.rl = self.config.rl
-        self.mode = mode
-        if mode == "local":
-            self.backend: Backend = LocalBackend(self.config)
-        elif mode == "remote":
-            from droneulator.workflows.rl.remote import RemoteBackend
-
-            self.backend = RemoteBackend(self.config, url or "ws://127.0.0.1:8765", zenoh)
-        else:
-            raise ValueError(f"mode must be 'local' or 'remote', got {mode!r}")
-        self.scene = self.backend.scene
-        self.grid = occupancy_grid(self.scene, self.rl, self.config.vehicle.collision_radius)
-        self.frame_dt = 1.0 / self.config.render.camera_hz
+    def __init__(self, config: SimConfig, scene: Scene) -> None:
+        self.config = config
+        self.rl = config.rl
+        self.scene = scene
+        self.grid = occupancy_grid(scene, self.rl, config.vehicle.collision_radius)
+        self.frame_dt = 1.0 / config.render.camera_hz
         low = np.concatenate([np.zeros(STRIP_SAMPLES), -np.ones(3)]).astype(np.float32)
         self.observation_space = gym.spaces.Box(low, np.ones(OBS_SIZE, dtype=np.float32), dtype=np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), dtype=np.float32)
         self._mid = 0.5 * (self.rl.forward_min + self.rl.forward_max)
         self._half = 0.5 * (self.rl.forward_max - self.rl.forward_min)
-        lm = self.scene.landmarks
+        lm = scene.landmarks
         rows = np.asarray(lm["row_y"], dtype=float)
         spacing = float(rows[1] - rows[0]) if len(rows) > 1 else 3.0
         self.lanes = np.sort(np.concatenate([lm["alley_y"], [rows[0] - spacing / 2, rows[-1] + spacing / 2]]))
@@ -189,6 +172,13 @@ class VineyardNavEnv(gym.Env[np.ndarray, np.ndarray]):
         a = [(forward - self._mid) / self._half, yaw_rate / self.rl.max_yaw_rate]
         return np.clip(np.array(a, dtype=np.float32), -1.0, 1.0)
 
+    def check_action(self, action: Any) -> tuple[float, float]:
+        """The command for ``action``; a ValueError unless it is two finite numbers."""
+        a = np.asarray(action, dtype=np.float64)
+        if a.size != 2 or not np.all(np.isfinite(a)):
+            raise ValueError(f"action must be two finite numbers, got {action!r}")
+        return self.action_to_command(a)
+
     def target(self, position: np.ndarray) -> np.ndarray:
         """The point the heading error refers to (see ``rl.heading``)."""
         assert self.field is not None
@@ -207,18 +197,21 @@ class VineyardNavEnv(gym.Env[np.ndarray, np.ndarray]):
         return np.concatenate([depth_strip(depth, self.rl.depth_clip), tail.astype(np.float32)])
 
     # ------------------------------------------------------------------ tasks
-    def _lane_point(self, lane: int) -> np.ndarray:
-        rng = self.np_random
+    def _lane_point(self, rng: np.random.Generator, lane: int) -> np.ndarray:
         x0, x1 = self.row_x
         return np.array([rng.uniform(x0 + 1.0, x1 - 1.0), self.lanes[lane] + rng.uniform(-0.3, 0.3)])
 
-    def _headland_point(self) -> np.ndarray:
-        rng = self.np_random
+    def _headland_point(self, rng: np.random.Generator) -> np.ndarray:
         x0, x1 = self.row_x
         x = x1 + rng.uniform(1.5, 6.0) if rng.random() < 0.5 else x0 - rng.uniform(1.5, 6.0)
         return np.array([x, rng.uniform(self.lanes[0], self.lanes[-1])])
 
-    def sample_task(self) -> tuple[np.ndarray, float, np.ndarray, DistanceField]:
+    def sample_task(
+        self,
+        rng: np.random.Generator,
+        taken: Sequence[tuple[np.ndarray, np.ndarray]] = (),
+        spacing: float = 0.0,
+    ) -> tuple[np.ndarray, float, np.ndarray, DistanceField]:
         """Random start (x, y), start yaw, goal (x, y) and the goal's distance field.
 
         Goals lie in an alley (85 %) or a headland; starts, for a goal in an alley, lie in another
@@ -226,25 +219,30 @@ class VineyardNavEnv(gym.Env[np.ndarray, np.ndarray]):
         the same alley or a headland. Both are free, the start is reachable and the shortest path
         length lies in ``[rl.min_separation, rl.max_path_length]``. The start faces the first leg of
         the shortest path, give or take ``rl.start_yaw_std_deg`` (one standard deviation).
+        ``taken``: the (start, goal) of other vehicles; the goal lies at least ``spacing`` from theirs,
+        and the start from theirs (so that vehicles sharing a world begin apart and aim apart).
         """
-        rng = self.np_random
         n = len(self.lanes)
+
+        def apart(p: np.ndarray, k: int) -> bool:
+            return all(math.hypot(*(p - other[k][:2])) >= spacing for other in taken)
+
         for _ in range(200):
             goal_lane = int(rng.integers(n)) if rng.random() < 0.85 else -1
-            goal = self._lane_point(goal_lane) if goal_lane >= 0 else self._headland_point()
-            if not self.grid.is_free(goal):
+            goal = self._lane_point(rng, goal_lane) if goal_lane >= 0 else self._headland_point(rng)
+            if not (self.grid.is_free(goal) and apart(goal, 1)):
                 continue
             field = DistanceField(self.grid, goal)
             for _ in range(30):
                 if goal_lane < 0:
-                    start = self._lane_point(int(rng.integers(n)))
+                    start = self._lane_point(rng, int(rng.integers(n)))
                 elif rng.random() < self.rl.other_row_prob:
-                    start = self._lane_point(int(rng.choice([k for k in range(n) if k != goal_lane])))
+                    start = self._lane_point(rng, int(rng.choice([k for k in range(n) if k != goal_lane])))
                 elif rng.random() < 0.5:
-                    start = self._lane_point(goal_lane)
+                    start = self._lane_point(rng, goal_lane)
                 else:
-                    start = self._headland_point()
-                if not (self.grid.is_free(start) and field.is_reachable(start)):
+                    start = self._headland_point(rng)
+                if not (self.grid.is_free(start) and field.is_reachable(start) and apart(start, 0)):
                     continue
                 d0 = field.distance(start)
                 if self.rl.min_separation <= d0 <= self.rl.max_path_length:
@@ -254,38 +252,31 @@ class VineyardNavEnv(gym.Env[np.ndarray, np.ndarray]):
                     return start, wrap_angle(yaw), goal, field
         raise RuntimeError("could not sample a start and goal: check the rl.* sampling settings")
 
-    # ------------------------------------------------------------------ gymnasium API
-    def reset(
-        self, *, seed: int | None = None, options: dict[str, Any] | None = None
-    ) -> tuple[np.ndarray, dict[str, Any]]:
-        super().reset(seed=seed)
-        opts = options or {}
-        if "start" in opts or "goal" in opts:
-            if not ("start" in opts and "goal" in opts):
-                raise ValueError("options need both 'start' (x, y, yaw) and 'goal' (x, y)")
-            sx, sy, yaw = (float(v) for v in opts["start"])
-            start, goal = np.array([sx, sy]), np.asarray(opts["goal"], dtype=float)[:2]
-            field = DistanceField(self.grid, goal)
-        else:
-            start, yaw, goal, field = self.sample_task()
+    def given_task(self, task: dict[str, Any]) -> tuple[np.ndarray, float, np.ndarray, DistanceField]:
+        """The task of ``{"start": (x, y, yaw), "goal": (x, y)}`` in :meth:`sample_task`'s form."""
+        if not ("start" in task and "goal" in task):
+            raise ValueError("options need both 'start' (x, y, yaw) and 'goal' (x, y)")
+        sx, sy, yaw = (float(v) for v in task["start"])
+        goal = np.asarray(task["goal"], dtype=float)[:2]
+        return np.array([sx, sy]), yaw, goal, DistanceField(self.grid, goal)
+
+    # ------------------------------------------------------------------ episodes
+    def begin(
+        self, start: np.ndarray, yaw: float, goal: np.ndarray, field: DistanceField, kin: Kinematics
+    ) -> None:
+        """Start an episode on a task, the vehicle placed at the start with state ``kin``."""
         self.field, self.goal = field, goal.copy()
         self.start = np.array([start[0], start[1], yaw])
-        depth, kin = self.backend.reset(np.array([start[0], start[1], self.rl.altitude]), yaw)
         self.kinematics = kin
         self._d = self.initial_distance = field.distance(kin.position)
         self._steps = 0
         limit_s = self.rl.time_limit_base_s + self.initial_distance / self.rl.min_average_speed
         self.max_steps = math.ceil(limit_s / self.frame_dt)
-        return self.observe(depth, kin), self._info(kin, None, (0.0, 0.0))
 
-    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        if self.field is None:
-            raise RuntimeError("call reset() before step()")
-        a = np.asarray(action, dtype=np.float64)
-        if a.size != 2 or not np.all(np.isfinite(a)):
-            raise ValueError(f"action must be two finite numbers, got {action!r}")
-        command = self.action_to_command(a)
-        depth, kin, collided = self.backend.step(*command)
+    def advance(self, kin: Kinematics, collided: bool) -> tuple[float, bool, bool, str | None]:
+        """One step's ``(reward, terminated, truncated, reason)`` for the vehicle now in state ``kin``,
+        ``collided`` if it hit something meanwhile."""
+        assert self.field is not None
         self.kinematics = kin
         self._steps += 1
         d = self.field.distance(kin.position)
@@ -308,15 +299,10 @@ class VineyardNavEnv(gym.Env[np.ndarray, np.ndarray]):
         truncated = not terminated and self._steps >= self.max_steps
         if truncated:
             reason = "time_limit"
-        return (
-            self.observe(depth, kin),
-            float(reward),
-            terminated,
-            truncated,
-            self._info(kin, reason, command),
-        )
+        return float(reward), terminated, truncated, reason
 
-    def _info(self, kin: Kinematics, reason: str | None, command: tuple[float, float]) -> dict[str, Any]:
+    def step_info(self, kin: Kinematics, reason: str | None, command: tuple[float, float]) -> dict[str, Any]:
+        """The info dict of a step (of a reset: ``reason`` None, ``command`` zero)."""
         return {
             "t": kin.t,
             "position": kin.position.copy(),
@@ -327,6 +313,60 @@ class VineyardNavEnv(gym.Env[np.ndarray, np.ndarray]):
             "termination": reason,
             "is_success": reason == "goal",
         }
+
+
+class VineyardNavEnv(NavTask, gym.Env[np.ndarray, np.ndarray]):
+    """Vineyard point-to-point navigation (see the module docstring for spaces, reward and episodes).
+
+    ``config``: a :class:`SimConfig` (its ``rl`` section and vehicle/flight settings are used);
+    ``mode``: "local" or "remote" (then ``url`` of the WebSocket API and ``zenoh`` endpoint of the
+    bridge); further keyword arguments replace fields of ``config.rl``.
+    """
+
+    metadata = {"render_modes": [], "render_fps": 30}
+
+    def __init__(
+        self,
+        config: SimConfig | None = None,
+        mode: str = "local",
+        url: str | None = None,
+        zenoh: str | None = None,
+        **rl_overrides: Any,
+    ) -> None:
+        cfg = env_config(config, **rl_overrides)
+        self.mode = mode
+        if mode == "local":
+            backend: Backend = LocalBackend(cfg)
+        elif mode == "remote":
+            from droneulator.workflows.rl.remote import RemoteBackend
+
+            backend = RemoteBackend(cfg, url or "ws://127.0.0.1:8765", zenoh)
+        else:
+            raise ValueError(f"mode must be 'local' or 'remote', got {mode!r}")
+        self.backend = backend
+        super().__init__(cfg, backend.scene)
+
+    # ------------------------------------------------------------------ gymnasium API
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        gym.Env.reset(self, seed=seed)
+        opts = options or {}
+        if "start" in opts or "goal" in opts:
+            start, yaw, goal, field = self.given_task(opts)
+        else:
+            start, yaw, goal, field = self.sample_task(self.np_random)
+        depth, kin = self.backend.reset(np.array([start[0], start[1], self.rl.altitude]), yaw)
+        self.begin(start, yaw, goal, field, kin)
+        return self.observe(depth, kin), self.step_info(kin, None, (0.0, 0.0))
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        if self.field is None:
+            raise RuntimeError("call reset() before step()")
+        command = self.check_action(action)
+        depth, kin, collided = self.backend.step(*command)
+        reward, terminated, truncated, reason = self.advance(kin, collided)
+        return self.observe(depth, kin), reward, terminated, truncated, self.step_info(kin, reason, command)
 
     def close(self) -> None:
         backend = getattr(self, "backend", None)
