@@ -131,10 +131,13 @@ def test_replies_echo_the_id_and_unknown_op_lists_the_ops(bare_sim):
 
 
 def test_unexpected_exceptions_become_internal_error_and_are_logged(caplog):
-    class Broken:
+    class Broken:  # a world whose vehicle's sensor fails
         @property
         def state(self) -> Any:
             raise RuntimeError("sensor exploded")
+
+        def vehicle(self, name: str | None = None) -> Any:
+            return self
 
     reply = handle_request(Broken(), '{"id": 3, "op": "state"}')  # type: ignore[arg-type]
     assert reply["error"] == {

@@ -128,12 +128,13 @@ class DroneulatorClient:
                 raise ApiError(str(err.get("code", "unknown")), str(err.get("message", "")))
 
     # ------------------------------------------------------------------ ops
-    def takeoff(self, altitude: float | None = None) -> dict[str, Any]:
+    # ``vehicle``: which vehicle of the world (by name; None: the first), as every flight op takes it
+    def takeoff(self, altitude: float | None = None, vehicle: str | None = None) -> dict[str, Any]:
         """Climb to ``altitude`` m; result ``duration`` (s), ``t``."""
-        return self.request("takeoff", altitude=altitude)
+        return self.request("takeoff", altitude=altitude, vehicle=vehicle)
 
-    def land(self) -> dict[str, Any]:
-        return self.request("land")
+    def land(self, vehicle: str | None = None) -> dict[str, Any]:
+        return self.request("land", vehicle=vehicle)
 
     def goto(
         self,
@@ -141,19 +142,22 @@ class DroneulatorClient:
         yaw: float | None = None,
         speed: float | None = None,
         duration: float | None = None,
+        vehicle: str | None = None,
     ) -> dict[str, Any]:
         """Min-snap move to world ``position`` [x, y, z] m with final ``yaw`` rad; result ``duration``."""
-        return self.request("goto", position=position, yaw=yaw, speed=speed, duration=duration)
+        return self.request(
+            "goto", position=position, yaw=yaw, speed=speed, duration=duration, vehicle=vehicle
+        )
 
-    def velocity(self, forward: float, yaw_rate: float) -> dict[str, Any]:
+    def velocity(self, forward: float, yaw_rate: float, vehicle: str | None = None) -> dict[str, Any]:
         """Velocity mode: ``forward`` m/s along body x, ``yaw_rate`` rad/s, constant altitude."""
-        return self.request("velocity", forward=forward, yaw_rate=yaw_rate)
+        return self.request("velocity", forward=forward, yaw_rate=yaw_rate, vehicle=vehicle)
 
-    def hold(self) -> dict[str, Any]:
-        return self.request("hold")
+    def hold(self, vehicle: str | None = None) -> dict[str, Any]:
+        return self.request("hold", vehicle=vehicle)
 
-    def motors_off(self) -> dict[str, Any]:
-        return self.request("motors_off")
+    def motors_off(self, vehicle: str | None = None) -> dict[str, Any]:
+        return self.request("motors_off", vehicle=vehicle)
 
     def reset(
         self,
@@ -162,11 +166,15 @@ class DroneulatorClient:
         position: Sequence[float] | Any = None,
         yaw: float | None = None,
         airborne: bool | None = None,
+        vehicle: str | None = None,
     ) -> dict[str, Any]:
-        return self.request("reset", scene=scene, seed=seed, position=position, yaw=yaw, airborne=airborne)
+        return self.request(
+            "reset", scene=scene, seed=seed, position=position, yaw=yaw, airborne=airborne, vehicle=vehicle
+        )
 
-    def state(self) -> dict[str, Any]:
-        return self.request("state")
+    def state(self, vehicle: str | None = None) -> dict[str, Any]:
+        """One vehicle's state (None: the first's); ``vehicle="*"``: ``{"vehicles": {name: state}}``."""
+        return self.request("state", vehicle=vehicle)
 
     def scene_info(self) -> dict[str, Any]:
         return self.request("scene_info")
@@ -176,10 +184,14 @@ class DroneulatorClient:
 
     # ------------------------------------------------------------------ streams
     def subscribe(
-        self, streams: Iterable[str] = ("state", "events"), rate_hz: float | None = None
+        self,
+        streams: Iterable[str] = ("state", "events"),
+        rate_hz: float | None = None,
+        vehicle: str | None = None,
     ) -> dict[str, Any]:
-        """Receive pushed ``state`` (at most ``rate_hz``) and/or ``event`` messages from now on."""
-        result = self.request("subscribe", streams=list(streams), rate_hz=rate_hz)
+        """Receive pushed ``state`` (at most ``rate_hz``; of ``vehicle``, ``"*"`` for all, default the
+        first) and/or ``event`` messages from now on."""
+        result = self.request("subscribe", streams=list(streams), rate_hz=rate_hz, vehicle=vehicle)
         self._streams = list(result.get("streams", []))
         return result
 
@@ -212,8 +224,11 @@ class DroneulatorClient:
         while (msg := self._next(timeout)) is not None:
             yield msg
 
-    def wait_for_event(self, type: str, timeout: float | None = None) -> dict[str, Any]:
-        """Consume pushed messages until an event of ``type`` (e.g. ``"arrived"``); needs ``events``.
+    def wait_for_event(
+        self, type: str, timeout: float | None = None, vehicle: str | None = None
+    ) -> dict[str, Any]:
+        """Consume pushed messages until an event of ``type`` (e.g. ``"arrived"``), of ``vehicle`` if
+        given; needs ``events``.
 
         Messages read meanwhile (state, other events) are discarded. Raises TimeoutError.
         """
@@ -221,17 +236,25 @@ class DroneulatorClient:
         deadline = time.monotonic() + timeout
         while (remaining := deadline - time.monotonic()) > 0:
             msg = self._next(remaining)
-            if msg is not None and msg.get("type") == "event" and msg["event"].get("type") == type:
-                return msg["event"]
+            if msg is None or msg.get("type") != "event":
+                continue
+            event = msg["event"]
+            if event.get("type") == type and (vehicle is None or event.get("vehicle") == vehicle):
+                return event
         raise TimeoutError(f"no {type!r} event within {timeout} s")
 
     def wait_until(
-        self, predicate: Callable[[dict[str, Any]], bool], timeout: float | None = None, poll_hz: float = 20.0
+        self,
+        predicate: Callable[[dict[str, Any]], bool],
+        timeout: float | None = None,
+        poll_hz: float = 20.0,
+        vehicle: str | None = None,
     ) -> dict[str, Any]:
-        """The first state (dict as the ``state`` op returns) satisfying ``predicate``.
+        """The first state of ``vehicle`` (None: the first; dict as the ``state`` op returns) satisfying
+        ``predicate``.
 
-        Uses the ``state`` stream when subscribed to it (consuming pushed messages), else polls the
-        ``state`` op at ``poll_hz``. Raises TimeoutError.
+        Uses the ``state`` stream when subscribed to it (consuming pushed messages; states of other
+        vehicles are skipped), else polls the ``state`` op at ``poll_hz``. Raises TimeoutError.
         """
         timeout = self.timeout if timeout is None else timeout
         deadline = time.monotonic() + timeout
@@ -241,8 +264,10 @@ class DroneulatorClient:
                 if msg is None or msg.get("type") != "state":
                     continue
                 state = msg["state"]
+                if vehicle is not None and state.get("vehicle") != vehicle:
+                    continue
             else:
-                state = self.state()
+                state = self.state(vehicle)
             if predicate(state):
                 return state
             if "state" not in self._streams:

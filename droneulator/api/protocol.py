@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 from droneulator.commands.errors import ERROR_CODES, CommandError
 from droneulator.commands.ops import (
+    ALL_VEHICLES,
     OPS,
     STREAMS,
     ExtraOp,
@@ -37,6 +38,7 @@ if TYPE_CHECKING:
 ApiError = CommandError
 
 __all__ = [
+    "ALL_VEHICLES",
     "ERROR_CODES",
     "OPS",
     "STREAMS",

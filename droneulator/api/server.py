@@ -32,6 +32,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.frames import CloseCode
 
 from droneulator.api.protocol import (
+    ALL_VEHICLES,
     OPS,
     STREAMS,
     ExtraOp,
@@ -76,6 +77,7 @@ class _Session:
         self.sent_seq = 0
         self.next_state_at = 0.0
         self.awaiting_state = False  # its stream task waits for a state newer than the one it sent
+        self.vehicles: tuple[str, ...] | None = None  # whose states it gets (None: the first vehicle's)
 
     def streams(self) -> list[str]:
         on = {"state": self.state_period is not None, "events": self.events_on}
@@ -105,7 +107,7 @@ class ApiServer:
     ) -> None:
         if max_message_bytes < 256:
             raise ValueError("max_message_bytes must be at least 256")
-        lo, hi = OPS["subscribe"].args[1].bounds or (0.0, 0.0)
+        lo, hi = next(a.bounds for a in OPS["subscribe"].args if a.name == "rate_hz") or (0.0, 0.0)
         if not lo <= state_rate_hz <= hi:
             raise ValueError(f"state_rate_hz must lie in [{lo:g}, {hi:g}]")
         self.commands = commands
@@ -121,8 +123,9 @@ class ApiServer:
             self.add_op(name, fn)
         self._state_lock = threading.Lock()
         self._state_seq = 0
-        self._state: VehicleState | None = None
-        self._state_cache: tuple[int, str | None] = (0, None)
+        #: the latest state of every vehicle published, by name, in the world's order
+        self._states: dict[str, VehicleState] = {}
+        self._state_cache: tuple[int, dict[str, str | None]] = (0, {})
         self._state_wake_pending = False
         #: sessions whose stream waits for a newer state: only these are woken by a published state (the
         #: others are due later and wake by their own timer), so a 10 Hz subscriber does not wake the
@@ -235,14 +238,19 @@ class ApiServer:
 
     # ------------------------------------------------------------------ publishing (any thread)
     def publish_state(self, state: VehicleState) -> None:
-        """Offer the latest vehicle state; subscribers get it at their rate (older values are skipped).
+        """Offer the latest state of one vehicle (see :meth:`publish_states`)."""
+        self.publish_states({state.vehicle: state})
 
-        Thread-safe and cheap: the state is converted and serialised later, on the server thread, and
-        only when a subscriber is due (do not mutate it).
+    def publish_states(self, states: Mapping[str, VehicleState]) -> None:
+        """Offer the latest vehicle states (by name); subscribers get them at their rate (older values are
+        skipped).
+
+        Thread-safe and cheap: states are converted and serialised later, on the server thread, and
+        only when a subscriber is due (do not mutate them).
         """
         with self._state_lock:
             self._state_seq += 1
-            self._state = state
+            self._states = {**self._states, **states}
         loop = self._loop
         if loop is None or self._state_wake_pending or not self._n_awaiting_state:
             return
@@ -292,18 +300,28 @@ class ApiServer:
         self._background.add(task)
         task.add_done_callback(self._background.discard)
 
-    def _state_text(self) -> tuple[int, str | None]:
-        """The latest state as a pushed message (serialised once per published state)."""
+    def _state_texts(self, vehicles: tuple[str, ...] | None) -> tuple[int, list[str]]:
+        """The latest states of ``vehicles`` (None: the first vehicle) as pushed messages, each serialised
+        once per published state."""
         with self._state_lock:
-            seq, state = self._state_seq, self._state
+            seq, states = self._state_seq, self._states
         if self._state_cache[0] != seq:
-            text = None
-            try:
-                text = encode({"type": "state", "state": state.to_dict()})
-            except (TypeError, ValueError):
-                log.exception("state is not JSON serialisable; not sent")
-            self._state_cache = (seq, text)
-        return self._state_cache
+            self._state_cache = (seq, {})
+        cache = self._state_cache[1]
+        names = vehicles if vehicles is not None else tuple(states)[:1]
+        out = []
+        for name in names:
+            if name not in cache:
+                text = None
+                if name in states:
+                    try:
+                        text = encode({"type": "state", "state": states[name].to_dict()})
+                    except (TypeError, ValueError):
+                        log.exception("state of %s is not JSON serialisable; not sent", name)
+                cache[name] = text
+            if cache[name] is not None:
+                out.append(cache[name])
+        return seq, out
 
     # ------------------------------------------------------------------ connections
     async def _handle(self, ws: ServerConnection) -> None:
@@ -376,11 +394,29 @@ class ApiServer:
             self._set_streams(s, keep, period)
             return ok_reply(req.id, {"streams": s.streams()}), None
         rate = req.args.get("rate_hz", self.state_rate_hz)
-        result = {"streams": list(streams), "rate_hz": rate if "state" in streams else None}
-        return ok_reply(req.id, result), functools.partial(self._subscribe, s, streams, 1.0 / rate)
+        world = self.commands.sim
+        wanted = req.args.get("vehicle")
+        if wanted == ALL_VEHICLES:
+            vehicles: tuple[str, ...] | None = tuple(world.vehicles)
+        elif wanted is None:
+            vehicles = None
+        elif wanted in world.vehicles:
+            vehicles = (wanted,)
+        else:
+            known = ", ".join(world.vehicles)
+            return error_reply(
+                req.id, "invalid_argument", f"no vehicle {wanted!r}; the vehicles are {known}"
+            ), None
+        result: dict[str, Any] = {"streams": list(streams), "rate_hz": rate if "state" in streams else None}
+        if vehicles is not None:
+            result["vehicles"] = list(vehicles)
+        return ok_reply(req.id, result), functools.partial(self._subscribe, s, streams, 1.0 / rate, vehicles)
 
-    def _subscribe(self, s: _Session, streams: tuple[str, ...], period: float) -> None:
+    def _subscribe(
+        self, s: _Session, streams: tuple[str, ...], period: float, vehicles: tuple[str, ...] | None
+    ) -> None:
         """Activate a subscription (called holding ``send_lock``, so the reply goes out first)."""
+        s.vehicles = vehicles
         self._set_streams(s, streams, period if "state" in streams else None)
         s.sent_seq, s.next_state_at = 0, 0.0  # send the current state right away
         if s.task is None:
@@ -409,14 +445,15 @@ class ApiServer:
                     if self._state_seq != s.sent_seq:
                         now = loop.time()
                         if now >= s.next_state_at:
-                            seq, text = self._state_text()
+                            seq, texts = self._state_texts(s.vehicles)
                             s.sent_seq = seq
-                            if text is not None:
+                            if texts:
                                 # a fixed grid keeps the average rate; restart it after a stall
                                 base = s.next_state_at if now - s.next_state_at < s.state_period else now
                                 s.next_state_at = base + s.state_period
                                 async with s.send_lock:
-                                    await s.ws.send(text)
+                                    for text in texts:
+                                        await s.ws.send(text)
                             continue
                         timeout = s.next_state_at - now
                     else:

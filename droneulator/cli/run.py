@@ -30,7 +30,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "run",
         help="start the dynamics server, render server and ROS 2/Zenoh bridge (API ws://127.0.0.1:8765)",
     )
-    add_config_args(p, "default")
+    add_config_args(p, "default", fleet=True)
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--lockstep", action="store_true", help="sim time waits for every consumer (default)")
     mode.add_argument("--realtime", action="store_true", help="pace sim time by the wall clock")
@@ -38,7 +38,9 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument(
         "--px4",
         action="store_true",
-        help="fly from PX4 SITL: listen on TCP 4560 for PX4's simulator MAVLink (see docs/px4.md)",
+        help="fly the first vehicle from PX4 SITL: listen on TCP 4560 for PX4's simulator MAVLink; in a "
+        "fleet, vehicles with controlled_by: px4 in the config are flown by PX4 instance k (their index) on "
+        "4560+k without this flag (see docs/px4.md)",
     )
     p.add_argument(
         "--px4-instance",
@@ -76,15 +78,19 @@ def cmd_run(args: argparse.Namespace) -> int:
         cfg.runtime.mode = "realtime"
     if args.api_port is not None:
         cfg.runtime.api_port = args.api_port
+    defaults = SimConfig()
     if args.px4 or args.px4_instance is not None:
-        defaults = SimConfig()
         cfg.px4.enabled = True
         cfg.px4.instance = args.px4_instance or 0
+    if cfg.px4_instances():
         # PX4's lockstep runs at 250 Hz; its SIH quad-X parameters suit PX4's default gains
         if cfg.vehicle.control_hz == defaults.vehicle.control_hz:
             cfg.vehicle.control_hz = 250.0
-        if cfg.vehicle.params == defaults.vehicle.params:
+        if not cfg.vehicles and cfg.vehicle.params == defaults.vehicle.params:
             cfg.vehicle.params = "px4_quadx"
+        for spec in cfg.vehicles:
+            if spec.controlled_by == "px4" and spec.params is None:
+                spec.params = "px4_quadx"
         n = cfg.px4.instance
         if n:  # one simulator per vehicle: keep the instances' ports and topics apart
             if args.api_port is None:
@@ -159,7 +165,7 @@ def _start_ui(cfg: SimConfig, sup: Supervisor) -> UIServer:
         _ui_zenoh_endpoint(cfg),
         cfg.ui,
         cfg.bridge,
-        px4=cfg.px4.enabled,
+        px4=bool(cfg.px4_instances()),
     )
     try:
         url = server.start_in_thread()

@@ -12,6 +12,7 @@ The world is known here only as the interface the ops call: nothing imports the 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -22,10 +23,20 @@ from typing import Any
 
 from droneulator.commands.errors import ERROR_CODES, CommandError
 
-#: what the ops run on: the simulation's command surface (the in-process ``Simulator``: reset, state,
-#: scene, config, t, stamp_ns and the flight commands). Known by that interface only, never imported:
-#: the command path sits below the world in the package's layers.
+#: what the ops run on: the world's command surface (:class:`~droneulator.world.World`: ``vehicle(name)``
+#: with its flight commands and state, ``vehicles``, ``reset``, ``scene``, ``config``, ``t``,
+#: ``stamp_ns``). Known by that interface only, never imported: the command path sits below the world
+#: in the package's layers.
 Simulation = Any
+
+#: the ``vehicle`` value of ``state`` and ``subscribe`` that means every vehicle (not a valid name)
+ALL_VEHICLES = "*"
+
+
+def world_of(sim: Simulation) -> Simulation:
+    """The world of ``sim``: a world itself, or the world a single-vehicle ``Simulator`` speaks for."""
+    return getattr(sim, "world", sim)
+
 
 log = logging.getLogger(__name__)
 
@@ -87,36 +98,43 @@ def _when(sim: Simulation) -> dict[str, Any]:
     return {"t": sim.t, "stamp_ns": sim.stamp_ns}
 
 
+def _vehicle(sim: Simulation, a: dict[str, Any]) -> Any:
+    """The vehicle a request names (``vehicle``; default: the first); an unknown name is an error."""
+    return sim.vehicle(a.get("vehicle"))
+
+
 def _takeoff(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
-    return {"duration": float(sim.takeoff(a.get("altitude"))), **_when(sim)}
+    return {"duration": float(_vehicle(sim, a).takeoff(a.get("altitude"))), **_when(sim)}
 
 
 def _land(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
-    return {"duration": float(sim.land()), **_when(sim)}
+    return {"duration": float(_vehicle(sim, a).land()), **_when(sim)}
 
 
 def _goto(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
-    duration = sim.goto(a["position"], a.get("yaw"), a.get("speed"), a.get("duration"))
+    duration = _vehicle(sim, a).goto(a["position"], a.get("yaw"), a.get("speed"), a.get("duration"))
     return {"duration": float(duration), **_when(sim)}
 
 
 def _velocity(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
-    sim.velocity(a["forward"], a["yaw_rate"])
+    _vehicle(sim, a).velocity(a["forward"], a["yaw_rate"])
     return _when(sim)
 
 
 def _track(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
-    sim.track(a["position"], a.get("velocity"), a.get("acceleration"), a.get("yaw"), a.get("yaw_rate", 0.0))
+    _vehicle(sim, a).track(
+        a["position"], a.get("velocity"), a.get("acceleration"), a.get("yaw"), a.get("yaw_rate", 0.0)
+    )
     return _when(sim)
 
 
 def _hold(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
-    sim.hold()
+    _vehicle(sim, a).hold()
     return _when(sim)
 
 
 def _motors_off(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
-    sim.motors_off()
+    _vehicle(sim, a).motors_off()
     return _when(sim)
 
 
@@ -128,18 +146,23 @@ def _reset(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
         raise CommandError(
             "invalid_argument", f"unknown scene {scene!r}; known scenes: {', '.join(list_scenes())}"
         )
+    sim.vehicle(a.get("vehicle"))  # an unknown vehicle fails before anything changes
     state = sim.reset(
         seed=a.get("seed"),
         position=a.get("position"),
         yaw=a.get("yaw"),
         scene=scene,
         airborne=a.get("airborne"),
+        vehicle=a.get("vehicle"),
     )
     return {"scene": sim.scene.name, "seed": sim.config.seed, "state": state.to_dict()}
 
 
 def _state(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
-    return sim.state.to_dict()
+    if a.get("vehicle") == ALL_VEHICLES:
+        return {"t": sim.t, "stamp_ns": sim.stamp_ns,
+                "vehicles": {name: v.state.to_dict() for name, v in sim.vehicles.items()}}  # fmt: skip
+    return _vehicle(sim, a).state.to_dict()
 
 
 def _ping(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
@@ -159,6 +182,7 @@ def _scene_info(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
         "spawn_yaw": float(sc.spawn_yaw),
         "landmarks": {k: _plain(v) for k, v in sc.landmarks.items()},
         "scenes": list(list_scenes()),
+        "vehicles": [v.describe() for v in sim.vehicles.values()],
         "limits": {
             "max_speed": fl.max_speed,
             "max_yaw_rate": math.pi,
@@ -168,6 +192,11 @@ def _scene_info(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
         },
     }
 
+
+#: the ``vehicle`` field of every flight op
+_VEHICLE = Arg(
+    "vehicle", "string", "the vehicle to command, by name (see `scene_info.vehicles`; default: the first)"
+)
 
 _T = (
     "sim time (s) when the command was accepted; `stamp_ns`: the same instant on the ROS clock (integer ns), "
@@ -265,9 +294,11 @@ OPS: dict[str, Op] = {
         ),
         Op(
             "reset",
-            "Restart the flight at t = 0, optionally in another scene or with another seed. A "
-            "`position` above the ground starts hovering there unless `airborne` is false.",
-            "`scene`, `seed`: what is loaded now; `state`: the new vehicle state (as `state`)",
+            "Restart the flight of every vehicle at t = 0, each at its start, optionally in another scene "
+            "or with another seed; `position`, `yaw` and `airborne` place the vehicle `vehicle` names. A "
+            "`position` above the ground starts hovering there unless `airborne` is false. Refused while "
+            "any vehicle's flight is locked for it.",
+            "`scene`, `seed`: what is loaded now; `state`: the new state of that vehicle (as `state`)",
             (
                 Arg("scene", "string", "scene name, see `scene_info.scenes` (default: keep)"),
                 Arg("seed", "integer", "scene layout and noise seed (default: keep)", bounds=(0, 2**32 - 1)),
@@ -286,8 +317,15 @@ OPS: dict[str, Op] = {
             "(equal to `t_ns` before the first reset); `position` [x, y, z] (m, world); "
             "`velocity` (m/s, world); `quaternion` [x, y, z, w] (body FLU to world); `angular_velocity` "
             "(rad/s, body); `yaw` (rad); `mode` (`idle`, `takeoff`, `goto`, `hold`, `velocity`, `track`, "
-            "`land`, `collided`)",
-            (),
+            '`land`, `collided`, `external`); `vehicle`: its name. With `vehicle` `"*"`: `t`, `stamp_ns` '
+            "and `vehicles` (name -> that state) for every vehicle",
+            (
+                Arg(
+                    "vehicle",
+                    "string",
+                    'the vehicle, by name, or `"*"` for every vehicle (default: the first)',
+                ),
+            ),
             _state,
         ),
         Op(
@@ -303,17 +341,29 @@ OPS: dict[str, Op] = {
             "Describe the loaded scene and the command limits.",
             "`name`, `seed`; `bounds_min`, `bounds_max` (flyable box, m); `spawn_position`, `spawn_yaw`; "
             "`landmarks` (name -> nested lists); `scenes` (loadable names); `limits` (`max_speed`, "
-            "`max_yaw_rate`, `default_speed`, `takeoff_altitude`, `goto_duration` range)",
+            "`max_yaw_rate`, `default_speed`, `takeoff_altitude`, `goto_duration` range); `vehicles`: "
+            "one entry per vehicle, first the default: `name`, `params` (airframe), `controlled_by` "
+            "(`internal` or `px4`), `cameras` (names), and where it is reached when a runtime serves it: "
+            "`namespace` and `topics` (its ROS 2 topic names), `tf_prefix`, `px4_port` (PX4 vehicles)",
             (),
             _scene_info,
         ),
         Op(
             "subscribe",
             "Start pushed streams on this connection, replacing its previous subscription: `state` "
-            "messages at up to `rate_hz` (latest value only) and every `event` in order.",
-            "`streams`: the streams now active; `rate_hz`: the state rate (null without `state`)",
+            "messages at up to `rate_hz` (latest value only; each names its `vehicle`) and every `event` "
+            "in order (those of a vehicle name it in `vehicle`, whichever vehicle the state stream "
+            "follows).",
+            "`streams`: the streams now active; `rate_hz`: the state rate (null without `state`); "
+            "`vehicles` (when `vehicle` was given): the vehicles whose state is pushed",
             (
                 Arg("streams", "streams", 'streams to receive (default ["state", "events"])'),
+                Arg(
+                    "vehicle",
+                    "string",
+                    'whose state to push: a vehicle name, or `"*"` for every vehicle, one message each '
+                    "(default: the first)",
+                ),
                 Arg(
                     "rate_hz",
                     "number",
@@ -334,6 +384,12 @@ OPS: dict[str, Op] = {
         ),
     )
 }
+
+
+#: every flight op commands one vehicle: the one its ``vehicle`` field names, like AirSim's ``vehicle_name``
+for _name, _op in OPS.items():
+    if _op.flight:
+        OPS[_name] = dataclasses.replace(_op, args=(*_op.args, _VEHICLE))
 
 
 # --------------------------------------------------------------------------- parsing & validation
@@ -498,7 +554,7 @@ def execute(
                 )
             if spec.flight and flight_locked is not None:
                 raise CommandError("flight_locked", flight_locked)
-            result = spec.run(sim, request.args)  # type: ignore[arg-type]
+            result = spec.run(world_of(sim), request.args)
         reply = ok_reply(request.id, result)
         encode(reply)  # fail here, with a proper error, rather than in the transport
         return reply

@@ -25,6 +25,7 @@ from droneulator.commands.ops import (
     error_reply,
     execute,
     make_request,
+    world_of,
 )
 from droneulator.logs import LogThrottle
 
@@ -35,36 +36,68 @@ BURST_GAP_S = 2.0
 
 
 class CommandPath:
-    """Validation, flight lock and simulation lock for every command source (see the module docstring)."""
+    """Validation, flight lock and simulation lock for every command source (see the module docstring).
+
+    ``sim`` is the world the ops run on (:data:`~droneulator.commands.ops.Simulation`), or a
+    single-vehicle ``Simulator``, whose world it then commands.
+    """
 
     def __init__(self, sim: Simulation, lock: AbstractContextManager[Any] | None = None) -> None:
-        self.sim = sim
+        self.sim = world_of(sim)
         self.lock = lock if lock is not None else threading.Lock()
-        self._flight_locked: str | None = None
-        self._locked_ops: frozenset[str] | None = None  # None: every flight op
+        #: vehicle name (None: every vehicle) -> (reason, the ops refused; None: every flight op)
+        self._locks: dict[str | None, tuple[str, frozenset[str] | None]] = {}
         #: one line per burst of the same (source, op, code) rejection, then how many followed
         self._rejections = LogThrottle(log, gap=BURST_GAP_S, one_at_a_time=True)
 
     # ------------------------------------------------------------------ flight lock
-    def refuse_flight(self, reason: str, ops: Collection[str] | None = None) -> None:
-        """Answer flight commands (all, or only ``ops``) with ``flight_locked`` and ``reason`` until
-        :meth:`allow_flight`."""
+    def refuse_flight(
+        self, reason: str, ops: Collection[str] | None = None, vehicle: str | None = None
+    ) -> None:
+        """Answer flight commands (all, or only ``ops``) to ``vehicle`` (None: to every vehicle) with
+        ``flight_locked`` and ``reason`` until :meth:`allow_flight`. ``reset`` moves every vehicle, so it
+        is refused while any vehicle's lock covers it."""
         if not reason:
             raise ValueError("refuse_flight needs a reason for the clients")
         unknown = set(ops or ()) - {name for name, op in OPS.items() if op.flight}
         if unknown:
             raise ValueError(f"not flight ops: {', '.join(sorted(unknown))}")
-        self._flight_locked = reason
-        self._locked_ops = None if ops is None else frozenset(ops)
+        if vehicle is not None:
+            self.sim.vehicle(vehicle)  # a CommandError for an unknown name
+        self._locks[vehicle] = (reason, None if ops is None else frozenset(ops))
 
-    def allow_flight(self) -> None:
-        self._flight_locked = None
-        self._locked_ops = None
+    def allow_flight(self, vehicle: str | None = None) -> None:
+        """Lift the lock of ``vehicle`` (None: every lock)."""
+        if vehicle is None:
+            self._locks.clear()
+        else:
+            self._locks.pop(vehicle, None)
 
     @property
     def flight_locked(self) -> str | None:
-        """The reason flight commands are refused, or None."""
-        return self._flight_locked
+        """The reason of a lock on every vehicle or, failing that, on the first vehicle; or None."""
+        return self.flight_locked_for(None)
+
+    def flight_locked_for(self, vehicle: str | None) -> str | None:
+        """The reason ``vehicle``'s flight commands (None: the first vehicle's) are refused, or None."""
+        name = self.sim.vehicle(vehicle).name
+        lock = self._locks.get(None) or self._locks.get(name)
+        return None if lock is None else lock[0]
+
+    def _refusal(self, request: Request) -> str | None:
+        """The lock reason that refuses ``request`` (a flight op), or None."""
+        if request.op == "reset":
+            covering = [reason for reason, ops in self._locks.values() if ops is None or "reset" in ops]
+            return covering[0] if covering else None
+        name = request.args.get("vehicle")
+        if name is not None and name not in self.sim.vehicles:
+            return None  # the op answers the unknown name
+        name = name or self.sim.vehicle().name
+        for key in (None, name):
+            lock = self._locks.get(key)
+            if lock is not None and (lock[1] is None or request.op in lock[1]):
+                return lock[0]
+        return None
 
     # ------------------------------------------------------------------ execution
     def execute(
@@ -80,13 +113,14 @@ class CommandPath:
         """
         if extra_ops and request.op in extra_ops:
             return execute(None, request, extra_ops)
-        if not OPS[request.op].locked:
+        op = OPS[request.op]
+        if not op.locked:
             return execute(self.sim, request)
         with self.lock:
             if closing is not None and closing.is_set():
                 return error_reply(request.id, "internal_error", "the server is shutting down")
-            locked = self._locked_ops is None or request.op in self._locked_ops
-            return execute(self.sim, request, flight_locked=self._flight_locked if locked else None)
+            refused = self._refusal(request) if op.flight else None
+            return execute(self.sim, request, flight_locked=refused)
 
     def submit(self, source: str, op: str, args: Mapping[str, Any]) -> dict[str, Any]:
         """Validate and run ``op`` from a source that has no client to answer (e.g. ``"ROS cmd_vel"``).

@@ -178,6 +178,10 @@ class BridgeConfig:
     #: ros2dds key mode: zenoh-bridge-ros2dds' own namespace option ("-n /ns" -> keys "ns/..."), so a
     #: bridge started with it routes the simulator's topics
     ros2dds_namespace: str = "/"
+    #: how a fleet's TF frames are told apart (one vehicle: today's names either way): "prefix", every
+    #: vehicle on /tf with frames "<vehicle>/base_link" (Aerostack2, robot_state_publisher's frame_prefix),
+    #: or "namespace", each on /<namespace>/<vehicle>/tf with unprefixed frames (Nav2's multi-robot launch)
+    fleet_tf: str = "prefix"
     jpeg_quality: int = 90
     #: append "stream stamp_ns wall_ns" here per message (latency benchmark): odometry at the end of the
     #: physics step that produced it, images at the bridge's publish call
@@ -199,6 +203,8 @@ class BridgeConfig:
             raise ValueError("bridge.mode=client needs a router to connect to: set bridge.connect")
         if not 1 <= self.jpeg_quality <= 100:
             raise ValueError("bridge.jpeg_quality must lie in [1, 100]")
+        if self.fleet_tf not in ("prefix", "namespace"):
+            raise ValueError(f"bridge.fleet_tf must be 'prefix' or 'namespace', got {self.fleet_tf!r}")
 
 
 #: what the simulator does when PX4 is lost in the air (``px4.on_loss``)
@@ -438,8 +444,11 @@ class SimConfig:
             raise ValueError(f"vehicle names must be unique: {', '.join(twice)} given more than once")
 
     def vehicle_specs(self) -> list[VehicleSpec]:
-        """Every vehicle with its unset fields filled from the single-vehicle sections (copies)."""
+        """Every vehicle with its unset fields filled from the single-vehicle sections (copies).
+
+        ``px4.enabled`` (``--px4``) hands the first vehicle to PX4 when no vehicle names PX4 itself."""
         specs = self.vehicles or [VehicleSpec()]
+        first_px4 = self.px4.enabled and all(v.controlled_by != "px4" for v in specs)
         return [
             dataclasses.replace(
                 v,
@@ -447,6 +456,18 @@ class SimConfig:
                 cameras=list(self.render.cameras if v.cameras is None else v.cameras),
                 sensors=list(self.vehicle.sensors if v.sensors is None else v.sensors),
                 flight=v.flight or self.flight,
+                controlled_by="px4" if first_px4 and i == 0 else v.controlled_by,
             )
-            for v in specs
+            for i, v in enumerate(specs)
         ]
+
+    def camera_rigs(self) -> dict[str, list[CameraConfig]]:
+        """Every vehicle's cameras, by vehicle name."""
+        return {v.name: list(v.cameras or ()) for v in self.vehicle_specs()}
+
+    def px4_instances(self) -> dict[str, int]:
+        """PX4 SITL instance of each vehicle PX4 flies, by name: vehicle k of the list is instance
+        ``px4.instance + k`` (``px4 -i k``: simulator port ``px4.base_port`` + instance, MAV_SYS_ID
+        instance + 1), as PX4's multi-vehicle SITL numbers them."""
+        specs = self.vehicle_specs()
+        return {v.name: self.px4.instance + k for k, v in enumerate(specs) if v.controlled_by == "px4"}

@@ -46,12 +46,14 @@ import select
 import socket
 import time
 from collections import deque
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
+from droneulator.commands.ops import world_of
 from droneulator.config import PX4Config
 from droneulator.controllers.flight import Event, Mode
 from droneulator.frames import enu_to_geodetic, enu_to_ned, xyzw_to_wxyz
@@ -64,7 +66,7 @@ from droneulator.sensors.suite import PX4_SENSORS
 if TYPE_CHECKING:
     import threading
 
-    from droneulator.sim.simulator import Simulator, StepResult
+    from droneulator.world.world import StepResult
 
 log = logging.getLogger(__name__)
 
@@ -158,27 +160,34 @@ class _Candidate:
 
 
 class PX4Link:
-    """Serve PX4 SITL's simulator MAVLink on ``(cfg.host, cfg.base_port + cfg.instance)``.
+    """Serve PX4 SITL's simulator MAVLink for one vehicle on ``(cfg.host, cfg.base_port + instance)``.
 
     The caller owns the loop: :meth:`serve_once` accepts PX4, reads its messages and, when one
-    HIL_ACTUATOR_CONTROLS arrives, steps ``sim`` once and sends the new sensor data back.
+    HIL_ACTUATOR_CONTROLS arrives, steps the world once and sends the new sensor data back. Several
+    links (one PX4 instance per vehicle) step one world together through :class:`PX4Fleet`.
     ``base_port = 0`` listens on a free port (see :attr:`port`).
 
-    ``cfg`` holds the link's settings (address, speed factor, rates, ``on_loss``; default: the
-    simulator's ``px4`` section). What PX4 reads comes from the vehicle's sensor rig, built from the
-    simulator's config: an IMU, magnetometer and barometer it must have; without a GPS no HIL_GPS is
-    sent, without an airspeed sensor HIL_STATE_QUATERNION's airspeeds are zero.
+    ``sim`` is the world (or a single-vehicle ``Simulator``); ``vehicle`` the name of the vehicle PX4
+    flies (default: the first); ``instance`` its PX4 SITL instance (default ``cfg.instance``). ``cfg``
+    holds the link's settings (address, speed factor, rates, ``on_loss``; default: the world's ``px4``
+    section). What PX4 reads comes from the vehicle's sensor rig, built from the simulator's config:
+    an IMU, magnetometer and barometer it must have; without a GPS no HIL_GPS is sent, without an
+    airspeed sensor HIL_STATE_QUATERNION's airspeeds are zero.
     """
 
-    def __init__(self, sim: Simulator, cfg: PX4Config | None = None) -> None:
-        self.sim = sim
-        self.cfg = cfg = sim.config.px4 if cfg is None else cfg
-        self.motor_map = MotorMap(sim.quad_params, cfg.thrust_model_factor)
-        self.sensors: SensorSuite = sim.vehicle.rig.suite
+    def __init__(
+        self, sim: Any, cfg: PX4Config | None = None, vehicle: str | None = None, instance: int | None = None
+    ) -> None:
+        self.world = world_of(sim)
+        self.vehicle = self.world.vehicle(vehicle)
+        self.cfg = cfg = self.world.config.px4 if cfg is None else cfg
+        self.instance = cfg.instance if instance is None else instance
+        self.motor_map = MotorMap(self.vehicle.quad_params, cfg.thrust_model_factor)
+        self.sensors: SensorSuite = self.vehicle.rig.suite
         missing = [kind for kind in PX4_SENSORS if kind not in self.sensors]
         if missing:
             raise ValueError(
-                f"vehicle {sim.vehicle.name!r} has no {', '.join(missing)}: PX4 needs "
+                f"vehicle {self.vehicle.name!r} has no {', '.join(missing)}: PX4 needs "
                 f"{', '.join(PX4_SENSORS)} (its 'sensors' list: {', '.join(self.sensors.kinds)})"
             )
         self._tx = mavlink.MAVLink(None, SIM_SYSTEM_ID, SIM_COMPONENT_ID)
@@ -192,20 +201,24 @@ class PX4Link:
         self._candidates: list[_Candidate] = []
         #: PX4 was dropped: the loss rule (``cfg.on_loss``) is applied at the next turn, under the lock
         self._loss_pending = False
+        #: called under the lock whenever PX4's hold on the vehicle changes with it (PX4 connects, gets
+        #: the rotors, or is lost and ``on_loss`` applied), so the runtime's flight lock follows at once
+        self.on_change: Callable[[], None] | None = None
         #: lockstep actuator commands not stepped yet: (armed, rotor speeds in RotorPy order)
         self._pending: deque[tuple[bool, np.ndarray | None]] = deque()
         self._last_cmd_t_ns: int | None = None
         self._last_mag = np.zeros(3)
         self._last_baro = BaroSample(0.0, 0.0, 0.0)
         self._reset_connection()
-        hz = sim.config.vehicle.control_hz
+        hz = self.world.config.vehicle.control_hz
         if not math.isclose(hz, 250.0):
             log.warning(
                 "vehicle.control_hz is %g Hz; PX4 SITL airframes expect a 250 Hz IMU (IMU_INTEG_RATE 250)", hz
             )
         log.info(
-            "PX4 quad-X motor -> %s rotor: %s",
-            sim.config.vehicle.params,
+            "PX4 quad-X motor -> %s rotor of %s: %s",
+            self.vehicle.spec.params,
+            self.vehicle.name,
             ", ".join(f"{n} {name} {spin} -> {r}" for n, name, spin, r in self.motor_map.table()),
         )
 
@@ -218,7 +231,7 @@ class PX4Link:
         its cameras and bridge are warm, so PX4's first sensor data never waits for them.
         """
         if self._listener is None:
-            port = 0 if self.cfg.base_port == 0 else self.cfg.base_port + self.cfg.instance
+            port = 0 if self.cfg.base_port == 0 else self.cfg.base_port + self.instance
             sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
             try:
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -231,7 +244,13 @@ class PX4Link:
         if listen and not self._listening:
             self._listener.listen(1)
             self._listening = True
-            log.info("waiting for PX4 SITL (simulator_mavlink) on tcp://%s:%d", self.cfg.host, self.port)
+            log.info(
+                "waiting for PX4 SITL instance %d (simulator_mavlink) for %s on tcp://%s:%d",
+                self.instance,
+                self.vehicle.name,
+                self.cfg.host,
+                self.port,
+            )
 
     @property
     def listening(self) -> bool:
@@ -301,36 +320,17 @@ class PX4Link:
         return out
 
     def _event(self, kind: str, **data: Any) -> None:
-        self._events.append(Event(kind, self.sim.t, data))
+        self._events.append(Event(kind, self.world.t, data, self.vehicle.name))
 
     # ------------------------------------------------------------------ the loop
     def serve_once(self, timeout: float, lock: threading.Lock | None = None) -> StepResult | None:
         """Accept PX4 and handle its messages for up to ``timeout`` s; step at most once.
 
-        Returns the StepResult of the step taken (on a HIL_ACTUATOR_CONTROLS, or a free-running
+        Returns the world's StepResult of the step taken (on a HIL_ACTUATOR_CONTROLS, or a free-running
         step before lockstep starts), or None when nothing stepped within ``timeout``. ``lock`` is
-        held around every access to ``sim``.
+        held around every access to the world.
         """
-        if not self._listening:
-            raise RuntimeError("PX4Link is not listening: call start() first")
-        guard = lock if lock is not None else contextlib.nullcontext()
-        deadline = time.monotonic() + max(0.0, float(timeout))
-        polled = False
-        while True:
-            if self._loss_pending:
-                with guard:
-                    self._apply_loss()
-            wait_step = self._time_to_step() if self._conn is not None else None
-            if wait_step is not None and wait_step <= 0.0:
-                return self._step(guard)
-            now = time.monotonic()
-            if polled and now >= deadline:
-                return None
-            wait = max(0.0, deadline - now)
-            if wait_step is not None:
-                wait = min(wait, wait_step)
-            self._poll(wait, guard)
-            polled = True
+        return serve_links([self], timeout, lock)
 
     def _time_to_step(self) -> float | None:
         """Seconds until the next step is due (<= 0: now), or None while waiting for PX4."""
@@ -345,23 +345,21 @@ class PX4Link:
         if speed == 0.0:
             return 0.0
         now = time.monotonic()
-        due = self._pace_wall + (self.sim.t_ns - self._pace_sim) / NS / speed
+        due = self._pace_wall + (self.world.t_ns - self._pace_sim) / NS / speed
         if now - due > MAX_LAG_S:
-            self._pace_wall, self._pace_sim = now, self.sim.t_ns
+            self._pace_wall, self._pace_sim = now, self.world.t_ns
             due = now
         return due - now
 
-    def _poll(self, wait: float, guard: Any) -> None:
+    def _sockets(self) -> list[Any]:
+        """Every socket this link waits on: the listener, PX4's connection, the candidates'."""
         assert self._listener is not None
+        socks: list[Any] = [self._listener] if self._conn is None else [self._listener, self._conn]
+        return socks + [c.sock for c in self._candidates]
+
+    def _on_readable(self, readable: Collection[Any], guard: Any) -> None:
+        """Handle what ``select`` found readable among :meth:`_sockets`."""
         conn = self._conn
-        socks = [self._listener] if conn is None else [self._listener, conn]
-        socks += [c.sock for c in self._candidates]
-        try:
-            readable, _, _ = select.select(socks, [], [], wait)
-        except (OSError, ValueError) as exc:
-            if conn is not None:
-                self._drop(f"socket error: {exc}")
-            return
         if conn is not None and conn in readable:
             self._receive(conn)
         for c in list(self._candidates):
@@ -371,6 +369,10 @@ class PX4Link:
             self._accept(guard)
         if self._candidates:
             self._review_candidates(guard)
+
+    def _select_failed(self, exc: Exception) -> None:
+        if self._conn is not None:
+            self._drop(f"socket error: {exc}")
 
     # ------------------------------------------------------------------ connection
     def _reset_connection(self) -> None:
@@ -390,7 +392,7 @@ class PX4Link:
         self._next_ns: dict[str, int] = {}
         self._last_t_ns: int | None = None
         self._pace_wall = time.monotonic()
-        self._pace_sim = self.sim.t_ns
+        self._pace_sim = self.world.t_ns
 
     def _accept(self, guard: Any) -> None:
         assert self._listener is not None
@@ -435,8 +437,10 @@ class PX4Link:
         with guard:
             self._apply_loss()
             self._holding = not self._on_ground()
-            t_ns = self.sim.t_ns
-            truth = Truth.from_sim(self.sim) if t_ns else None
+            if self.on_change is not None:
+                self.on_change()
+            t_ns = self.world.t_ns
+            truth = Truth.from_sim(self.vehicle) if t_ns else None
         log.info(
             "PX4 connected from %s at t=%.3f s%s",
             address,
@@ -456,28 +460,31 @@ class PX4Link:
 
     def _on_ground(self) -> bool:
         """(Under the lock) the vehicle rests on the ground: no PX4 is needed to keep it safe."""
-        return self.sim.state.position[2] <= AIRBORNE_Z_M and self.sim.mode in (Mode.IDLE, Mode.EXTERNAL)
+        return self.vehicle.state.position[2] <= AIRBORNE_Z_M and self.vehicle.mode in (
+            Mode.IDLE,
+            Mode.EXTERNAL,
+        )
 
     def _apply_loss(self) -> None:
         """(Under the lock) after PX4 was dropped while its outputs drove the rotors: ``cfg.on_loss``."""
         if not self._loss_pending:
             return
         self._loss_pending = False
-        if self.sim.mode != Mode.EXTERNAL:
+        if self.vehicle.mode != Mode.EXTERNAL:
             return  # PX4 did not have the rotors: whatever flies the vehicle goes on
-        position = self.sim.state.position
+        position = self.vehicle.state.position
         data: dict[str, Any] = {"position": [round(float(v), 3) for v in position]}
         if position[2] <= AIRBORNE_Z_M or self.cfg.on_loss == "fall":
             action = "rest" if position[2] <= AIRBORNE_Z_M else "fall"
-            self.sim.motors_off()
+            self.vehicle.motors_off()
             log.warning("PX4 lost %s: rotors stopped", "on the ground" if action == "rest" else "in the air")
         elif self.cfg.on_loss == "hold":
             action = "hold"
-            self.sim.hold()
+            self.vehicle.hold()
             log.warning("PX4 lost in the air: the simulator holds the vehicle at %s", data["position"])
         else:
             action = "land"
-            spot = self.sim.safe_land()
+            spot = self.vehicle.safe_land()
             data["spot"] = [round(float(v), 3) for v in spot]
             log.warning(
                 "PX4 lost in the air: the simulator lands the vehicle at %s (from %s)",
@@ -485,11 +492,13 @@ class PX4Link:
                 data["position"],
             )
         self._event("px4_lost", action=action, **data)
+        if self.on_change is not None:
+            self.on_change()
 
     def _update_hold(self, armed: bool) -> None:
         """(Under the lock, on each actuator command while holding) hand PX4 the rotors once the vehicle
         is on the ground with PX4 disarmed, or armed there; refuse, and say so, an arm in the air."""
-        down = self.sim.mode == Mode.IDLE and self.sim.state.position[2] <= AIRBORNE_Z_M
+        down = self.vehicle.mode == Mode.IDLE and self.vehicle.state.position[2] <= AIRBORNE_Z_M
         if not armed:
             self._arm_refused = False
             if not down:
@@ -498,7 +507,7 @@ class PX4Link:
             if not self._arm_refused:
                 self._arm_refused = True
                 reason = (
-                    f"PX4 armed with the vehicle in the air ({self.sim.mode.value} under the simulator's "
+                    f"PX4 armed with the vehicle in the air ({self.vehicle.mode.value} under the simulator's "
                     "controller): its outputs are not applied; it gets the rotors once the vehicle is on "
                     "the ground and PX4 is disarmed or arms there"
                 )
@@ -506,8 +515,10 @@ class PX4Link:
                 self._event("px4_arm_refused", reason=reason)
             return
         self._holding = False
-        log.info("the vehicle is on the ground at t=%.3f s: PX4 has the rotors", self.sim.t)
+        log.info("the vehicle is on the ground at t=%.3f s: PX4 has the rotors", self.world.t)
         self._event("px4_in_control")
+        if self.on_change is not None:
+            self.on_change()
 
     def _silence(self) -> float:
         """Wall seconds the connected PX4 has left sensor data unanswered (0 while it owes nothing)."""
@@ -516,7 +527,7 @@ class PX4Link:
 
     def _start_boot_grace(self) -> None:
         """Give PX4 BOOT_GRACE_S of wall time to answer the first batch before free-running."""
-        self._pace_wall, self._pace_sim = time.monotonic() + BOOT_GRACE_S, self.sim.t_ns
+        self._pace_wall, self._pace_sim = time.monotonic() + BOOT_GRACE_S, self.world.t_ns
 
     def _drop(self, reason: str) -> None:
         conn, self._conn = self._conn, None
@@ -524,7 +535,7 @@ class PX4Link:
             self._loss_pending = self._loss_pending or not self._holding
             with contextlib.suppress(OSError):
                 conn.close()
-            log.warning("PX4 at %s disconnected (%s) at t=%.3f s", self._peer, reason, self.sim.t)
+            log.warning("PX4 at %s disconnected (%s) at t=%.3f s", self._peer, reason, self.world.t)
             self._event("px4_disconnected", reason=reason)
         self._peer = ""
         self._reset_connection()
@@ -637,14 +648,14 @@ class PX4Link:
             armed = bool(msg.mode & ARMED_FLAG)
             speeds = self.motor_map.rotor_speeds(msg.controls[:4]) if armed else None
             if armed != self._armed:
-                log.info("PX4 %s at t=%.3f s", "armed" if armed else "disarmed", self.sim.t)
+                log.info("PX4 %s at t=%.3f s", "armed" if armed else "disarmed", self.world.t)
                 self._event("px4_armed" if armed else "px4_disarmed")
                 self._armed = armed
             if msg.flags & LOCKSTEP_FLAG:
                 if not self._lockstep:
-                    log.info("PX4 lockstep started at t=%.3f s: one step per actuator message", self.sim.t)
+                    log.info("PX4 lockstep started at t=%.3f s: one step per actuator message", self.world.t)
                     self._lockstep = True
-                    self._pace_wall, self._pace_sim = time.monotonic(), self.sim.t_ns
+                    self._pace_wall, self._pace_sim = time.monotonic(), self.world.t_ns
                 self._pending.append((armed, speeds))
             else:
                 if self._lockstep or self._free_cmd is None:
@@ -654,7 +665,7 @@ class PX4Link:
                     )
                 self._lockstep = False
                 self._free_cmd = (armed, speeds)
-                self._last_cmd_t_ns = self.sim.t_ns
+                self._last_cmd_t_ns = self.world.t_ns
         elif kind == "HEARTBEAT":
             if not self._heartbeat_seen:
                 self._heartbeat_seen = True
@@ -669,36 +680,28 @@ class PX4Link:
             log.debug("ignoring %s from PX4", kind)
 
     # ------------------------------------------------------------------ stepping
-    def _step(self, guard: Any) -> StepResult:
-        first, self._force_step = self._force_step, False
-        lockstep_cmd = self._pending.popleft() if self._pending else None
-        with guard:
-            t_ns = self.sim.t_ns
-            cmd = lockstep_cmd
-            if cmd is None and self._free_cmd is not None and self._fresh(t_ns):
-                cmd = self._free_cmd
-            if cmd is not None:
-                armed, speeds = cmd
-                if self._holding:
-                    self._update_hold(armed)  # until it hands over, PX4's outputs are not applied
-                if not self._holding:
-                    if armed and speeds is not None:
-                        self.sim.set_rotor_speeds(speeds)
-                    else:
-                        self.sim.motors_off()
-                if lockstep_cmd is not None:
-                    self._last_cmd_t_ns = t_ns
-            elif not self._holding and self.sim.mode == Mode.EXTERNAL and not self._fresh(t_ns):
-                self.sim.motors_off()
-                if not self._timeout_logged:
-                    self._timeout_logged = True
-                    log.warning("no actuator outputs from PX4 for 0.2 s of sim time: motors off")
-            result = self.sim.step()
-            truth = Truth.from_sim(self.sim)
-        self._send_batch(truth)
-        if first:
-            self._start_boot_grace()
-        return result
+    def _apply(self, cmd: tuple[bool, np.ndarray | None] | None, lockstep: bool) -> None:
+        """(Under the lock, before a step) apply PX4's command ``cmd`` (``lockstep``: from a lockstep
+        message) or, without a fresh one, the actuator timeout."""
+        t_ns = self.world.t_ns
+        if cmd is None and self._free_cmd is not None and self._fresh(t_ns):
+            cmd = self._free_cmd
+        if cmd is not None:
+            armed, speeds = cmd
+            if self._holding:
+                self._update_hold(armed)  # until it hands over, PX4's outputs are not applied
+            if not self._holding:
+                if armed and speeds is not None:
+                    self.vehicle.set_rotor_speeds(speeds)
+                else:
+                    self.vehicle.motors_off()
+            if lockstep:
+                self._last_cmd_t_ns = t_ns
+        elif not self._holding and self.vehicle.mode == Mode.EXTERNAL and not self._fresh(t_ns):
+            self.vehicle.motors_off()
+            if not self._timeout_logged:
+                self._timeout_logged = True
+                log.warning("no actuator outputs from PX4 for 0.2 s of sim time: motors off")
 
     def _fresh(self, t_ns: int) -> bool:
         return self._last_cmd_t_ns is not None and 0 <= t_ns - self._last_cmd_t_ns <= ACTUATOR_TIMEOUT_NS
@@ -804,3 +807,113 @@ class PX4Link:
             return
         if self._unanswered_since is None:
             self._unanswered_since = time.monotonic()
+
+
+# --------------------------------------------------------------------------- links stepping one world
+def serve_links(
+    links: list[PX4Link], timeout: float, lock: threading.Lock | None = None
+) -> StepResult | None:
+    """Serve every link for up to ``timeout`` s and step their (one) world at most once.
+
+    The world steps when every connected PX4 is ready: each in lockstep has sent its actuator outputs
+    for the last step, each booting (before lockstep) is due by its pacing, as Gazebo's lockstep waits
+    for every PX4 instance. Links without a PX4 do not hold the clock. Returns the step's result, or
+    None when nothing stepped within ``timeout``. ``lock`` is held around every access to the world.
+    """
+    for link in links:
+        if not link._listening:
+            raise RuntimeError("PX4Link is not listening: call start() first")
+    guard = lock if lock is not None else contextlib.nullcontext()
+    deadline = time.monotonic() + max(0.0, float(timeout))
+    polled = False
+    while True:
+        for link in links:
+            if link._loss_pending:
+                with guard:
+                    link._apply_loss()
+        waits = [link._time_to_step() for link in links if link._conn is not None]
+        due = max(waits) if waits and all(w is not None for w in waits) else None  # type: ignore[type-var]
+        if due is not None and due <= 0.0:
+            return _step_links([link for link in links if link._conn is not None], guard)
+        now = time.monotonic()
+        if polled and now >= deadline:
+            return None
+        wait = max(0.0, deadline - now)
+        if due is not None:
+            wait = min(wait, due)
+        _poll_links(links, wait, guard)
+        polled = True
+
+
+def _poll_links(links: list[PX4Link], wait: float, guard: Any) -> None:
+    owner = {sock: link for link in links for sock in link._sockets()}
+    try:
+        readable, _, _ = select.select(list(owner), [], [], wait)
+    except (OSError, ValueError) as exc:
+        for link in links:
+            link._select_failed(exc)
+        return
+    for link in links:
+        link._on_readable([s for s in readable if owner[s] is link], guard)
+
+
+def _step_links(links: list[PX4Link], guard: Any) -> StepResult:
+    """Apply every connected PX4's command, step the world once, send each PX4 its sensor data."""
+    world = links[0].world
+    firsts = []
+    cmds = []
+    for link in links:
+        firsts.append(link._force_step)
+        link._force_step = False
+        cmds.append(link._pending.popleft() if link._pending else None)
+    with guard:
+        for link, cmd in zip(links, cmds, strict=True):
+            link._apply(cmd, cmd is not None)
+        result = world.step()
+        truths = [Truth.from_sim(link.vehicle) for link in links]
+    for link, truth, first in zip(links, truths, firsts, strict=True):
+        link._send_batch(truth)
+        if first:
+            link._start_boot_grace()
+    return result
+
+
+class PX4Fleet:
+    """Every PX4 link of a world (one PX4 SITL instance per vehicle it flies), served and stepped
+    together (:func:`serve_links`); the runtime's face of the PX4 interface."""
+
+    def __init__(self, links: list[PX4Link]) -> None:
+        if not links:
+            raise ValueError("a PX4 fleet needs at least one link")
+        self.links = links
+
+    @classmethod
+    def of(cls, sim: Any) -> PX4Fleet:
+        """One link for each vehicle the world's config hands to PX4 (:meth:`SimConfig.px4_instances`)."""
+        world = world_of(sim)
+        return cls(
+            [PX4Link(world, vehicle=name, instance=k) for name, k in world.config.px4_instances().items()]
+        )
+
+    def start(self, listen: bool = True) -> None:
+        for link in self.links:
+            link.start(listen)
+
+    @property
+    def listening(self) -> bool:
+        return all(link.listening for link in self.links)
+
+    @property
+    def connected(self) -> bool:
+        """True while any PX4 is connected (PX4 then drives the simulation clock)."""
+        return any(link.connected for link in self.links)
+
+    def serve_once(self, timeout: float, lock: threading.Lock | None = None) -> StepResult | None:
+        return serve_links(self.links, timeout, lock)
+
+    def take_events(self) -> list[Event]:
+        return [e for link in self.links for e in link.take_events()]
+
+    def close(self) -> None:
+        for link in self.links:
+            link.close()

@@ -1,5 +1,5 @@
 """Headless sensor rendering: RGB, metric depth and segmentation for body-mounted cameras."""
 
-from droneulator.render.renderer import CameraFrame, Renderer
+from droneulator.render.renderer import CameraFrame, Renderer, fleet_renderer
 
-__all__ = ["CameraFrame", "Renderer"]
+__all__ = ["CameraFrame", "Renderer", "fleet_renderer"]

@@ -25,11 +25,11 @@ import numpy as np
 from PIL import Image
 
 from droneulator import frames
-from droneulator.config import CameraConfig
+from droneulator.config import CameraConfig, SimConfig
 from droneulator.scenes.base import MeshPart, Scene
 from droneulator.sensors.camera import Camera, gl_projection
 from droneulator.vehicles.mesh import TEXTURE as VEHICLE_TEXTURE
-from droneulator.vehicles.mesh import vehicle_texture
+from droneulator.vehicles.mesh import vehicle_mesh, vehicle_texture
 
 #: Target number of ground tiles along the longer side of the scene.
 TILES_PER_SIDE = 12
@@ -728,3 +728,26 @@ class Renderer:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def fleet_renderer(scene: Scene, config: SimConfig) -> Renderer:
+    """The renderer of every vehicle's camera rig in ``config``, each vehicle's body drawn in the others'
+    cameras (one mesh per airframe; a vehicle alone never sees its own body)."""
+    from droneulator.vehicles.params import get_params
+
+    specs = config.vehicle_specs()
+    meshes: dict[str, MeshPart] = {}
+    bodies: dict[str, MeshPart] = {}
+    for v in specs if len(specs) > 1 else ():
+        airframe = v.params or ""
+        if airframe not in meshes:
+            meshes[airframe] = vehicle_mesh(get_params(airframe))
+        bodies[v.name] = meshes[airframe]
+    rc = config.render
+    return Renderer(
+        scene,
+        rigs=config.camera_rigs(),
+        bodies=bodies,
+        shadows=rc.shadows,
+        shadow_map_size=rc.shadow_map_size,
+    )

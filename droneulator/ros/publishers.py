@@ -1,5 +1,8 @@
 """What the simulator publishes to ROS 2 and what it takes from it, one class per concern.
 
+Each vehicle's names come from :func:`~droneulator.ros.topics.vehicle_names` (a world of one keeps the
+single-vehicle names; a fleet gets ``/<ns>/<vehicle>/...`` and prefixed or namespaced TF).
+
 * :class:`StatePublisher`: ``/clock``, ``/<ns>/odom``, ``/tf`` and ``/tf_static``. It runs in the process
   that owns the vehicle state (the dynamics server), right after the physics step that produced the
   state, so odometry never waits for another process.
@@ -14,6 +17,7 @@ never runs backwards, not even across a reset.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
@@ -28,8 +32,7 @@ from droneulator.frames import (
 from droneulator.frames_numba import body_to_world, world_to_body
 from droneulator.imaging import encode_jpeg, encode_png
 from droneulator.ros import messages as M
-from droneulator.ros.topics import BASE_FRAME, MAP_FRAME, ODOM_FRAME, TYPES, optical_frame, topic_names
-from droneulator.ros.topics import vehicle_topics as _vehicle_topics
+from droneulator.ros.topics import CLOCK, MAP_FRAME, TYPES, VehicleNames, vehicle_names
 from droneulator.sensors.camera import Camera
 
 if TYPE_CHECKING:
@@ -52,55 +55,101 @@ class CameraImages(Protocol):
     seg: np.ndarray
 
 
-def static_transforms(cameras: list[CameraConfig]) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
+def static_transforms(
+    cameras: list[CameraConfig], names: VehicleNames | None = None
+) -> list[tuple[str, str, np.ndarray, np.ndarray]]:
     """(parent, child, translation, quaternion): map -> odom (identity) and, per camera,
-    base_link -> <cam>_link -> <cam>_optical_frame."""
-    tfs = [(MAP_FRAME, ODOM_FRAME, np.zeros(3), _IDENTITY_Q)]
+    base_link -> <cam>_link -> <cam>_optical_frame, with the frame ids of ``names`` (default: one
+    vehicle's, unprefixed)."""
+    n = names or vehicle_names("droneulator", "uav0", fleet=False)
+    tfs = [(MAP_FRAME, n.odom_frame, np.zeros(3), _IDENTITY_Q)]
     for cam in cameras:
-        link = f"{cam.name}_link"
-        tfs.append((BASE_FRAME, link, *pose_from_transform(Camera(cam).T_body_link)))
-        tfs.append((link, optical_frame(cam.name), *pose_from_transform(T_link_optical())))
+        link = n.link_frame(cam.name)
+        tfs.append((n.base_frame, link, *pose_from_transform(Camera(cam).T_body_link)))
+        tfs.append((link, n.optical_frame(cam.name), *pose_from_transform(T_link_optical())))
     return tfs
 
 
+def fleet_names(cfg: SimConfig) -> dict[str, VehicleNames]:
+    """Every vehicle's topic and frame names, by vehicle name (today's names for a world of one)."""
+    specs = cfg.vehicle_specs()
+    b = cfg.bridge
+    return {v.name: vehicle_names(b.namespace, v.name, len(specs) > 1, b.fleet_tf) for v in specs}
+
+
+class _VehicleOut:
+    """One vehicle's state publishers and message packer."""
+
+    def __init__(self, names: VehicleNames, odom: Any, odom_world: Any, tf: Any) -> None:
+        self.names, self.odom, self.odom_world, self.tf = names, odom, odom_world, tf
+        self.pack = M.StatePacker(names.odom_frame, names.base_frame)
+
+
 class StatePublisher:
-    """``/clock``, odometry (odom -> base_link, twist in base_link), TF, the latched static TF, and
-    ``odom_world``: the same odometry with the twist in the odom (world) frame, as EGO-Planner and
-    other planners built on its simulator read it (not REP 105, hence a topic of its own)."""
+    """``/clock``, and per vehicle odometry (odom -> base_link, twist in base_link), TF, the latched
+    static TF, and ``odom_world``: the same odometry with the twist in the odom (world) frame, as
+    EGO-Planner and other planners built on its simulator read it (not REP 105, hence a topic of its
+    own). Names per vehicle from :func:`fleet_names`."""
 
     def __init__(self, node: RosZenohNode, cfg: SimConfig) -> None:
-        topics = _vehicle_topics(cfg.bridge.namespace)
-        self.clock = node.publisher(topics["clock"], TYPES["clock"])
-        self.odom = node.publisher(topics["odom"], TYPES["odom"])
-        self.odom_world = node.publisher(topics["odom_world"], TYPES["odom_world"])
-        self.tf = node.publisher(topics["tf"], TYPES["tf"])
-        self.tf_static = node.publisher(topics["tf_static"], TYPES["tf_static"])
-        self._static = static_transforms(cfg.render.cameras)
-        self._pack = M.StatePacker(ODOM_FRAME, BASE_FRAME)
+        self.clock = node.publisher(CLOCK, TYPES["clock"])
+        pubs: dict[str, Any] = {}  # one publisher per topic: vehicles that share /tf share it
+
+        def pub(topic: str, key: str) -> Any:
+            if topic not in pubs:
+                pubs[topic] = node.publisher(topic, TYPES[key])
+            return pubs[topic]
+
+        self.vehicles: dict[str, _VehicleOut] = {}
+        #: static transforms by tf_static topic: one message per topic holds every vehicle's on it
+        self._static: dict[str, list[tuple[str, str, np.ndarray, np.ndarray]]] = {}
+        self._static_pubs: dict[str, Any] = {}
+        for spec, (name, names) in zip(cfg.vehicle_specs(), fleet_names(cfg).items(), strict=True):
+            t = names.topics()
+            self.vehicles[name] = _VehicleOut(
+                names, pub(t["odom"], "odom"), pub(t["odom_world"], "odom_world"), pub(t["tf"], "tf")
+            )
+            assert spec.cameras is not None
+            self._static.setdefault(t["tf_static"], []).extend(static_transforms(spec.cameras, names))
+            self._static_pubs[t["tf_static"]] = pub(t["tf_static"], "tf_static")
+        self._clock_pack = next(iter(self.vehicles.values())).pack
 
     def publish(self, st: VehicleState) -> None:
-        """Publish one state: odometry first (the latency-critical stream), then ``/clock`` and TF.
+        """Publish one vehicle's state (see :meth:`publish_states`)."""
+        self.publish_states({st.vehicle: st})
 
-        The fixed-layout packer makes this a few microseconds (rosbags' generic serialiser takes ~0.1 ms).
+    def publish_states(self, states: Mapping[str, VehicleState]) -> None:
+        """Publish the states of one instant: every odometry first (the latency-critical stream), then
+        ``/clock`` once, then TF and ``odom_world``.
+
+        The fixed-layout packer makes this a few microseconds a vehicle (rosbags' generic serialiser
+        takes ~0.1 ms).
         """
-        t, p, q = st.stamp_ns, st.position, st.quaternion
-        v_body = world_to_body(q, st.velocity)
-        self.odom.publish(self._pack.odometry(t, p, q, v_body, st.angular_velocity), t)
-        self.clock.publish(self._pack.clock(t), t)
-        self.tf.publish(self._pack.transform(t, p, q), t)
-        w_world = body_to_world(q, st.angular_velocity)
-        self.odom_world.publish(self._pack.odometry(t, p, q, st.velocity, w_world), t)
+        t = 0
+        for name, st in states.items():
+            out = self.vehicles[name]
+            t, p, q = st.stamp_ns, st.position, st.quaternion
+            v_body = world_to_body(q, st.velocity)
+            out.odom.publish(out.pack.odometry(t, p, q, v_body, st.angular_velocity), t)
+        self.clock.publish(self._clock_pack.clock(t), t)
+        for name, st in states.items():
+            out = self.vehicles[name]
+            t, p, q = st.stamp_ns, st.position, st.quaternion
+            out.tf.publish(out.pack.transform(t, p, q), t)
+            w_world = body_to_world(q, st.angular_velocity)
+            out.odom_world.publish(out.pack.odometry(t, p, q, st.velocity, w_world), t)
 
     def publish_static(self, stamp_ns: int) -> None:
         """The static transforms stamped ``stamp_ns`` (re-sent periodically and at every reset)."""
-        tfs = [M.transform_stamped(stamp_ns, parent, child, p, q) for parent, child, p, q in self._static]
-        self.tf_static.publish(M.serialize(M.tf_message(tfs)), stamp_ns)
+        for topic, static in self._static.items():
+            tfs = [M.transform_stamped(stamp_ns, parent, child, p, q) for parent, child, p, q in static]
+            self._static_pubs[topic].publish(M.serialize(M.tf_message(tfs)), stamp_ns)
 
 
 class FramePublisher:
     """Every camera's JPEG colour, 32FC1 depth, PNG segmentation, their camera_info, and the pose of its
-    optical frame in ``odom`` (``geometry_msgs/PoseStamped`` on ``/<ns>/<cam>/pose``, what EGO-Planner's
-    grid map takes with ``pose_type`` 1), all stamped with the same instant.
+    optical frame in ``odom`` (``geometry_msgs/PoseStamped`` on ``<cam>/pose``, what EGO-Planner's
+    grid map takes with ``pose_type`` 1), for every vehicle, all stamped with the same instant.
 
     ``congestion_control`` is the Zenoh policy for the images: ``BLOCK`` in lockstep (nothing a
     subscriber asked for is lost; the simulation clock waits for the slowest one), ``DROP`` in real
@@ -115,77 +164,98 @@ class FramePublisher:
     ) -> None:
         self.jpeg_quality = cfg.bridge.jpeg_quality
         policy = congestion_control
-        self.cams = []
-        for cam in cfg.render.cameras:
-            names = topic_names(cfg.bridge.namespace, cam.name)
-            pubs = {
-                k: node.publisher(names[k], TYPES[k], congestion_control=policy if k in _IMAGES else None)
-                for k in names
-            }
-            camera = Camera(cam)
-            self.cams.append((cam, optical_frame(cam.name), camera.K, camera.T_body_link, pubs))
+        #: vehicle -> [(camera, optical frame id, odom frame id, K, mount, publishers)]
+        self.cams: dict[str, list[tuple[CameraConfig, str, str, np.ndarray, np.ndarray, dict[str, Any]]]] = {}
+        for spec, (name, vn) in zip(cfg.vehicle_specs(), fleet_names(cfg).items(), strict=True):
+            assert spec.cameras is not None
+            rig = self.cams.setdefault(name, [])
+            for cam in spec.cameras:
+                topics = vn.camera_topics(cam.name)
+                pubs = {
+                    k: node.publisher(t, TYPES[k], congestion_control=policy if k in _IMAGES else None)
+                    for k, t in topics.items()
+                }
+                camera = Camera(cam)
+                frame = vn.optical_frame(cam.name)
+                rig.append((cam, frame, vn.odom_frame, camera.K, camera.T_body_link, pubs))
 
-    def publish(self, st: VehicleState, images: dict[str, CameraImages], mark: Any = None) -> None:
-        """Publish one frame set, every image stamped ``st.stamp_ns`` with its optical frame id.
+    def publish(
+        self,
+        states: Mapping[str, VehicleState],
+        images: Mapping[str, Mapping[str, CameraImages]],
+        mark: Any = None,
+    ) -> None:
+        """Publish one frame set: every vehicle's (``states`` by name) cameras (``images[vehicle][camera]``),
+        every image stamped with its vehicle's ``stamp_ns`` and its optical frame id.
 
         ``mark(stream, stamp_ns)``, if given, is called just before each image is encoded (latency logs).
         """
-        t = st.stamp_ns
-        T_world_body = transform_from_pose(st.position, st.quaternion)
-        for cam, frame_id, K, mount, pubs in self.cams:
-            im = images[cam.name]
-            info = M.serialize(M.camera_info(t, frame_id, cam.width, cam.height, K))
-            for key in ("info_rgb", "info_depth", "info_seg"):
-                pubs[key].publish(info, t)
-            cam_p, cam_q = pose_from_transform(T_world_optical(T_world_body, mount))
-            pubs["pose"].publish(M.serialize(M.pose_stamped(t, ODOM_FRAME, cam_p, cam_q)), t)
-            if mark is not None:
-                mark("rgb", t)
-            jpeg = encode_jpeg(im.rgb, self.jpeg_quality)
-            pubs["rgb"].publish(M.serialize(M.compressed_image(t, frame_id, "jpeg", jpeg)), t)
-            if mark is not None:
-                mark("depth", t)
-            pubs["depth"].publish(M.serialize(M.image(t, frame_id, im.depth)), t)
-            png = encode_png(im.seg)
-            pubs["seg"].publish(M.serialize(M.compressed_image(t, frame_id, "png", png)), t)
+        for vehicle, st in states.items():
+            t = st.stamp_ns
+            T_world_body = transform_from_pose(st.position, st.quaternion)
+            for cam, frame_id, odom_frame, K, mount, pubs in self.cams[vehicle]:
+                im = images[vehicle][cam.name]
+                info = M.serialize(M.camera_info(t, frame_id, cam.width, cam.height, K))
+                for key in ("info_rgb", "info_depth", "info_seg"):
+                    pubs[key].publish(info, t)
+                cam_p, cam_q = pose_from_transform(T_world_optical(T_world_body, mount))
+                pubs["pose"].publish(M.serialize(M.pose_stamped(t, odom_frame, cam_p, cam_q)), t)
+                if mark is not None:
+                    mark("rgb", t)
+                jpeg = encode_jpeg(im.rgb, self.jpeg_quality)
+                pubs["rgb"].publish(M.serialize(M.compressed_image(t, frame_id, "jpeg", jpeg)), t)
+                if mark is not None:
+                    mark("depth", t)
+                pubs["depth"].publish(M.serialize(M.image(t, frame_id, im.depth)), t)
+                png = encode_png(im.seg)
+                pubs["seg"].publish(M.serialize(M.compressed_image(t, frame_id, "png", png)), t)
 
 
 def subscribe_commands(node: RosZenohNode, cfg: SimConfig, commands: CommandPath) -> None:
-    """``cmd_vel`` -> ``velocity``, ``goal_pose`` -> ``goto`` and ``position_cmd`` -> ``track``, through
-    the one command path.
+    """Every vehicle's ``cmd_vel`` -> ``velocity``, ``goal_pose`` -> ``goto`` and ``position_cmd`` ->
+    ``track``, through the one command path, each commanding its own vehicle.
 
     A PositionCommand's ``kx``/``kv`` gains, ``trajectory_id`` and ``trajectory_flag`` are not used: the
     simulator's SE(3) gains apply. Its frame may be ``world`` (EGO-Planner's name for it), ``map``,
-    ``odom`` or empty: all are the simulator's world frame.
+    the vehicle's ``odom`` or empty: all are the simulator's world frame (a vehicle's odom frame
+    coincides with the map).
 
     Values are passed on unchecked: the command path validates them exactly as it validates a
     WebSocket request (NaN, ranges, bounds, flight lock), and logs a rejection once per burst.
     """
-    topics = _vehicle_topics(cfg.bridge.namespace)
+    for vehicle, names in fleet_names(cfg).items():
+        _subscribe_vehicle(node, names, vehicle, commands)
+
+
+def _subscribe_vehicle(node: RosZenohNode, names: VehicleNames, vehicle: str, commands: CommandPath) -> None:
+    topics = names.topics()
     src_vel, src_goal = f"ROS {topics['cmd_vel']}", f"ROS {topics['goal_pose']}"
     src_track = f"ROS {topics['position_cmd']}"
+    world_frames = ("", "world", MAP_FRAME, names.odom_frame)
 
     def on_cmd_vel(msg: Any) -> None:
-        args = {"forward": float(msg.linear.x), "yaw_rate": float(msg.angular.z)}
+        args = {"forward": float(msg.linear.x), "yaw_rate": float(msg.angular.z), "vehicle": vehicle}
         commands.submit(src_vel, "velocity", args)
 
     def on_goal_pose(msg: Any) -> None:
         frame = msg.header.frame_id
-        if frame not in ("", MAP_FRAME, ODOM_FRAME):
-            commands.reject(src_goal, "goto", "invalid_argument", f"goal in frame {frame!r}: only map/odom")
+        if frame not in world_frames or frame == "world":
+            allowed = f"{MAP_FRAME}/{names.odom_frame}"
+            commands.reject(src_goal, "goto", "invalid_argument", f"goal in frame {frame!r}: only {allowed}")
             return
         p, q = msg.pose.position, msg.pose.orientation
         quat = np.array([q.x, q.y, q.z, q.w], dtype=float)
         norm = float(np.linalg.norm(quat))
         yaw = yaw_of(quat) if math.isfinite(norm) and norm > 1e-6 else math.nan  # nan: rejected as invalid
-        commands.submit(src_goal, "goto", {"position": [float(p.x), float(p.y), float(p.z)], "yaw": yaw})
+        position = [float(p.x), float(p.y), float(p.z)]
+        commands.submit(src_goal, "goto", {"position": position, "yaw": yaw, "vehicle": vehicle})
 
     def on_position_cmd(msg: Any) -> None:
         frame = msg.header.frame_id
-        if frame not in ("", "world", MAP_FRAME, ODOM_FRAME):
-            commands.reject(
-                src_track, "track", "invalid_argument", f"setpoint in frame {frame!r}: only world/map/odom"
-            )
+        if frame not in world_frames:
+            allowed = f"world/{MAP_FRAME}/{names.odom_frame}"
+            why = f"setpoint in frame {frame!r}: only {allowed}"
+            commands.reject(src_track, "track", "invalid_argument", why)
             return
         p, v, a = msg.position, msg.velocity, msg.acceleration
         args = {
@@ -194,6 +264,7 @@ def subscribe_commands(node: RosZenohNode, cfg: SimConfig, commands: CommandPath
             "acceleration": [float(a.x), float(a.y), float(a.z)],
             "yaw": float(msg.yaw),
             "yaw_rate": float(msg.yaw_dot),
+            "vehicle": vehicle,
         }
         commands.submit(src_track, "track", args)
 

@@ -16,6 +16,15 @@ client, the benchmarks) finds them here instead of spelling them out itself::
     /<ns>/<cam>/depth/image_raw                      sensor_msgs/Image (32FC1, metres, NaN = no return)
     /<ns>/<cam>/segmentation/image_raw/compressed    sensor_msgs/CompressedImage (png, class ids)
 
+A world of several vehicles puts each vehicle's topics under ``/<ns>/<vehicle>/`` (``/droneulator/uav1/odom``,
+``/droneulator/uav1/front/color/...``) and tells their TF frames apart in one of two conventions
+(``bridge.fleet_tf``, :class:`VehicleNames`): ``prefix`` (default) publishes every vehicle on the one
+``/tf`` with its frames prefixed (``uav1/odom``, ``uav1/base_link``, ``uav1/front_optical_frame``) under a
+shared unprefixed ``map``, as Aerostack2 and ``robot_state_publisher``'s ``frame_prefix`` do;
+``namespace`` gives each vehicle its own ``/<ns>/<vehicle>/tf`` and ``tf_static`` with unprefixed frames,
+as Nav2's multi-robot launch does. One ``/clock`` serves all. A world of one vehicle keeps the names
+above, so single-vehicle clients never change.
+
 Stamps are ``builtin_interfaces/Time`` (``sec``, ``nanosec``) of the simulator's monotonic clock
 (integer nanoseconds, the API's ``stamp_ns``, which keeps counting across resets); the helpers here
 convert between the two without floats.
@@ -24,6 +33,7 @@ convert between the two without floats.
 from __future__ import annotations
 
 import io
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -103,6 +113,67 @@ def vehicle_topics(ns: str) -> dict[str, str]:
         "goal_pose": f"/{ns}/goal_pose",
         "position_cmd": f"/{ns}/position_cmd",
     }
+
+
+#: how a fleet's TF frames are told apart (``bridge.fleet_tf``): see the module docstring
+FLEET_TF = ("prefix", "namespace")
+
+
+@dataclass(frozen=True)
+class VehicleNames:
+    """Where one vehicle's topics and TF frames are: its ``namespace`` (relative), its ``frame_prefix``
+    (``""`` or ``"<vehicle>/"``) and the TF topics its transforms go on."""
+
+    vehicle: str
+    namespace: str
+    frame_prefix: str
+    tf: str
+    tf_static: str
+
+    @property
+    def odom_frame(self) -> str:
+        return self.frame_prefix + ODOM_FRAME
+
+    @property
+    def base_frame(self) -> str:
+        return self.frame_prefix + BASE_FRAME
+
+    def link_frame(self, cam: str) -> str:
+        return f"{self.frame_prefix}{cam}_link"
+
+    def optical_frame(self, cam: str) -> str:
+        """Frame id of camera ``cam``'s optical frame, its images' ``frame_id``."""
+        return self.frame_prefix + optical_frame(cam)
+
+    def topics(self) -> dict[str, str]:
+        """The vehicle's own topics and the clock and TF topics it uses (keys as :func:`vehicle_topics`)."""
+        return {**vehicle_topics(self.namespace), "tf": self.tf, "tf_static": self.tf_static}
+
+    def camera_topics(self, cam: str) -> dict[str, str]:
+        return topic_names(self.namespace, cam)
+
+    def describe(self, cameras: list[str]) -> dict[str, Any]:
+        """What the API's ``scene_info`` lists for the vehicle: namespace, TF prefix, topics by key."""
+        return {
+            "namespace": f"/{self.namespace}",
+            "tf_prefix": self.frame_prefix,
+            "topics": {**self.topics(), "cameras": {cam: self.camera_topics(cam) for cam in cameras}},
+        }
+
+
+def vehicle_names(ns: str, vehicle: str, fleet: bool, fleet_tf: str = "prefix") -> VehicleNames:
+    """The names of ``vehicle`` under namespace ``ns``: today's single-vehicle names unless ``fleet``
+    (the world has more than one vehicle), then ``/<ns>/<vehicle>/...`` with ``fleet_tf``'s TF frames."""
+    _check_name("namespace", ns)
+    _check_name("vehicle name", vehicle)
+    if fleet_tf not in FLEET_TF:
+        raise ValueError(f"fleet_tf must be one of {', '.join(FLEET_TF)}, got {fleet_tf!r}")
+    if not fleet:
+        return VehicleNames(vehicle, ns, "", TF, TF_STATIC)
+    vns = f"{ns}/{vehicle}"
+    if fleet_tf == "prefix":
+        return VehicleNames(vehicle, vns, f"{vehicle}/", TF, TF_STATIC)
+    return VehicleNames(vehicle, vns, "", f"/{vns}/tf", f"/{vns}/tf_static")
 
 
 # --------------------------------------------------------------------------- stamps

@@ -52,7 +52,7 @@ def open_bridge_node(cfg: SimConfig, hub_endpoint: str | None) -> RosZenohNode:
 
 def images_policy(cfg: SimConfig) -> zenoh.CongestionControl:
     """``BLOCK`` in lockstep (no image lost), ``DROP`` in real time (never stall the simulation)."""
-    lockstep = cfg.runtime.mode == "lockstep" or cfg.px4.enabled
+    lockstep = cfg.runtime.mode == "lockstep" or bool(cfg.px4_instances())
     return zenoh.CongestionControl.BLOCK if lockstep else zenoh.CongestionControl.DROP
 
 
@@ -79,7 +79,7 @@ class Bridge:
             except (EOFError, OSError):
                 return
             if isinstance(msg, Publish):
-                self.frames.publish(msg.state, self.ring.slot(msg.seq), mark)
+                self.frames.publish(msg.states, self.ring.slot(msg.seq), mark)
                 try:
                     self.conn.send(Published(msg.seq))
                 except OSError:
@@ -100,7 +100,7 @@ def main() -> None:
     except HubGoneError as e:
         log.error("%s; exiting", e)
         sys.exit(1)
-    ring = FrameRing(os.environ[ENV_RING], cfg.render.cameras, cfg.runtime.frame_slots)
+    ring = FrameRing(os.environ[ENV_RING], cfg.camera_rigs(), cfg.runtime.frame_slots)
     with open_bridge_node(cfg, os.environ.get(ENV_ZENOH)) as node:
         bridge = Bridge(cfg, node, ring, conn)
         log.info(

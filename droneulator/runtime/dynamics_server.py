@@ -1,5 +1,6 @@
-"""The dynamics server: owns the simulation clock and the flight, serves the WebSocket API, publishes
-the vehicle state to ROS 2 itself, and is the hub the render server and the bridge connect to.
+"""The dynamics server: owns the world (its clock and every vehicle's flight), serves the WebSocket API,
+publishes the vehicle states to ROS 2 itself, and is the hub the render server and the bridge connect
+to. Each camera instant goes to the render server as every vehicle's state at once.
 
 Lockstep: a control step is taken only while fewer than ``frame_slots - 1`` frames are in flight
 (requested from the render server and not yet published by the bridge), so sim time advances
@@ -18,6 +19,7 @@ the bridge process reaches over a private Unix socket.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
@@ -27,12 +29,12 @@ import threading
 import time
 from multiprocessing.connection import Connection, Listener, wait
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 from droneulator.api.server import ApiServer
 from droneulator.commands import CommandPath
 from droneulator.config import SimConfig, from_dict
-from droneulator.ros.publishers import StatePublisher, subscribe_commands
+from droneulator.ros.publishers import StatePublisher, fleet_names, subscribe_commands
 from droneulator.ros.zenoh_node import RosZenohNode
 from droneulator.runtime.ipc import (
     ENV_ADDRESS,
@@ -50,7 +52,9 @@ from droneulator.runtime.ipc import (
     Rendered,
     Welcome,
 )
-from droneulator.sim.simulator import NS, Simulator, StepResult, VehicleState
+from droneulator.vehicles.vehicle import NS, VehicleState
+from droneulator.world import World
+from droneulator.world.world import StepResult
 
 log = logging.getLogger("droneulator.dynamics")
 ROLES = ("renderer", "bridge")
@@ -71,8 +75,8 @@ class DynamicsServer:
         if cfg.render.camera_hz > cfg.vehicle.control_hz:
             raise ValueError("render.camera_hz must not exceed vehicle.control_hz")
         self.cfg = cfg
-        self.sim = Simulator(config=cfg, render=False, external_cameras=True)
-        self.commands = CommandPath(self.sim)
+        self.world = World(cfg, render=False, external_cameras=True)
+        self.commands = CommandPath(self.world)
         rt = cfg.runtime
         self.api = ApiServer(
             self.commands,
@@ -93,8 +97,8 @@ class DynamicsServer:
         self.peers: dict[str, Connection] = {}
         self._new_peers: queue.Queue[tuple[str, Connection]] = queue.Queue()
         self.seq = 0
-        #: seq -> (stage "render" | "publish", state): frames requested and not yet published
-        self.in_flight: dict[int, tuple[str, VehicleState]] = {}
+        #: seq -> (stage "render" | "publish", every vehicle's state): frames requested and not yet published
+        self.in_flight: dict[int, tuple[str, dict[str, VehicleState]]] = {}
         self.window = rt.frame_slots - 1
         self.state_period_ns = round(NS / rt.state_hz)
         self._next_state_ns = 0
@@ -105,10 +109,27 @@ class DynamicsServer:
         self.dropped_frames = 0
         self.frames_published = 0
         self.px4 = None
-        if cfg.px4.enabled:
-            from droneulator.px4.link import PX4Link
+        if cfg.px4_instances():
+            from droneulator.px4.link import PX4Fleet
 
-            self.px4 = PX4Link(self.sim)
+            self.px4 = PX4Fleet.of(self.world)
+        #: vehicle -> what PX4 holds of it: "control" (all flight ops), "connected" (reset), or None
+        self._px4_holds: dict[str, str | None] = {}
+        if self.px4 is not None:
+            for link in self.px4.links:
+                link.on_change = functools.partial(self._update_px4_hold, link)
+        self._describe_vehicles()
+
+    def _describe_vehicles(self) -> None:
+        """Tell each vehicle where it is reached (``scene_info.vehicles``): ROS names, PX4 port."""
+        ports = {}
+        if self.px4 is not None:
+            for link in self.px4.links:
+                port = self.cfg.px4.base_port + link.instance
+                ports[link.vehicle.name] = {"px4_instance": link.instance, "px4_port": port}
+        for name, names in fleet_names(self.cfg).items():
+            v = self.world.vehicles[name]
+            v.endpoints = {**names.describe([c.name for c in v.cameras]), **ports.get(name, {})}
 
     # ------------------------------------------------------------------ peers
     def _accept_loop(self) -> None:
@@ -139,13 +160,13 @@ class DynamicsServer:
                 self.peers[role].close()
             self.peers[role] = conn
             log.info("%s connected", role)
-            scene = (self.sim.config.scene, self.sim.config.seed)
+            scene = (self.world.config.scene, self.world.config.seed)
             if scene != (self.cfg.scene, self.cfg.seed):
                 self._send(role, LoadScene(*scene))
             stage = "render" if role == "renderer" else "publish"
-            for seq, (st, state) in sorted(self.in_flight.items()):
+            for seq, (st, states) in sorted(self.in_flight.items()):
                 if st == stage:  # work the previous instance never finished
-                    self._send(role, Render(seq, state) if role == "renderer" else Publish(seq, state))
+                    self._send(role, Render(seq, states) if role == "renderer" else Publish(seq, states))
 
     def _send(self, role: str, msg: HubMessage) -> None:
         conn = self.peers.get(role)
@@ -198,15 +219,16 @@ class DynamicsServer:
 
     def _step(self, realtime: bool) -> None:
         with self.lock:
-            res = self.sim.step()
+            res = self.world.step()
         self._after_step(res, realtime, time.time_ns())
 
     def _after_step(self, res: StepResult, realtime: bool, stepped_wall_ns: int) -> None:
-        """Publish the state (ROS first: lowest latency), send camera instants to the render server,
+        """Publish the states (ROS first: lowest latency), send camera instants to the render server,
         events and states to the API. ``stepped_wall_ns``: when the step that produced them ended."""
         with self.lock:  # a command may reset the simulation between the step and here
-            st = self.sim.state
-            scene = (self.sim.config.scene, self.sim.config.seed)
+            states = self.world.states_now()
+            scene = (self.world.config.scene, self.world.config.seed)
+        st = next(iter(states.values()))
         if st.t_ns < self._last_t_ns:  # reset through the API: re-send the static TF at once
             self._last_static = -float("inf")
             self._next_state_ns = 0
@@ -215,8 +237,8 @@ class DynamicsServer:
             self._next_state_ns = st.stamp_ns + self.state_period_ns
             if self._latency is not None:
                 self._latency.write(f"odom {st.stamp_ns} {stepped_wall_ns}\n")
-            self.ros.publish(st)
-            self.api.publish_state(st)
+            self.ros.publish_states(states)
+            self.api.publish_states(states)
             now = time.monotonic()
             if now - self._last_static > STATIC_TF_PERIOD_S:
                 self._last_static = now
@@ -241,14 +263,16 @@ class DynamicsServer:
         """Renderer and bridge connected and a first frame through both (shaders compiled, scene
         uploaded, encoders and publishers made), or no camera: PX4's sensor data will not wait."""
         peers = all(r in self.peers for r in ROLES)
-        return peers and (self.frames_published > 0 or not self.sim.camera_schedule)
+        return peers and (self.frames_published > 0 or not self.world.camera_schedule)
 
     def _px4_turn(self) -> bool:
-        """While PX4 is connected its actuator messages drive the clock (lockstep with PX4 and with
-        every consumer); True then. While PX4 is in control WebSocket flight commands are refused; a PX4
-        that connected over a vehicle in the air is not in control until the vehicle is on the ground
-        (the simulator flies it meanwhile, by ``px4.on_loss`` after a loss). The link's events
-        (connection, loss, arming, hand-over) are published as API events."""
+        """While a PX4 is connected its actuator messages drive the clock (lockstep with every PX4 and
+        with every consumer); True then. The flight lock is per vehicle: while a PX4 is in control of its
+        vehicle, that vehicle's flight commands are refused (the others still fly on the API); a PX4 that
+        connected over a vehicle in the air is not in control until the vehicle is on the ground (the
+        simulator flies it meanwhile, by ``px4.on_loss`` after a loss), and while any PX4 is connected a
+        reset, which would turn its clock back, is refused. The links' events (connection, loss, arming,
+        hand-over) are published as API events, naming their vehicle."""
         assert self.px4 is not None
         connected = self.px4.connected
         ready = all(r in self.peers for r in ROLES) and len(self.in_flight) < self.window
@@ -260,32 +284,43 @@ class DynamicsServer:
         stepped_wall_ns = time.time_ns()
         for event in self.px4.take_events():
             self.api.publish_event(event.to_dict())
-        if self.px4.connected and not self.px4.in_control and self.commands.flight_locked is None:
-            # a PX4 that is connected but not flying (booting over a held vehicle) keeps the clock:
-            # resetting would turn its lockstep clock back
-            self.commands.refuse_flight("a PX4 is connected: reset would turn its clock back", ops=("reset",))
-        elif not self.px4.connected and not self._px4_in_control and self.commands.flight_locked is not None:
-            self.commands.allow_flight()
-        if self.px4.in_control != self._px4_in_control:
-            self._px4_in_control = self.px4.in_control
-            if self._px4_in_control:
-                self.commands.refuse_flight("PX4 SITL is in control; flight commands come from PX4")
-                log.info("PX4 is in control: it flies the vehicle and drives the simulation clock")
-            else:  # the link applied px4.on_loss (land, hold or fall) under the lock
-                self.commands.allow_flight()
-                log.warning(
-                    "PX4 is not in control: the simulator flies the vehicle (%s); a PX4 gets the rotors "
-                    "once it is on the ground",
-                    self.sim.mode.value,
-                )
+        for link in self.px4.links:
+            self._update_px4_hold(link)
         if res is not None:
             self._after_step(res, False, stepped_wall_ns)
         if self.px4.connected:
             self._poll(0 if ready else 0.05)
         return self.px4.connected
 
+    def _update_px4_hold(self, link: Any) -> None:
+        name = link.vehicle.name
+        was = self._px4_holds.get(name)
+        hold = "control" if link.in_control else "connected" if link.connected else None
+        if hold == was:
+            return
+        self._px4_holds[name] = hold
+        if hold == "control":
+            self.commands.refuse_flight(
+                f"PX4 SITL is in control of {name}; flight commands come from PX4", vehicle=name
+            )
+            log.info("PX4 is in control of %s: it flies the vehicle and drives the simulation clock", name)
+            return
+        if hold == "connected":
+            # a PX4 that is connected but not flying (booting over a held vehicle) keeps the clock
+            self.commands.refuse_flight(
+                "a PX4 is connected: reset would turn its clock back", ops=("reset",), vehicle=name
+            )
+        else:
+            self.commands.allow_flight(name)
+        if was == "control":  # the link applied px4.on_loss (land, hold or fall) under the lock
+            log.warning(
+                "PX4 is not in control of %s: the simulator flies it (%s); a PX4 gets the rotors once it is "
+                "on the ground",
+                name,
+                link.vehicle.mode.value,
+            )
+
     def run(self) -> None:
-        self._px4_in_control = False
         if self.px4 is not None:
             self.px4.start(listen=False)  # the port is ours now; PX4 is let in once the pipeline is warm
         self.api.start()
@@ -300,26 +335,26 @@ class DynamicsServer:
             self.api.port,
         )
         realtime = self.cfg.runtime.mode == "realtime"
-        dt = self.sim.control_period_ns / NS
-        wall0, sim0 = time.monotonic(), self.sim.t
+        dt = self.world.control_period_ns / NS
+        wall0, sim0 = time.monotonic(), self.world.t
         report = time.monotonic() + 5.0
         while not self.stopping.is_set():
             self._take_new_peers()
             if self.px4 is not None and not self.px4.listening and self._pipeline_warm():
                 self.px4.start()
                 log.info(
-                    "waiting for PX4 SITL on tcp://%s:%d (renderer and bridge warm: the first frame was "
-                    "published at t=%.3f s)",
+                    "waiting for PX4 SITL on tcp://%s port %s (renderer and bridge warm: the first frame "
+                    "was published at t=%.3f s)",
                     self.cfg.px4.host,
-                    self.px4.port,
-                    self.sim.t,
+                    ", ".join(f"{link.port} ({link.vehicle.name})" for link in self.px4.links),
+                    self.world.t,
                 )
             if self.px4 is not None and self.px4.listening and self._px4_turn():
-                wall0, sim0 = time.monotonic(), self.sim.t  # realtime pacing restarts here when PX4 leaves
+                wall0, sim0 = time.monotonic(), self.world.t  # realtime pacing restarts here when PX4 leaves
             elif realtime:
-                lag = (time.monotonic() - wall0) * self.cfg.runtime.speed - (self.sim.t - sim0)
-                if self.sim.t < sim0:  # reset through the API
-                    wall0, sim0 = time.monotonic(), self.sim.t
+                lag = (time.monotonic() - wall0) * self.cfg.runtime.speed - (self.world.t - sim0)
+                if self.world.t < sim0:  # reset through the API
+                    wall0, sim0 = time.monotonic(), self.world.t
                 if lag >= 0:
                     self._step(realtime=True)
                 self._poll(0 if lag >= 0 else min(-lag / self.cfg.runtime.speed, dt))
@@ -332,7 +367,7 @@ class DynamicsServer:
                 report = time.monotonic() + 5.0
                 log.info(
                     "t=%.2f s sim, %d frames in flight, %d dropped",
-                    self.sim.t,
+                    self.world.t,
                     len(self.in_flight),
                     self.dropped_frames,
                 )

@@ -5,10 +5,12 @@
   with a handshake (:class:`Hello`, answered by :class:`Welcome` or :class:`Refused`). After that
   only the typed messages below flow, each a small frozen dataclass: :class:`Render` ->
   :class:`Rendered` (render server), :class:`Publish` -> :class:`Published` (bridge), and
-  :class:`LoadScene` to both. States travel as :class:`~droneulator.sim.simulator.VehicleState`.
+  :class:`LoadScene` to both. States travel as :class:`~droneulator.sim.simulator.VehicleState`, every
+  vehicle's at one camera instant together (by name).
   Odometry, TF, ``/clock`` and ROS commands do not pass through here: the dynamics server, which
   owns the state, publishes and receives them on Zenoh itself.
-* **Images**: a ring of frame slots in shared memory, created by the supervisor. The render server
+* **Images**: a ring of frame slots in shared memory (each slot one image set per camera per vehicle),
+  created by the supervisor. The render server
   writes slot ``seq % slots``; the bridge reads it after the hub forwards the acknowledgement. The hub
   never has more than ``slots - 1`` frames in flight, so a slot is never rewritten while being read.
 """
@@ -35,7 +37,7 @@ ENV_AUTHKEY = "DRONEULATOR_HUB_AUTHKEY"
 ENV_RING = "DRONEULATOR_FRAME_RING"
 ENV_CONFIG = "DRONEULATOR_CONFIG_JSON"
 ENV_ZENOH = "DRONEULATOR_ZENOH_ENDPOINT"
-PROTOCOL_VERSION = 2
+PROTOCOL_VERSION = 3
 
 
 # --------------------------------------------------------------------------- typed messages
@@ -66,10 +68,10 @@ class Refused:
 
 @dataclass(frozen=True)
 class Render:
-    """Hub -> render server: draw every camera at ``state`` into frame slot ``seq``."""
+    """Hub -> render server: draw every vehicle's cameras at ``states`` (by name) into frame slot ``seq``."""
 
     seq: int
-    state: VehicleState
+    states: dict[str, VehicleState]
 
 
 @dataclass(frozen=True)
@@ -81,10 +83,10 @@ class Rendered:
 
 @dataclass(frozen=True)
 class Publish:
-    """Hub -> bridge: publish the images in slot ``seq``, rendered at ``state``."""
+    """Hub -> bridge: publish the images in slot ``seq``, rendered at ``states`` (by vehicle name)."""
 
     seq: int
-    state: VehicleState
+    states: dict[str, VehicleState]
 
 
 @dataclass(frozen=True)
@@ -115,23 +117,27 @@ class CameraImages:
 
 
 class FrameRing:
-    """Fixed-layout frame slots in POSIX shared memory, one image set per camera per slot."""
+    """Fixed-layout frame slots in POSIX shared memory, one image set per camera of every vehicle
+    (``rigs``: vehicle name -> its cameras) per slot."""
 
-    def __init__(self, name: str, cameras: list[CameraConfig], slots: int, create: bool = False) -> None:
-        self.cameras = cameras
+    def __init__(
+        self, name: str, rigs: dict[str, list[CameraConfig]], slots: int, create: bool = False
+    ) -> None:
+        self.rigs = rigs
         self.slots = slots
-        layout: list[tuple[str, str, tuple[int, ...], np.dtype, int]] = []
+        layout: list[tuple[str, str, str, tuple[int, ...], np.dtype, int]] = []
         offset = 0
-        for cam in cameras:
-            h, w = cam.height, cam.width
-            for kind, shape, dtype in (
-                ("depth", (h, w), np.float32),
-                ("rgb", (h, w, 3), np.uint8),
-                ("seg", (h, w), np.uint8),
-            ):
-                layout.append((cam.name, kind, shape, np.dtype(dtype), offset))
-                offset += int(np.prod(shape)) * np.dtype(dtype).itemsize
-                offset = (offset + 63) // 64 * 64
+        for vehicle, cameras in rigs.items():
+            for cam in cameras:
+                h, w = cam.height, cam.width
+                for kind, shape, dtype in (
+                    ("depth", (h, w), np.float32),
+                    ("rgb", (h, w, 3), np.uint8),
+                    ("seg", (h, w), np.uint8),
+                ):
+                    layout.append((vehicle, cam.name, kind, shape, np.dtype(dtype), offset))
+                    offset += int(np.prod(shape)) * np.dtype(dtype).itemsize
+                    offset = (offset + 63) // 64 * 64
         self.slot_bytes = offset
         size = max(1, offset * slots)
         if create:
@@ -141,19 +147,24 @@ class FrameRing:
             # Python < 3.13 registers attached segments for unlinking at exit: only the creator may.
             resource_tracker.unregister(self.shm._name, "shared_memory")  # type: ignore[attr-defined]
         self.owner = create
-        self._views: list[dict[str, CameraImages]] = []
+        self._views: list[dict[str, dict[str, CameraImages]]] = []
         for slot in range(slots):
             base = slot * self.slot_bytes
-            parts: dict[str, dict[str, np.ndarray]] = {}
-            for cam_name, kind, shape, dtype, off in layout:
-                parts.setdefault(cam_name, {})[kind] = np.ndarray(shape, dtype, self.shm.buf, base + off)
-            self._views.append({n: CameraImages(**p) for n, p in parts.items()})
+            parts: dict[tuple[str, str], dict[str, np.ndarray]] = {}
+            for vehicle, cam_name, kind, shape, dtype, off in layout:
+                view = np.ndarray(shape, dtype, self.shm.buf, base + off)
+                parts.setdefault((vehicle, cam_name), {})[kind] = view
+            views: dict[str, dict[str, CameraImages]] = {v: {} for v in rigs}
+            for (vehicle, cam_name), p in parts.items():
+                views[vehicle][cam_name] = CameraImages(**p)
+            self._views.append(views)
 
     @staticmethod
     def new_name() -> str:
         return f"droneulator_{os.getpid()}_{secrets.token_hex(4)}"
 
-    def slot(self, seq: int) -> dict[str, CameraImages]:
+    def slot(self, seq: int) -> dict[str, dict[str, CameraImages]]:
+        """Slot ``seq``'s images: vehicle -> camera -> views."""
         return self._views[seq % self.slots]
 
     def close(self) -> None:

@@ -142,13 +142,14 @@ def check_vehicle(cfg: SimConfig) -> None:
 
     for spec in cfg.vehicle_specs():
         assert spec.sensors is not None
+        px4 = spec.controlled_by == "px4"
         where = "vehicle.sensors" if not cfg.vehicles else f"vehicle {spec.name!r}: sensors"
         try:
             check_kinds(spec.sensors)
         except ValueError as exc:
             raise StartupError(f"{where}: {exc}", USAGE) from None
         missing = [k for k in PX4_SENSORS if k not in spec.sensors]
-        if cfg.px4.enabled and missing:
+        if px4 and missing:
             raise StartupError(
                 f"{where}: PX4 needs {', '.join(PX4_SENSORS)}; {', '.join(missing)} missing", USAGE
             )
@@ -194,15 +195,16 @@ def run_ports(cfg: SimConfig) -> list[Listen]:
         if parsed is not None:
             option = "--set bridge.listen='[\"tcp/HOST:N\"]'"
             ports.append(Listen("Zenoh", *parsed, option, option, f"bridge.listen {endpoint}"))
-    if px4.enabled:
+    for vehicle, instance in cfg.px4_instances().items():
         ports.append(
             Listen(
-                "PX4 SITL",
+                f"PX4 SITL ({vehicle})" if len(cfg.vehicle_specs()) > 1 else "PX4 SITL",
                 px4.host,
-                0 if px4.base_port == 0 else px4.base_port + px4.instance,
+                0 if px4.base_port == 0 else px4.base_port + instance,
                 f"--px4-instance N (port {px4.base_port}+N) or --set px4.base_port=N",
                 "--set px4.host=HOST",
-                f"px4.base_port {px4.base_port} + px4.instance {px4.instance}",
+                f"px4.base_port {px4.base_port} + px4.instance {px4.instance}"
+                + (f" + vehicle index {instance - px4.instance}" if instance != px4.instance else ""),
             )
         )
     return ports

@@ -1,5 +1,6 @@
-"""The render server: draws the camera rig for each state the dynamics server sends, into the
-shared-memory frame ring, and acknowledges each frame.
+"""The render server: draws every vehicle's camera rig for each set of states the dynamics server sends
+(each vehicle's body in the others' cameras), into the shared-memory frame ring, and acknowledges
+each frame set.
 
 States arrive in the Z-up world (RotorPy); the renderer converts them to its Y-up OpenGL world
 through :mod:`droneulator.frames` (``gl_view_matrix``), nowhere else.
@@ -17,7 +18,7 @@ import numpy as np
 
 from droneulator.config import SimConfig, from_dict
 from droneulator.frames import transform_from_pose
-from droneulator.render import Renderer
+from droneulator.render import Renderer, fleet_renderer
 from droneulator.runtime.ipc import (
     ENV_CONFIG,
     ENV_RING,
@@ -35,19 +36,20 @@ log = logging.getLogger("droneulator.render")
 
 def serve(cfg: SimConfig) -> None:
     conn, welcome = hub_connect("renderer")
-    ring = FrameRing(os.environ[ENV_RING], cfg.render.cameras, cfg.runtime.frame_slots)
-    rc = cfg.render
+    rigs = cfg.camera_rigs()
+    ring = FrameRing(os.environ[ENV_RING], rigs, cfg.runtime.frame_slots)
 
     def make(scene: str, seed: int) -> Renderer:
-        return Renderer(
-            get_scene(scene, seed), rc.cameras, shadows=rc.shadows, shadow_map_size=rc.shadow_map_size
-        )
+        return fleet_renderer(get_scene(scene, seed), cfg)
 
     renderer = make(welcome.scene, welcome.seed)
     log.info(
         "render server ready: %s, %s",
         welcome.scene,
-        ", ".join(f"{c.name} {c.width}x{c.height}" for c in rc.cameras),
+        "; ".join(
+            f"{vehicle}: " + ", ".join(f"{c.name} {c.width}x{c.height}" for c in cams)
+            for vehicle, cams in rigs.items()
+        ),
     )
     try:
         while True:
@@ -56,13 +58,17 @@ def serve(cfg: SimConfig) -> None:
             except (EOFError, OSError):
                 return  # the dynamics server went away: the run is over
             match msg:
-                case Render(seq, st):
-                    frames = renderer.render(transform_from_pose(st.position, st.quaternion))
+                case Render(seq, states):
+                    poses = {
+                        name: transform_from_pose(st.position, st.quaternion) for name, st in states.items()
+                    }
                     slot = ring.slot(seq)
-                    for name, f in frames.items():
-                        np.copyto(slot[name].rgb, f.rgb)
-                        np.copyto(slot[name].depth, f.depth)
-                        np.copyto(slot[name].seg, f.seg)
+                    for vehicle, frames in renderer.render_rigs(poses).items():
+                        for name, f in frames.items():
+                            out = slot[vehicle][name]
+                            np.copyto(out.rgb, f.rgb)
+                            np.copyto(out.depth, f.depth)
+                            np.copyto(out.seg, f.seg)
                     try:
                         conn.send(Rendered(seq))
                     except OSError:

@@ -66,7 +66,7 @@ class Supervisor:
         #: the dynamics server's Zenoh session listens here for the bridge (private to this run)
         self.zenoh_endpoint = f"unixsock-stream/{Path(self.tmp.name) / 'zenoh.sock'}"
         self.authkey = secrets.token_hex(16)
-        self.ring = FrameRing(FrameRing.new_name(), cfg.render.cameras, cfg.runtime.frame_slots, create=True)
+        self.ring = FrameRing(FrameRing.new_name(), cfg.camera_rigs(), cfg.runtime.frame_slots, create=True)
         self.children = {n: Child(n, m) for n, m in CHILDREN.items()}
         self.stop_requested = threading.Event()
         self.failure: str | None = None

@@ -144,8 +144,22 @@ class Vehicle:
         self.s = row
         self.wind = make_wind(config.vehicle, config.seed, 1.0 / config.vehicle.control_hz)
         self.collisions = 0
+        self.index = index
+        #: where outside systems reach this vehicle, set by the runtime that serves it (ROS namespace and
+        #: topics, TF prefix, PX4 port): what ``scene_info`` lists besides the vehicle's own settings
+        self.endpoints: dict[str, Any] = {}
         self._reference: np.ndarray | None = None
         self._motion = motion
+
+    def describe(self) -> dict[str, Any]:
+        """What the API's ``scene_info`` says of this vehicle."""
+        return {
+            "name": self.name,
+            "params": self.spec.params,
+            "controlled_by": self.spec.controlled_by,
+            "cameras": [c.name for c in self.cameras],
+            **self.endpoints,
+        }
 
     # ------------------------------------------------------------------ state
     @property

@@ -34,7 +34,7 @@ from droneulator.config import SimConfig, load_config
 from droneulator.controllers.flight import Event, Mode
 from droneulator.controllers.se3 import se3_rows
 from droneulator.scenes import get_scene
-from droneulator.scenes.base import MeshPart, Scene
+from droneulator.scenes.base import Scene
 from droneulator.state import FLAT_SIZE, STATE, STATE_SIZE
 from droneulator.vehicles.dynamics import (
     OUTPUT,
@@ -45,7 +45,6 @@ from droneulator.vehicles.dynamics import (
     substeps,
     work_arrays,
 )
-from droneulator.vehicles.mesh import vehicle_mesh
 from droneulator.vehicles.vehicle import Vehicle, VehicleState
 from droneulator.world.contact import contacts
 from droneulator.world.downwash import WakeModel, downwash
@@ -151,19 +150,9 @@ class World:
             self.renderer.close()
             self.renderer = None
         if self.render_enabled:
-            from droneulator.render import Renderer
+            from droneulator.render import fleet_renderer
 
-            rc = self.config.render
-            rigs = {v.name: v.cameras for v in self.vehicles.values()}
-            meshes: dict[str, MeshPart] = {}  # one per airframe; alone, a vehicle never sees its own body
-            bodies = {
-                v.name: meshes.setdefault(v.spec.params, vehicle_mesh(v.quad_params))
-                for v in self.vehicles.values()
-                if len(self.vehicles) > 1
-            }
-            self.renderer = Renderer(
-                self.scene, rigs=rigs, bodies=bodies, shadows=rc.shadows, shadow_map_size=rc.shadow_map_size
-            )
+            self.renderer = fleet_renderer(self.scene, self.config)
 
     @property
     def vehicle_list(self) -> list[Vehicle]:

@@ -1,0 +1,400 @@
+"""A fleet through every interface: the command path, ROS 2 names in both key modes and both TF
+conventions, one PX4 SITL instance per vehicle, and ``droneulator run --vehicles`` end to end.
+
+Decoding is independent of the publishers' code: plain Zenoh sessions and rosbags' own CDR
+deserialiser; PX4 is played by ``tests/test_px4.Peer`` (pymavlink, booting like PX4).
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import zenoh
+from rosbags.typesys import Stores, get_typestore
+from test_px4 import Peer, by_type
+
+from droneulator.api.client import ApiError
+from droneulator.commands import CommandPath, make_request
+from droneulator.config import CameraConfig, VehicleSpec, fleet, load_config
+from droneulator.frames import enu_to_geodetic
+from droneulator.px4.link import PX4Fleet
+from droneulator.recording.recorder import Recorder, run_recorder_config
+from droneulator.recording.replay import ReplayConfig, replay
+from droneulator.ros.publishers import FramePublisher, StatePublisher
+from droneulator.ros.topics import vehicle_names
+from droneulator.ros.zenoh_node import RosZenohNode, ZenohNodeConfig
+from droneulator.runtime.launch import free_port, launch_run
+from droneulator.world import World
+
+TS = get_typestore(Stores.ROS2_JAZZY)
+SMALL = CameraConfig(name="front", width=160, height=120)
+
+
+def two_vehicle_config(**sections: Any) -> Any:
+    cfg = load_config(scene="default")
+    cfg.vehicles = fleet(2)
+    cfg.render.cameras = [SMALL]
+    cfg.render.shadows = False
+    for key, value in sections.items():
+        setattr(cfg, key, value)
+    return cfg
+
+
+def consecutive_ports(n: int) -> int:
+    """A base port with ``base .. base + n - 1`` all free now (PX4 instance k listens on base + k)."""
+    for _ in range(50):
+        base = free_port()
+        socks = []
+        try:
+            for k in range(n):
+                s = socket.socket()
+                socks.append(s)
+                s.bind(("127.0.0.1", base + k))
+            return base
+        except OSError:
+            continue
+        finally:
+            for s in socks:
+                s.close()
+    raise RuntimeError("no run of free ports")
+
+
+# --------------------------------------------------------------------------- the command path
+def test_flight_ops_name_their_vehicle_and_the_flight_lock_is_per_vehicle() -> None:
+    with World(two_vehicle_config(), render=False) as world:
+        path = CommandPath(world)
+
+        def run(op: str, **args: Any) -> dict[str, Any]:
+            return path.execute(make_request(op, args))
+
+        a, b = (world.vehicles[n].state.position.copy() for n in ("uav0", "uav1"))
+        info = run("scene_info")["result"]
+        assert [v["name"] for v in info["vehicles"]] == ["uav0", "uav1"]
+        assert info["vehicles"][1]["cameras"] == ["front"]
+        unknown = run("takeoff", vehicle="uav7")["error"]
+        assert unknown["code"] == "invalid_argument" and "uav0, uav1" in unknown["message"]
+
+        path.refuse_flight("PX4 flies uav1", vehicle="uav1")
+        assert run("takeoff", altitude=2.0, vehicle="uav1")["error"] == {
+            "code": "flight_locked",
+            "message": "PX4 flies uav1",
+        }
+        assert run("reset")["error"]["code"] == "flight_locked"  # it would move uav1 too
+        assert run("takeoff", altitude=2.0)["ok"]  # the default vehicle, uav0, still flies
+        assert path.flight_locked is None and path.flight_locked_for("uav1") == "PX4 flies uav1"
+        path.allow_flight("uav1")
+        assert run("takeoff", altitude=3.0, vehicle="uav1")["ok"]
+
+        events: list[Any] = []
+        arrived = lambda w: {e.vehicle for e in events if e.type == "arrived"} == {"uav0", "uav1"}  # noqa: E731
+        assert world.run_until(arrived, 30.0, events)
+        # crossing gotos at two heights: each flies to where the other took off
+        assert run("goto", position=[*b[:2], 2.0], speed=2.0, vehicle="uav0")["ok"]
+        assert run("goto", position=[*a[:2], 3.0], speed=2.0, vehicle="uav1")["ok"]
+        events.clear()
+        assert world.run_until(arrived, 60.0, events)
+        assert not [e for e in events if e.type == "collision"]
+        states = run("state", vehicle="*")["result"]
+        assert set(states["vehicles"]) == {"uav0", "uav1"}
+        assert np.linalg.norm(np.array(states["vehicles"]["uav0"]["position"]) - [*b[:2], 2.0]) < 0.1
+        assert np.linalg.norm(np.array(states["vehicles"]["uav1"]["position"]) - [*a[:2], 3.0]) < 0.1
+        assert run("state", vehicle="uav1")["result"]["vehicle"] == "uav1"
+        assert run("state")["result"]["vehicle"] == "uav0"
+
+
+# --------------------------------------------------------------------------- ROS names
+def test_one_vehicle_keeps_its_names_and_a_fleet_gets_namespaces_and_tf_frames() -> None:
+    one = vehicle_names("droneulator", "uav0", fleet=False)
+    assert (one.topics()["odom"], one.tf, one.base_frame) == ("/droneulator/odom", "/tf", "base_link")
+    assert one.camera_topics("front")["depth"] == "/droneulator/front/depth/image_raw"
+    prefix = vehicle_names("droneulator", "uav1", fleet=True)
+    assert prefix.topics()["odom"] == "/droneulator/uav1/odom" and prefix.tf == "/tf"
+    assert (prefix.odom_frame, prefix.optical_frame("front")) == ("uav1/odom", "uav1/front_optical_frame")
+    nav2 = vehicle_names("droneulator", "uav1", fleet=True, fleet_tf="namespace")
+    assert (nav2.tf, nav2.tf_static, nav2.base_frame) == (
+        "/droneulator/uav1/tf",
+        "/droneulator/uav1/tf_static",
+        "base_link",
+    )
+    with pytest.raises(ValueError, match="fleet_tf"):
+        vehicle_names("droneulator", "uav1", fleet=True, fleet_tf="both")
+    with pytest.raises(ValueError, match="fleet_tf"):
+        load_config(overrides=["bridge.fleet_tf=nav"])
+
+
+def _type_of(key: str, key_mode: str) -> tuple[str, str]:
+    """(ROS topic, type) of a Zenoh key, parsed here from the key conventions themselves."""
+    if key_mode == "ros2dds":
+        return "/" + key, ""
+    parts = key.split("/")  # <domain>/<topic...>/<pkg>::msg::dds_::<Type>_/<hash>
+    pkg, _, _, name = parts[-2].split("::")
+    return "/" + "/".join(parts[1:-2]), f"{pkg}/msg/{name[:-1]}"
+
+
+@pytest.mark.parametrize(("key_mode", "fleet_tf"), [("ros2dds", "prefix"), ("rmw_zenoh", "namespace")])
+def test_every_vehicles_topics_decode_with_their_frames_and_stamps(key_mode: str, fleet_tf: str) -> None:
+    cfg = two_vehicle_config()
+    cfg.bridge.key_mode, cfg.bridge.fleet_tf = key_mode, fleet_tf
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    zc = ZenohNodeConfig(mode="router", listen=(ep,), connect=(), key_mode=key_mode)  # type: ignore[arg-type]
+    node = RosZenohNode(zc)
+    sub_cfg = zenoh.Config()
+    sub_cfg.insert_json5("mode", '"client"')
+    sub_cfg.insert_json5("connect/endpoints", f'["{ep}"]')
+    session = zenoh.open(sub_cfg)
+    got: dict[str, list[tuple[str, Any]]] = defaultdict(list)
+    lock = threading.Lock()
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        if "@" in key:
+            return
+        with lock:
+            got[key].append(sample.payload.to_bytes())
+
+    sub = session.declare_subscriber("**", on_sample)
+    try:
+        states, frames = StatePublisher(node, cfg), FramePublisher(node, cfg, zenoh.CongestionControl.BLOCK)
+        time.sleep(0.5)  # declarations reach the subscriber
+        with World(cfg) as world:
+            world.vehicle("uav1").place([*world.vehicle("uav1").state.position[:2], 1.0], 0.3, airborne=True)
+            shot = world.render()
+            states.publish_static(shot.t_ns)
+            states.publish_states(shot.states)
+            frames.publish(shot.states, shot.cameras)
+        end = time.monotonic() + 10
+        while time.monotonic() < end and len(got) < 2 * (7 + 4) + 2:
+            time.sleep(0.05)
+    finally:
+        sub.undeclare()
+        session.close()
+        node.close()
+    decoded: dict[str, Any] = {}
+    for key, payloads in got.items():
+        topic, typename = _type_of(key, key_mode)
+        if not typename:
+            typename = _ros2dds_type(topic)
+        decoded[topic] = TS.deserialize_cdr(payloads[-1], typename)
+    ns = {v: vehicle_names("droneulator", v, True, fleet_tf) for v in ("uav0", "uav1")}
+    stamp = shot.t_ns
+    for v, names in ns.items():
+        odom = decoded[names.topics()["odom"]]
+        assert (odom.header.frame_id, odom.child_frame_id) == (names.odom_frame, names.base_frame)
+        assert odom.header.stamp.sec * 10**9 + odom.header.stamp.nanosec == stamp
+        assert np.allclose([odom.pose.pose.position.x, odom.pose.pose.position.y],
+                           shot.states[v].position[:2])  # fmt: skip
+        cam = names.camera_topics("front")
+        for key in ("depth", "rgb", "seg", "info_depth"):
+            assert decoded[cam[key]].header.frame_id == names.optical_frame("front")
+        assert decoded[cam["pose"]].header.frame_id == names.odom_frame
+        depth = decoded[cam["depth"]]
+        assert (depth.width, depth.height) == (SMALL.width, SMALL.height)
+    children = set()
+    for topic in {n.tf for n in ns.values()}:
+        children |= {t.child_frame_id for t in _all_tf(got, topic, key_mode)}
+    statics = set()
+    for topic in {n.tf_static for n in ns.values()}:
+        statics |= {(t.header.frame_id, t.child_frame_id) for t in _all_tf(got, topic, key_mode)}
+    if fleet_tf == "prefix":  # one /tf, distinct frames under one map
+        assert children == {"uav0/base_link", "uav1/base_link"}
+        assert {("map", "uav0/odom"), ("map", "uav1/odom"), ("uav1/base_link", "uav1/front_link"),
+                ("uav1/front_link", "uav1/front_optical_frame")} <= statics  # fmt: skip
+    else:  # Nav2: each vehicle's own tf topics, unprefixed frames
+        assert children == {"base_link"} and ("map", "odom") in statics
+        assert len({n.tf for n in ns.values()}) == 2
+    assert "/clock" in decoded
+
+
+def _ros2dds_type(topic: str) -> str:
+    from droneulator.ros.topics import TYPES
+
+    leaf = {
+        "odom": "odom", "odom_world": "odom_world", "tf": "tf", "tf_static": "tf_static", "clock": "clock",
+        "pose": "pose", "camera_info": "info_rgb", "image_raw": "depth", "compressed": "rgb",
+    }  # fmt: skip
+    return TYPES[leaf[topic.rsplit("/", 1)[-1]]]
+
+
+def _all_tf(got: dict[str, list[Any]], topic: str, key_mode: str) -> list[Any]:
+    out = []
+    for key, payloads in got.items():
+        if _type_of(key, key_mode)[0] == topic:
+            for raw in payloads:
+                out += TS.deserialize_cdr(raw, "tf2_msgs/msg/TFMessage").transforms
+    return out
+
+
+# --------------------------------------------------------------------------- PX4, one instance per vehicle
+def test_two_px4_instances_step_one_world_together() -> None:
+    """Vehicle k listens on base_port + k; the world steps only when every PX4 in lockstep has answered,
+    and each PX4 gets its own vehicle's sensor data."""
+    base = consecutive_ports(2)
+    cfg = two_vehicle_config()
+    cfg.vehicles = [VehicleSpec(name=f"uav{k}", params="px4_quadx", controlled_by="px4") for k in range(2)]
+    cfg.vehicle.control_hz = 250.0
+    cfg.px4.base_port, cfg.px4.speed_factor = base, 0.0
+    with World(cfg, render=False) as world:
+        px4 = PX4Fleet.of(world)
+        assert [(link.vehicle.name, link.instance) for link in px4.links] == [("uav0", 0), ("uav1", 1)]
+        px4.start()
+        stop = threading.Event()
+        lock = threading.Lock()
+
+        def serve() -> None:
+            while not stop.is_set():
+                px4.serve_once(0.01, lock)
+
+        thread = threading.Thread(target=serve, daemon=True)
+        thread.start()
+        peers = [Peer(base + k) for k in range(2)]
+        try:
+            assert [link.port for link in px4.links] == [base, base + 1]
+            for p in peers:
+                p.hello()
+            boot = [p.next("HIL_STATE_QUATERNION") for p in peers]
+            for k, msgs in enumerate(boot):
+                q = by_type(msgs, "HIL_STATE_QUATERNION")[-1]
+                pos = world.vehicle(f"uav{k}").state.position
+                lat, lon, _ = enu_to_geodetic(
+                    pos, cfg.px4.home_lat_deg, cfg.px4.home_lon_deg, cfg.px4.home_alt_m
+                )
+                assert abs(q.lat - round(lat * 1e7)) <= 2 and abs(q.lon - round(lon * 1e7)) <= 2
+            for p in peers:
+                p.step((0.0,) * 4, armed=False)  # both in lockstep now
+            for p in peers:
+                p.drain(0.3)
+            with lock:
+                t0 = world.t_ns
+            peers[0].actuators((0.0,) * 4, armed=False)
+            time.sleep(0.3)
+            with lock:
+                assert world.t_ns == t0  # uav1's PX4 has not answered: no step
+            peers[1].actuators((0.0,) * 4, armed=False)
+            times = [p.next()[-1].time_usec for p in peers]
+            assert times == [(t0 + 4_000_000) // 1000] * 2
+        finally:
+            stop.set()
+            thread.join(5)
+            for p in peers:
+                p.close()
+            px4.close()
+
+
+# --------------------------------------------------------------------------- droneulator run, end to end
+@pytest.mark.slow
+def test_a_two_vehicle_run_through_api_ros_px4_and_recording(tmp_path: Path) -> None:
+    """uav1 flown by PX4 instance 1 (a scripted peer) while uav0 flies on the API; a ROS cmd_vel to uav1
+    is refused; then both fly crossing gotos on the API; one recording holds every vehicle's topics and
+    replays them all."""
+    base = consecutive_ports(2)
+    cfg = two_vehicle_config()
+    cfg.vehicles = [VehicleSpec(name="uav0"), VehicleSpec(name="uav1", controlled_by="px4")]
+    cfg.px4.base_port = base
+    run = launch_run(cfg)
+    bag = tmp_path / "fleet.mcap"
+    recorder = Recorder(bag, run_recorder_config(run.config.bridge, run.zenoh_endpoint))
+    recorder.start()
+    peer = None
+    try:
+        with run.client() as c:
+            info = c.scene_info()
+            uav0, uav1 = info["vehicles"]
+            assert uav0["topics"]["odom"] == "/droneulator/uav0/odom" and uav0["tf_prefix"] == "uav0/"
+            assert uav1["controlled_by"] == "px4" and uav1["px4_port"] == base + 1 and "px4_port" not in uav0
+            assert uav1["topics"]["cameras"]["front"]["depth"] == "/droneulator/uav1/front/depth/image_raw"
+            c.subscribe(["events"])
+            peer = Peer(base + 1)  # PX4 instance 1: its simulator port is 4560 + 1 in a default setup
+            peer.hello()
+            peer.next()
+            peer.step((0.0,) * 4, armed=False)
+            peer.drain(0.3)
+            with pytest.raises(ApiError) as e:
+                c.takeoff(2.0, vehicle="uav1")
+            assert e.value.code == "flight_locked" and "uav1" in e.value.message
+            with pytest.raises(ApiError) as e:
+                c.reset()
+            assert e.value.code == "flight_locked"
+            c.takeoff(2.0, vehicle="uav0")  # the API still flies uav0
+            session = zenoh.open(_client_of(run.zenoh_endpoint))
+            pub = session.declare_publisher("droneulator/uav1/cmd_vel")
+            pub.put(bytes(TS.serialize_cdr(_twist(1.0), "geometry_msgs/msg/Twist")))
+            for _ in range(12):  # up to 12 s of sim time, stepped by PX4's lockstep messages
+                for _ in range(250):
+                    peer.step((0.0,) * 4, armed=False)
+                if c.state(vehicle="uav0")["mode"] == "hold":
+                    break
+            arrived = c.wait_for_event("arrived", timeout=30, vehicle="uav0")
+            assert arrived["command"] == "takeoff"
+            refused = "/droneulator/uav1/cmd_vel velocity command rejected (flight_locked)"
+            assert any(refused in line for line in run.log.lines())
+            assert c.state(vehicle="uav1")["position"][2] < 0.05  # disarmed PX4: resting
+            pub.undeclare()
+            session.close()
+            peer.close()  # PX4 leaves with its vehicle on the ground: the API may fly it again
+            peer = None
+            a, b = (np.array(c.state(vehicle=v)["position"]) for v in ("uav0", "uav1"))
+            _until(lambda: _flies(c, "uav1"), 10)
+            c.wait_for_event("arrived", timeout=60, vehicle="uav1")
+            c.goto([*b[:2], 2.0], speed=2.0, vehicle="uav0")
+            c.goto([*a[:2], 3.0], speed=2.0, vehicle="uav1")
+            got = {c.wait_for_event("arrived", timeout=90)["vehicle"] for _ in range(2)}
+            assert got == {"uav0", "uav1"}
+            both = c.state(vehicle="*")["vehicles"]
+            assert np.linalg.norm(np.array(both["uav1"]["position"]) - [*a[:2], 3.0]) < 0.15
+    finally:
+        if peer is not None:
+            peer.close()
+        stats = recorder.close()
+        run.stop()
+    topics = set(stats.written)
+    for v in ("uav0", "uav1"):
+        for leaf in (
+            "odom",
+            "odom_world",
+            "front/color/image_raw/compressed",
+            "front/depth/image_raw",
+            "front/segmentation/image_raw/compressed",
+            "front/color/camera_info",
+            "front/pose",
+        ):
+            assert f"/droneulator/{v}/{leaf}" in topics
+    assert {"/clock", "/tf", "/tf_static"} <= topics
+    counts = replay(bag, ReplayConfig(listen=(f"tcp/127.0.0.1:{free_port()}",), rate=1000.0))
+    assert {t for t, n in counts.items() if n} == topics
+
+
+def _flies(c: Any, vehicle: str) -> bool:
+    try:
+        c.takeoff(3.0, vehicle=vehicle)
+        return True
+    except ApiError as e:
+        if e.code != "flight_locked":
+            raise
+        return False
+
+
+def _until(pred: Any, timeout: float) -> None:
+    end = time.monotonic() + timeout
+    while not pred():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.1)
+
+
+def _client_of(endpoint: str) -> zenoh.Config:
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"client"')
+    cfg.insert_json5("connect/endpoints", f'["{endpoint}"]')
+    return cfg
+
+
+def _twist(forward: float) -> Any:
+    T = TS.types
+    v = T["geometry_msgs/msg/Vector3"]
+    return T["geometry_msgs/msg/Twist"](linear=v(x=forward, y=0.0, z=0.0), angular=v(x=0.0, y=0.0, z=0.0))
