@@ -1,9 +1,10 @@
 """Camera images for the browser, taken from the simulator's public ROS 2 topics over Zenoh.
 
-The UI subscribes to every camera's colour, depth and segmentation topic (the camera names are found
-from the keys, so any rig works), keeps only the newest raw sample per stream (a newer one replaces an
-older one not yet forwarded: drop-oldest) and, at most ``image_hz`` times a second, turns each new
-sample into something a browser shows directly:
+The UI subscribes to the colour, depth and segmentation topic of every camera of the vehicles its
+browser tabs watch (the topics as the API's ``scene_info`` lists them, :func:`vehicle_streams`), keeps
+only the newest raw sample per stream (a newer one replaces an older one not yet forwarded: drop-oldest)
+and, at most ``image_hz`` times a second, turns each new sample into something a browser shows
+directly:
 
 * colour: the simulator's JPEG as it is (no re-encoding),
 * depth: metres colour-mapped with :func:`droneulator.imaging.depth_to_rgb` (0 .. ``depth_max_m``), JPEG,
@@ -32,14 +33,15 @@ from PIL import Image
 from droneulator.config import BridgeConfig
 from droneulator.imaging import depth_to_rgb
 from droneulator.ros import messages
-from droneulator.ros.topics import TYPES, decode_compressed, decode_depth, header_ns, topic_names
+from droneulator.ros.topics import TYPES, decode_compressed, decode_depth, header_ns, vehicle_names
 from droneulator.scenes.base import palette_lut
 
 log = logging.getLogger("droneulator.ui")
 
 #: stream kinds forwarded to the browser, keyed like :func:`droneulator.ros.topics.topic_names`
 KINDS = ("rgb", "depth", "seg")
-_PLACEHOLDER = "UICAMERAPLACEHOLDER"
+#: the image topics of a fleet: vehicle -> camera -> stream kind (:data:`KINDS`) -> ROS topic
+Streams = dict[str, dict[str, dict[str, str]]]
 _HEADER = struct.Struct(">I")
 _PALETTE = palette_lut().ravel().tolist()
 #: depth and segmentation are shown beside the colour view at half its size: every 2nd pixel is
@@ -47,10 +49,26 @@ _PALETTE = palette_lut().ravel().tolist()
 DEPTH_SEG_STRIDE = 2
 
 
+def vehicle_streams(info: dict[str, Any], namespace: str) -> Streams:
+    """The image topics of every vehicle of a ``scene_info`` reply, in its order (the first is the
+    default vehicle): as the reply lists them, or, where it lists none (an API served without the
+    bridge), :func:`~droneulator.ros.topics.vehicle_names` under ``namespace``."""
+    vehicles = info.get("vehicles") or []
+    out: Streams = {}
+    for v in vehicles:
+        cameras = v.get("topics", {}).get("cameras")
+        if cameras is None:
+            names = vehicle_names(namespace, v["name"], len(vehicles) > 1)
+            cameras = {cam: names.camera_topics(cam) for cam in v.get("cameras", [])}
+        out[v["name"]] = {cam: {k: topics[k] for k in KINDS} for cam, topics in cameras.items()}
+    return out
+
+
 @dataclass
 class Frame:
     """One encoded image ready for the browser: ``seq`` counts the frames of its stream from 1."""
 
+    vehicle: str
     cam: str
     kind: str
     seq: int
@@ -120,11 +138,12 @@ def _jpeg(rgb: np.ndarray, quality: int) -> bytes:
 
 
 class ImageHub:
-    """Zenoh subscriptions to every camera's image topics, newest sample kept per stream.
+    """Zenoh subscriptions to the image topics of the watched vehicles, newest sample kept per stream.
 
-    :meth:`set_active` opens the Zenoh session (a client of the run's router at ``endpoint``) only while
-    a browser watches; :meth:`keep_alive` reopens it when samples stop (the simulator restarted).
-    :meth:`encode_new` encodes the samples that arrived since its last call.
+    :meth:`watch` says which streams to subscribe to; :meth:`set_active` opens the Zenoh session (a
+    client of the run's router at ``endpoint``) only while a browser watches; :meth:`keep_alive` reopens
+    it when samples stop (the simulator restarted). :meth:`encode_new` encodes the samples that arrived
+    since its last call. A stream is keyed ``(vehicle, camera, kind)``.
     """
 
     def __init__(
@@ -142,16 +161,17 @@ class ImageHub:
         self.jpeg_quality = jpeg_quality
         self.depth_max_m = depth_max_m
         self.stale_s = stale_s
-        topic_names(namespace, "front")  # a bad namespace fails here, not in a Zenoh callback
+        vehicle_names(namespace, "vehicle", False)  # a bad namespace fails here, not later
         self._lock = threading.Lock()
         self._node: Any = None
         self._subs: list[Any] = []
+        self._streams: Streams = {}
         self._active = False
-        #: (cam, kind) -> (raw CDR sample, raw seq); raw seq counts samples received per stream
+        #: (vehicle, cam, kind) -> (raw CDR sample, raw seq); raw seq counts samples received per stream
         #: newest sample per stream, still Zenoh's bytes: copied only when it is encoded (a third of them)
-        self._raw: dict[tuple[str, str], tuple[Any, int]] = {}
-        self._encoded_seq: dict[tuple[str, str], int] = {}
-        self._frames_out: dict[tuple[str, str], int] = {}
+        self._raw: dict[tuple[str, str, str], tuple[Any, int]] = {}
+        self._encoded_seq: dict[tuple[str, str, str], int] = {}
+        self._frames_out: dict[tuple[str, str, str], int] = {}
         self.received = 0
         self.encoded = 0
         self.errors = 0
@@ -179,13 +199,31 @@ class ImageHub:
             self._open()
 
     def keep_alive(self) -> None:
-        """While active: open the session if it is closed, reopen it if no sample came for ``stale_s``."""
+        """While active: open the session if it is closed, reopen it if no sample came for ``stale_s``
+        although some stream is watched."""
         if not self._active:
             return
         now = time.monotonic()
-        if self._node is None or now - max(self.last_sample, self.opened_at) > self.stale_s:
+        stale = self._streams and now - max(self.last_sample, self.opened_at) > self.stale_s
+        if self._node is None or stale:
             self._close()
             self._open()
+
+    def watch(self, streams: Streams) -> None:
+        """Subscribe to exactly these streams from now on (at once on an open session)."""
+        if streams == self._streams:
+            return
+        self._streams = streams
+        with self._lock:
+            node, old = self._node, self._subs
+        if node is None:
+            return
+        for sub in old:
+            sub.undeclare()
+        subs = self._declare(node)
+        with self._lock:
+            self._subs = subs
+        self.opened_at = time.monotonic()  # the new streams' first samples are on their way
 
     def _open(self) -> None:
         from droneulator.ros.zenoh_node import RosZenohNode
@@ -197,13 +235,7 @@ class ImageHub:
             self.error = f"no images: {exc}"
             return
         try:
-            subs = []
-            for kind in KINDS:
-                template = node.key_for(topic_names(self.namespace, _PLACEHOLDER)[kind], TYPES[kind])
-                parts = template.split("/")
-                index = parts.index(_PLACEHOLDER)
-                parts[index] = "*"
-                subs.append(node.session.declare_subscriber("/".join(parts), self._on_sample(kind, index)))
+            subs = self._declare(node)
         except Exception:
             node.close()
             raise
@@ -211,18 +243,23 @@ class ImageHub:
             self._node, self._subs, self.error = node, subs, None
         log.info("ui: receiving images from %s", self.endpoint)
 
+    def _declare(self, node: Any) -> list[Any]:
+        """A subscriber on ``node`` for every watched stream."""
+        return [
+            node.session.declare_subscriber(node.key_for(topic, TYPES[kind]), self._on_sample((v, cam, kind)))
+            for v, cameras in self._streams.items()
+            for cam, topics in cameras.items()
+            for kind, topic in topics.items()
+        ]
+
     def _close(self) -> None:
         with self._lock:
             node, self._node, self._subs = self._node, None, []
         if node is not None:
             node.close()
 
-    def _on_sample(self, kind: str, index: int) -> Any:
+    def _on_sample(self, key: tuple[str, str, str]) -> Any:
         def callback(sample: Any) -> None:
-            parts = str(sample.key_expr).split("/")
-            if len(parts) <= index:
-                return
-            key = (parts[index], kind)
             payload = sample.payload
             with self._lock:
                 seq = self._raw.get(key, (None, 0))[1] + 1
@@ -234,28 +271,34 @@ class ImageHub:
 
     # ------------------------------------------------------------------ frames
     def cameras(self) -> list[str]:
+        """The cameras of the watched vehicles that sent an image."""
         with self._lock:
-            return sorted({cam for cam, _ in self._raw})
+            return sorted({cam for v, cam, _ in self._raw if v in self._streams})
 
     def encode_new(self) -> list[Frame]:
         """Encode the newest sample of every stream that has one not yet encoded (others were dropped)."""
         with self._lock:
-            todo = [(k, p, s) for k, (p, s) in self._raw.items() if s > self._encoded_seq.get(k, 0)]
+            todo = [
+                (k, p, s)
+                for k, (p, s) in self._raw.items()
+                if s > self._encoded_seq.get(k, 0) and k[0] in self._streams
+            ]
             for key, _, seq in todo:
                 self._encoded_seq[key] = seq
         out = []
-        for (cam, kind), payload, _ in todo:
+        for (vehicle, cam, kind), payload, _ in todo:
             try:
                 msg = messages.decode(TYPES[kind], payload.to_bytes())
                 mime, data, w, h = encode_for_browser(kind, msg, self.jpeg_quality, self.depth_max_m)
             except (messages.SerdeError, ValueError) as exc:
                 self.errors += 1
-                log.warning("ui: dropped a %s image of camera %s: %s", kind, cam, exc)
+                log.warning("ui: dropped a %s image of camera %s of %s: %s", kind, cam, vehicle, exc)
                 continue
-            n = self._frames_out.get((cam, kind), 0) + 1
-            self._frames_out[(cam, kind)] = n
+            n = self._frames_out.get((vehicle, cam, kind), 0) + 1
+            self._frames_out[(vehicle, cam, kind)] = n
             stamp = header_ns(msg)
             header = {
+                "vehicle": vehicle,
                 "cam": cam,
                 "kind": kind,
                 "seq": n,
@@ -265,7 +308,7 @@ class ImageHub:
                 "height": h,
                 "encoded_ns": time.time_ns(),
             }
-            out.append(Frame(cam, kind, n, stamp, header, data))
+            out.append(Frame(vehicle, cam, kind, n, stamp, header, data))
         self.encoded += len(out)
         return out
 

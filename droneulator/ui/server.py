@@ -4,7 +4,10 @@ It is a client of the simulator's public interfaces only. Each browser tab gets 
 the WebSocket API, and the tab speaks the API's own JSON protocol (docs/api.md) through it: requests go
 up unchanged, replies, state and events come back unchanged. Camera images come from the ROS 2 topics
 over Zenoh (:class:`~droneulator.ui.images.ImageHub`) and go to the tab as binary messages, at most
-``image_hz`` per stream, newest first. Messages the UI adds itself are ``{"type": "ui", ...}``.
+``image_hz`` per stream, newest first. Messages the UI adds itself are ``{"type": "ui", ...}``, both
+ways: a tab says whose cameras it shows with ``{"type": "ui", "watch": "<vehicle>"}`` (the first
+vehicle until it does). The server learns the vehicles and their image topics from the API's
+``scene_info`` each time a tab's API connection opens.
 
 When the simulator goes away (a restart), the server tells the tab and reconnects every second; the
 tab in turn reconnects to this server if it goes away. HTTP routes::
@@ -47,7 +50,7 @@ from droneulator.config import BridgeConfig, UIConfig
 from droneulator.imaging import depth_to_rgb
 from droneulator.scenes.base import SEGMENTATION_PALETTE
 from droneulator.threads import DaemonWorker, lower_priority
-from droneulator.ui.images import Frame, ImageHub
+from droneulator.ui.images import Frame, ImageHub, Streams, vehicle_streams
 from droneulator.ui.scenes import ScenePictures
 
 log = logging.getLogger("droneulator.ui")
@@ -123,7 +126,11 @@ class UIServer:
         #: Zenoh session calls and image encoding, off the event loop
         self._images = DaemonWorker("ui-images", nice=self.config.nice)
         self.sessions: set[BrowserSession] = set()
-        self.frames: dict[tuple[str, str], Frame] = {}
+        #: every vehicle's image topics, first the default vehicle (from ``scene_info``)
+        self.streams: Streams = {}
+        self.frames: dict[tuple[str, str, str], Frame] = {}
+        self._learning: asyncio.Lock | None = None
+        self._closing = False
         self._frames_changed: asyncio.Condition | None = None
         self._server: Server | None = None
         self._pump: asyncio.Task[None] | None = None
@@ -144,6 +151,7 @@ class UIServer:
     async def start(self) -> None:
         """Bind and start serving; OSError when the port is taken."""
         self._frames_changed = asyncio.Condition()
+        self._learning = asyncio.Lock()
         self._server = await serve(
             self._browser,
             self.config.host,
@@ -157,6 +165,7 @@ class UIServer:
         self._pump = asyncio.create_task(self._pump_images())
 
     async def close(self) -> None:
+        self._closing = True
         if self._pump is not None:
             self._pump.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -307,7 +316,7 @@ class UIServer:
                 frames = await self._call(self.hub.encode_new)
                 if frames:
                     for f in frames:
-                        self.frames[(f.cam, f.kind)] = f
+                        self.frames[(f.vehicle, f.cam, f.kind)] = f
                     async with self._frames_changed:
                         self._frames_changed.notify_all()
             elif self.hub.active:
@@ -325,6 +334,49 @@ class UIServer:
         async with self._frames_changed:
             await self._frames_changed.wait_for(newer)
 
+    # ------------------------------------------------------------------ vehicles
+    @property
+    def default_vehicle(self) -> str | None:
+        """The vehicle a tab that has not chosen one watches: the API's default, the first."""
+        return next(iter(self.streams), None)
+
+    async def learn_vehicles(self) -> None:
+        """Ask the API for ``scene_info``: the vehicles and their image topics; then watch again."""
+        assert self._learning is not None
+        async with self._learning:
+            try:
+                async with connect(self.api_url, open_timeout=5.0, max_size=16 << 20) as api:
+                    await api.send(json.dumps({"id": 1, "op": "scene_info"}))
+                    async with asyncio.timeout(10.0):
+                        reply = json.loads(await api.recv())
+            except (OSError, InvalidHandshake, InvalidURI, TimeoutError, ConnectionClosed, ValueError) as exc:
+                log.warning("ui: could not read the vehicles from %s: %s", self.api_url, exc)
+                return
+            if not reply.get("ok"):
+                log.warning("ui: scene_info failed: %s", reply.get("error"))
+                return
+            try:
+                self.streams = vehicle_streams(reply["result"], self.hub.namespace)
+            except (KeyError, TypeError, AttributeError, ValueError) as exc:
+                log.warning("ui: scene_info lists no usable vehicles: %r", exc)
+                return
+        await self.update_watch()
+
+    async def update_watch(self) -> None:
+        """Subscribe to the cameras of the vehicles the open tabs watch, and to no others."""
+        if self._closing:  # the image worker may be gone
+            return
+        watched = {s.watching for s in self.sessions}
+        streams = {v: cams for v, cams in self.streams.items() if v in watched}
+        self.frames = {k: f for k, f in self.frames.items() if k[0] in streams}
+        await self._call(self.hub.watch, streams)
+
+    async def wake_senders(self) -> None:
+        """Let every tab look again for frames it has not had (one chose another vehicle)."""
+        assert self._frames_changed is not None
+        async with self._frames_changed:
+            self._frames_changed.notify_all()
+
     # ------------------------------------------------------------------ browser tabs
     async def _browser(self, ws: ServerConnection) -> None:
         session = BrowserSession(self, ws)
@@ -333,6 +385,7 @@ class UIServer:
             await session.run()
         finally:
             self.sessions.discard(session)
+            await self.update_watch()
 
 
 class BrowserSession:
@@ -345,7 +398,14 @@ class BrowserSession:
         self.api_status: dict[str, Any] = {}
         self.sent = 0
         self.skipped = 0
-        self._sent_seq: dict[tuple[str, str], int] = {}
+        self._sent_seq: dict[tuple[str, str, str], int] = {}
+        #: the vehicle whose cameras the tab shows (None: the default vehicle)
+        self.vehicle: str | None = None
+
+    @property
+    def watching(self) -> str | None:
+        """The vehicle whose images this tab gets."""
+        return self.vehicle or self.server.default_vehicle
 
     async def run(self) -> None:
         tasks = [
@@ -357,6 +417,8 @@ class BrowserSession:
             async for raw in self.ws:
                 if isinstance(raw, bytes):
                     raw = raw.decode("utf-8", "replace")
+                if '"ui"' in raw and await self._ui_message(raw):
+                    continue
                 await self._forward(raw)
         except ConnectionClosed:
             pass
@@ -387,6 +449,20 @@ class BrowserSession:
         message = f"the simulator's API at {self.server.api_url} is not reachable; reconnecting"
         await self._send({"id": rid, "ok": False, "error": {"code": "not_connected", "message": message}})
 
+    async def _ui_message(self, raw: str) -> bool:
+        """Handle a ``{"type": "ui", ...}`` message from the tab; False for anything else."""
+        try:
+            msg = json.loads(raw)
+        except ValueError:
+            return False
+        if not isinstance(msg, dict) or msg.get("type") != "ui":
+            return False
+        if isinstance(msg.get("watch"), str):
+            self.vehicle = msg["watch"]
+            await self.server.update_watch()
+            await self.server.wake_senders()
+        return True
+
     async def _set_api_status(self, connected: bool, error: str | None = None) -> None:
         status = {"connected": connected, "url": self.server.api_url, "error": error}
         if status != self.api_status:
@@ -401,6 +477,7 @@ class BrowserSession:
                     self.server.api_url, open_timeout=5.0, max_size=16 << 20, compression=None
                 ) as upstream:
                     self.upstream = upstream
+                    await self.server.learn_vehicles()
                     await self._set_api_status(True)
                     try:
                         async for msg in upstream:
@@ -419,13 +496,17 @@ class BrowserSession:
         """Send every stream's newest frame not sent yet; frames replaced meanwhile count as skipped."""
         server = self.server
 
+        def mine() -> list[tuple[tuple[str, str, str], Frame]]:
+            vehicle = self.watching
+            return [(k, f) for k, f in server.frames.items() if k[0] == vehicle]
+
         def newer() -> bool:
-            return any(f.seq > self._sent_seq.get(k, 0) for k, f in server.frames.items())
+            return any(f.seq > self._sent_seq.get(k, 0) for k, f in mine())
 
         while True:
             await server.wait_frames(newer)
             burst = []
-            for key, frame in list(server.frames.items()):
+            for key, frame in mine():
                 last = self._sent_seq.get(key, 0)
                 if frame.seq <= last:
                     continue

@@ -1,9 +1,11 @@
 // Droneulator's browser UI: level select, then the flight view. Everything it does goes through the
-// simulator's WebSocket API (relayed by the UI server) and every error the API returns is shown.
+// simulator's WebSocket API (relayed by the UI server) and every error the API returns is shown. In a
+// world of several vehicles the flight controls, map clicks, telemetry and camera views follow the
+// selected vehicle (docs/ui.md); the map shows them all.
 
 import { ApiError, Connection } from "./connection.js";
 import { CameraViews } from "./cameras.js";
-import { MapView } from "./map.js";
+import { FLEET_COLOURS, MapView } from "./map.js";
 import { painter } from "./painter.js";
 
 const $ = (id) => document.getElementById(id);
@@ -20,8 +22,13 @@ const TELEMETRY_MS = 250;
 const ui = {
   config: null,
   scene: null, // scene_info of the loaded scene
-  state: null,
-  locked: null, // why flight commands are refused (PX4 in control), or null
+  vehicles: [], // scene_info's vehicles, the first the default one
+  selected: null, // the vehicle the controls follow
+  states: {}, // every vehicle's latest state, by name
+  state: null, // the selected vehicle's latest state
+  locks: {}, // why each vehicle's flight commands are refused (PX4 in control), by name
+  locked: null, // the selected vehicle's lock, or null
+  px4Status: {}, // PX4's status of each vehicle, by name
   keys: new Set(),
   lastVelocity: null,
   rtfSamples: [],
@@ -55,10 +62,87 @@ async function send(op, fields = {}, what = op) {
   try {
     return await conn.request(op, fields);
   } catch (err) {
-    if (err.code === "flight_locked") setLocked(err.message);
+    // a fleet's reset is refused while any vehicle is locked: not necessarily the first
+    if (err.code === "flight_locked" && (op !== "reset" || !fleet())) setLocked(err.message, fields.vehicle);
     showError(`${what} refused: ${describe(err)}`);
     throw err;
   }
+}
+
+// ------------------------------------------------------------------------------------------------ vehicles
+const fleet = () => ui.vehicles.length > 1;
+const defaultVehicle = () => ui.vehicles[0]?.name ?? "";
+const selected = () => ui.selected ?? defaultVehicle();
+
+// A flight op for the selected vehicle (named only in a fleet: one vehicle's requests stay as they were).
+function fly(op, fields = {}, what = op) {
+  const target = fleet() ? { vehicle: selected() } : {};
+  const name = fleet() ? `${what} (${selected()})` : what;
+  return send(op, { ...fields, ...target }, name);
+}
+
+// The vehicles of a scene_info reply; keeps the selection when the vehicle is still there.
+function setVehicles(info) {
+  ui.vehicles = info.vehicles ?? [];
+  const names = ui.vehicles.map((v) => v.name);
+  if (!names.includes(ui.selected)) ui.selected = names[0] ?? null;
+  for (const name of Object.keys(ui.states)) if (!names.includes(name)) delete ui.states[name];
+  if (ui.vehicles.some((v) => v.controlled_by === "px4")) $("px4").hidden = false;
+  map.setVehicles(names, selected());
+  buildVehicleList();
+  select(selected());
+  if (!$("px4").hidden) renderPx4Status();
+}
+
+function buildVehicleList() {
+  const list = $("vehicle-list");
+  list.replaceChildren();
+  $("fleet").hidden = !fleet();
+  ui.vehicles.forEach((v, i) => {
+    const b = document.createElement("button");
+    b.dataset.vehicle = v.name;
+    b.setAttribute("role", "radio");
+    b.title = `${v.name}: ${v.params}, flown by ${v.controlled_by === "px4" ? "PX4 SITL" : "the simulator"}`;
+    b.innerHTML = `<i style="background: ${FLEET_COLOURS[i % FLEET_COLOURS.length]}"></i><b></b>` +
+      `<span class="mode"></span>`;
+    b.querySelector("b").textContent = v.name;
+    if (v.controlled_by === "px4") b.insertAdjacentHTML("beforeend", `<span class="tag">PX4</span>`);
+    b.insertAdjacentHTML("beforeend", `<span class="tag locked" hidden>locked</span>`);
+    b.onclick = () => select(v.name);
+    list.append(b);
+  });
+  renderVehicleList();
+}
+
+function renderVehicleList() {
+  for (const b of $("vehicle-list").children) {
+    const name = b.dataset.vehicle;
+    b.setAttribute("aria-checked", String(name === selected()));
+    const mode = ui.states[name]?.mode ?? "";
+    const span = b.querySelector(".mode");
+    if (span.textContent !== mode) span.textContent = mode;
+    const lock = b.querySelector(".tag.locked");
+    lock.hidden = !ui.locks[name];
+    lock.title = ui.locks[name] ?? "";
+  }
+}
+
+// Point the flight controls, the telemetry, the map's highlight and the camera views at `name`.
+function select(name) {
+  const previous = ui.selected;
+  ui.selected = name;
+  if (previous !== name && ui.keys.size) {
+    ui.keys.clear(); // keys held for the previous vehicle: it holds where it is
+    ui.lastVelocity = null;
+    send("hold", fleet() ? { vehicle: previous } : {}, "hold").catch(() => {});
+  }
+  ui.state = ui.states[selected()] ?? null;
+  map.select(selected());
+  cams.setVehicle(selected(), fleet() ? selected() : null);
+  conn.sendUi({ watch: selected() });
+  refreshLock();
+  renderVehicleList();
+  painter.add("telemetry", renderTelemetry);
 }
 
 // ------------------------------------------------------------------------------------------------ pages
@@ -68,6 +152,16 @@ function showPage(name) {
   $("nav-levels").classList.toggle("active", name === "levels");
   $("nav-fly").classList.toggle("active", name === "fly");
   if (location.hash !== `#${name}`) history.replaceState(null, "", `#${name}`);
+  if (name === "levels") loadPreviews();
+}
+
+// The scene previews are rendered on demand, one at a time: only once the level select is shown, so a
+// page opened on the flight view does not queue its map behind every preview.
+function loadPreviews() {
+  for (const img of document.querySelectorAll(".card img[data-src]")) {
+    img.src = img.dataset.src;
+    delete img.dataset.src;
+  }
 }
 
 async function buildLevels() {
@@ -82,10 +176,11 @@ async function buildLevels() {
     card.innerHTML = `<img alt="${s.name} preview"><h3></h3><p></p>`;
     card.querySelector("h3").textContent = s.name.replaceAll("_", " ");
     card.querySelector("p").textContent = s.description;
-    card.querySelector("img").src = `/api/preview/${encodeURIComponent(s.name)}`;
+    card.querySelector("img").dataset.src = `/api/preview/${encodeURIComponent(s.name)}`;
     card.onclick = () => chooseScene(s.name);
     cards.append(card);
   }
+  if (!$("levels").hidden) loadPreviews();
 }
 
 async function chooseScene(name) {
@@ -106,13 +201,19 @@ async function chooseScene(name) {
   }
 }
 
-async function loadScene() {
+// Read the scene and its vehicles; `subscribe`: then subscribe to every vehicle's state and events.
+async function loadScene(subscribe = false) {
   const info = await send("scene_info", {}, "reading the scene");
   const changed = !ui.scene || ui.scene.name !== info.name || ui.scene.seed !== info.seed;
   ui.scene = info;
+  setVehicles(info);
+  if (subscribe) {
+    const every = info.vehicles ? { vehicle: "*" } : {};
+    const streams = { streams: ["state", "events"], rate_hz: STATE_HZ, ...every };
+    await send("subscribe", streams, "subscribing to the state");
+  }
   document.title = `Droneulator · ${info.name}`;
   if (changed) {
-    map.setGoal(null);
     try {
       await map.load(info.name, info.seed);
     } catch (err) {
@@ -123,10 +224,19 @@ async function loadScene() {
 }
 
 // ------------------------------------------------------------------------------------------------ flight
-function setLocked(reason) {
+function setLocked(reason, vehicle = defaultVehicle()) {
+  if (reason) ui.locks[vehicle] = reason;
+  else delete ui.locks[vehicle];
+  refreshLock();
+  renderVehicleList();
+}
+
+function refreshLock() {
+  const reason = ui.locks[selected()] ?? null;
   ui.locked = reason;
   $("lock-reason").hidden = !reason;
-  $("lock-reason").textContent = reason ? `Flight controls are off: ${reason}` : "";
+  const whose = fleet() ? ` of ${selected()}` : "";
+  $("lock-reason").textContent = reason ? `Flight controls${whose} are off: ${reason}` : "";
   for (const b of document.querySelectorAll("button.flight")) b.disabled = !!reason;
 }
 
@@ -135,7 +245,11 @@ function altitude() {
   return Number.isFinite(z) ? z : 2.0;
 }
 
-function mapClicked(x, y) {
+function mapClicked(x, y, vehicle) {
+  if (vehicle && vehicle !== selected()) {
+    select(vehicle); // a click on another vehicle selects it
+    return;
+  }
   if (ui.locked) {
     showError(`not flying there: ${ui.locked}`);
     return;
@@ -143,8 +257,9 @@ function mapClicked(x, y) {
   const airborne = ui.state && ui.state.mode !== "idle" && ui.state.position[2] > 0.3;
   const z = airborne ? ui.state.position[2] : altitude();
   const target = [round(x), round(y), round(z)];
-  send("goto", { position: target }, `flying to (${target[0]}, ${target[1]}, ${target[2]})`).then(
-    () => map.setGoal(target), () => {});
+  const name = selected();
+  fly("goto", { position: target }, `flying to (${target[0]}, ${target[1]}, ${target[2]})`).then(
+    () => map.setGoal(target, name), () => {});
 }
 
 function round(v) {
@@ -164,10 +279,10 @@ function keysChanged() {
   const key = `${forward},${yawRate}`;
   if (key === ui.lastVelocity) return;
   ui.lastVelocity = key;
-  if (forward === 0 && yawRate === 0) send("hold", {}, "hold").catch(() => {});
+  if (forward === 0 && yawRate === 0) fly("hold", {}, "hold").catch(() => {});
   else {
     map.setGoal(null);
-    send("velocity", { forward, yaw_rate: yawRate }, "keyboard flying").catch(() => {});
+    fly("velocity", { forward, yaw_rate: yawRate }, "keyboard flying").catch(() => {});
   }
 }
 
@@ -198,16 +313,19 @@ window.addEventListener("blur", () => {
 
 // ------------------------------------------------------------------------------------------------ telemetry
 function onState(state) {
-  const previous = ui.state;
-  ui.state = state;
+  const name = state.vehicle ?? defaultVehicle();
+  const previous = ui.states[name];
+  ui.states[name] = state;
   if (previous && state.t < previous.t) {
-    map.clearTrail(); // a reset
-    ui.rtfSamples = [];
+    map.clearTrail(name); // a reset
+    if (name === selected()) ui.rtfSamples = [];
   }
+  map.setState(name, state);
+  if (name !== selected()) return;
+  ui.state = state;
   const now = performance.now();
   ui.rtfSamples.push([now, state.t]);
   while (ui.rtfSamples.length > 2 && now - ui.rtfSamples[0][0] > RTF_WINDOW_MS) ui.rtfSamples.shift();
-  map.setState(state);
   if (now - ui.telemetryAt >= TELEMETRY_MS) {
     ui.telemetryAt = now;
     painter.add("telemetry", renderTelemetry);
@@ -217,7 +335,11 @@ function onState(state) {
 function renderTelemetry() {
   const s = ui.state;
   const rows = [];
-  if (s) {
+  if (fleet()) {
+    rows.push(["vehicle", selected()]);
+    renderVehicleList();
+  }
+  if (s && ui.rtfSamples.length) {
     const [x, y, z] = s.position;
     const speed = Math.hypot(...s.velocity);
     const [w0, t0] = ui.rtfSamples[0];
@@ -261,15 +383,19 @@ function logEvent(ev) {
   const where = ev.position ? ` at (${ev.position.map((v) => v.toFixed(1)).join(", ")})` : "";
   const extra = ev.type === "impact" ? `, ${ev.speed.toFixed(1)} m/s`
     : ev.type === "px4_disconnected" ? `: ${ev.reason}` : "";
-  li.textContent = `t=${(ev.t ?? 0).toFixed(2)} s  ${ev.type.replaceAll("_", " ")}${where}${extra}`;
+  const who = fleet() ? (ev.vehicles ?? [ev.vehicle]).filter(Boolean).join(" & ") : "";
+  const prefix = who ? `${who}: ` : "";
+  li.textContent = `t=${(ev.t ?? 0).toFixed(2)} s  ${prefix}${ev.type.replaceAll("_", " ")}${where}${extra}`;
   $("events").prepend(li);
   while ($("events").children.length > EVENT_LOG) $("events").lastChild.remove();
 }
 
 function onEvent(ev) {
   logEvent(ev);
-  if (ev.type === "arrived" && ev.command === "goto") map.setGoal(null);
-  if (ev.type === "collision" || ev.type === "impact") {
+  const vehicle = ev.vehicle ?? defaultVehicle();
+  if (ev.type === "arrived" && ev.command === "goto") map.setGoal(null, vehicle);
+  const mine = !fleet() || vehicle === selected() || (ev.vehicles ?? []).includes(selected());
+  if ((ev.type === "collision" || ev.type === "impact") && mine) {
     const flash = $("flash");
     flash.classList.remove("on");
     void flash.offsetWidth; // restart the animation
@@ -293,29 +419,42 @@ const PX4_LOSS = {
 
 function onPx4Event(ev) {
   $("px4").hidden = false;
+  const vehicle = ev.vehicle ?? defaultVehicle();
   let status = ev.type;
   if (ev.type === "px4_connected") {
     status = ev.holding ? "PX4 connected over a vehicle in the air: the simulator flies it; PX4 gets the rotors once it is on the ground"
       : "PX4 connected and in control (disarmed: motors off)";
-    setLocked(ev.holding ? null : PX4_IN_CONTROL);
+    setLocked(ev.holding ? null : PX4_IN_CONTROL, vehicle);
   } else if (ev.type === "px4_armed") {
     status = "PX4 is armed and in control";
-    setLocked("PX4 is armed and flying the vehicle");
+    setLocked("PX4 is armed and flying the vehicle", vehicle);
   } else if (ev.type === "px4_disarmed") {
     status = "PX4 disarmed (motors off); still in control until it disconnects";
-    setLocked(PX4_IN_CONTROL);
+    setLocked(PX4_IN_CONTROL, vehicle);
   } else if (ev.type === "px4_disconnected") {
     status = `PX4 disconnected (${ev.reason || "no reason given"}): the UI may fly`;
-    setLocked(null);
+    setLocked(null, vehicle);
   } else if (ev.type === "px4_lost") {
-    status = `${$("px4-status").textContent}; PX4 was lost: ${PX4_LOSS[ev.action] || ev.action}`;
+    status = `${ui.px4Status[vehicle] ?? "PX4 lost"}; PX4 was lost: ${PX4_LOSS[ev.action] || ev.action}`;
   } else if (ev.type === "px4_arm_refused") {
     status = "PX4 armed with the vehicle in the air: refused (the simulator flies it until it is on the ground)";
   } else if (ev.type === "px4_in_control") {
     status = "PX4 is in control (it took over on the ground)";
-    setLocked(PX4_IN_CONTROL);
+    setLocked(PX4_IN_CONTROL, vehicle);
   }
-  $("px4-status").textContent = status;
+  ui.px4Status[vehicle] = status;
+  renderPx4Status();
+}
+
+// One line per PX4 vehicle of a fleet, each named; one vehicle's status alone.
+function renderPx4Status() {
+  if (!fleet()) {
+    $("px4-status").textContent = ui.px4Status[defaultVehicle()] ?? "waiting for PX4…";
+    return;
+  }
+  const px4 = ui.vehicles.filter((v) => v.controlled_by === "px4" || ui.px4Status[v.name]);
+  $("px4-status").textContent = px4.map((v) => `${v.name}: ${ui.px4Status[v.name] ?? "waiting for PX4…"}`)
+    .join("\n");
 }
 
 // ------------------------------------------------------------------------------------------------ connection
@@ -327,8 +466,7 @@ function setConnection(text, good) {
 
 async function onApiConnected() {
   try {
-    await send("subscribe", { streams: ["state", "events"], rate_hz: STATE_HZ }, "subscribing to the state");
-    await loadScene();
+    await loadScene(true);
     if (ui.scene && location.hash !== "#fly" && !ui.started) showPage("levels");
     ui.started = true;
   } catch {
@@ -376,20 +514,25 @@ async function init() {
   if (ui.config.px4) $("px4").hidden = false;
   $("nav-levels").onclick = () => showPage("levels");
   $("nav-fly").onclick = () => showPage("fly");
-  $("btn-takeoff").onclick = () => send("takeoff", { altitude: altitude() }, "take off").catch(() => {});
-  $("btn-land").onclick = () => send("land", {}, "land").then(() => map.setGoal(null), () => {});
-  $("btn-hold").onclick = () => send("hold", {}, "hold").then(() => map.setGoal(null), () => {});
-  $("btn-reset").onclick = () => send("reset", {}, "reset").then(() => map.setGoal(null), () => {});
+  const clearGoal = (name) => () => map.setGoal(null, name);
+  $("btn-takeoff").onclick = () => fly("takeoff", { altitude: altitude() }, "take off").catch(() => {});
+  $("btn-land").onclick = () => fly("land", {}, "land").then(clearGoal(selected()), () => {});
+  $("btn-hold").onclick = () => fly("hold", {}, "hold").then(clearGoal(selected()), () => {});
+  // a reset restarts the whole world: every vehicle
+  $("btn-reset").onclick = () => send("reset", {}, "reset").then(
+    () => ui.vehicles.forEach((v) => map.setGoal(null, v.name)), () => {});
   $("btn-alt").onclick = () => {
     if (!ui.state) return;
     const [x, y] = ui.state.position;
     const target = [round(x), round(y), altitude()];
-    send("goto", { position: target }, `climbing to ${target[2]} m`).then(() => map.setGoal(target), () => {});
+    const name = selected();
+    fly("goto", { position: target }, `climbing to ${target[2]} m`).then(
+      () => map.setGoal(target, name), () => {});
   };
   $("btn-yaw").onclick = () => {
     if (!ui.state) return;
     const yaw = (Number($("yaw").value) * Math.PI) / 180;
-    send("goto", { position: ui.state.position, yaw }, "turning").catch(() => {});
+    fly("goto", { position: ui.state.position, yaw }, "turning").catch(() => {});
   };
   showPage(location.hash === "#fly" ? "fly" : "levels");
   await buildLevels();

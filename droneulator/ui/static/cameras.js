@@ -1,6 +1,6 @@
-// Live camera views: for every camera of the rig, its RGB, depth (with a metres scale) and segmentation
-// (with the class legend). Each shown image is logged with its render stamp and the wall time it
-// appeared, which the benchmark reads to measure the image latency.
+// Live camera views: for every camera of the watched vehicle's rig, its RGB, depth (with a metres scale)
+// and segmentation (with the class legend). Each shown image is logged with its render stamp and the
+// wall time it appeared, which the benchmark reads to measure the image latency.
 //
 // Images arrive as JPEG bytes and are decoded with WebCodecs' ImageDecoder straight from those bytes
 // into a bitmap handed to the view's canvas ("bitmaprenderer": no copy, no repaint of the page). An
@@ -22,11 +22,24 @@ export class CameraViews {
     this.root = root;
     this.config = config;
     this.tiles = new Map();
-    this.shown = []; // {cam, kind, stamp_ns, shown_ms, paint}
+    this.shown = []; // {vehicle, cam, kind, stamp_ns, shown_ms, paint}
     this.count = 0;
     this.errors = 0; // images that could not be decoded
     this.burstTimer = 0; // while set, the paint waits for the rest of a burst
+    this.vehicle = null; // whose images are shown (null: any)
+    this.label = null; // the vehicle's name in the captions (a fleet), or null
     window.addEventListener("resize", () => this.tiles.forEach((t) => fit(t)));
+  }
+
+  // Show `vehicle`'s cameras from now on (its name in the captions when `label`): the views of another
+  // vehicle are removed, and images of any other vehicle still on their way are ignored.
+  setVehicle(vehicle, label) {
+    if (vehicle === this.vehicle && label === this.label) return;
+    this.vehicle = vehicle;
+    this.label = label;
+    for (const t of this.tiles.values()) t.next = null;
+    this.tiles.clear();
+    this.root.replaceChildren();
   }
 
   tile(cam, kind) {
@@ -43,6 +56,7 @@ export class CameraViews {
     view.setAttribute("aria-label", `${cam} ${KIND_TITLES[kind]}`);
     const cap = document.createElement("figcaption");
     cap.innerHTML = `<b>${cam}</b> · ${KIND_TITLES[kind]}`;
+    if (this.label) cap.prepend(Object.assign(document.createElement("b"), { textContent: this.label }), " · ");
     fig.append(view, cap);
     if (kind === "depth") {
       const scale = document.createElement("div");
@@ -79,6 +93,10 @@ export class CameraViews {
   }
 
   show(header, bytes) {
+    if (this.vehicle && header.vehicle && header.vehicle !== this.vehicle) {
+      if (!(header.more > 0)) this.releaseBurst();
+      return;
+    }
     if (header.more > 0) this.holdBurst();
     this.decode(header, bytes);
     if (!(header.more > 0)) this.releaseBurst();
@@ -135,8 +153,8 @@ export class CameraViews {
     }
     t.ctx.transferFromImageBitmap(bitmap);
     this.count++;
-    this.shown.push({ cam: header.cam, kind: header.kind, stamp_ns: header.stamp_ns,
-      shown_ms: performance.timeOrigin + performance.now(), paint: painter.flushes });
+    this.shown.push({ vehicle: header.vehicle, cam: header.cam, kind: header.kind,
+      stamp_ns: header.stamp_ns, shown_ms: performance.timeOrigin + performance.now(), paint: painter.flushes });
     if (this.shown.length > SHOWN_LOG) this.shown.splice(0, this.shown.length - SHOWN_LOG);
   }
 }

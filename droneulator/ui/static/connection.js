@@ -54,6 +54,11 @@ export class Connection {
     }
   }
 
+  // A message for the UI server itself ({"type": "ui", ...}); dropped while not connected.
+  sendUi(fields) {
+    if (this.ws && this.ws.readyState === WebSocket.OPEN) this.ws.send(JSON.stringify({ type: "ui", ...fields }));
+  }
+
   // Send one API request; resolves with its result, rejects with ApiError(code, message).
   request(op, fields = {}) {
     if (!this.ws || this.ws.readyState !== WebSocket.OPEN) {
