@@ -398,3 +398,51 @@ def _twist(forward: float) -> Any:
     T = TS.types
     v = T["geometry_msgs/msg/Vector3"]
     return T["geometry_msgs/msg/Twist"](linear=v(x=forward, y=0.0, z=0.0), angular=v(x=0.0, y=0.0, z=0.0))
+
+
+def test_a_px4_catching_up_on_its_boot_backlog_steps_once_on_the_latest_answer() -> None:
+    """While PX4 boots the link free-runs and sends sensor data PX4 answers later, in a burst; each answer
+    carries the time of the batch it answers. Stepping once per stale answer kept that backlog for the
+    whole flight (a real PX4 booting slowly flew on outputs 2 s old and flipped): the link steps only on
+    the answer to its latest batch, with the newest outputs."""
+    base = consecutive_ports(1)
+    cfg = load_config(scene="default")
+    cfg.vehicle.control_hz, cfg.vehicle.params = 250.0, "px4_quadx"
+    cfg.px4.enabled = True
+    cfg.px4.base_port, cfg.px4.speed_factor = base, 0.0
+    with World(cfg, render=False) as world:
+        px4 = PX4Fleet.of(world)
+        px4.start()
+        stop, lock = threading.Event(), threading.Lock()
+
+        def serve() -> None:
+            while not stop.is_set():
+                px4.serve_once(0.01, lock)
+
+        thread = threading.Thread(target=serve)
+        thread.start()
+        peer = Peer(base)
+        try:
+            peer.hello()
+            time.sleep(0.4)  # "booting": the link free-runs at 1x and queues batches on the socket
+            batches = by_type(peer.drain(0.2), "HIL_SENSOR")
+            assert len(batches) > 20
+            for _ in range(5):
+                for m in batches:  # PX4 answers every batch it has read, oldest first
+                    peer.t_us = m.time_usec
+                    peer.actuators((0.0,) * 4, armed=False)
+                batches = by_type(peer.drain(0.3), "HIL_SENSOR")
+                if len(batches) == 1:
+                    break
+            assert len(batches) == 1  # caught up: one step, on the answer to the latest batch only
+            t_us = batches[0].time_usec
+            with lock:
+                assert t_us == world.t_ns // 1000
+            for k in range(1, 4):  # and lockstep goes on, one step per answer
+                peer.t_us = t_us + 4000 * (k - 1)
+                assert peer.step((0.0,) * 4, armed=False)[-1].time_usec == t_us + 4000 * k
+        finally:
+            stop.set()
+            thread.join(5)
+            peer.close()
+            px4.close()

@@ -101,6 +101,8 @@ MAX_CANDIDATES = 4
 #: PX4 stores accel 0 and gyro 0 as int16 FIFO counts of these sizes (SimulatorMavlink::update_sensors)
 ACCEL_FIFO_SCALE = np.float32(G0 / 2048.0)
 GYRO_FIFO_SCALE = np.float32(math.radians(2000.0 / 32768.0))
+#: wall time PX4 may take between the answers of a catch-up burst before its newest stale one steps
+CATCH_UP_WAIT_S = 0.02
 #: falling further behind the wall clock than this restarts the pacing instead of catching up
 MAX_LAG_S = 0.25
 SEND_TIMEOUT_S = 5.0
@@ -204,7 +206,7 @@ class PX4Link:
         #: called under the lock whenever PX4's hold on the vehicle changes with it (PX4 connects, gets
         #: the rotors, or is lost and ``on_loss`` applied), so the runtime's flight lock follows at once
         self.on_change: Callable[[], None] | None = None
-        #: lockstep actuator commands not stepped yet: (armed, rotor speeds in RotorPy order)
+        #: the newest lockstep actuator command not stepped yet (at most one): armed, RotorPy rotor speeds
         self._pending: deque[tuple[bool, np.ndarray | None]] = deque()
         self._last_cmd_t_ns: int | None = None
         self._last_mag = np.zeros(3)
@@ -336,6 +338,12 @@ class PX4Link:
         """Seconds until the next step is due (<= 0: now), or None while waiting for PX4."""
         if self._force_step:
             return 0.0
+        if self._pending and self._catching_up:
+            # PX4 still answers older sensor data: wait for its answer to the latest (a batch PX4 read
+            # before its outputs ran is never answered: go on once it has been quiet for a moment)
+            left = CATCH_UP_WAIT_S - (time.monotonic() - self._stale_since)
+            if left > 0:
+                return left
         if self._pending:
             speed = self.cfg.speed_factor
         elif not self._lockstep:
@@ -378,6 +386,10 @@ class PX4Link:
     def _reset_connection(self) -> None:
         self._rx.clear()
         self._pending.clear()
+        #: time (us) of the last sensor batch sent, and whether PX4's newest output answers an older one
+        self._sent_us: int | None = None
+        self._catching_up = False
+        self._stale_since = 0.0
         self._lockstep = False
         self._armed = False
         self._free_cmd: tuple[bool, np.ndarray | None] | None = None
@@ -656,6 +668,12 @@ class PX4Link:
                     log.info("PX4 lockstep started at t=%.3f s: one step per actuator message", self.world.t)
                     self._lockstep = True
                     self._pace_wall, self._pace_sim = time.monotonic(), self.world.t_ns
+                # it answers the batch stamped time_usec (PX4's lockstep clock is the HIL_SENSOR time):
+                # one that answers an older batch than the latest sent is PX4 catching up on sensor data
+                # sent while it booted; only the answer to the latest may step, with the newest outputs
+                self._catching_up = self._sent_us is not None and msg.time_usec < self._sent_us
+                self._stale_since = time.monotonic()
+                self._pending.clear()
                 self._pending.append((armed, speeds))
             else:
                 if self._lockstep or self._free_cmd is None:
@@ -724,6 +742,7 @@ class PX4Link:
             self._next_ns.clear()  # the simulation was reset: restart every schedule
         self._last_t_ns = t_ns
         t_us = t_ns // 1000
+        self._sent_us = t_us
         msgs = []
         if self._due("heartbeat", t_ns, 1.0):
             msgs.append(
