@@ -1,4 +1,5 @@
-"""The planner process end to end: `droneulator run` (lockstep) + the plan node, talking only over Zenoh."""
+"""The planner process end to end: `droneulator run` (lockstep) + the plan node, talking only over Zenoh;
+in a fleet, one plan node per vehicle on that vehicle's namespaced topics and frames."""
 
 from __future__ import annotations
 
@@ -13,14 +14,15 @@ import numpy as np
 import pytest
 
 from droneulator import frames
-from droneulator.config import CameraConfig, load_config
+from droneulator.config import CameraConfig, VehicleSpec, load_config
 from droneulator.ros import messages as M
-from droneulator.ros.topics import ODOM_FRAME, TYPES, header_ns, topic_names, vehicle_topics
+from droneulator.ros.topics import TYPES, VehicleNames, header_ns, vehicle_names
 from droneulator.ros.zenoh_node import RosZenohNode, ZenohNodeConfig
 from droneulator.runtime.launch import free_port, launch_run
 from droneulator.scenes import get_scene
 from droneulator.scenes.collision import sdf_lookup_many
 from droneulator.workflows.planning.config import PlannerConfig
+from droneulator.workflows.planning.fleet import PlannedVehicle, from_scene_info, single_vehicle
 from droneulator.workflows.planning.node import GOAL_TYPE, PlanNode, PlanNodeConfig
 
 CAM = CameraConfig(name="front", width=320, height=240)
@@ -34,88 +36,110 @@ def _run_config():
 
 
 @pytest.mark.slow
-def test_plan_node_flies_round_the_tree_and_refuses_an_occupied_or_far_goal():
-    """`planning` scene: from 5 m before the central tree to 4 m behind it, the straight line runs
-    through the crown; the node must map it from depth and go round, without a collision and with
-    clearance to the true geometry (the scene's SDF, read by the test only)."""
+def test_two_plan_nodes_fly_round_the_tree_and_each_other_and_refuse_an_occupied_or_far_goal():
+    """`planning` scene, two vehicles, one plan node each on the names the run's scene_info gives it
+    (``/droneulator/uavN/...``, frames ``uavN/odom``). uav1 hovers 2.3 m ahead of uav0, 1 m before the
+    central tree's crown. uav0's node refuses a goal 40 m away, one on the crown's near side and one on
+    uav1, which only its depth images show it (the renderer draws the fleet), with nothing commanded.
+    Then both fly at once: uav0 from 5.5 m before the tree to 4 m behind it (the straight line runs
+    through uav1 and the crown), uav1 round the tree to (3, -3). Both arrive with no collision, with the
+    scene or each other, and more than 0.3 m from the scene's true geometry (its SDF, read by the test
+    only)."""
     cfg = _run_config()
-    ns = cfg.bridge.namespace
+    cfg.vehicles = [
+        VehicleSpec("uav0", spawn=(-5.5, 0.0, 2.5), yaw=0.0),  # hovering there from the start
+        VehicleSpec("uav1", spawn=(-3.2, 0.0, 2.5), yaw=0.0),
+    ]
+    goals = {"uav0": np.array([4.0, 0.0, 2.5]), "uav1": np.array([3.0, -3.0, 2.5])}
     # the benchmark's virtual ceiling and floor: round the crown, not over it or through the gap under it
     planner = PlannerConfig(ceiling=4.0, floor=1.5, inflation_margin=0.4)
-    with launch_run(cfg) as run:
+    col = get_scene("planning", 0).collision
+    sdf = lambda p: sdf_lookup_many(col.sdf, col.origin, col.resolution, p)  # noqa: E731
+    with contextlib.ExitStack() as stack:
+        run = stack.enter_context(launch_run(cfg))
         client = run.client()
-        node = PlanNode(PlanNodeConfig(zenoh=run.zenoh_endpoint, namespace=ns, camera=CAM.name), planner)
+        stack.callback(client.close)
+        info = client.scene_info()
+        endpoint = run.zenoh_endpoint
+        nodes = {
+            name: stack.enter_context(PlanNode(
+                PlanNodeConfig(zenoh=endpoint, camera=CAM.name, vehicle=from_scene_info(info, name)), planner
+            ))
+            for name in goals
+        }  # fmt: skip
+        node = nodes["uav0"]
+        assert (node.topics["goal"], node.frame) == ("/droneulator/uav0/planner/goal", "uav0/odom")
+        assert nodes["uav1"].topics["depth"] == "/droneulator/uav1/front/depth/image_raw"
         # a second, independent session sends the goals, like RViz through a bridge would
         sender = RosZenohNode.from_config(run.config.bridge, listen=(), connect=(run.zenoh_endpoint,))
-        goals = sender.publisher(node.topics["goal"], GOAL_TYPE)
-        try:
-            client.reset(position=[-5.0, 0.0, 0.0], yaw=0.0)
-            client.subscribe(["events"])
-            client.takeoff(altitude=2.5)
-            client.wait_for_event("arrived", timeout=60)
-            start = np.array(client.state()["position"])
+        stack.callback(sender.close)
+        pubs = {name: sender.publisher(n.topics["goal"], GOAL_TYPE) for name, n in nodes.items()}
 
-            # far outside the 20 m local map: refused, nothing commanded
-            goals.publish(M.serialize(M.pose_stamped(0, ODOM_FRAME, [0.0, 40.0, 2.0], [0, 0, 0, 1])))
-            deadline = time.monotonic() + 20
-            while node.failures == 0:
-                assert time.monotonic() < deadline, "the bad goal was never answered"
-                time.sleep(0.05)
-            assert "outside the local map" in node.last_failure
+        def send(name: str, goal: Any) -> None:
+            pubs[name].publish(M.serialize(M.pose_stamped(0, nodes[name].frame, goal, [0, 0, 0, 1])))
 
-            # the crown's near side straight ahead, between the virtual floor and ceiling (so only the
-            # depth-built map can make it occupied): refused
-            col = get_scene("planning", 0).collision
-            sdf = lambda p: sdf_lookup_many(col.sdf, col.origin, col.resolution, p)  # noqa: E731
-            ahead = start + np.outer(np.linspace(0.0, 6.0, 241), [1.0, 0.0, 0.0])
-            leaf = ahead[np.argmax(sdf(ahead) < 0)]
-            assert sdf(leaf[None])[0] < 0 and 2.3 < leaf[2] < 2.7
-            goals.publish(M.serialize(M.pose_stamped(0, ODOM_FRAME, leaf, [0, 0, 0, 1])))
-            while node.failures == 1:
-                assert time.monotonic() < deadline + 20, "the occupied goal was never answered"
-                time.sleep(0.05)
-            assert "occupied" in node.last_failure, node.last_failure
-            assert node.commands == 0
+        def refused(goal: Any, why: str) -> None:
+            n = node.failures
+            send("uav0", goal)
+            _wait(lambda: node.failures > n, 20, f"the goal {goal} was never answered")
+            assert why in node.last_failure, node.last_failure
 
-            goal = np.array([4.0, 0.0, 2.5])
-            client.subscribe(["state", "events"], rate_hz=50)
-            goals.publish(M.serialize(M.pose_stamped(0, ODOM_FRAME, goal, [0, 0, 0, 1])))
-            track, seen = [], []
-            # 60 s of sim time (the flight takes about 10); the wall limit only guards against a stall,
-            # as a loaded machine runs the simulation far slower than real time
-            t_goal, sim_t = client.state()["t"], 0.0
-            deadline = time.monotonic() + 600
-            while not node.reached.is_set():
-                where = track[-1] if track else "?"
-                assert sim_t - t_goal < 60 and time.monotonic() < deadline, (
-                    f"goal not reached after {sim_t - t_goal:.1f} s of sim time, at {where};"
-                    f" {node.plans} plans, last failure: {node.last_failure!r}"
-                )
-                msg = client.next_message(timeout=1.0)
-                if msg is not None:
-                    seen.append(msg)
-                    if msg.get("type") == "state":
-                        track.append(msg["state"]["position"])
-                        sim_t = msg["state"]["t"]
-            track = np.array(track)
-            client.unsubscribe(["state"])  # else the 50 Hz stream never lets messages() time out
-            state = client.state()
-            assert np.linalg.norm(np.array(state["position"]) - goal) < 0.3
+        _wait(lambda: all(n.map_s for n in nodes.values()), 120, f"no depth image\n{run.log.tail()}")
+        start, other = (np.array(client.state(name)["position"]) for name in goals)
+        # far outside the 20 m local map: refused, nothing commanded
+        refused([0.0, 40.0, 2.0], "outside the local map")
+        # the crown's near side, between the virtual floor and ceiling (so only the depth-built map can
+        # make it occupied), along a ray 17 deg off the axis, clear of uav1: refused
+        ahead = start + np.outer(np.linspace(0.0, 6.0, 241), [0.958, 0.287, 0.0])
+        leaf = ahead[np.argmax(sdf(ahead) < 0)]
+        assert sdf(leaf[None])[0] < 0 and 2.3 < leaf[2] < 2.7
+        refused(leaf, "occupied")
+        # uav1, far from the scene's geometry: occupied only because uav0's depth images show it
+        assert sdf(other[None])[0] > 0.5
+        refused(other, "occupied")
+        assert all(n.commands == 0 for n in nodes.values())
+
+        client.subscribe(["state", "events"], rate_hz=50, vehicle="*")
+        for name, goal in goals.items():
+            send(name, goal)
+        tracks: dict[str, dict[float, list[float]]] = {name: {} for name in goals}
+        seen = []
+        # 60 s of sim time (the flights take about 10); the wall limit only guards against a stall,
+        # as a loaded machine runs the simulation far slower than real time
+        t_goal, sim_t = client.state()["t"], 0.0
+        deadline = time.monotonic() + 600
+        while not all(n.reached.is_set() for n in nodes.values()):
+            stats = {name: (n.plans, n.last_failure) for name, n in nodes.items()}
+            assert sim_t - t_goal < 60 and time.monotonic() < deadline, (
+                f"goals not reached after {sim_t - t_goal:.1f} s of sim time; plans, last failure: {stats}"
+            )
+            msg = client.next_message(timeout=1.0)
+            if msg is not None:
+                seen.append(msg)
+                if msg.get("type") == "state":
+                    state = msg["state"]
+                    tracks[state["vehicle"]][round(state["t"], 3)] = state["position"]
+                    sim_t = state["t"]
+        client.unsubscribe(["state"])  # else the 50 Hz stream never lets messages() time out
+        for name, goal in goals.items():
+            state = client.state(name)
+            assert np.linalg.norm(np.array(state["position"]) - goal) < 0.3, (name, state["position"])
             assert state["mode"] == "track"
-            assert node.plans >= 1 and node.commands > 100
-            collisions = [
-                m for m in seen + list(client.messages(timeout=0.5))
-                if m.get("type") == "event" and m["event"].get("type") in ("collision", "impact")
-            ]  # fmt: skip
-            assert not collisions
-            assert sdf(np.linspace(start, goal, 50)).min() < 0  # the straight line runs through the crown
+            assert nodes[name].plans >= 1 and nodes[name].commands > 100
+        collisions = [
+            m for m in seen + list(client.messages(timeout=0.5))
+            if m.get("type") == "event" and m["event"].get("type") in ("collision", "impact")
+        ]  # fmt: skip
+        assert not collisions, collisions[:3]
+        both = sorted(set(tracks["uav0"]) & set(tracks["uav1"]))
+        gap = np.linalg.norm([np.subtract(tracks["uav0"][t], tracks["uav1"][t]) for t in both], axis=1)
+        assert len(both) > 100 and gap.min() > 2 * cfg.vehicle.collision_radius, gap.min()
+        assert sdf(np.linspace(start, goals["uav0"], 50)).min() < 0  # the straight line meets the crown
+        for name, track in tracks.items():
+            track = np.array(list(track.values()))
             clearance = sdf(track)
-            closest = f"{clearance.min():.2f} m from the tree at {track[clearance.argmin()]}"
+            closest = f"{name} {clearance.min():.2f} m from the tree at {track[clearance.argmin()]}"
             assert clearance.min() > 0.3, closest
-        finally:
-            sender.close()
-            node.close()
-            client.close()
 
 
 @pytest.mark.slow
@@ -193,11 +217,14 @@ def test_plan_px4_plans_checks_arrival_and_tracking_on_px4s_own_estimate():
 
 
 class ScriptedSim:
-    """A stand-in for the simulator's bridge on a real Zenoh session: clock, odometry, depth, pose out."""
+    """A stand-in for the simulator's bridge on a real Zenoh session: clock, odometry, depth, pose out,
+    under one vehicle's names."""
 
-    def __init__(self, endpoint: str, ns: str, cam: str) -> None:
+    def __init__(self, endpoint: str, names: VehicleNames, cam: str) -> None:
         self.node = RosZenohNode(ZenohNodeConfig(listen=(endpoint,), connect=()))
-        self.topics = {**vehicle_topics(ns), **topic_names(ns, cam), "goal": f"/{ns}/planner/goal"}
+        self.names = names
+        ns = names.namespace
+        self.topics = {**names.topics(), **names.camera_topics(cam), "goal": f"/{ns}/planner/goal"}
         kinds = ("clock", "odom", "depth", "info_depth", "pose")
         self.pubs = {k: self.node.publisher(self.topics[k], TYPES[k]) for k in kinds}
         self.goal = self.node.publisher(self.topics["goal"], GOAL_TYPE)
@@ -223,15 +250,17 @@ class ScriptedSim:
         T = frames.make_transform(frames.quat_to_matrix(self.quat), self.position) @ frames.T_link_optical()
         cam_p, cam_q = frames.pose_from_transform(T)
         depth = np.full((120, 160), np.nan, dtype=np.float32)  # nothing within range: free space
+        names = self.names
+        optical, odom_frame, base = names.optical_frame("front"), names.odom_frame, names.base_frame
         while not self._stop.is_set():
             t = self.t_ns
             if t % 50_000_000 == 0 and self.depth_on:
-                info = M.camera_info(t, "front_optical_frame", 160, 120, K)
+                info = M.camera_info(t, optical, 160, 120, K)
                 self.pubs["info_depth"].publish(M.serialize(info))
-                self.pubs["pose"].publish(M.serialize(M.pose_stamped(t, ODOM_FRAME, cam_p, cam_q)))
-                self.pubs["depth"].publish(M.serialize(M.image(t, "front_optical_frame", depth)))
+                self.pubs["pose"].publish(M.serialize(M.pose_stamped(t, odom_frame, cam_p, cam_q)))
+                self.pubs["depth"].publish(M.serialize(M.image(t, optical, depth)))
                 self.last_depth_ns = t
-            odom = M.odometry(t, ODOM_FRAME, "base_link", self.position, self.quat, self.v_body, np.zeros(3))
+            odom = M.odometry(t, odom_frame, base, self.position, self.quat, self.v_body, np.zeros(3))
             self.pubs["odom"].publish(M.serialize(odom))
             self.pubs["clock"].publish(M.serialize(M.clock(t)))
             self.t_ns += 10_000_000
@@ -246,15 +275,16 @@ class ScriptedSim:
         self.node.close()
 
     def send_goal(self, goal: list[float]) -> None:
-        self.goal.publish(M.serialize(M.pose_stamped(0, ODOM_FRAME, goal, [0, 0, 0, 1])))
+        self.goal.publish(M.serialize(M.pose_stamped(0, self.names.odom_frame, goal, [0, 0, 0, 1])))
 
 
 @contextlib.contextmanager
-def scripted_node() -> Iterator[tuple[ScriptedSim, PlanNode]]:
-    """A started :class:`ScriptedSim` and a default plan node on its Zenoh endpoint."""
+def scripted_node(vehicle: PlannedVehicle | None = None) -> Iterator[tuple[ScriptedSim, PlanNode]]:
+    """A started :class:`ScriptedSim` and a plan node on its Zenoh endpoint, for ``vehicle`` (default:
+    the single vehicle's names)."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    sim = ScriptedSim(endpoint, "droneulator", "front")
-    node = PlanNode(PlanNodeConfig(zenoh=endpoint))
+    sim = ScriptedSim(endpoint, (vehicle or single_vehicle()).names, "front")
+    node = PlanNode(PlanNodeConfig(zenoh=endpoint, vehicle=vehicle))
     try:
         sim.start()
         time.sleep(0.5)
@@ -272,8 +302,12 @@ def _wait(cond, timeout: float, what) -> None:
         time.sleep(0.05)
 
 
-def test_plan_node_plans_from_the_world_frame_velocity_and_stops_commanding_without_depth():
-    with scripted_node() as (sim, node):
+def test_a_fleet_vehicles_plan_node_plans_from_the_world_frame_velocity_and_stops_without_depth():
+    """On the names of uav1 of a fleet: its depth, pose and odometry under /droneulator/uav1/ in frames
+    uav1/odom and uav1/front_optical_frame in, its PositionCommand out in uav1/odom."""
+    uav1 = PlannedVehicle(vehicle_names("droneulator", "uav1", fleet=True))
+    with scripted_node(uav1) as (sim, node):
+        assert sim.topics["position_cmd"] == "/droneulator/uav1/position_cmd"
         sim.send_goal([0.0, 4.0, 2.0])
         _wait(lambda: len(sim.cmds) >= 50, 20, lambda: f"no commands; last failure {node.last_failure!r}")
         with sim.lock:
@@ -282,7 +316,7 @@ def test_plan_node_plans_from_the_world_frame_velocity_and_stops_commanding_with
         # the body twist (0.5, 0, 0) at yaw 90 deg is (0, 0.5, 0) in the world: the plan starts from it
         v0 = np.array([first.velocity.x, first.velocity.y, first.velocity.z])
         assert np.linalg.norm(v0 - [0.0, 0.5, 0.0]) < 0.1, v0
-        assert first.header.frame_id == ODOM_FRAME
+        assert first.header.frame_id == "uav1/odom"
         gaps = np.diff(stamps)
         assert np.all(gaps >= 10_000_000) and np.mean(gaps == 10_000_000) > 0.9, "one per 10 ms of sim time"
 

@@ -4,11 +4,22 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 import threading
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
-from droneulator.cli.common import DEFAULT_ZENOH
+from droneulator.cli.common import DEFAULT_ZENOH, add_file_args
+from droneulator.runtime import preflight
+from droneulator.runtime.preflight import StartupError
+
+if TYPE_CHECKING:
+    from droneulator.config import SimConfig
+    from droneulator.workflows.planning.fleet import PlannedVehicle
+
+log = logging.getLogger("droneulator.plan")
+DEFAULT_URL = "ws://127.0.0.1:8765"
 
 
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -17,10 +28,26 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="run the depth-only local planner node against a running `droneulator run`",
         description="Map from the depth image, plan B-splines to goals taken on /<ns>/planner/goal "
         "(geometry_msgs/PoseStamped) and publish quadrotor_msgs/PositionCommand on /<ns>/position_cmd "
-        "at 100 Hz of sim time, all over Zenoh. Never reads the scene or the WebSocket state.",
+        "at 100 Hz of sim time, all over Zenoh, for one vehicle (one process per vehicle of a fleet: "
+        "<ns> is then /droneulator/<vehicle>). Asks the run's API once which names that vehicle has "
+        "(scene_info, or reads the run's --config); never reads the scene or the vehicle state.",
     )
     p.add_argument("--zenoh", default=DEFAULT_ZENOH, help="Zenoh endpoint of the run's bridge")
-    p.add_argument("--namespace", default="droneulator", help="the run's ROS namespace")
+    p.add_argument(
+        "--vehicle",
+        default=None,
+        metavar="NAME",
+        help="the vehicle to plan for (default: the run's first); its topics, TF frames and PX4 instance "
+        "as the run's scene_info lists them (--url), or as its --config sets them",
+    )
+    p.add_argument("--url", default=DEFAULT_URL, help="the run's WebSocket API, asked for scene_info")
+    add_file_args(p, "--set px4.instance=2")
+    p.add_argument(
+        "--namespace",
+        default=None,
+        help="the ROS namespace of a one-vehicle run: its names, without asking the run (default: ask "
+        "the run; droneulator if none answers)",
+    )
     p.add_argument("--camera", default="front", help="depth camera to map from")
     p.add_argument(
         "--goal", type=float, nargs=3, default=None, metavar=("X", "Y", "Z"), help="first goal (odom frame)"
@@ -58,11 +85,24 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument(
         "--px4",
         action="store_true",
-        help="fly PX4 SITL in OFFBOARD (SET_POSITION_TARGET_LOCAL_NED on UDP 14540+N) instead of "
-        "publishing PositionCommand: a goal makes PX4 hold where it is in OFFBOARD, then the planner "
+        help="fly PX4 SITL in OFFBOARD (SET_POSITION_TARGET_LOCAL_NED on UDP 14540+N, 14549 past 9) instead "
+        "of publishing PositionCommand: a goal makes PX4 hold where it is in OFFBOARD, then the planner "
         "plans, checks arrival and tracking on PX4's own position estimate; see docs/planning.md",
     )
-    p.add_argument("--px4-instance", type=int, default=None, metavar="N", help="PX4 instance (implies --px4)")
+    p.add_argument(
+        "--px4-instance",
+        type=int,
+        default=None,
+        metavar="N",
+        help="PX4 instance (implies --px4; default: the vehicle's, from scene_info or --config, else 0)",
+    )
+    p.add_argument(
+        "--px4-sysid",
+        type=int,
+        default=None,
+        metavar="ID",
+        help="PX4's MAV_SYS_ID to follow on the port (default: instance + 1, as PX4 SITL sets it)",
+    )
     p.add_argument("--px4-host", default="127.0.0.1", help="address to bind PX4's offboard UDP port on")
     p.add_argument(
         "--px4-origin",
@@ -89,9 +129,50 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.set_defaults(func=cmd_plan)
 
 
+def resolve_vehicle(args: argparse.Namespace) -> tuple[PlannedVehicle, SimConfig | None]:
+    """The vehicle to plan for, and the run's configuration when ``--config``/``--set`` gave it: from
+    that configuration, else the single vehicle's names under ``--namespace`` when it is given without
+    ``--vehicle``, else from the run's ``scene_info``; with no run answering, the single vehicle's."""
+    from droneulator.workflows.planning import fleet
+
+    if args.vehicle is None and args.namespace is not None and args.config is None and not args.overrides:
+        return fleet.single_vehicle(args.namespace), None
+    try:
+        if args.config is not None or args.overrides:
+            cfg = preflight.load(args.config, args.overrides)
+            return fleet.from_config(cfg, args.vehicle), cfg
+        info = _scene_info(args.url)
+        if info is not None:
+            return fleet.from_scene_info(info, args.vehicle), None
+    except ValueError as exc:
+        raise StartupError(f"--vehicle: {exc}", preflight.USAGE) from None
+    if args.vehicle is not None:
+        raise StartupError(
+            f"--vehicle {args.vehicle}: the run's API at {args.url} does not answer; give the run's --url, "
+            "or its --config",
+            preflight.USAGE,
+        )
+    ns = args.namespace or "droneulator"
+    log.info("no run answers at %s: planning for the single vehicle's topics under /%s", args.url, ns)
+    return fleet.single_vehicle(ns), None
+
+
+def _scene_info(url: str) -> dict[str, Any] | None:
+    """The run's ``scene_info``, or None when nothing answers at ``url``."""
+    from websockets.exceptions import WebSocketException
+
+    from droneulator.api.client import ApiError, DroneulatorClient
+
+    try:
+        with DroneulatorClient(url, timeout=5.0) as client:
+            return client.scene_info()
+    except (OSError, TimeoutError, WebSocketException, ApiError) as exc:
+        log.debug("scene_info from %s: %s", url, exc)
+        return None
+
+
 def cmd_plan(args: argparse.Namespace) -> int:
     import contextlib
-    import logging
     import signal
 
     from droneulator.workflows.planning.config import PlannerConfig
@@ -101,7 +182,13 @@ def cmd_plan(args: argparse.Namespace) -> int:
     if args.verbose:
         logging.getLogger("droneulator").setLevel(logging.DEBUG)
     bounds = None if args.bounds is None else (tuple(args.bounds[:3]), tuple(args.bounds[3:]))
-    cfg = PlanNodeConfig(zenoh=args.zenoh, namespace=args.namespace, camera=args.camera, bounds=bounds)
+    vehicle, run_cfg = resolve_vehicle(args)
+    try:
+        cfg = PlanNodeConfig(zenoh=args.zenoh, camera=args.camera, bounds=bounds, vehicle=vehicle)
+    except ValueError as exc:
+        raise StartupError(str(exc), preflight.USAGE) from None
+    log.info("planning for vehicle %s (%s): goals on /%s/planner/goal", vehicle.name, vehicle.source,
+             vehicle.names.namespace)  # fmt: skip
     try:
         planner = PlannerConfig(
             ceiling=args.ceiling,
@@ -119,17 +206,24 @@ def cmd_plan(args: argparse.Namespace) -> int:
         if args.px4 or args.px4_instance is not None:
             from droneulator.workflows.planning.offboard import OffboardConfig, OffboardLink
 
+            keys = ("home_lat_deg", "home_lon_deg", "home_alt_m")
             home = {}
             if args.px4_home is not None:
-                home = dict(zip(("home_lat_deg", "home_lon_deg", "home_alt_m"), args.px4_home, strict=True))
+                home = dict(zip(keys, args.px4_home, strict=True))
+            elif run_cfg is not None:
+                home = {k: getattr(run_cfg.px4, k) for k in keys}
             origin = None if args.px4_origin is None else tuple(args.px4_origin)
-            link_cfg = OffboardConfig(
-                host=args.px4_host,
-                instance=args.px4_instance or 0,
-                on_stop=args.px4_on_stop,
-                origin_enu=origin,
-                **home,
-            )
+            try:
+                link_cfg = OffboardConfig(
+                    host=args.px4_host,
+                    instance=_px4_instance(args, vehicle),
+                    system_id=args.px4_sysid,
+                    on_stop=args.px4_on_stop,
+                    origin_enu=origin,
+                    **home,
+                )
+            except ValueError as exc:
+                raise StartupError(f"--px4: {exc}", preflight.USAGE) from None
             autopilot = stack.enter_context(OffboardLink(link_cfg))
         node = stack.enter_context(PlanNode(cfg, planner, autopilot=autopilot))
         if args.goal is not None:
@@ -141,3 +235,15 @@ def cmd_plan(args: argparse.Namespace) -> int:
     if args.stats:
         Path(args.stats).write_text(json.dumps(node.stats(), indent=1))
     return 0
+
+
+def _px4_instance(args: argparse.Namespace, vehicle: PlannedVehicle) -> int:
+    """``--px4-instance``, else the PX4 instance the run gives the vehicle, else 0 (nothing told)."""
+    if args.px4_instance is not None:
+        return args.px4_instance
+    if vehicle.source == "defaults":
+        return 0
+    try:
+        return vehicle.px4()
+    except ValueError as exc:
+        raise StartupError(f"--px4: {exc}", preflight.USAGE) from None

@@ -5,6 +5,10 @@ camera_info, odometry and the camera pose (``/<ns>/<cam>/pose``, synchronised wi
 goals as ``geometry_msgs/PoseStamped`` on ``/<ns>/planner/goal``; ``quadrotor_msgs/PositionCommand``
 on ``/<ns>/position_cmd`` out, at 100 Hz of sim time. The map comes from depth images alone.
 
+One node plans for one vehicle (``PlanNodeConfig.vehicle``, :mod:`~droneulator.workflows.planning.fleet`):
+in a world of several, ``<ns>`` is that vehicle's namespace (``droneulator/uav1``) and its frames are the
+vehicle's (``uav1/odom``); one node per vehicle, each mapping the others from its depth images.
+
 Two threads besides Zenoh's callbacks: the planning thread integrates the newest depth frame,
 (re)plans, and the trajectory server samples the current B-spline each time ``/clock`` has advanced
 10 ms (in lockstep the simulator waits only for its cameras, so sim time, not the wall clock, paces
@@ -35,18 +39,17 @@ from threadpoolctl import threadpool_limits
 from droneulator import frames
 from droneulator.ros import messages
 from droneulator.ros.topics import (
-    ODOM_FRAME,
     TYPES,
+    VehicleNames,
     decode_depth,
     header_ns,
     ns_to_seconds,
     stamp_to_ns,
-    topic_names,
-    vehicle_topics,
 )
 from droneulator.ros.zenoh_node import RosZenohNode, ZenohNodeConfig
 from droneulator.workflows.planning.bspline import BSpline
 from droneulator.workflows.planning.config import PlannerConfig
+from droneulator.workflows.planning.fleet import PlannedVehicle, single_vehicle
 from droneulator.workflows.planning.planner import Planner
 
 if TYPE_CHECKING:
@@ -82,8 +85,12 @@ class PlanNodeConfig:
     """Wiring and timing of the planner process."""
 
     zenoh: str = "tcp/127.0.0.1:7448"
+    #: the single vehicle's namespace, used when ``vehicle`` is not given
     namespace: str = "droneulator"
     camera: str = "front"
+    #: the vehicle planned for, with its topic and frame names (``fleet.from_scene_info`` or
+    #: ``fleet.from_config``); None: the single vehicle of a one-vehicle run under ``namespace``
+    vehicle: PlannedVehicle | None = None
     #: replan at least this often while a goal is active (sim time), besides when the map demands it
     replan_period_s: float = 1.0
     #: no depth image for this long (sim time) -> stop publishing, the simulator holds
@@ -107,6 +114,9 @@ class PlanNodeConfig:
     bounds: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
 
     def __post_init__(self) -> None:
+        if self.vehicle is None:
+            self.vehicle = single_vehicle(self.namespace)
+        self.vehicle.check_camera(self.camera)
         if self.bounds is not None:
             lo, hi = (np.asarray(b, dtype=float).reshape(3) for b in self.bounds)
             if not np.all(lo < hi):
@@ -137,10 +147,16 @@ class PlanNode:
         self._setpoint: tuple[np.ndarray, np.ndarray, np.ndarray, float, float] | None = None
         self.planner = Planner(planner)
         log.info("planner kernels ready in %.1f s", self.planner.warm_up())
-        ns, cam = self.cfg.namespace, self.cfg.camera
-        self.topics = {**vehicle_topics(ns), **topic_names(ns, cam), "goal": f"/{ns}/planner/goal"}
+        cam = self.cfg.camera
+        #: the vehicle's topic names and TF frames
+        self.names: VehicleNames = self.cfg.vehicle.names
+        ns = self.names.namespace
+        self.topics = {**self.names.topics(), **self.names.camera_topics(cam), "goal": f"/{ns}/planner/goal"}
+        #: frame of the commands sent and of the goals taken besides map/world: the vehicle's odom
+        self.frame = self.names.odom_frame
         self.node = RosZenohNode(
-            ZenohNodeConfig(mode="peer", listen=(), connect=(self.cfg.zenoh,), node_name="droneulator_plan")
+            ZenohNodeConfig(mode="peer", listen=(), connect=(self.cfg.zenoh,), node_name="droneulator_plan",
+                            node_namespace=f"/{ns}")  # fmt: skip
         )
         self._lock = threading.Lock()
         self._wake = threading.Condition(self._lock)
@@ -188,7 +204,8 @@ class PlanNode:
         ]
         for th in self._threads:
             th.start()
-        log.info("planner listening on %s (camera %s, goals on %s)", self.cfg.zenoh, cam, t["goal"])
+        log.info("planner for %s listening on %s (camera %s, goals on %s)", self.names.vehicle,
+                 self.cfg.zenoh, cam, t["goal"])  # fmt: skip
 
     # ------------------------------------------------------------------ callbacks (Zenoh threads)
     def _on_clock(self, msg: Any) -> None:
@@ -232,8 +249,8 @@ class PlanNode:
         if not np.all(np.isfinite(goal)):
             log.error("goal %s rejected: not finite", goal)
             return
-        if msg.header.frame_id not in ("", ODOM_FRAME, "map", "world"):
-            log.error("goal rejected: frame %r is not odom/map/world", msg.header.frame_id)
+        if msg.header.frame_id not in ("", self.frame, "map", "world"):
+            log.error("goal rejected: frame %r is not %s/map/world", msg.header.frame_id, self.frame)
             return
         log.info("new goal %s", goal.round(3))
         with self._wake:
@@ -246,8 +263,8 @@ class PlanNode:
 
     # ------------------------------------------------------------------ public
     def set_goal(self, goal: np.ndarray) -> None:
-        """Same as a goal message: plan to ``goal`` (odom frame)."""
-        msg = messages.pose_stamped(0, ODOM_FRAME, np.asarray(goal, dtype=float), (0.0, 0.0, 0.0, 1.0))
+        """Same as a goal message: plan to ``goal`` (the vehicle's odom frame, i.e. the world)."""
+        msg = messages.pose_stamped(0, self.frame, np.asarray(goal, dtype=float), (0.0, 0.0, 0.0, 1.0))
         self._on_goal(msg)
 
     def stats(self) -> dict[str, Any]:
@@ -497,5 +514,5 @@ class PlanNode:
         self._yaw = frames.wrap_angle(yaw_prev + step)
         self._setpoint = (p, v, a, self._yaw, step / dt)
         return messages.position_command(
-            now, ODOM_FRAME, p, v, a, self._yaw, step / dt, trajectory_id=self._traj_id
+            now, self.frame, p, v, a, self._yaw, step / dt, trajectory_id=self._traj_id
         )

@@ -2,11 +2,16 @@
 
 PX4 SITL opens an onboard/API MAVLink instance for each vehicle (``mavlink start -u 14580+N -o
 14540+N -m onboard -f``): it sends to UDP ``14540 + N`` and answers whoever talks to it, which is how
-MAVSDK and MAVROS connect. :class:`OffboardLink` does the same with pymavlink's codec on a plain UDP
-socket:
+MAVSDK and MAVROS connect. Instances past 9 all send to 14549, the port of instance 9
+(``px4-rc.mavlink``: ``[ "$px4_instance" -gt 9 ] && udp_offboard_port_remote=14549``), and are told
+apart by their system id, ``MAV_SYS_ID`` = N + 1 (``rcS``), as MAVSDK users must.
+:class:`OffboardLink` does the same with pymavlink's codec on a plain UDP socket:
 
-1. bind ``host:base_port + instance``, wait for PX4's HEARTBEAT (``MAV_AUTOPILOT_PX4``; its system
-   and component ids become the targets) and reply to the address it came from;
+1. bind ``host:`` :func:`offboard_port` (``base_port + min(instance, 9)``), wait for the HEARTBEAT of
+   PX4 system ``instance + 1`` (``MAV_AUTOPILOT_PX4``; other PX4 systems on the port are ignored; its
+   component id becomes the target) and reply to the address it came from. Where 14549 is already
+   another link's (one planner per vehicle of a fleet past 9), bind any port and send HEARTBEATs to
+   PX4's own port ``14580 + N`` instead: PX4 takes the first sender as its partner and answers it;
 2. send our own HEARTBEAT at ``heartbeat_hz`` (a companion computer: ``MAV_TYPE_ONBOARD_CONTROLLER``,
    PX4's system id, ``MAV_COMP_ID_ONBOARD_COMPUTER``; or MAVSDK's ground-station identity);
 3. learn PX4's local origin: ``GPS_GLOBAL_ORIGIN`` (asked for with ``MAV_CMD_REQUEST_MESSAGE``) is
@@ -34,6 +39,7 @@ Frames go through :mod:`droneulator.frames` only: positions, velocities and acce
 
 from __future__ import annotations
 
+import errno
 import logging
 import math
 import socket
@@ -71,6 +77,9 @@ _MODE_NAMES = {
     (7, 0): "STABILIZED",
 }
 
+#: PX4 SITL sends every instance past this one to the same offboard port (``px4-rc.mavlink``)
+LAST_OWN_PORT_INSTANCE = 9
+
 #: use position, velocity, acceleration (not as force: PX4 drops force setpoints), yaw and yaw rate
 TYPE_MASK_TRAJECTORY = 0
 #: a hold: position and yaw only
@@ -89,6 +98,17 @@ def px4_mode_name(custom_mode: int) -> str:
     """Readable PX4 mode of a HEARTBEAT ``custom_mode`` (main mode in bits 16-23, sub mode 24-31)."""
     main, sub = (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
     return _MODE_NAMES.get((main, sub if main == PX4_MAIN_MODE_AUTO else 0), f"main {main} sub {sub}")
+
+
+def offboard_port(instance: int, base_port: int = 14540) -> int:
+    """The UDP port PX4 SITL instance ``instance`` sends its onboard MAVLink to: ``base_port + instance``,
+    and ``base_port + 9`` (14549) for every instance past 9, as ``px4-rc.mavlink`` sets it."""
+    return base_port + min(instance, LAST_OWN_PORT_INSTANCE)
+
+
+def px4_system_id(instance: int) -> int:
+    """PX4 SITL's ``MAV_SYS_ID`` of ``instance``: ``rcS`` sets ``MAV_SYS_ID $((px4_instance+1))``."""
+    return instance + 1
 
 
 def _result_name(result: int) -> str:
@@ -115,9 +135,13 @@ class OffboardConfig:
     """Where PX4's offboard MAVLink is, and how the link behaves."""
 
     host: str = "127.0.0.1"
-    #: PX4 instance N sends to UDP base_port + N
+    #: PX4 instance N (``px4 -i N``) sends to UDP base_port + N, instances past 9 to base_port + 9
     instance: int = 0
     base_port: int = 14540
+    #: the PX4 system followed on that port (``MAV_SYS_ID``); None: instance + 1, as PX4 SITL sets it
+    system_id: int | None = None
+    #: PX4 instance N's own offboard-link port is this + N (``udp_offboard_port_local``, 14580 + N)
+    px4_local_base_port: int = 14580
     #: setpoints per wall second (PX4 needs > 2 Hz; MAVROS/MAVSDK examples stream 20-50 Hz)
     rate_hz: float = 50.0
     heartbeat_hz: float = 1.0
@@ -144,8 +168,10 @@ class OffboardConfig:
     origin_timeout_s: float = 10.0
 
     def __post_init__(self) -> None:
-        if not 0 <= self.instance <= 255 or not 0 <= self.base_port + self.instance <= 65535:
-            raise ValueError("instance and base_port must give a UDP port in [0, 65535]")
+        if not 0 <= self.instance <= 254 or not 0 <= self.port <= 65535:
+            raise ValueError("instance (0 to 254) and base_port must give a UDP port in [0, 65535]")
+        if not 1 <= self.px4_sysid <= 255:
+            raise ValueError(f"system_id must be in [1, 255], got {self.system_id}")
         if not self.rate_hz > 2.0:
             raise ValueError(f"rate_hz must exceed 2 Hz (PX4's offboard minimum), got {self.rate_hz}")
         positive = (
@@ -172,7 +198,13 @@ class OffboardConfig:
 
     @property
     def port(self) -> int:
-        return self.base_port + self.instance
+        """The UDP port bound: where PX4 instance ``instance`` sends (:func:`offboard_port`)."""
+        return offboard_port(self.instance, self.base_port)
+
+    @property
+    def px4_sysid(self) -> int:
+        """The system id of the PX4 followed: ``system_id``, or PX4 SITL's for the instance."""
+        return px4_system_id(self.instance) if self.system_id is None else self.system_id
 
 
 @dataclass
@@ -196,12 +228,9 @@ class OffboardLink:
 
     def __init__(self, config: OffboardConfig | None = None) -> None:
         self.cfg = c = config or OffboardConfig()
-        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            self._sock.bind((c.host, c.port))
-        except OSError as exc:
-            self._sock.close()
-            raise OffboardError(f"cannot bind UDP {c.host}:{c.port} for PX4's offboard link: {exc}") from exc
+        #: PX4's own port, told who we are when the shared port is another link's (see :meth:`_bind`)
+        self.announce_to: tuple[str, int] | None = None
+        self._sock = self._bind()
         self._sock.settimeout(0.05)
         #: the bound (host, port); with base_port 0 the OS chose the port
         self.address: tuple[str, int] = self._sock.getsockname()
@@ -209,14 +238,18 @@ class OffboardLink:
         self._mav.robust_parsing = True
         if c.identity == "gcs":
             self._mav.srcSystem, self._mav.srcComponent = 245, mavlink.MAV_COMP_ID_MISSIONPLANNER
+        else:
+            self._mav.srcSystem, self._mav.srcComponent = c.px4_sysid, mavlink.MAV_COMP_ID_ONBOARD_COMPUTER
         self._lock = threading.Condition()
         self._send_lock = threading.Lock()
         self._stop = threading.Event()
-        self._peer: tuple[str, int] | None = None
+        self._peer: tuple[str, int] | None = self.announce_to
         self._last_hb: float | None = None
         self._lost = False
         self.sysid: int | None = None
         self.compid: int | None = None
+        #: system ids of other PX4s heard on the port (instances past 9 share 14549)
+        self.other_systems: set[int] = set()
         self.custom_mode = 0
         self.armed = False
         self.origin_enu: np.ndarray | None = None if c.origin_enu is None else np.asarray(c.origin_enu, float)
@@ -245,7 +278,37 @@ class OffboardLink:
         ]
         for th in self._threads:
             th.start()
-        log.info("offboard link on udp %s:%d, waiting for PX4 (instance %d)", *self.address, c.instance)
+        log.info("offboard link on udp %s:%d, waiting for PX4 system %d (instance %d)", *self.address,
+                 c.px4_sysid, c.instance)  # fmt: skip
+
+    def _bind(self) -> socket.socket:
+        """The UDP socket on ``cfg.port``. Where that port is shared (instance 9 and up: 14549) and another
+        link holds it, an OS-chosen port instead, announced to PX4's own port (``px4_local_base_port``
+        + instance): PX4 SITL's UDP MAVLink on localhost takes the first sender as its partner and sends
+        to it from then on (``MavlinkReceiver``), so every instance past 9 can have its own link."""
+        c = self.cfg
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            sock.bind((c.host, c.port))
+            return sock
+        except OSError as exc:
+            if exc.errno != errno.EADDRINUSE or c.instance < LAST_OWN_PORT_INSTANCE:
+                sock.close()
+                why = f"cannot bind UDP {c.host}:{c.port} for PX4's offboard link: {exc}"
+                raise OffboardError(why) from exc
+        sock.bind((c.host, 0))
+        px4_host = "127.0.0.1" if c.host in ("", "0.0.0.0") else c.host
+        self.announce_to = (px4_host, c.px4_local_base_port + c.instance)
+        log.info(
+            "UDP %s:%d, which PX4 instances 9 and up share, is another link's: bound %d and announcing "
+            "this one to PX4 instance %d at %s:%d",
+            c.host,
+            c.port,
+            sock.getsockname()[1],
+            c.instance,
+            *self.announce_to,
+        )
+        return sock
 
     # ------------------------------------------------------------------ public
     @property
@@ -344,15 +407,14 @@ class OffboardLink:
     def _handle(self, msg: Any, addr: tuple[str, int]) -> None:
         kind = msg.get_type()
         if kind == "HEARTBEAT" and msg.autopilot == mavlink.MAV_AUTOPILOT_PX4:
+            src = msg.get_srcSystem()
+            if src != self.cfg.px4_sysid:
+                self._other_px4(src, addr)
+                return
             with self._lock:
                 first = self.sysid is None
                 if first:
-                    self.sysid, self.compid = msg.get_srcSystem(), msg.get_srcComponent()
-                    if self.cfg.identity == "onboard":
-                        self._mav.srcSystem = self.sysid
-                        self._mav.srcComponent = mavlink.MAV_COMP_ID_ONBOARD_COMPUTER
-                if msg.get_srcSystem() != self.sysid:
-                    return
+                    self.sysid, self.compid = src, msg.get_srcComponent()
                 self._peer = addr
                 self._last_hb = time.monotonic()
                 back = self._lost
@@ -406,6 +468,21 @@ class OffboardLink:
                 log.info("PX4's local origin (EKF2) is at ENU world %s", origin.round(3))
         elif kind == "STATUSTEXT" and msg.severity <= mavlink.MAV_SEVERITY_WARNING:
             log.warning("PX4: %s", msg.text)
+
+    def _other_px4(self, sysid: int, addr: tuple[str, int]) -> None:
+        """A PX4 that is not ours sends to this port (PX4 SITL sends every instance past 9 to one
+        port): noted once and ignored."""
+        with self._lock:
+            if sysid in self.other_systems:
+                return
+            self.other_systems.add(sysid)
+        log.info(
+            "PX4 system %d at %s:%d sends to this port too: ignored (following system %d, instance %d)",
+            sysid,
+            *addr,
+            self.cfg.px4_sysid,
+            self.cfg.instance,
+        )
 
     # ------------------------------------------------------------------ send
     def _send(self, msg: Any) -> None:
@@ -466,7 +543,7 @@ class OffboardLink:
                     self.cfg.link_timeout_s,
                     *self.address,
                 )
-            if sysid is not None and now >= next_hb:
+            if (sysid is not None or self.announce_to is not None) and now >= next_hb:
                 self._send(self._heartbeat())
                 next_hb = now + 1.0 / self.cfg.heartbeat_hz
             if sysid is not None and streaming and sample is not None and now >= next_sp:
@@ -544,9 +621,14 @@ class OffboardLink:
         with self._lock:
             if not self._wait(lambda: self.sysid is not None, c.connect_timeout_s):
                 if not self._stop.is_set():
+                    others = ""
+                    if self.other_systems:
+                        heard = ", ".join(map(str, sorted(self.other_systems)))
+                        others = f" (heard PX4 system {heard}: another MAV_SYS_ID? see system_id)"
                     self._fail(
                         f"no HEARTBEAT from PX4 on udp {self.address[0]}:{self.address[1]} within "
-                        f"{c.connect_timeout_s:.0f} s: is PX4 SITL instance {c.instance} running?"
+                        f"{c.connect_timeout_s:.0f} s: is PX4 SITL instance {c.instance} (system "
+                        f"{c.px4_sysid}) running?{others}"
                     )
                 return
         if self.origin_enu is None and not self._learn_origin():
