@@ -31,8 +31,10 @@ from droneulator.workflows.photogrammetry.colmap_model import (
 from droneulator.workflows.photogrammetry.dataset import CaptureDataset, DatasetMismatchError, plan_settings
 from droneulator.workflows.photogrammetry.plan import (
     arc_waypoints,
+    fleet_routes,
     pending_views,
     plan_viewpoints,
+    ring_neighbours,
     ring_sizes,
     segment_errors,
 )
@@ -171,6 +173,44 @@ def test_arcs_are_split_and_tracking_errors_measure_the_commanded_segment():
     np.testing.assert_allclose(alt, [0.1, 0.0, 0.0], atol=1e-12)
 
 
+def test_two_vehicles_fly_opposite_halves_of_every_ring_and_keep_apart_in_step():
+    plan = plan_viewpoints([0.0, 0.0], 6.0, [3.5, 5.5], 36)
+    side = [(8.5 * math.cos(1.0), 8.5 * math.sin(1.0)), (10.2 * math.cos(1.1), 10.2 * math.sin(1.1))]
+    routes = fleet_routes(plan, [0.0, 0.0], side, 360.0)
+    assert sorted(v.index for r in routes for v in r) == list(range(36))  # every view once
+    for route in routes:
+        assert [v.ring for v in route] == [0] * 9 + [1] * 9
+        for ring in (route[:9], route[9:]):  # one contiguous arc of each ring, flown view to view
+            assert all(ring_neighbours(plan, a, b) for a, b in zip(ring, ring[1:], strict=False))
+    # each vehicle starts a quarter turn to its side of where both stand (the first, clockwise of the
+    # second, to the clockwise side) and, the arcs flown the same way round, stays half a turn away
+    mean = 1.05
+    assert math.degrees(F.wrap_angle(routes[0][0].azimuth - mean)) == pytest.approx(-90.0, abs=10.0)
+    assert math.degrees(F.wrap_angle(routes[1][0].azimuth - mean)) == pytest.approx(90.0, abs=10.0)
+    for a, b in zip(*routes, strict=True):
+        assert a.ring == b.ring and abs(F.wrap_angle(a.azimuth - b.azimuth)) == pytest.approx(math.pi)
+    # one vehicle: the plan as it is; a partial arc: its views shared out in order
+    assert fleet_routes(plan, [0.0, 0.0], side[:1], 360.0) == [plan]
+    arc = plan_viewpoints([0.0, 0.0], 6.0, [4.5], 8, arc_deg=90.0)
+    assert [[v.index for v in r] for r in fleet_routes(arc, [0.0, 0.0], side[::-1], 90.0)] == [
+        [4, 5, 6, 7],
+        [0, 1, 2, 3],
+    ]
+    assert not ring_neighbours(arc, arc[0], arc[2]) and ring_neighbours(arc, arc[3], arc[2])
+
+
+@pytest.mark.parametrize(
+    "given", [["--vehicles", "0"], ["--vehicles", "-1"], ["--vehicles", "9", "--views", "8"]]
+)
+def test_a_bad_number_of_capture_vehicles_is_a_one_line_error(tmp_path: Path, capsys, given: list[str]):
+    from droneulator.cli import main
+
+    assert main(["capture", "--out", str(tmp_path / "ds"), *given]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "capture.vehicles must lie in [1, capture.views" in err
+    assert not (tmp_path / "ds").exists()
+
+
 def _tf(parent: str, child: str, t_ns: int, p, q) -> SimpleNamespace:
     return SimpleNamespace(
         header=SimpleNamespace(
@@ -224,6 +264,9 @@ def test_the_tree_comes_from_scene_info_landmarks_and_sets_the_capture_camera():
     (cam,) = run.render.cameras
     assert (cam.width, cam.height, cam.rpy_deg) == (1024, 768, (0.0, pitch, 0.0))
     assert cfg.render.cameras[0].width == 640  # the caller's config is left as it was
+    assert run.camera_rigs() == {"uav0": [cam]}
+    cfg.capture.vehicles = 2
+    assert run_config(cfg, pitch).camera_rigs() == {"uav0": [cam], "uav1": [cam]}  # one camera each
 
     with pytest.raises(ValueError, match="no 'tree' landmark"):
         tree_landmarks({"name": "vineyard", "landmarks": {"rows": [[0, 0, 0]]}})
@@ -279,7 +322,7 @@ def test_resume_captures_only_the_missing_views_and_keeps_the_others(tmp_path: P
 
 # --------------------------------------------------------------------------- end to end
 @pytest.mark.slow
-def test_capture_reconstruct_and_resume_end_to_end(tmp_path: Path):
+def test_capture_resume_with_two_vehicles_and_reconstruct_end_to_end(tmp_path: Path):
     pycolmap = pytest.importorskip("pycolmap")
     from droneulator.workflows.photogrammetry.capture import capture
     from droneulator.workflows.photogrammetry.reconstruct import ReconstructOptions, reconstruct
@@ -298,12 +341,38 @@ def test_capture_reconstruct_and_resume_end_to_end(tmp_path: Path):
     assert meta["complete"] and meta["views_captured"] == 8
     assert meta["tracking"]["max_path_error_m"] < 0.1 and meta["tracking"]["max_altitude_error_m"] < 0.05
 
+    # resume with two vehicles: four views lost (images deleted) are captured again, two by each vehicle
+    # on its own half of the arc, from its own topics; the others are left untouched
+    first = {v["name"]: v for v in json.loads((out / "poses.json").read_text())["views"]}
+    assert {v["vehicle"] for v in first.values()} == {"uav0"}
+    digests = {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in (out / "images").iterdir()}
+    lost = {"0002.jpg": "uav0", "0003.jpg": "uav0", "0006.jpg": "uav1", "0007.jpg": "uav1"}
+    for name in lost:
+        (out / "images" / name).unlink()
+    cfg.capture.vehicles = 2
+    meta = capture(cfg, out, progress=False)
+    assert meta["runs"][-1]["captured"] == 4 and meta["complete"]
+    assert meta["runs"][-1]["vehicles"] == {"uav0": 2, "uav1": 2}
+    after = {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in (out / "images").iterdir()}
+    assert sorted(after) == sorted(digests)
+    assert all(after[n] == d for n, d in digests.items() if n not in lost)
+
     poses = json.loads((out / "poses.json").read_text())
     K_info = np.array(poses["camera"]["K"])
     assert poses["camera"]["frame_id"] == "front_optical_frame" and poses["world_frame"] == "map"
+    assert [v["name"] for v in poses["views"]] == [f"{i:04d}.jpg" for i in range(8)]
     for v in poses["views"]:
         assert v["position_error_m"] < 0.05 and v["speed_mps"] < 0.05  # recorded once settled
         assert (out / "images" / v["name"]).read_bytes()[:2] == b"\xff\xd8"  # JPEG as published
+        if v["name"] in lost:
+            fleet = lost[v["name"]]
+            assert v["vehicle"] == fleet and v["frame_id"] == f"{fleet}/front_optical_frame"
+            assert v["topic"] == f"/droneulator/{fleet}/front/color/image_raw/compressed"
+            was = first[v["name"]]["optical"]
+            assert np.linalg.norm(np.subtract(v["optical"]["position"], was["position"])) < 0.05
+            assert abs(np.dot(v["optical"]["quaternion_xyzw"], was["quaternion_xyzw"])) > math.cos(0.01)
+        else:
+            assert v == first[v["name"]]
     known = pycolmap.Reconstruction(out / "sparse_known")
     cam = known.cameras[1]
     assert cam.model.name == "PINHOLE" and (cam.width, cam.height) == (W, H)
@@ -312,7 +381,8 @@ def test_capture_reconstruct_and_resume_end_to_end(tmp_path: Path):
     )
     assert known.num_reg_images() == 8
 
-    # the conventions on the whole images; masks, dense and the score are tested in test_dense.py
+    # the conventions on the whole images, the two vehicles' views together; masks, dense and the score
+    # are tested in test_dense.py
     report = reconstruct(out, ReconstructOptions(max_features=4096, mask="none", dense=False, score=False))
     assert report["registered_images"] == 8
     assert report["sparse_points"] > 100
@@ -324,13 +394,3 @@ def test_capture_reconstruct_and_resume_end_to_end(tmp_path: Path):
     assert sparse.num_points3D() == report["sparse_points"]
     assert (out / "reconstruction.png").stat().st_size > 10_000
     assert "sparse points" in (out / "report.md").read_text()
-
-    # resume: two views lost (images deleted) are captured again, the others are left untouched
-    digests = {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in (out / "images").iterdir()}
-    for name in ("0003.jpg", "0007.jpg"):
-        (out / "images" / name).unlink()
-    meta = capture(cfg, out, progress=False)
-    assert meta["runs"][-1]["captured"] == 2 and meta["complete"]
-    after = {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in (out / "images").iterdir()}
-    assert sorted(after) == sorted(digests)
-    assert all(after[n] == d for n, d in digests.items() if n not in ("0003.jpg", "0007.jpg"))

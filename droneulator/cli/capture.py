@@ -24,6 +24,7 @@ _CAPTURE_FIELDS = (
     "settle_position_m",
     "settle_speed_mps",
     "settle_time_s",
+    "vehicles",
 )
 
 
@@ -62,6 +63,15 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--settle-speed", dest="settle_speed_mps", type=float, default=None, help="m/s")
     p.add_argument("--settle-time", dest="settle_time_s", type=float, default=None, help="sim seconds")
     p.add_argument(
+        "--vehicles",
+        dest="capture_vehicles",
+        type=int,
+        default=None,
+        metavar="N",
+        help="fly N vehicles at once, each a contiguous arc of every ring (2: opposite halves); the same "
+        "views and dataset as one vehicle (default 1)",
+    )
+    p.add_argument(
         "--url", default=None, help="use the simulator at this WebSocket URL instead of starting one"
     )
     p.add_argument(
@@ -79,7 +89,7 @@ def cmd_capture(args: argparse.Namespace) -> int:
     cfg = config_from_args(args)
     cap = cfg.capture
     for name in _CAPTURE_FIELDS:
-        value = getattr(args, name)
+        value = getattr(args, "capture_vehicles" if name == "vehicles" else name)
         if value is not None:
             setattr(cap, name, value)
     cap.__post_init__()

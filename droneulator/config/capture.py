@@ -44,10 +44,18 @@ class CaptureConfig:
     settle_time_s: float = 0.3
     #: wall-clock limit for one leg (flight and settling), seconds
     leg_timeout_s: float = 120.0
+    #: vehicles flying the capture at once (``--vehicles``), each its own contiguous arc of every ring
+    #: (two: opposite halves); the dataset is the same views whatever the number
+    vehicles: int = 1
 
     def __post_init__(self) -> None:
         if self.views < 1:
             raise ValueError("capture.views must be at least 1")
+        if not 1 <= self.vehicles <= self.views:
+            raise ValueError(
+                f"capture.vehicles must lie in [1, capture.views = {self.views}] (one view at least per "
+                f"vehicle), got {self.vehicles}"
+            )
         if self.altitudes is not None and (not self.altitudes or min(self.altitudes) <= 0):
             raise ValueError("capture.altitudes must hold at least one altitude above the ground")
         if self.views < len(self.ring_altitudes()):

@@ -16,15 +16,23 @@ Without ``--url`` the capture starts its own ``droneulator run`` (:func:`~droneu
 launch_run`) with the capture camera, logging to ``simulator.log`` in the dataset folder. When the
 camera pitch is to be aimed at the crown, a short first run answers ``scene_info`` before the
 capture camera's mount can be chosen.
+
+``capture.vehicles`` (``--vehicles N``) flies N vehicles at once, each on its own contiguous arc of
+every ring (:func:`~.plan.fleet_routes`; two: opposite halves), each with its own WebSocket client,
+topics and thread; every image comes from the topics of the vehicle that flew to its view. The views,
+their names and the dataset are those of one vehicle.
 """
 
 from __future__ import annotations
 
 import contextlib
 import copy
+import dataclasses
 import math
+import threading
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -32,20 +40,28 @@ import numpy as np
 from tqdm import tqdm
 
 from droneulator.api.client import DroneulatorClient
-from droneulator.config import CameraConfig, CaptureConfig, SimConfig
-from droneulator.ros.topics import BASE_FRAME, ns_to_seconds
+from droneulator.config import CameraConfig, CaptureConfig, SimConfig, fleet
+from droneulator.ros.topics import ns_to_seconds
 from droneulator.ros.zenoh_node import RosZenohNode
 from droneulator.runtime.launch import launch_run
 from droneulator.workflows.photogrammetry.dataset import CaptureDataset, plan_settings
-from droneulator.workflows.photogrammetry.fly import Flyer
+from droneulator.workflows.photogrammetry.fly import Flyer, StoppedError
 from droneulator.workflows.photogrammetry.plan import (
     Viewpoint,
     aim_pitch_deg,
     arc_waypoints,
+    fleet_routes,
     pending_views,
     plan_viewpoints,
+    ring_neighbours,
 )
-from droneulator.workflows.photogrammetry.record import TopicRecorder, camera_info_dict, record_view
+from droneulator.workflows.photogrammetry.record import (
+    TfBuffer,
+    TopicRecorder,
+    camera_info_dict,
+    record_view,
+    vehicle_streams,
+)
 from droneulator.workflows.photogrammetry.truth import truth_mesh
 
 #: the capture camera's mount, as the default camera's (body FLU, m)
@@ -88,13 +104,18 @@ def aim_pitch(cap: CaptureConfig, info: dict[str, Any]) -> float:
 
 
 def run_config(cfg: SimConfig, pitch_deg: float) -> SimConfig:
-    """The config of the simulator a capture starts: lockstep, the capture camera alone."""
+    """The config of the simulator a capture starts: lockstep, the capture camera alone; with
+    ``capture.vehicles`` above one, that many vehicles (the config's own ``vehicles`` if it names them,
+    else ``uav0`` ..), each with the capture camera."""
     cap = cfg.capture
     run_cfg = copy.deepcopy(cfg)
     run_cfg.runtime.mode = "lockstep"
     run_cfg.render.cameras = [camera_for(cap, pitch_deg)]
     run_cfg.render.camera_hz = cap.camera_hz
     run_cfg.bridge.jpeg_quality = cap.jpeg_quality
+    if cap.vehicles > 1:
+        specs = run_cfg.vehicles if len(run_cfg.vehicles) >= cap.vehicles else fleet(cap.vehicles)
+        run_cfg.vehicles = [dataclasses.replace(v, cameras=None) for v in specs]
     return run_cfg
 
 
@@ -145,9 +166,11 @@ def capture(
             if pitch is None:
                 pitch = aim_pitch(cap, probe_scene_info(cfg, sim_log))
             run = stack.enter_context(launch_run(run_config(cfg, pitch), log=sim_log))
+            api_url = run.url
             client = run.client()
             zenoh_endpoint = run.zenoh_endpoint
         else:
+            api_url = url
             client = DroneulatorClient(url, timeout=30.0)
             zenoh_endpoint = zenoh_endpoint or cfg.bridge.listen[0]
         stack.callback(_close_quietly, client)
@@ -161,11 +184,22 @@ def capture(
             info = client.scene_info()
         center, _ = tree_landmarks(info)
         node = stack.enter_context(RosZenohNode.from_config(cfg.bridge, listen=(), connect=(zenoh_endpoint,)))
-        topics = TopicRecorder(node, cfg.bridge.namespace, cap.camera)
-        client.subscribe(["events"])
+        pilots = _pilots(cfg, info, node, client, api_url, stack)
+        topics = pilots[0].topics
         cam = camera_info_dict(topics.camera_info(timeout=60.0))
-        T_base_opt = topics.tf.lookup(BASE_FRAME, cam["frame_id"], topics.latest_odom().stamp, timeout=30.0)
+        for p in pilots[1:]:
+            other = camera_info_dict(p.topics.camera_info(timeout=60.0))
+            if other["K"] != cam["K"] or (other["width"], other["height"]) != (cam["width"], cam["height"]):
+                raise ValueError(
+                    f"{p.name}'s {cap.camera} camera differs from {pilots[0].name}'s: {other} != {cam}"
+                )
+        T_base_opt = topics.tf.lookup(
+            topics.base_frame, cam["frame_id"], topics.latest_odom().stamp, timeout=30.0
+        )
         pitch_used = math.degrees(math.asin(float(np.clip(T_base_opt[:3, 2] @ [0.0, 0.0, -1.0], -1, 1))))
+        # the dataset's camera is the same on every vehicle: its frame without the vehicle's TF prefix
+        # (each view keeps the frame id its image came with)
+        cam["frame_id"] = cam["frame_id"].removeprefix(topics.frame_prefix)
         if url is not None:
             pitch = pitch_used
         dataset = CaptureDataset.open(out, plan_settings(cfg, pitch, cam))
@@ -178,11 +212,12 @@ def capture(
             f"{len(cap.ring_altitudes())} ring(s), "
             f"radius {cap.radius} m, altitudes {cap.ring_altitudes()} m, pitch {pitch:.1f} deg, "
             f"{cam['width']}x{cam['height']}, {len(plan) - len(pending_views(plan, dataset.views))} "
-            f"already in {out}"
+            f"already in {out}" + (f"; {len(pilots)} vehicles" if len(pilots) > 1 else "")
         )
-        run_record = _fly_and_record(
-            client, topics, dataset, cam, plan, cap, center, timings, wall0, progress
-        )
+        routes = fleet_routes(plan, center, [p.topics.latest_odom().position for p in pilots], cap.arc_deg)
+        for p, route in zip(pilots, routes, strict=True):
+            p.route = pending_views(route, dataset.views)
+        run_record = _fly_and_record(pilots, dataset, cam, plan, cap, center, timings, wall0, progress)
         meta = dataset.metadata(None)
         tr = meta["tracking"]
         log(
@@ -194,9 +229,53 @@ def capture(
         return meta
 
 
-def _fly_and_record(
+@dataclass
+class _Pilot:
+    """One vehicle of the capture: its name, client, topics and the views it is to fly, in order."""
+
+    name: str
+    client: DroneulatorClient
+    topics: TopicRecorder
+    route: list[Viewpoint] = dataclasses.field(default_factory=list)
+
+
+def _pilots(
+    cfg: SimConfig,
+    info: dict[str, Any],
+    node: RosZenohNode,
     client: DroneulatorClient,
-    topics: TopicRecorder,
+    url: str,
+    stack: contextlib.ExitStack,
+) -> list[_Pilot]:
+    """The first ``capture.vehicles`` vehicles of ``scene_info``, each with a client (the first has
+    ``client``, the others their own connections to ``url``) subscribed to events, and its topics."""
+    n = cfg.capture.vehicles
+    vehicles = info.get("vehicles") or [{"name": "uav0"}]
+    if len(vehicles) < n:
+        raise ValueError(
+            f"capture.vehicles is {n} but the simulator has {len(vehicles)} vehicle(s): "
+            f"{', '.join(v['name'] for v in vehicles)}"
+        )
+    b = cfg.bridge
+    buffers: dict[str, TfBuffer] = {}
+    pilots = []
+    for k, v in enumerate(vehicles[:n]):
+        names, prefix = vehicle_streams(v, cfg.capture.camera, b.namespace, len(vehicles) > 1, b.fleet_tf)
+        shared = buffers.get(names["tf"])
+        topics = TopicRecorder(node, names, prefix, shared)
+        buffers.setdefault(names["tf"], topics.tf)
+        if k == 0:
+            c = client
+        else:
+            c = DroneulatorClient(url, timeout=30.0)
+            stack.callback(_close_quietly, c)
+        c.subscribe(["events"])
+        pilots.append(_Pilot(v["name"], c, topics))
+    return pilots
+
+
+def _fly_and_record(
+    pilots: list[_Pilot],
     dataset: CaptureDataset,
     cam: dict[str, Any],
     plan: list[Viewpoint],
@@ -206,64 +285,135 @@ def _fly_and_record(
     wall0: float,
     progress: bool,
 ) -> dict[str, Any]:
-    """Take off if needed, fly to every missing view and store it; the run's record for the metadata
-    (written even when the flight stops early, so the dataset stays consistent)."""
-    todo = pending_views(plan, dataset.views)
-    t_sim0 = topics.latest_odom().stamp
+    """Take off if needed and fly every pilot's route (several at once in a thread each), storing each
+    view as it comes; the run's record for the metadata (written even when the flight stops early, so
+    the dataset stays consistent)."""
+    clock = pilots[0].topics
+    t_sim0 = clock.latest_odom().stamp
     run: dict[str, Any] = {"started": time.strftime("%Y-%m-%d %H:%M:%S"), "captured": 0}
-    flyer = Flyer(client, topics, cap, center)
-    if todo:
-        state = client.state()
-        if state["mode"] in ("idle", "collided") or state["position"][2] < 0.3:
-            t = time.monotonic()
-            client.takeoff(altitude=float(todo[0].position[2]))
-            client.wait_for_event("arrived", timeout=cap.leg_timeout_s)
-            timings["takeoff_s"] = time.monotonic() - t
-    t_fly = time.monotonic()
-    previous: Viewpoint | None = None
-    bar = tqdm(
-        total=len(plan), initial=len(plan) - len(todo), unit="view", desc="capture", disable=not progress
-    )
-    try:
-        for view in todo:
-            adjacent = (
-                previous is not None
-                and previous.ring == view.ring
-                and view.index == previous.index + 1
-                and flyer.commanded is not None
-                and np.allclose(flyer.commanded, previous.position)
-            )
-            if adjacent:
-                assert previous is not None
-                pts = arc_waypoints(
-                    center, cap.radius, view.position[2], previous.azimuth, view.azimuth, cap.max_leg_deg
-                )
-                stats, settled = flyer.fly(pts, "capture")
-            else:
-                stats, settled = flyer.transit(view, cap.radius)
-            if settled is None:
-                raise RuntimeError(f"no leg was flown to reach view {view.name}")
-            record, jpeg, aux = record_view(topics, view, cam, settled, stats.to_dict())
+    if len(pilots) > 1:
+        run["vehicles"] = {p.name: len(p.route) for p in pilots}
+    todo = sum(len(p.route) for p in pilots)
+    lock = threading.Lock()
+    bar = tqdm(total=len(plan), initial=len(plan) - todo, unit="view", desc="capture", disable=not progress)
+
+    def store(p: _Pilot, record: dict[str, Any], jpeg: bytes, aux: Any, settled: int, err: str) -> None:
+        with lock:
             run["captured"] += 1
             run["wall_s"] = time.monotonic() - wall0
-            run["sim_s"] = ns_to_seconds(settled - t_sim0)
+            run["sim_s"] = max(run.get("sim_s", 0.0), ns_to_seconds(settled - t_sim0))
             dataset.add(record, jpeg, run, aux)
-            previous = view
-            bar.set_postfix(
-                path_err=f"{stats.max_path_error_m:.3f}m", alt_err=f"{stats.max_altitude_error_m:.3f}m"
-            )
+            bar.set_postfix_str(err if len(pilots) == 1 else f"{p.name} {err}")
             bar.update(1)
+
+    t_fly = time.monotonic()
+    try:
+        _fly_all(pilots, plan, cam, cap, center, timings, store)
     finally:
         bar.close()
         timings["flight_s"] = time.monotonic() - t_fly
         run["wall_s"] = time.monotonic() - wall0
         with contextlib.suppress(TimeoutError):
-            run["sim_s"] = ns_to_seconds(topics.latest_odom(timeout=1.0).stamp - t_sim0)
+            run["sim_s"] = ns_to_seconds(clock.latest_odom(timeout=1.0).stamp - t_sim0)
         run["timings"] = {k: round(v, 3) for k, v in timings.items()}
         run["complete"] = len(dataset.views) == len(plan)
         if dataset.camera is not None:
             dataset.finish_run(run)
     return run
+
+
+def _fly_all(
+    pilots: list[_Pilot],
+    plan: list[Viewpoint],
+    cam: dict[str, Any],
+    cap: CaptureConfig,
+    center: Sequence[float],
+    timings: dict[str, float],
+    store: Callable[..., None],
+) -> None:
+    """Fly the pilots' routes: one in this thread; several in a thread each, which wait for each other
+    at their first views (so that they fly their arcs in step) and all stop when one fails."""
+    active = [p for p in pilots if p.route]
+    if len(active) <= 1:
+        for p in active:
+            _fly_route(p, plan, cam, cap, center, timings, store, None, None, arc_first=len(pilots) > 1)
+        return
+    stop = threading.Event()
+    barrier = threading.Barrier(len(active))
+    errors: list[BaseException] = []
+
+    def main(p: _Pilot) -> None:
+        try:
+            _fly_route(p, plan, cam, cap, center, timings, store, stop, barrier, arc_first=True)
+        except BaseException as e:  # every failure stops the other vehicles, and is raised below
+            errors.append(e)
+            stop.set()
+            barrier.abort()
+
+    threads = [threading.Thread(target=main, args=(p,), name=f"capture-{p.name}") for p in active]
+    for t in threads:
+        t.start()
+    try:
+        for t in threads:
+            while t.is_alive():
+                t.join(0.2)
+    except BaseException:
+        stop.set()
+        barrier.abort()
+        for t in threads:
+            t.join()
+        raise
+    causes = [e for e in errors if not isinstance(e, StoppedError | threading.BrokenBarrierError)]
+    if errors:
+        raise (causes or errors)[0]
+
+
+def _fly_route(
+    p: _Pilot,
+    plan: list[Viewpoint],
+    cam: dict[str, Any],
+    cap: CaptureConfig,
+    center: Sequence[float],
+    timings: dict[str, float],
+    store: Callable[..., None],
+    stop: threading.Event | None,
+    barrier: threading.Barrier | None,
+    arc_first: bool,
+) -> None:
+    """Take ``p``'s vehicle off if it is on the ground and fly it to each view of its route, recording
+    each; consecutive views next to each other on a ring are joined by a capture leg along the arc."""
+    client, topics, vehicle = p.client, p.topics, p.name
+    flyer = Flyer(client, topics, cap, center, vehicle=vehicle, stop=stop)
+    state = client.state(vehicle=vehicle)
+    if state["mode"] in ("idle", "collided") or state["position"][2] < 0.3:
+        t = time.monotonic()
+        client.takeoff(altitude=float(p.route[0].position[2]), vehicle=vehicle)
+        client.wait_for_event("arrived", timeout=cap.leg_timeout_s, vehicle=vehicle)
+        timings[f"takeoff_s_{vehicle}" if arc_first else "takeoff_s"] = time.monotonic() - t
+    previous: Viewpoint | None = None
+    for view in p.route:
+        adjacent = (
+            previous is not None
+            and ring_neighbours(plan, previous, view)
+            and flyer.commanded is not None
+            and np.allclose(flyer.commanded, previous.position)
+        )
+        if adjacent:
+            assert previous is not None
+            pts = arc_waypoints(
+                center, cap.radius, view.position[2], previous.azimuth, view.azimuth, cap.max_leg_deg
+            )
+            stats, settled = flyer.fly(pts, "capture")
+        else:
+            stats, settled = flyer.transit(view, cap.radius, arc_first=arc_first)
+        if settled is None:
+            raise RuntimeError(f"no leg was flown to reach view {view.name}")
+        record, jpeg, aux = record_view(topics, view, cam, settled, stats.to_dict(), vehicle)
+        err = f"path_err={stats.max_path_error_m:.3f}m, alt_err={stats.max_altitude_error_m:.3f}m"
+        store(p, record, jpeg, aux, settled, err)
+        if previous is None and barrier is not None:
+            barrier.wait(timeout=cap.leg_timeout_s * 10)
+        previous = view
 
 
 def _close_quietly(client: DroneulatorClient) -> None:

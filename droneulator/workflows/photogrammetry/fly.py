@@ -3,12 +3,15 @@
 Each leg is one min-snap ``goto``; the vehicle counts as settled when the published odometry has
 stayed within position, speed, heading and turn-rate thresholds of the leg's end for
 ``capture.settle_time_s`` of sim time. The path flown is compared with the commanded straight leg
-(:func:`~.plan.segment_errors`), and a collision event from the API ends the capture.
+(:func:`~.plan.segment_errors`), and a collision event from the API ends the capture. In a fleet each
+vehicle has its own :class:`Flyer` (its own client, topics and thread); a shared stop event ends the
+others' legs when one fails.
 """
 
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -61,22 +64,38 @@ class CollisionError(RuntimeError):
     """The simulator reported a collision during a leg."""
 
 
+class StoppedError(RuntimeError):
+    """Another vehicle's flight failed, so this one stopped."""
+
+
 class Flyer:
     """Sends gotos over the WebSocket API and judges arrival from the published odometry."""
 
     def __init__(
-        self, client: DroneulatorClient, topics: TopicRecorder, cap: CaptureConfig, center: Sequence[float]
+        self,
+        client: DroneulatorClient,
+        topics: TopicRecorder,
+        cap: CaptureConfig,
+        center: Sequence[float],
+        vehicle: str | None = None,
+        stop: threading.Event | None = None,
     ) -> None:
         self.client = client
         self.topics = topics
         self.cap = cap
         self.center = np.asarray(center, dtype=float)
+        self.vehicle = vehicle
+        self.stop = stop
         self.commanded: np.ndarray | None = None
 
     def _check_events(self) -> None:
+        if self.stop is not None and self.stop.is_set():
+            raise StoppedError(f"{self.vehicle}: stopped, another vehicle's flight failed")
         while (msg := self.client.next_message(timeout=0.0)) is not None:
             if msg.get("type") == "event" and msg["event"].get("type") == "collision":
-                raise CollisionError(f"the vehicle collided at {msg['event'].get('position')}")
+                event = msg["event"]
+                who = event.get("vehicles") or event.get("vehicle") or "the vehicle"
+                raise CollisionError(f"{who} collided at {event.get('position')}")
 
     def _in_tolerance(self, s: OdomSample, goal: np.ndarray, yaw: float) -> bool:
         c = self.cap
@@ -90,7 +109,7 @@ class Flyer:
     def goto(self, goal: np.ndarray, yaw: float, kind: str) -> tuple[LegStats, int]:
         """Fly one min-snap leg to ``goal``; returns its tracking statistics and the settle stamp (ns)."""
         start = self.commanded if self.commanded is not None else self.topics.latest_odom().position
-        reply = self.client.goto(goal.tolist(), yaw=yaw, speed=self.cap.speed)
+        reply = self.client.goto(goal.tolist(), yaw=yaw, speed=self.cap.speed, vehicle=self.vehicle)
         t0 = int(reply["stamp_ns"])  # the ROS clock, which the odometry stamps use
         stats = LegStats(kind, gotos=1)
         self.commanded = goal.copy()
@@ -131,17 +150,34 @@ class Flyer:
             total.merge(stats)
         return total, stamp
 
-    def transit(self, view: Viewpoint, radius: float) -> tuple[LegStats, int | None]:
+    def transit(self, view: Viewpoint, radius: float, arc_first: bool = False) -> tuple[LegStats, int | None]:
         """Reach ``view`` from anywhere outside the crown: out (or in) to the ring at the current azimuth
-        and altitude, up or down to the ring, then along the circle, so the path never crosses the tree."""
+        and altitude, up or down to the ring, then along the circle, so the path never crosses the tree.
+
+        ``arc_first`` (a fleet): along the circle at the current radius (the ring's if inside it) and
+        altitude first, then in to the ring and up or down, so that vehicles standing side by side move
+        apart before any of them closes in on the ring; the circle is flown in the longest chords that stay
+        outside the ring (``capture.max_leg_deg`` at least)."""
         cur = self.topics.latest_odom().position
         az = math.atan2(cur[1] - self.center[1], cur[0] - self.center[0])
-        pts = []
-        if abs(math.hypot(*(cur[:2] - self.center[:2])) - radius) > self.cap.settle_position_m:
-            pts.append(ring_point(self.center, radius, az, cur[2]))
-        if abs(cur[2] - view.position[2]) > self.cap.settle_position_m:
-            pts.append(ring_point(self.center, radius, az, view.position[2]))
-        pts += arc_waypoints(self.center, radius, view.position[2], az, view.azimuth, self.cap.max_leg_deg)
+        tol = self.cap.settle_position_m
+        pts: list[np.ndarray] = []
+        if arc_first:
+            r = max(radius, math.hypot(*(cur[:2] - self.center[:2])))
+            if r - math.hypot(*(cur[:2] - self.center[:2])) > tol:
+                pts.append(ring_point(self.center, r, az, cur[2]))
+            step = max(self.cap.max_leg_deg, math.degrees(2 * math.acos(radius / r)))
+            pts += arc_waypoints(self.center, r, cur[2], az, view.azimuth, step)
+            if r - radius > tol:
+                pts.append(ring_point(self.center, radius, view.azimuth, cur[2]))
+        else:
+            if abs(math.hypot(*(cur[:2] - self.center[:2])) - radius) > tol:
+                pts.append(ring_point(self.center, radius, az, cur[2]))
+            if abs(cur[2] - view.position[2]) > tol:
+                pts.append(ring_point(self.center, radius, az, view.position[2]))
+            pts += arc_waypoints(
+                self.center, radius, view.position[2], az, view.azimuth, self.cap.max_leg_deg
+            )
         if not pts or np.linalg.norm(pts[-1] - np.array(view.position)) > 1e-6:
             pts.append(np.array(view.position))
         return self.fly(pts, "transit")

@@ -114,3 +114,52 @@ def segment_errors(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np
 def pending_views(plan: Sequence[Viewpoint], done: set[int] | dict[int, Any]) -> list[Viewpoint]:
     """The viewpoints still to capture, in flight order."""
     return [v for v in plan if v.index not in done]
+
+
+def ring_neighbours(plan: Sequence[Viewpoint], a: Viewpoint, b: Viewpoint) -> bool:
+    """Whether ``a`` and ``b`` are next to each other on their ring: no other view of the ring lies on
+    the shorter arc between them (the arc a capture leg flies)."""
+    if a.ring != b.ring or a.index == b.index:
+        return False
+    span = wrap_angle(b.azimuth - a.azimuth)
+    for v in plan:
+        if v.ring == a.ring and v.index not in (a.index, b.index):
+            f = wrap_angle(v.azimuth - a.azimuth) / span
+            if 0.0 < f < 1.0:
+                return False
+    return True
+
+
+def fleet_routes(
+    plan: Sequence[Viewpoint], center: Sequence[float], positions: Sequence[Sequence[float]], arc_deg: float
+) -> list[list[Viewpoint]]:
+    """The views each of several vehicles (at ``positions``, x, y, ...) flies, in flight order.
+
+    Every ring is split into ``len(positions)`` contiguous arcs of (nearly) equal size, and vehicle k
+    (in counter-clockwise order of the vehicles around the tree) takes arc k of every ring. On a full
+    circle the arcs are turned so that they start half an arc to either side of the vehicles' mean
+    azimuth, nearest to where the vehicles stand: two vehicles go to the two sides and fly opposite
+    halves. Every vehicle flies its arcs the same way round (counter-clockwise on even rings, back on odd
+    ones), so vehicles that keep pace stay an arc apart and never meet. One vehicle: the plan's order.
+    """
+    n = len(positions)
+    if n < 1:
+        raise ValueError("need at least one vehicle")
+    if n == 1:
+        return [list(plan)]
+    azimuths = [math.atan2(p[1] - center[1], p[0] - center[0]) for p in positions]
+    mean = math.atan2(sum(math.sin(a) for a in azimuths), sum(math.cos(a) for a in azimuths))
+    order = sorted(range(n), key=lambda k: (wrap_angle(azimuths[k] - mean), k))
+    routes: list[list[Viewpoint]] = [[] for _ in range(n)]
+    for r, ring in enumerate(sorted({v.ring for v in plan})):
+        views = sorted((v for v in plan if v.ring == ring), key=lambda v: v.index)
+        if arc_deg >= 360.0:
+            first = mean - math.pi + math.pi / n
+            turn = min(range(len(views)), key=lambda j: abs(wrap_angle(views[j].azimuth - first)))
+            views = views[turn:] + views[:turn]
+        start = 0
+        for k, size in enumerate(ring_sizes(len(views), n)):
+            arc = views[start : start + size]
+            routes[order[k]] += arc if r % 2 == 0 else arc[::-1]
+            start += size
+    return routes

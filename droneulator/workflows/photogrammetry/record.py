@@ -9,6 +9,10 @@ ground truth for scoring only (which true-surface samples the cameras saw).
 are, the ``odom -> base_link`` edge interpolated between its samples (linear in position, slerp in
 rotation). :func:`record_view` turns the first frame after the vehicle settled into the view's
 record: stamp, optical and base_link poses in ``map``, errors.
+
+The topic names and the TF frame prefix come from the vehicle's entry in the API's ``scene_info``
+(:func:`vehicle_streams`): a fleet publishes each vehicle under its own namespace and frame prefix, and
+each vehicle's recorder reads only its own.
 """
 
 from __future__ import annotations
@@ -30,8 +34,7 @@ from droneulator.ros.topics import (
     TYPES,
     decode_depth,
     header_ns,
-    topic_names,
-    vehicle_topics,
+    vehicle_names,
 )
 from droneulator.ros.zenoh_node import RosZenohNode
 from droneulator.workflows.photogrammetry.plan import Viewpoint
@@ -141,27 +144,57 @@ class AuxFrames:
     depth: np.ndarray
 
 
-class TopicRecorder:
-    """Subscriptions to odometry, TF, the colour camera and its camera_info, decoded by rosbags."""
+def vehicle_streams(
+    vehicle: dict[str, Any], camera: str, namespace: str, fleet: bool, fleet_tf: str = "prefix"
+) -> tuple[dict[str, str], str]:
+    """The topics a capture reads of one vehicle and camera (keys as :data:`TYPES`) and the vehicle's TF
+    frame prefix, from its ``scene_info`` entry (``vehicle``), else from the naming rules of
+    :func:`~droneulator.ros.topics.vehicle_names` (``namespace``, ``fleet``, ``fleet_tf``)."""
+    topics = vehicle.get("topics")
+    if topics is None:
+        names = vehicle_names(namespace, vehicle["name"], fleet, fleet_tf)
+        topics, prefix = names.describe([camera])["topics"], names.frame_prefix
+    else:
+        prefix = str(vehicle.get("tf_prefix", ""))
+    cameras = topics.get("cameras", {})
+    if camera not in cameras:
+        raise ValueError(
+            f"vehicle {vehicle['name']!r} has no camera {camera!r} (cameras: {', '.join(cameras) or 'none'})"
+        )
+    keys = ("odom", "tf", "tf_static")
+    return {**{k: topics[k] for k in keys}, **cameras[camera]}, prefix
 
-    def __init__(self, node: RosZenohNode, namespace: str, camera: str) -> None:
-        self.tf = TfBuffer()
+
+class TopicRecorder:
+    """Subscriptions to one vehicle's odometry, TF, colour camera and camera_info, decoded by rosbags.
+
+    ``names``: the topics by :data:`TYPES` key (:func:`vehicle_streams`); ``frame_prefix``: the
+    vehicle's TF frame prefix; ``tf``: a buffer already fed with the vehicle's TF topics (vehicles that
+    share ``/tf`` share one), else this recorder subscribes to them into a buffer of its own."""
+
+    def __init__(
+        self, node: RosZenohNode, names: dict[str, str], frame_prefix: str = "", tf: TfBuffer | None = None
+    ) -> None:
+        self.names = names
+        self.frame_prefix = frame_prefix
+        self.base_frame = frame_prefix + BASE_FRAME
+        self.tf = tf if tf is not None else TfBuffer()
         self._cond = threading.Condition()
         self._odom: deque[OdomSample] = deque(maxlen=6000)
         self._infos: dict[int, Any] = {}
         self._frames: deque[Frame] = deque(maxlen=8)
         self._seg: dict[int, bytes] = {}
         self._depth: dict[int, Any] = {}
-        names = {**vehicle_topics(namespace), **topic_names(namespace, camera)}
         handlers: dict[str, Callable[[Any], None]] = {
             "odom": self._on_odom,
-            "tf": self.tf.on_tf,
-            "tf_static": lambda m: self.tf.on_tf(m, static=True),
             "info_rgb": self._on_info,
             "rgb": self._on_rgb,
             "seg": lambda m: self._keep(self._seg, header_ns(m), bytes(m.data)),
             "depth": lambda m: self._keep(self._depth, header_ns(m), m),
         }
+        if tf is None:
+            handlers["tf"] = self.tf.on_tf
+            handlers["tf_static"] = lambda m: self.tf.on_tf(m, static=True)
         for key, handler in handlers.items():
             node.subscribe(names[key], TYPES[key], handler)
 
@@ -265,18 +298,23 @@ def pose_dict(T: np.ndarray) -> dict[str, list[float]]:
 
 
 def record_view(
-    topics: TopicRecorder, view: Viewpoint, cam: dict[str, Any], settled_ns: int, leg: dict[str, Any]
+    topics: TopicRecorder,
+    view: Viewpoint,
+    cam: dict[str, Any],
+    settled_ns: int,
+    leg: dict[str, Any],
+    vehicle: str = "uav0",
 ) -> tuple[dict[str, Any], bytes, AuxFrames]:
-    """The first frame after the vehicle settled at ``view``, with its camera_info and the TF poses at
-    its stamp: the view's record (``leg``: the flight statistics that brought it there), its JPEG and
-    the segmentation and depth images of the same stamp."""
+    """The first frame after ``vehicle`` settled at ``view``, with its camera_info and the TF poses at
+    its stamp: the view's record (``leg``: the flight statistics that brought it there; ``vehicle``, the
+    frame id and topic of the image), its JPEG and the segmentation and depth images of the same stamp."""
     frame = topics.frame_after(settled_ns, timeout=30.0)
     aux = topics.aux_frames(frame.stamp)
     info = camera_info_dict(topics.camera_info(frame.stamp))
     if info["K"] != cam["K"] or (info["width"], info["height"]) != (cam["width"], cam["height"]):
         raise RuntimeError(f"camera_info changed during the capture: {info} != {cam}")
     T_world_opt = topics.tf.lookup(MAP_FRAME, frame.frame_id, frame.stamp)
-    T_world_base = topics.tf.lookup(MAP_FRAME, BASE_FRAME, frame.stamp)
+    T_world_base = topics.tf.lookup(MAP_FRAME, topics.base_frame, frame.stamp)
     odom = topics.odom_at(frame.stamp)
     target = np.array(view.position)
     return (
@@ -287,6 +325,9 @@ def record_view(
             "ring": view.ring,
             "azimuth_deg": math.degrees(view.azimuth),
             "stamp_ns": frame.stamp,
+            "vehicle": vehicle,
+            "frame_id": frame.frame_id,
+            "topic": topics.names["rgb"],
             "target": {"position": list(view.position), "yaw": view.yaw},
             "optical": pose_dict(T_world_opt),
             "base_link": pose_dict(T_world_base),

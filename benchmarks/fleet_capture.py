@@ -1,0 +1,185 @@
+"""A capture flown by one vehicle and by two: wall time and reconstruction figures, same views.
+
+``droneulator capture`` of the photogrammetry benchmark's tree (tree_inspection, seed 0, 1024x768, 36
+views on two rings) is flown with ``capture.vehicles`` 1 and 2 into fresh datasets, one after the
+other; then ``droneulator reconstruct`` (defaults: SIFT masked to the tree, triangulation and BA with
+pose priors, CPU dense stereo, scoring against the true tree) runs on each. Prints capture wall and sim
+time, the camera frames the simulator rendered meanwhile (every vehicle's camera at ``capture.camera_hz``
+of sim time: in lockstep on a CPU renderer they set the wall time), the load average around each
+capture, how far the two datasets' camera poses are apart, and the reconstruction figures as
+``benchmarks/photogrammetry.py`` reports them; writes ``benchmarks/results/fleet_capture.json``.
+
+    .venv/bin/python benchmarks/fleet_capture.py                  # 36 views, 1 and 2 vehicles
+    .venv/bin/python benchmarks/fleet_capture.py --views 18 --no-reconstruct
+    .venv/bin/python benchmarks/fleet_capture.py --reuse          # reconstruct the datasets again
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import write  # noqa: E402
+
+from droneulator.config import load_config  # noqa: E402
+from droneulator.workflows.photogrammetry.capture import capture  # noqa: E402
+from droneulator.workflows.photogrammetry.reconstruct import ReconstructOptions, reconstruct  # noqa: E402
+
+
+def capture_row(meta: dict[str, Any], camera_hz: float, vehicles: int) -> dict[str, Any]:
+    """Capture figures of a dataset's metadata (its last run that captured anything)."""
+    run = [r for r in meta["runs"] if r["captured"]][-1]
+    t = run.get("timings", {})
+    return {
+        "captured": run["captured"],
+        "wall_s": run["wall_s"],
+        "sim_s": run["sim_s"],
+        "frames_rendered": round(run["sim_s"] * camera_hz) * vehicles,
+        "startup_s": t.get("startup_s"),
+        "flight_s": t.get("flight_s"),
+        "views_per_vehicle": run.get("vehicles"),
+        "max_path_error_m": meta["tracking"]["max_path_error_m"],
+        "max_altitude_error_m": meta["tracking"]["max_altitude_error_m"],
+    }
+
+
+def reconstruction_row(report: dict[str, Any]) -> dict[str, Any]:
+    """The figures ``benchmarks/photogrammetry.py`` reports of one reconstruction."""
+    score = report.get("score") or {}
+    sp, tree = score.get("sparse", {}), (score.get("dense") or {}).get("tree", {})
+    return {
+        "sparse_points": report["sparse_points"],
+        "sparse_tree_points": sp.get("tree", {}).get("points"),
+        "registered_images": report["registered_images"],
+        "mean_track_length": report["mean_track_length"],
+        "reproj_px": report["mean_reprojection_error_px"],
+        "known_pose_reproj_px": report["known_pose_reprojection"]["mean_px"],
+        "dense_points": report["dense"].get("dense_points"),
+        "dense_tree_points": tree.get("points"),
+        "accuracy_median_m": tree.get("accuracy_median_m"),
+        "accuracy_p90_m": tree.get("accuracy_p90_m"),
+        "completeness": tree.get("completeness"),
+        "completeness_visible": tree.get("completeness_visible"),
+        "sparse_time_s": report["times_s"]["sparse_total"],
+        "dense_time_s": report["times_s"].get("dense"),
+    }
+
+
+def pose_differences(a: Path, b: Path) -> dict[str, Any]:
+    """How far the optical frames of the same views of two datasets are apart (position, m; angle, deg)."""
+    va = {v["name"]: v for v in json.loads((a / "poses.json").read_text())["views"]}
+    vb = {v["name"]: v for v in json.loads((b / "poses.json").read_text())["views"]}
+    dp, da = [], []
+    for name in sorted(va.keys() & vb.keys()):
+        oa, ob = va[name]["optical"], vb[name]["optical"]
+        dp.append(float(np.linalg.norm(np.subtract(oa["position"], ob["position"]))))
+        dot = abs(float(np.dot(oa["quaternion_xyzw"], ob["quaternion_xyzw"])))
+        da.append(math.degrees(2 * math.acos(min(1.0, dot))))
+    return {
+        "same_names": sorted(va) == sorted(vb),
+        "views": len(dp),
+        "max_position_m": max(dp, default=None),
+        "max_angle_deg": max(da, default=None),
+        "vehicles": sorted({v.get("vehicle", "uav0") for v in vb.values()}),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--views", type=int, default=36)
+    ap.add_argument("--vehicles", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--out", default="out/bench_fleet_capture", help="datasets go to OUT/vehicles_N")
+    ap.add_argument("--reuse", action="store_true", help="keep complete datasets instead of capturing again")
+    ap.add_argument("--no-reconstruct", action="store_true", help="captures only")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument("--json", default=None, help="output JSON (default: benchmarks/results/)")
+    args = ap.parse_args()
+
+    outs = {n: Path(args.out) / f"vehicles_{n}" for n in args.vehicles}
+    rows: dict[int, dict[str, Any]] = {}
+    for n, out in outs.items():  # the captures first, one after the other, under the same load
+        cfg = load_config(None, args.overrides, scene="tree_inspection")
+        cfg.capture.views = args.views
+        cfg.capture.vehicles = n
+        meta_path = out / "metadata.json"
+        load = [os.getloadavg()[0]]
+        if args.reuse and meta_path.exists() and json.loads(meta_path.read_text())["complete"]:
+            meta = json.loads(meta_path.read_text())
+        else:
+            shutil.rmtree(out, ignore_errors=True)
+            meta = capture(cfg, out, progress=False)
+        load.append(os.getloadavg()[0])
+        rows[n] = {
+            "vehicles": n,
+            "capture": capture_row(meta, cfg.capture.camera_hz, n),
+            "load_avg_1min": load,
+        }
+    base = min(outs)
+    for n, out in outs.items():
+        rows[n]["poses_vs_one_vehicle"] = pose_differences(outs[base], out)
+        if not args.no_reconstruct:
+            rows[n]["reconstruction"] = reconstruction_row(reconstruct(out, ReconstructOptions()))
+
+    c = load_config(None, args.overrides, scene="tree_inspection").capture
+    print(
+        f"\ntree_inspection (seed 0), {args.views} views, {c.width}x{c.height}, radius {c.radius} m, "
+        f"speed {c.speed} m/s; captures one after the other, then the reconstructions"
+    )
+    head = (
+        f"{'vehicles':>8} | {'wall s':>7} | {'sim s':>6} | {'startup s':>9} | {'flight s':>8} | "
+        f"{'frames':>6} | {'load':>9} | "
+        f"{'pose diff cm / deg':>18} | {'sparse (tree)':>15} | {'dense on tree':>13} | "
+        f"{'acc med / p90 cm':>16} | {'compl. all / seen':>17}"
+    )
+    print(head)
+    print("-" * len(head))
+    for n, r in rows.items():
+        cap, d, rec = r["capture"], r["poses_vs_one_vehicle"], r.get("reconstruction") or {}
+        acc = (
+            f"{rec['accuracy_median_m'] * 100:.2f} / {rec['accuracy_p90_m'] * 100:.2f}"
+            if rec.get("accuracy_median_m") is not None
+            else "-"
+        )
+        comp = (
+            f"{rec['completeness'] * 100:.1f} / {rec['completeness_visible'] * 100:.1f} %"
+            if rec.get("completeness") is not None
+            else "-"
+        )
+        sparse = f"{rec['sparse_points']} ({rec['sparse_tree_points']})" if rec else "-"
+        diff = f"{d['max_position_m'] * 100:.2f} / {d['max_angle_deg']:.3f}"
+        print(
+            f"{n:>8} | {cap['wall_s']:>7.1f} | {cap['sim_s']:>6.1f} | {cap['startup_s'] or 0:>9.1f} | "
+            f"{cap['flight_s'] or 0:>8.1f} | {cap['frames_rendered']:>6} | "
+            f"{r['load_avg_1min'][0]:>4.1f} {r['load_avg_1min'][1]:>4.1f} | {diff:>18} | {sparse:>15} | "
+            f"{rec.get('dense_tree_points') or '-':>13} | {acc:>16} | {comp:>17}"
+        )
+    write(
+        "fleet_capture",
+        {
+            "scene": "tree_inspection",
+            "views": args.views,
+            "capture": {
+                "width": c.width,
+                "height": c.height,
+                "radius": c.radius,
+                "speed": c.speed,
+                "camera_hz": c.camera_hz,
+            },
+            "rows": list(rows.values()),
+        },
+        args.json,
+    )
+
+
+if __name__ == "__main__":
+    main()
