@@ -739,7 +739,7 @@ def fleet_renderer(scene: Scene, config: SimConfig) -> Renderer:
     meshes: dict[str, MeshPart] = {}
     bodies: dict[str, MeshPart] = {}
     for v in specs if len(specs) > 1 else ():
-        airframe = v.params or ""
+        airframe = v.params or config.vehicle.params
         if airframe not in meshes:
             meshes[airframe] = vehicle_mesh(get_params(airframe))
         bodies[v.name] = meshes[airframe]

@@ -231,7 +231,8 @@ def _subscribe_vehicle(node: RosZenohNode, names: VehicleNames, vehicle: str, co
     topics = names.topics()
     src_vel, src_goal = f"ROS {topics['cmd_vel']}", f"ROS {topics['goal_pose']}"
     src_track = f"ROS {topics['position_cmd']}"
-    world_frames = ("", "world", MAP_FRAME, names.odom_frame)
+    goal_frames = ("", MAP_FRAME, names.odom_frame)
+    setpoint_frames = ("world", *goal_frames)  # "world": EGO-Planner's name for it
 
     def on_cmd_vel(msg: Any) -> None:
         args = {"forward": float(msg.linear.x), "yaw_rate": float(msg.angular.z), "vehicle": vehicle}
@@ -239,7 +240,7 @@ def _subscribe_vehicle(node: RosZenohNode, names: VehicleNames, vehicle: str, co
 
     def on_goal_pose(msg: Any) -> None:
         frame = msg.header.frame_id
-        if frame not in world_frames or frame == "world":
+        if frame not in goal_frames:
             allowed = f"{MAP_FRAME}/{names.odom_frame}"
             commands.reject(src_goal, "goto", "invalid_argument", f"goal in frame {frame!r}: only {allowed}")
             return
@@ -252,7 +253,7 @@ def _subscribe_vehicle(node: RosZenohNode, names: VehicleNames, vehicle: str, co
 
     def on_position_cmd(msg: Any) -> None:
         frame = msg.header.frame_id
-        if frame not in world_frames:
+        if frame not in setpoint_frames:
             allowed = f"world/{MAP_FRAME}/{names.odom_frame}"
             why = f"setpoint in frame {frame!r}: only {allowed}"
             commands.reject(src_track, "track", "invalid_argument", why)

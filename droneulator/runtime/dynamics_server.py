@@ -118,15 +118,13 @@ class DynamicsServer:
         if self.px4 is not None:
             for link in self.px4.links:
                 link.on_change = functools.partial(self._update_px4_hold, link)
-        self._describe_vehicles()
 
     def _describe_vehicles(self) -> None:
-        """Tell each vehicle where it is reached (``scene_info.vehicles``): ROS names, PX4 port."""
+        """Tell each vehicle where it is reached (``scene_info.vehicles``): ROS names, PX4 port (bound)."""
         ports = {}
         if self.px4 is not None:
             for link in self.px4.links:
-                port = self.cfg.px4.base_port + link.instance
-                ports[link.vehicle.name] = {"px4_instance": link.instance, "px4_port": port}
+                ports[link.vehicle.name] = {"px4_instance": link.instance, "px4_port": link.port}
         for name, names in fleet_names(self.cfg).items():
             v = self.world.vehicles[name]
             v.endpoints = {**names.describe([c.name for c in v.cameras]), **ports.get(name, {})}
@@ -323,6 +321,7 @@ class DynamicsServer:
     def run(self) -> None:
         if self.px4 is not None:
             self.px4.start(listen=False)  # the port is ours now; PX4 is let in once the pipeline is warm
+        self._describe_vehicles()
         self.api.start()
         # the hub socket last: it is the supervisor's sign that every port is bound and the run is up
         self.listener = Listener(self._hub_address, family="AF_UNIX", authkey=self._authkey)
