@@ -588,9 +588,10 @@ class PX4Link:
 
     def _close_candidate(self, c: _Candidate, reason: str) -> None:
         self._candidates.remove(c)
+        # logged before the close, so that whoever sees the connection end can read why
+        log.warning("closed the waiting connection from %s: %s", c.address, reason)
         with contextlib.suppress(OSError):
             c.sock.close()
-        log.warning("closed the waiting connection from %s: %s", c.address, reason)
 
     def _review_candidates(self, guard: Any) -> None:
         """Replace a silent PX4 by the first waiting PX4; drop waiting connections when PX4 speaks
