@@ -121,6 +121,20 @@ def transform_from_pose(position: np.ndarray, quat: np.ndarray) -> np.ndarray:
     return make_transform(quat_to_matrix(quat), np.asarray(position, dtype=float))
 
 
+def transforms_from_poses(positions: np.ndarray, quats: np.ndarray) -> np.ndarray:
+    """:func:`transform_from_pose` of many poses: ``(n, 3)`` positions and ``(n, 4)`` ``[x,y,z,w]``
+    quaternions (normalised here) -> ``(n, 4, 4)``."""
+    q = np.asarray(quats, dtype=float).reshape(-1, 4)
+    n = np.linalg.norm(q, axis=1, keepdims=True)
+    if not (np.all(n > 0.0) and np.all(np.isfinite(n))):
+        raise ValueError("quaternions need four finite components, not all zero")
+    T = np.zeros((len(q), 4, 4))
+    T[:, :3, :3] = Rotation.from_quat(q / n).as_matrix()
+    T[:, :3, 3] = np.asarray(positions, dtype=float).reshape(-1, 3)
+    T[:, 3, 3] = 1.0
+    return T
+
+
 def pose_from_transform(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return T[:3, 3].copy(), matrix_to_quat(T[:3, :3])
 
