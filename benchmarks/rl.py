@@ -1,21 +1,27 @@
-"""Workflow 3 (RL in the vineyard): environment throughput, SAC training wall time, evaluation.
+"""Workflow 3 (RL in the vineyard): batched environment throughput, wall time to a good policy, memory.
 
-1. Environment steps per second of ``droneulator/VineyardNav-v0`` with random actions (resets
-   included), single and vectorised (SubprocVecEnv, N = 2), and the real-time factor: simulated
-   seconds per wall second (one step is one 30 Hz camera frame). The paper's environment runs
-   locked to real time, i.e. a factor of 1.
-2. SAC learner cost per gradient step with 1 and 2 torch threads (training uses 1 by default).
-3. Wall time of a SAC training run (default 50,000 steps, the paper's budget: 28 min at 30 Hz real
-   time); with ``--train-steps`` below 50,000 the 50k time is also projected from the measured rate.
-4. Success rate of the trained policy on 10 held-out seeds (``droneulator evaluate``), with figures.
+1. Environment steps per second with random actions (autoresets included) of today's single env
+   (``VineyardNavEnv``, one ``Simulator`` and one OpenGL renderer) and of the native vector env
+   (``gym.make_vec("droneulator/VineyardNav-v0", num_envs=B)``, B batched worlds, depth by ray casting)
+   for B = 1, 16, 64, 256, 1024, each in its own process, with the memory each env adds (the process's
+   resident memory before and after making and resetting it, over B) and where the time goes.
+2. Wall time to a policy that reaches the goal in >= 9 of 10 held-out episodes (``droneulator train
+   --num-envs B --stop-at 0.9``: SAC on the batched env, checked every ``--check-every`` steps, the
+   checks' time left out), for 3 training seeds; each final policy's success on 50 further held-out
+   episodes (seeds from 1,000,100: none of them was used to decide when to stop).
+3. The same with PPO on the batched env at B = 256 (one seed, capped), to say which algorithm fits.
+4. ``--baseline-training``: today's SAC on one single env for 50k steps (about 10 min), the paper's
+   budget, for the wall-time comparison in the same run.
 
-Reproduce: ``python benchmarks/rl.py --out out/rl-bench`` (``--model PATH`` evaluates an existing model
-and skips training).
+Reproduce: ``python benchmarks/rl.py`` (about 25 min on 2 cores; ``--quick`` for a smoke run).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -24,7 +30,6 @@ import numpy as np
 from _common import write
 
 PAPER_STEPS = 50_000
-EPISODE_KEYS = ("seed", "termination", "sim_time_s", "shortest_path_m", "flown_m", "min_clearance_m")
 CAMERA_HZ = 30.0
 
 
@@ -58,89 +63,158 @@ def env_throughput(n_envs: int, steps: int, vec: str) -> dict[str, Any]:
     }
 
 
-def learner_cost(threads: int, updates: int = 200) -> float:
-    """Milliseconds per SAC gradient step (batch 256, the training network) with ``threads`` threads."""
+def rss_bytes() -> int:
+    """This process's resident memory (Linux)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) * 1024
+    return 0
+
+
+def batched_throughput(n_envs: int, steps: int) -> dict[str, Any]:
+    """Steps per second of the vector env at ``n_envs`` with random actions, the memory per env, and the
+    share of time in resets (task sampling: the goal's distance field) (run in a fresh process)."""
     import gymnasium as gym
-    import torch
-    from stable_baselines3 import SAC
 
-    from droneulator.workflows.rl.train import SAC_HYPERPARAMETERS
+    import droneulator.workflows.rl as rl
 
-    class Dummy(gym.Env):
-        observation_space = gym.spaces.Box(-1, 1, (35,), np.float32)
-        action_space = gym.spaces.Box(-1, 1, (2,), np.float32)
+    base = rss_bytes()
+    venv = gym.make_vec(rl.ENV_ID, num_envs=n_envs)
+    venv.reset(seed=0)
+    per_env = (rss_bytes() - base) / n_envs
+    rng = np.random.default_rng(0)
+    for _ in range(5):  # warm-up: numba, the BVH
+        venv.step(rng.uniform(-1, 1, (n_envs, 2)).astype(np.float32))
+    reset_s = 0.0
+    original = venv._reset_envs
 
-        def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
-            return np.zeros(35, np.float32), {}
+    def timed(*a: Any, **k: Any) -> Any:
+        nonlocal reset_s
+        t = time.perf_counter()
+        out = original(*a, **k)
+        reset_s += time.perf_counter() - t
+        return out
 
-        def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
-            return self.observation_space.sample(), 0.0, False, False, {}
-
-    torch.set_num_threads(threads)
-    hyper = {**SAC_HYPERPARAMETERS, "learning_starts": 0, "train_freq": 1, "gradient_steps": 1}
-    model = SAC("MlpPolicy", Dummy(), device="cpu", verbose=0, **hyper)
-    model.learn(300)
+    venv._reset_envs = timed
+    calls = max(20, steps // n_envs)
+    episodes = 0
     t0 = time.perf_counter()
-    model.train(gradient_steps=updates, batch_size=hyper["batch_size"])
-    return (time.perf_counter() - t0) / updates * 1e3
+    for _ in range(calls):
+        _, _, term, trunc, _ = venv.step(rng.uniform(-1, 1, (n_envs, 2)).astype(np.float32))
+        episodes += int((term | trunc).sum())
+    wall = time.perf_counter() - t0
+    venv.close()
+    return {
+        "n_envs": n_envs,
+        "steps": calls * n_envs,
+        "wall_s": wall,
+        "steps_per_s": calls * n_envs / wall,
+        "real_time_factor": calls * n_envs / wall / CAMERA_HZ,
+        "episodes_ended": episodes,
+        "reset_share": reset_s / wall,
+        "rss_per_env_bytes": per_env,
+    }
+
+
+def in_subprocess(fn: str, *args: Any) -> dict[str, Any]:
+    """``fn(*args)`` of this script in a fresh Python process (clean memory figures, no shared caches)."""
+    code = f"import json, sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); import rl; "
+    code += f"print(json.dumps(rl.{fn}(*{args!r})))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def train_to_target(out: Path, seed: int, algo: str, n_envs: int, every: int, cap_s: float) -> dict[str, Any]:
+    """Train until 9/10 held-out episodes succeed (or ``cap_s`` s), then the policy on 50 more."""
+    from droneulator.workflows.rl.train import held_out_successes, train
+    from droneulator.workflows.rl.vector import VineyardNavVectorEnv
+
+    summary = train(None, out, steps=50_000_000, seed=seed, n_envs=n_envs, algo=algo, vec="native",
+                    progress=False, stop_at=0.9, check_every=every, max_wall_s=cap_s)  # fmt: skip
+    from stable_baselines3 import PPO, SAC
+
+    policy = (PPO if algo == "ppo" else SAC).load(out / "model.zip", device="cpu")
+    env = VineyardNavVectorEnv(50)
+    try:
+        successes = held_out_successes(policy, env, list(range(EVAL_50, EVAL_50 + 50)))
+    finally:
+        env.close()
+    reached = summary["reached"]
+    return {
+        "algo": algo,
+        "seed": seed,
+        "n_envs": n_envs,
+        "reached_9_of_10": reached is not None,
+        "wall_s_to_9_of_10": reached["wall_s"] if reached else None,
+        "steps_to_9_of_10": reached["steps"] if reached else None,
+        "train_wall_s": summary["wall_s"],
+        "steps": summary["steps"],
+        "steps_per_s": summary["steps_per_s"],
+        "checks": summary["checks"],
+        "held_out_50_successes": successes,
+        "command": f"droneulator train --num-envs {n_envs} --algo {algo} --seed {seed} --stop-at 0.9 "
+        f"--check-every {every} --out {out}",
+    }
+
+
+#: the 50 held-out episodes after training: seeds past the 10 checked during training
+EVAL_50 = 1_000_100
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", default="out/rl-bench", help="training run folder (default out/rl-bench)")
-    ap.add_argument("--env-steps", type=int, default=3000, help="steps per throughput measurement")
-    ap.add_argument("--train-steps", type=int, default=PAPER_STEPS, help="SAC training steps (default 50000)")
-    ap.add_argument("--envs", type=int, default=1, help="environments for the training run (default 1)")
-    ap.add_argument("--seed", type=int, default=0, help="training seed")
-    ap.add_argument("--episodes", type=int, default=10, help="evaluation episodes (default 10)")
-    ap.add_argument("--model", default=None, help="evaluate this model instead of training one")
+    ap.add_argument("--out", default="out/rl-bench", help="training runs folder (default out/rl-bench)")
+    ap.add_argument("--env-steps", type=int, default=20_000, help="steps per batched throughput figure")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[1, 16, 64, 256, 1024], help="batch sizes B")
+    ap.add_argument("--num-envs", type=int, default=16, help="B for the SAC training runs (default 16)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="training seeds")
+    ap.add_argument("--check-every", type=int, default=10_000, help="SAC steps between success checks")
+    ap.add_argument("--cap", type=float, default=480.0, help="training time cap per run (s)")
+    ap.add_argument("--ppo-envs", type=int, default=256, help="B for the PPO comparison (0: skip it)")
+    ap.add_argument("--baseline-training", action="store_true", help="also SAC 50k on one single env")
+    ap.add_argument("--quick", action="store_true", help="smoke run: small sizes, no training")
     ap.add_argument("--json", default=None, help="output path (default benchmarks/results/rl.json)")
     args = ap.parse_args()
+    if args.quick:
+        args.sizes, args.env_steps, args.seeds, args.ppo_envs = [1, 16], 2000, [], 0
 
-    res: dict[str, Any] = {"throughput": []}
-    for n, vec in ((1, "dummy"), (2, "subproc"), (2, "dummy")):
-        r = env_throughput(n, args.env_steps, vec)
-        res["throughput"].append(r)
+    res: dict[str, Any] = {}
+    single = env_throughput(1, 600 if args.quick else 3000, "dummy")
+    res["single_env"] = single
+    print(f"single env (today's): {single['steps_per_s']:8.0f} steps/s")
+    res["batched"] = []
+    for b in args.sizes:
+        r = in_subprocess("batched_throughput", b, max(args.env_steps, 20 * b))
+        r["vs_single"] = r["steps_per_s"] / single["steps_per_s"]
+        res["batched"].append(r)
         print(
-            f"env x{n} ({vec:7s}): {r['steps_per_s']:7.1f} steps/s, real-time factor "
-            f"{r['real_time_factor']:5.1f} ({r['steps']} steps in {r['wall_s']:.1f} s)"
+            f"batched B={b:5d}: {r['steps_per_s']:8.0f} steps/s ({r['vs_single']:5.1f}x the single env, "
+            f"real-time factor {r['real_time_factor']:6.0f}), {r['rss_per_env_bytes'] / 1e6:5.2f} MB/env, "
+            f"resets {100 * r['reset_share']:4.1f} % of the time"
         )
-    res["learner_ms_per_update"] = {str(t): learner_cost(t) for t in (1, 2)}
-    costs = res["learner_ms_per_update"]
-    print("SAC gradient step:", ", ".join(f"{v:.1f} ms ({t} thread(s))" for t, v in costs.items()))
-
     out = Path(args.out)
-    if args.model is None:
+    res["training"] = []
+    for seed in args.seeds:
+        r = train_to_target(out / f"sac-{seed}", seed, "sac", args.num_envs, args.check_every, args.cap)
+        res["training"].append(r)
+        print(
+            f"SAC x{args.num_envs} seed {seed}: 9/10 after {r['wall_s_to_9_of_10'] or float('nan'):.0f} s "
+            f"({r['steps_to_9_of_10']} steps); 50 held-out episodes: {r['held_out_50_successes']}/50"
+        )
+    if args.ppo_envs:
+        r = train_to_target(out / "ppo-0", 0, "ppo", args.ppo_envs, 10 * args.check_every, args.cap)
+        res["ppo_batched"] = r
+        print(
+            f"PPO x{args.ppo_envs} seed 0: 9/10 after {r['wall_s_to_9_of_10'] or float('nan'):.0f} s "
+            f"({r['steps_to_9_of_10']} steps; {r['steps_per_s']:.0f} steps/s); 50 held-out: "
+            f"{r['held_out_50_successes']}/50"
+        )
+    if args.baseline_training:
         from droneulator.workflows.rl.train import train
 
-        summary = train(None, out, steps=args.train_steps, seed=args.seed, n_envs=args.envs, progress=False)
-        projected = summary["wall_s"] * PAPER_STEPS / summary["steps"]
-        res["training"] = {
-            **{k: summary[k] for k in ("steps", "wall_s", "steps_per_s", "n_envs", "vec", "torch_threads")},
-            "projected_50k_wall_s": projected,
-            "paper_50k_wall_s": PAPER_STEPS / CAMERA_HZ,
-            "speedup_vs_paper": PAPER_STEPS / CAMERA_HZ / projected,
-            "command": f"droneulator train --algo sac --steps {args.train_steps} --seed {args.seed} "
-            f"--envs {args.envs} --out {out}",
-        }
-        t = res["training"]
-        print(
-            f"SAC {t['steps']} steps: {t['wall_s'] / 60:.1f} min wall ({t['steps_per_s']:.1f} steps/s); "
-            f"50k projected {projected / 60:.1f} min vs {PAPER_STEPS / CAMERA_HZ / 60:.1f} min real time"
-        )
-        model = out / "model.zip"
-    else:
-        model = Path(args.model)
-
-    from droneulator.workflows.rl.evaluate import evaluate
-
-    ev = evaluate(model, episodes=args.episodes)
-    res["evaluation"] = {k: v for k, v in ev.items() if k != "per_episode"}
-    res["evaluation"]["per_episode"] = [{k: e[k] for k in EPISODE_KEYS} for e in ev["per_episode"]]
-    print(
-        f"evaluation: {ev['successes']}/{ev['episodes']} successful on held-out seeds {ev['seeds'][0]}.."
-        f"{ev['seeds'][-1]}; figures in {model.parent}"
-    )
+        summary = train(None, out / "sac-single", steps=PAPER_STEPS, seed=0, progress=False)
+        res["baseline_single_sac_50k"] = {k: summary[k] for k in ("steps", "wall_s", "steps_per_s")}
+        print(f"baseline SAC 50k on one single env: {summary['wall_s'] / 60:.1f} min")
     write("rl", res, args.json)
 
 

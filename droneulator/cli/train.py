@@ -1,4 +1,4 @@
-"""``droneulator train``: SAC on the vineyard navigation environment (needs the rl extra)."""
+"""``droneulator train``: SAC or PPO on the vineyard navigation environment (needs the rl extra)."""
 
 from __future__ import annotations
 
@@ -12,16 +12,46 @@ from droneulator.runtime import preflight
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "train",
-        help="train SAC on droneulator/VineyardNav-v0 with Stable-Baselines3 (pip install droneulator[rl])",
-        description="Train SAC on the vineyard navigation environment. Writes the final model, checkpoints, "
+        help="train SAC or PPO on droneulator/VineyardNav-v0 with Stable-Baselines3 (needs the rl extra)",
+        description="Train SAC (or PPO) on the vineyard navigation environment: single environments, or "
+        "--num-envs B batched worlds in one process. Writes the final model, checkpoints, "
         "monitor.csv, progress.csv, TensorBoard logs (tb/), config.json and train_summary.json to --out.",
     )
-    p.add_argument("--algo", choices=("sac",), default="sac", help="algorithm (default sac)")
+    p.add_argument(
+        "--algo",
+        choices=("sac", "ppo"),
+        default=None,
+        help="algorithm (default sac; ppo fits the batched env worse here, see docs/rl.md)",
+    )
     p.add_argument("--steps", type=int, default=50_000, help="environment steps (default 50000)")
     p.add_argument(
         "--seed", type=int, default=0, help="training seed: env i starts from seed + i (default 0)"
     )
-    p.add_argument("--envs", type=int, default=1, help="parallel environments (default 1)")
+    p.add_argument(
+        "--num-envs",
+        type=int,
+        default=None,
+        metavar="B",
+        help="B batched worlds in this process (the native vector env, depth by ray casting; e.g. 256)",
+    )
+    p.add_argument(
+        "--depth",
+        choices=("raycast", "render"),
+        default="raycast",
+        help="depth of the batched env (--num-envs): ray casting (default) or the OpenGL renderer",
+    )
+    p.add_argument("--envs", type=int, default=1, help="parallel single environments (default 1)")
+    p.add_argument(
+        "--stop-at",
+        type=float,
+        default=None,
+        metavar="SHARE",
+        help="end training once this share (e.g. 0.9) of 10 held-out episodes reaches the goal, checked "
+        "every --check-every steps (the checks' time is not counted as training time)",
+    )
+    p.add_argument(
+        "--check-every", type=int, default=100_000, help="steps between --stop-at checks (default 100000)"
+    )
     p.add_argument(
         "--vec",
         choices=("auto", "dummy", "subproc"),
@@ -41,15 +71,24 @@ def cmd_train(args: argparse.Namespace) -> int:
     from droneulator.workflows.rl.train import train
 
     cfg = preflight.load(args.config, args.overrides, seed=args.scene_seed)
+    native = args.num_envs is not None
+    if native and args.num_envs < 1:
+        raise ValueError(f"--num-envs must be at least 1, got {args.num_envs}")
+    algo = args.algo or "sac"
     overrides = {} if args.learning_starts is None else {"learning_starts": args.learning_starts}
+    if overrides and algo != "sac":
+        raise ValueError("--learning-starts is a SAC setting, not PPO's")
     summary = train(
         cfg,
         Path(args.out),
         steps=args.steps,
         seed=args.seed,
-        n_envs=args.envs,
-        algo=args.algo,
-        vec=args.vec,
+        n_envs=args.num_envs if native else args.envs,
+        algo=algo,
+        vec="native" if native else args.vec,
+        depth=args.depth,
+        stop_at=args.stop_at,
+        check_every=args.check_every,
         checkpoint_every=args.checkpoint_every,
         threads=args.threads,
         progress=not args.no_progress,
@@ -59,4 +98,12 @@ def cmd_train(args: argparse.Namespace) -> int:
         f"trained {summary['steps']} steps in {summary['wall_s']:.0f} s "
         f"({summary['steps_per_s']:.1f} steps/s, {summary['n_envs']} env(s)); model: {summary['model']}"
     )
+    if args.stop_at is not None:
+        reached = summary["reached"]
+        print(
+            f"{reached['successes']}/10 held-out episodes reached the goal after {reached['steps']} steps, "
+            f"{reached['wall_s']:.0f} s of training"
+            if reached
+            else f"the policy never reached {args.stop_at:.0%} of 10 held-out episodes"
+        )
     return 0

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 ENV_ID = "droneulator/VineyardNav-v0"
 ENTRY_POINT = "droneulator.workflows.rl.env:VineyardNavEnv"
+VECTOR_ENTRY_POINT = "droneulator.workflows.rl.vector:VineyardNavVectorEnv"
 
 
 def register_envs() -> bool:
@@ -27,10 +28,10 @@ def register_envs() -> bool:
     except ImportError:
         return False
     if ENV_ID not in registry:
-        register(id=ENV_ID, entry_point=ENTRY_POINT)
+        register(id=ENV_ID, entry_point=ENTRY_POINT, vector_entry_point=VECTOR_ENTRY_POINT)
     return True
 
 
 register_envs()
 
-__all__ = ["ENTRY_POINT", "ENV_ID", "register_envs"]
+__all__ = ["ENTRY_POINT", "ENV_ID", "VECTOR_ENTRY_POINT", "register_envs"]

@@ -46,6 +46,9 @@ from droneulator.workflows.rl.astar import DistanceField, OccupancyGrid, occupan
 from droneulator.workflows.rl.backend import CAMERA_NAME, SCENE, Backend, Kinematics
 
 STRIP_SAMPLES = 32
+#: where depth comes from: the OpenGL renderer, or ray casting (:mod:`droneulator.render.raycast`, a
+#: numba BVH), equal to the renderer's to a millimetre but for isolated alpha-edge and silhouette pixels
+DEPTH_SOURCES = ("render", "raycast")
 OBS_SIZE = STRIP_SAMPLES + 3
 
 _GRIDS: dict[tuple[Any, ...], OccupancyGrid] = {}
@@ -81,26 +84,43 @@ def runtime_overrides(cfg: SimConfig) -> list[str]:
 def depth_strip(depth: np.ndarray, clip: float, samples: int = STRIP_SAMPLES) -> np.ndarray:
     """The centre row (row ``h // 2``) of a depth image min-pooled into ``samples`` equal sectors,
     clipped at ``clip`` and divided by it; NaN (no return) reads 1.0."""
-    row = np.asarray(depth, dtype=np.float64)[depth.shape[0] // 2]
-    if row.size < samples:
-        raise ValueError(f"a depth image {row.size} px wide cannot give {samples} strip samples")
-    row = np.where(np.isnan(row), clip, np.minimum(row, clip))
-    edges = np.linspace(0, row.size, samples + 1).round().astype(int)
-    return (np.minimum.reduceat(row, edges[:-1]) / clip).astype(np.float32)
+    return strips(np.asarray(depth)[depth.shape[0] // 2][None], clip, samples)[0]
+
+
+def strips(rows: np.ndarray, clip: float, samples: int = STRIP_SAMPLES) -> np.ndarray:
+    """:func:`depth_strip` of many centre rows at once: ``(k, width)`` depth rows -> ``(k, samples)``."""
+    rows = np.asarray(rows, dtype=np.float64)
+    if rows.shape[1] < samples:
+        raise ValueError(f"a depth image {rows.shape[1]} px wide cannot give {samples} strip samples")
+    rows = np.where(np.isnan(rows), clip, np.minimum(rows, clip))
+    edges = np.linspace(0, rows.shape[1], samples + 1).round().astype(int)
+    return (np.minimum.reduceat(rows, edges[:-1], axis=1) / clip).astype(np.float32)
 
 
 class LocalBackend:
     """An in-process simulator (physics only, camera instants scheduled) plus a depth-only renderer."""
 
-    def __init__(self, cfg: SimConfig) -> None:
-        from droneulator.render.renderer import Renderer
+    def __init__(self, cfg: SimConfig, depth: str = "render") -> None:
         from droneulator.sim.simulator import Simulator
 
+        if depth not in DEPTH_SOURCES:
+            raise ValueError(f"depth must be one of {', '.join(DEPTH_SOURCES)}, got {depth!r}")
         self.sim = Simulator(config=cfg, render=False, external_cameras=True)
         self.scene = self.sim.scene
-        self.renderer = Renderer(self.scene, cfg.render.cameras, shadows=False)
+        self.renderer: Any = None
+        self.caster: Any = None
+        if depth == "render":
+            from droneulator.render.renderer import Renderer
+
+            self.renderer = Renderer(self.scene, cfg.render.cameras, shadows=False)
+        else:
+            from droneulator.render.raycast import DepthCaster
+
+            self.caster = DepthCaster(self.scene, cfg.render.cameras[0])
 
     def _depth(self, T_world_body: np.ndarray) -> np.ndarray:
+        if self.caster is not None:
+            return self.caster.depth(T_world_body[None])[0]
         return self.renderer.render(T_world_body, rgb=False)[CAMERA_NAME].depth.copy()
 
     @staticmethod
@@ -122,7 +142,8 @@ class LocalBackend:
                 return self._depth(st.T_world_body), self._kinematics(st), collided
 
     def close(self) -> None:
-        self.renderer.close()
+        if self.renderer is not None:
+            self.renderer.close()
         self.sim.close()
 
 
@@ -188,13 +209,16 @@ class NavTask:
 
     def observe(self, depth: np.ndarray, kin: Kinematics) -> np.ndarray:
         """The observation vector from a depth image and the vehicle state (both backends)."""
+        return np.concatenate([depth_strip(depth, self.rl.depth_clip), self.tail(kin)])
+
+    def tail(self, kin: Kinematics) -> np.ndarray:
+        """The observation after the strip: heading error, forward speed and yaw rate, normalised."""
         tgt = self.target(kin.position)
         bearing = math.atan2(tgt[1] - kin.position[1], tgt[0] - kin.position[0])
         heading = wrap_angle(bearing - kin.yaw) / math.pi
         speed = (kin.forward_speed - self._mid) / self._half
         rate = kin.yaw_rate / self.rl.max_yaw_rate
-        tail = np.clip([heading, speed, rate], -1.0, 1.0)
-        return np.concatenate([depth_strip(depth, self.rl.depth_clip), tail.astype(np.float32)])
+        return np.clip([heading, speed, rate], -1.0, 1.0).astype(np.float32)
 
     # ------------------------------------------------------------------ tasks
     def _lane_point(self, rng: np.random.Generator, lane: int) -> np.ndarray:
@@ -320,7 +344,8 @@ class VineyardNavEnv(NavTask, gym.Env[np.ndarray, np.ndarray]):
 
     ``config``: a :class:`SimConfig` (its ``rl`` section and vehicle/flight settings are used);
     ``mode``: "local" or "remote" (then ``url`` of the WebSocket API and ``zenoh`` endpoint of the
-    bridge); further keyword arguments replace fields of ``config.rl``.
+    bridge); ``depth`` (local mode): ``"render"`` or ``"raycast"`` (:data:`DEPTH_SOURCES`); further keyword
+    arguments replace fields of ``config.rl``.
     """
 
     metadata = {"render_modes": [], "render_fps": 30}
@@ -331,12 +356,13 @@ class VineyardNavEnv(NavTask, gym.Env[np.ndarray, np.ndarray]):
         mode: str = "local",
         url: str | None = None,
         zenoh: str | None = None,
+        depth: str = "render",
         **rl_overrides: Any,
     ) -> None:
         cfg = env_config(config, **rl_overrides)
         self.mode = mode
         if mode == "local":
-            backend: Backend = LocalBackend(cfg)
+            backend: Backend = LocalBackend(cfg, depth)
         elif mode == "remote":
             from droneulator.workflows.rl.remote import RemoteBackend
 

@@ -87,6 +87,12 @@ def training_seeds(model: Path) -> list[int]:
     return [int(s) for s in json.loads(path.read_text()).get("train_seeds", [])]
 
 
+def trained_algorithm(model: Path) -> str:
+    """The algorithm ``train_summary.json`` beside the model names (``sac`` when there is none)."""
+    path = Path(model).parent / "train_summary.json"
+    return str(json.loads(path.read_text()).get("algo", "sac")) if path.exists() else "sac"
+
+
 def rollout(env: VineyardNavEnv, policy: Any, seed: int, deterministic: bool = True) -> Rollout:
     """Run one episode with ``policy.predict`` from ``env.reset(seed=seed)``."""
     obs, info = env.reset(seed=seed)
@@ -146,7 +152,8 @@ def plot_training_curves(run_dir: Path, png: Path, window: int = 20) -> bool:
     axes[2].set_ylim(-0.05, 1.05)
     axes[2].set_xlabel("environment steps")
     axes[2].grid(alpha=0.3)
-    fig.suptitle(f"SAC training on VineyardNav-v0 ({len(df)} episodes, {int(steps[-1])} steps)")
+    algo = trained_algorithm(Path(run_dir) / "model.zip").upper()
+    fig.suptitle(f"{algo} training on VineyardNav-v0 ({len(df)} episodes, {int(steps[-1])} steps)")
     fig.tight_layout()
     fig.savefig(png, dpi=120)
     plt.close(fig)
@@ -256,10 +263,10 @@ def evaluate(
     zenoh: str | None = None,
     deterministic: bool = True,
 ) -> dict[str, Any]:
-    """Evaluate the SAC policy in ``model`` (a .zip, or a run folder holding ``model.zip``) on seeds
+    """Evaluate the SAC or PPO policy in ``model`` (a .zip, or a run folder holding ``model.zip``) on seeds
     ``seed .. seed + episodes - 1``; returns (and writes) the summary. ``logs`` is the training run
     folder for the curves (default: the model's)."""
-    from stable_baselines3 import SAC
+    from stable_baselines3 import PPO, SAC
 
     model = resolve_model(model)
     if not model.exists():
@@ -273,7 +280,9 @@ def evaluate(
     cfg = cfg or load_run_config(model)
     # a saved run records the n-step buffer SB3 chose for it; let SB3 choose again instead of warning
     # that the saved buffer class overrides n_steps (evaluation never samples the buffer)
-    policy = SAC.load(model, device="cpu", custom_objects={"replay_buffer_class": None})
+    policy = (PPO if trained_algorithm(model) == "ppo" else SAC).load(
+        model, device="cpu", custom_objects={"replay_buffer_class": None}
+    )
     env = VineyardNavEnv(config=cfg, mode=mode, url=url, zenoh=zenoh)
     t0 = time.perf_counter()
     try:

@@ -1,0 +1,379 @@
+"""``gym.make_vec("droneulator/VineyardNav-v0", num_envs=B)``: B vineyard tasks stepped together.
+
+A native :class:`gymnasium.vector.VectorEnv` (the registration's vector entry point), not B copies of
+:class:`~droneulator.workflows.rl.env.VineyardNavEnv` in subprocesses: B independent one-vehicle worlds
+of the vineyard (:class:`~droneulator.world.batched.BatchedWorlds`: their own clock, vehicle, start and
+goal; the layout is the config's scene seed, as the single env's) step to their next camera frame in one
+compiled call, and the depth of all of them comes from one batched call (``depth``: ``"raycast"``, our
+BVH ray caster, the default here; ``"render"``, the OpenGL renderer drawing them one after the other,
+as the single env does by default).
+
+Each env follows the single env's rules exactly (one :class:`~droneulator.workflows.rl.env.NavTask` per
+env: task sampling, reward, terminations, time limit), so env ``i`` seeded ``s`` with the same actions
+gives the single env's observations, rewards, terminations and truncations when both take depth from
+the same source (tests/test_rl_vector.py checks it over long random rollouts with autoresets).
+
+Seeding follows Gymnasium's vector envs: ``reset(seed=s)`` seeds env ``i`` with ``s + i`` (a list gives
+each its own); later resets, autoresets included, continue each env's generator. Autoreset:
+``autoreset_mode`` ``NEXT_STEP`` (Gymnasium's default: the step after an episode ends resets that env,
+ignoring its action, with reward 0) or ``SAME_STEP`` (the final observation and info go to
+``info["final_obs"]`` / ``info["final_info"]`` and the reset observation is returned at once, as
+Stable-Baselines3 expects). ``info`` holds every single-env key as an array with its ``_key`` mask.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import gymnasium as gym
+import numba
+import numpy as np
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from droneulator.config import SimConfig
+from droneulator.frames import transforms_from_poses
+from droneulator.state import STATE
+from droneulator.workflows.rl.astar import _bilinear, _carrot
+from droneulator.workflows.rl.backend import CAMERA_NAME, Kinematics
+from droneulator.workflows.rl.env import DEPTH_SOURCES, STRIP_SAMPLES, NavTask, env_config, strips
+from droneulator.world.batched import BatchedWorlds
+from droneulator.world.world import NS
+
+#: why an episode ended, as :meth:`NavTask.advance` names it (index 0: it goes on)
+REASONS = (None, "collision", "out_of_bounds", "goal", "time_limit")
+
+
+@numba.njit(cache=True)
+def _node(fx: float, fy: float, nx: int, ny: int) -> tuple[int, int]:
+    return min(max(int(np.rint(fx)), 0), nx - 1), min(max(int(np.rint(fy)), 0), ny - 1)
+
+
+@numba.njit(cache=True, parallel=True)
+def _nav_rows(
+    run, rows, hit, values, nxt, reach, free, near_i, near_j, origin, res, goal, d_prev, steps, max_steps,
+    bmin, bmax, k, reward, reason, tail, dist, goal_dist,
+):  # fmt: skip
+    """:meth:`NavTask.advance` and :meth:`NavTask.tail` for every env where ``run``: the reward and end
+    of its step and its observation tail, from its state at the camera instant (``rows``) and its goal's
+    distance field (``values``, ``nxt``, ``reach``). ``k``: progress scale, step penalty, goal reward,
+    collision penalty, goal radius, lookahead (m; 0: steer at the goal), forward mid, forward half-range,
+    max yaw rate."""
+    nx, ny = free.shape
+    for b in numba.prange(run.shape[0]):
+        if not run[b]:
+            continue
+        s = rows[b]
+        px, py = s[0], s[1]
+        # distance along the shortest path (DistanceField.distance)
+        fx, fy = (px - origin[0]) / res, (py - origin[1]) / res
+        cx, cy = min(max(fx, 0.0), nx - 1.0), min(max(fy, 0.0), ny - 1.0)
+        d = _bilinear(values[b], cx, cy) + math.hypot(fx - cx, fy - cy) * res
+        steps[b] += 1
+        r = k[0] * (d_prev[b] - d) - k[1]
+        d_prev[b] = d
+        dist[b] = d
+        gd = math.hypot(px - goal[b, 0], py - goal[b, 1])
+        goal_dist[b] = gd
+        why = 0
+        if hit[b]:
+            why = 1
+        elif px < bmin[0] or py < bmin[1] or px > bmax[0] or py > bmax[1]:
+            why = 2
+        elif gd <= k[4]:
+            why = 3
+        if why == 3:
+            r += k[2]
+        elif why != 0:
+            r -= k[3]
+        if why == 0 and steps[b] >= max_steps[b]:
+            why = 4
+        reward[b] = r
+        reason[b] = why
+        # the steering target (NavTask.target: DistanceField.lookahead, or the goal)
+        tx, ty = goal[b, 0], goal[b, 1]
+        if k[5] > 0.0:
+            i, j = _node(fx, fy, nx, ny)
+            if not free[i, j]:
+                i, j = near_i[i, j], near_j[i, j]
+            if reach[b, i, j]:
+                ax, ay = fx, fy
+                if not free[_node(fx, fy, nx, ny)]:
+                    ax, ay = float(i), float(j)
+                a, c, reached = _carrot(free, nxt[b], i, j, ax, ay, k[5] / res)
+                if not reached:
+                    tx, ty = origin[0] + a * res, origin[1] + c * res
+        # the observation tail (NavTask.tail)
+        qn = math.sqrt(s[6] * s[6] + s[7] * s[7] + s[8] * s[8] + s[9] * s[9])
+        x, y, z, w = s[6] / qn, s[7] / qn, s[8] / qn, s[9] / qn
+        yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+        heading = ((math.atan2(ty - py, tx - px) - yaw + math.pi) % (2 * math.pi) - math.pi) / math.pi
+        forward = (1 - 2 * (y * y + z * z)) * s[3] + 2 * (x * y + w * z) * s[4] + 2 * (x * z - w * y) * s[5]
+        yaw_rate = 2 * (x * z - w * y) * s[10] + 2 * (y * z + w * x) * s[11]
+        yaw_rate += (1 - 2 * (x * x + y * y)) * s[12]
+        tail[b, 0] = min(max(heading, -1.0), 1.0)
+        tail[b, 1] = min(max((forward - k[6]) / k[7], -1.0), 1.0)
+        tail[b, 2] = min(max(yaw_rate / k[8], -1.0), 1.0)
+
+
+class RenderedRows:
+    """The OpenGL renderer's depth centre rows for many poses, drawn one pose after the other."""
+
+    def __init__(self, cfg: SimConfig, scene: Any) -> None:
+        from droneulator.render.renderer import Renderer
+
+        self.renderer = Renderer(scene, cfg.render.cameras, shadows=False)
+
+    def rows(self, poses: np.ndarray) -> np.ndarray:
+        out = []
+        for T in poses:
+            depth = self.renderer.render(T, rgb=False)[CAMERA_NAME].depth
+            out.append(depth[depth.shape[0] // 2].copy())
+        return np.array(out).reshape(len(poses), -1)
+
+    def close(self) -> None:
+        self.renderer.close()
+
+
+class CastRows:
+    """Depth centre rows for many poses by ray casting (:mod:`droneulator.render.raycast`)."""
+
+    def __init__(self, cfg: SimConfig, scene: Any) -> None:
+        from droneulator.render.raycast import DepthCaster
+
+        self.caster = DepthCaster(scene, cfg.render.cameras[0])
+
+    def rows(self, poses: np.ndarray) -> np.ndarray:
+        return self.caster.centre_row(poses)
+
+    def close(self) -> None:
+        """Nothing to release: the caster holds arrays only."""
+
+
+def depth_rows(cfg: SimConfig, scene: Any, source: str) -> RenderedRows | CastRows:
+    """The depth source named ``source`` (:data:`DEPTH_SOURCES`)."""
+    if source == "render":
+        return RenderedRows(cfg, scene)
+    if source == "raycast":
+        return CastRows(cfg, scene)
+    raise ValueError(f"depth must be one of {', '.join(DEPTH_SOURCES)}, got {source!r}")
+
+
+class VineyardNavVectorEnv(VectorEnv):
+    """B vineyard navigation tasks in one process (see the module docstring).
+
+    ``num_envs``: B; ``config``: a :class:`SimConfig` (its ``rl`` section and vehicle settings, as the
+    single env); ``depth``: ``"raycast"`` or ``"render"``; ``autoreset_mode``: an
+    :class:`~gymnasium.vector.AutoresetMode` (or its value); further keyword arguments replace fields of
+    ``config.rl``.
+
+    Memory: each env holds its goal's distance field (float64), next-node chain (int32) and reachability
+    over the occupancy grid, about 2 MB on the vineyard at the default 0.1 m grid.
+    """
+
+    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": [], "render_fps": 30}
+
+    def __init__(
+        self,
+        num_envs: int = 1,
+        config: SimConfig | None = None,
+        depth: str = "raycast",
+        autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+        **rl_overrides: Any,
+    ) -> None:
+        if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        mode = AutoresetMode(autoreset_mode)
+        if mode == AutoresetMode.DISABLED:
+            raise ValueError("autoreset_mode must be NEXT_STEP or SAME_STEP")
+        self.metadata = {**self.metadata, "autoreset_mode": mode}
+        self.autoreset_mode = mode
+        cfg = env_config(config, **rl_overrides)
+        self.config = cfg
+        self.num_envs = n = int(num_envs)
+        self.worlds = BatchedWorlds(cfg, n)
+        self.scene = self.worlds.scene
+        self.tasks = [NavTask(cfg, self.scene) for _ in range(n)]
+        task = self.tasks[0]
+        self.single_observation_space = task.observation_space
+        self.single_action_space = task.action_space
+        self.observation_space = batch_space(self.single_observation_space, n)
+        self.action_space = batch_space(self.single_action_space, n)
+        rl = cfg.rl
+        self._k = np.array([
+            rl.progress_scale, rl.step_penalty, rl.goal_reward, rl.collision_penalty, rl.goal_radius,
+            rl.lookahead if rl.heading == "path" else 0.0, task._mid, task._half, rl.max_yaw_rate,
+        ])  # fmt: skip
+        grid = task.grid
+        self._grid = grid
+        self._near = (grid.nearest[0].astype(np.int64), grid.nearest[1].astype(np.int64))
+        self._values = np.zeros((n, *grid.shape))
+        self._next = np.zeros((n, *grid.shape), dtype=np.int32)
+        self._reach = np.zeros((n, *grid.shape), dtype=bool)
+        self._goal = np.zeros((n, 2))
+        self._d = np.zeros(n)
+        self._steps = np.zeros(n, dtype=np.int64)
+        self._max_steps = np.zeros(n, dtype=np.int64)
+        self._rngs = [np.random.default_rng() for _ in range(n)]
+        self._obs = np.zeros((n, self.single_observation_space.shape[0]), dtype=np.float32)
+        self._done = np.zeros(n, dtype=bool)
+        self._commands = np.zeros((n, 2))
+        self._reset_called = False
+        # per-step outputs of the compiled task step, reused
+        self._reward = np.zeros(n)
+        self._reason = np.zeros(n, dtype=np.int64)
+        self._tail = np.zeros((n, 3))
+        self._dist = np.zeros(n)
+        self._goal_dist = np.zeros(n)
+        self.depth_source = depth_rows(cfg, self.scene, depth)
+
+    # ------------------------------------------------------------------ helpers
+    def _reset_envs(self, idx: np.ndarray, options: dict[str, Any] | None) -> None:
+        """Sample (or take from ``options``) a task for each env of ``idx``, place its vehicle there and
+        fill ``_obs`` rows and the reset part of the info arrays."""
+        opts = options or {}
+        rl = self.config.rl
+        begun = []
+        for i in idx:
+            task = self.tasks[i]
+            if "start" in opts or "goal" in opts:
+                begun.append(task.given_task(opts))
+            else:
+                begun.append(task.sample_task(self._rngs[i]))
+        positions = np.array([(start[0], start[1], rl.altitude) for start, *_ in begun]).reshape(-1, 3)
+        self.worlds.place(idx, positions, np.array([yaw for _, yaw, *_ in begun]))
+        for i, (start, yaw, goal, field) in zip(idx, begun, strict=True):
+            kin = self._kinematics(int(i), 0)
+            task = self.tasks[i]
+            task.begin(start, yaw, goal, field, kin)
+            self._values[i] = field.values
+            self._next[i] = field.next
+            self._reach[i] = field.reachable
+            self._goal[i] = task.goal
+            self._d[i] = self._dist[i] = task.initial_distance
+            self._goal_dist[i] = math.hypot(*(kin.position[:2] - task.goal))
+            self._steps[i] = 0
+            self._max_steps[i] = task.max_steps
+            self._obs[i, STRIP_SAMPLES:] = task.tail(kin)
+            task.field = None  # its arrays live in this env's rows now
+        self._reason[idx] = 0
+        self._reward[idx] = 0.0
+        self._commands[idx] = 0.0
+        self._strips(idx, self.worlds.states)
+
+    def _kinematics(self, i: int, t_ns: int) -> Kinematics:
+        row = self.worlds.states[i]
+        return Kinematics(t_ns / NS, row[STATE.x].copy(), row[STATE.q].copy(), row[STATE.v].copy(),
+                          row[STATE.w].copy(), "hold")  # fmt: skip
+
+    def _strips(self, idx: np.ndarray, rows: np.ndarray) -> None:
+        """The depth strips of envs ``idx`` at the states ``rows[idx]`` into ``_obs``."""
+        if len(idx) == 0:
+            return
+        poses = transforms_from_poses(rows[idx, 0:3], rows[idx, 6:10])
+        self._obs[idx, :STRIP_SAMPLES] = strips(self.depth_source.rows(poses), self.config.rl.depth_clip)
+
+    def _infos(self, rows: np.ndarray, t: np.ndarray, mask: np.ndarray) -> dict[str, Any]:
+        """The single env's info keys as arrays (Gymnasium's vector form, every env present)."""
+        q = rows[:, 6:10]
+        yaw = np.arctan2(2 * (q[:, 3] * q[:, 2] + q[:, 0] * q[:, 1]), 1 - 2 * (q[:, 1] ** 2 + q[:, 2] ** 2))
+        termination = np.array([REASONS[r] for r in self._reason], dtype=object)
+        info = {
+            "t": t.astype(float),
+            "position": rows[:, 0:3].copy(),
+            "yaw": yaw,
+            "command": self._commands.copy(),
+            "distance": self._dist.copy(),
+            "goal_distance": self._goal_dist.copy(),
+            "termination": termination,
+            "is_success": self._reason == REASONS.index("goal"),
+        }
+        out: dict[str, Any] = {}
+        for key, value in info.items():
+            out[key], out[f"_{key}"] = value, mask.copy()
+        return out
+
+    # ------------------------------------------------------------------ gymnasium API
+    def reset(
+        self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        n = self.num_envs
+        if seed is None:
+            seeds: list[int | None] = [None] * n
+        elif isinstance(seed, (int, np.integer)):
+            seeds = [int(seed) + i for i in range(n)]
+        else:
+            seeds = list(seed)
+            if len(seeds) != n:
+                raise ValueError(f"reset got {len(seeds)} seeds for {n} environments")
+        for i, s in enumerate(seeds):
+            if s is not None or not self._reset_called:
+                self._rngs[i], _ = gym.utils.seeding.np_random(s)
+        self._reset_called = True
+        self._reset_envs(np.arange(n), options)
+        self._done[:] = False
+        infos = self._infos(self.worlds.states, np.zeros(n), np.ones(n, dtype=bool))
+        return self._obs.copy(), infos
+
+    def step(
+        self, actions: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        if not self._reset_called:
+            raise RuntimeError("call reset() before step()")
+        n = self.num_envs
+        a = np.asarray(actions, dtype=np.float64)
+        if a.shape != (n, 2) or not np.all(np.isfinite(a)):
+            raise ValueError(f"actions must be finite numbers of shape ({n}, 2), got shape {a.shape}")
+        next_step = self.autoreset_mode == AutoresetMode.NEXT_STEP
+        resetting = self._done.copy() if next_step else np.zeros(n, dtype=bool)
+        run = ~resetting
+        idx = np.flatnonzero(run)
+        k = self._k
+        a = np.clip(a, -1.0, 1.0)
+        self._commands[:, 0] = k[6] + a[:, 0] * k[7]
+        self._commands[:, 1] = a[:, 1] * k[8]
+        self.worlds.velocity(idx, self._commands[idx, 0], self._commands[idx, 1])
+        cam, hit = self.worlds.step_frame(run)
+        t = self.worlds.frame_t_ns() / NS
+        g = self._grid
+        _nav_rows(
+            run, cam, hit, self._values, self._next, self._reach, g.free, self._near[0], self._near[1],
+            g.origin, g.resolution, self._goal, self._d, self._steps, self._max_steps,
+            self.scene.bounds_min[:2], self.scene.bounds_max[:2], k, self._reward, self._reason, self._tail,
+            self._dist, self._goal_dist,
+        )  # fmt: skip
+        self._obs[idx, STRIP_SAMPLES:] = self._tail[idx]
+        self._strips(idx, cam)
+        rewards = np.where(run, self._reward, 0.0)
+        reason = np.where(run, self._reason, 0)
+        truncated = reason == REASONS.index("time_limit")
+        terminated = (reason != 0) & ~truncated
+        done = terminated | truncated
+        infos = self._infos(cam, t, np.ones(n, dtype=bool))
+        if not next_step and done.any():
+            final_obs = np.full(n, None, dtype=object)
+            for i in np.flatnonzero(done):
+                final_obs[i] = self._obs[i].copy()
+            final_info = {
+                key: done.copy() if key.startswith("_") else value.copy() for key, value in infos.items()
+            }
+            resetting = done
+        if resetting.any():
+            ridx = np.flatnonzero(resetting)
+            self._reset_envs(ridx, None)
+            fresh = self._infos(self.worlds.states, np.zeros(n), resetting)
+            for key, value in fresh.items():
+                if not key.startswith("_"):
+                    infos[key][ridx] = value[ridx]
+        if not next_step and done.any():
+            infos["final_obs"], infos["_final_obs"] = final_obs, done.copy()
+            infos["final_info"], infos["_final_info"] = final_info, done.copy()
+        self._done = done if next_step else np.zeros(n, dtype=bool)
+        return self._obs.copy(), rewards, terminated, truncated, infos
+
+    def close_extras(self, **kwargs: Any) -> None:
+        source = getattr(self, "depth_source", None)
+        if source is not None:
+            source.close()
+            self.depth_source = None  # type: ignore[assignment]
