@@ -35,6 +35,8 @@ from droneulator.world.world import NS
 #: slewed (2) and filtered (2) command
 _VP, _VALT, _VYAW, _VCMD, _VSLEW, _VFILT = 0, 3, 4, 5, 7, 9
 VREF_SIZE = 11
+#: where the attitude quaternion starts in the packed state (a plain int for the compiled kernels)
+_Q = STATE.q.start
 #: flight modes of a copy
 HOLD, VELOCITY = 0, 1
 
@@ -107,7 +109,7 @@ def _step_copy(
                         s[j] = 0.0
                     for j in range(10, 13):
                         s[j] = 0.0
-                    set_quat_from_yaw(s[6:10], yaw_of_nb(s[6:10]))
+                    set_quat_from_yaw(s[_Q : _Q + 4], yaw_of_nb(s[_Q : _Q + 4]))
             t_ns[b] = t_next
             if t_ns[b] == next_frame[b]:
                 for j in range(STATE_SIZE):
