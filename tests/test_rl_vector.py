@@ -47,9 +47,9 @@ def rollout_single(env: VineyardNavEnv, seed: int, actions: np.ndarray) -> dict[
     return out
 
 
-@pytest.mark.parametrize("depth", ["render", "raycast"])
-def test_each_env_equals_the_single_env_over_long_rollouts_with_autoresets(depth):
-    n, steps = 4, 500  # 2,000 env steps, several autoresets
+@pytest.mark.parametrize(("depth", "steps"), [("raycast", 500), ("render", 200)])
+def test_each_env_equals_the_single_env_over_long_rollouts_with_autoresets(depth, steps):
+    n = 4  # 2,000 env steps (800 with the slower rendered depth), several autoresets
     actions = np.random.default_rng(7).uniform(-1, 1, (steps, n, 2)).astype(np.float32)
     venv = gym.make_vec(rl.ENV_ID, num_envs=n, depth=depth)
     assert isinstance(venv, VineyardNavVectorEnv)
@@ -74,7 +74,7 @@ def test_each_env_equals_the_single_env_over_long_rollouts_with_autoresets(depth
             episodes += sum(one["terminated"]) + sum(one["truncated"])
     finally:
         env.close()
-    assert episodes >= 4, "the rollouts must cross autoresets"
+    assert episodes >= steps // 125, "the rollouts must cross autoresets"
 
 
 @pytest.fixture(scope="module")
@@ -184,7 +184,7 @@ def test_short_batched_ppo_run_writes_model_logs_and_checks_and_evaluate_draws_f
     out = tmp_path / "run"
     args = ["train", "--num-envs", "16", "--algo", "ppo", "--steps", "4096", "--out", str(out)]
     args += ["--no-progress", "--checkpoint-every", "2048", "--seed", "2", "--stop-at", "1.0"]
-    assert main([*args, "--check-every", "2048"]) == 0
+    assert main([*args, "--check-every", "4096"]) == 0
     for name in ("model.zip", "monitor.csv", "progress.csv", "config.json", "train_summary.json"):
         assert (out / name).stat().st_size > 0, name
     assert list((out / "tb").glob("events.out.tfevents.*"))
@@ -193,7 +193,7 @@ def test_short_batched_ppo_run_writes_model_logs_and_checks_and_evaluate_draws_f
     assert summary["algo"] == "ppo" and summary["vec"] == "native" and summary["depth"] == "raycast"
     assert summary["steps"] >= 4096 and summary["n_envs"] == 16
     assert summary["train_seeds"] == list(range(2, 18))
-    assert [c["steps"] for c in summary["checks"]] == [2048, 4096]
+    assert [c["steps"] for c in summary["checks"]] == [4096]
     assert all(0 <= c["successes"] <= 10 for c in summary["checks"])
     monitor = (out / "monitor.csv").read_text().splitlines()
     assert monitor[1].startswith("r,l,t") and len(monitor) > 2  # episodes of the batched envs were logged
