@@ -223,3 +223,29 @@ def test_train_rejects_bad_batched_settings_in_one_line(capsys):
     assert "SAC setting" in capsys.readouterr().err
     assert main(["train", "--num-envs", "4", "--stop-at", "1.5"]) == 2
     assert "stop_at" in capsys.readouterr().err
+
+
+def test_a_batched_world_that_hits_a_row_stays_there_and_takes_no_command():
+    from droneulator.workflows.rl.env import env_config
+    from droneulator.world.batched import COLLIDED, VELOCITY, BatchedWorlds
+
+    worlds = BatchedWorlds(env_config(), 2)
+    # copy 0 faces the vine row beside its alley, copy 1 flies along the alley
+    worlds.place(np.arange(2), np.array([[-8.0, 0.0, 1.5], [-8.0, 0.0, 1.5]]), np.array([np.pi / 2, 0.0]))
+    worlds.velocity(None, np.array([2.0, 2.0]), np.zeros(2))
+    for _ in range(90):
+        _, hit = worlds.step_frame()
+        if hit[0]:
+            break
+    assert hit[0] and not hit[1] and worlds.mode.tolist() == [COLLIDED, VELOCITY]
+    stopped = worlds.states[0].copy()
+    assert np.allclose(stopped[3:6], 0.0)  # stopped where it touched, level
+    t0 = worlds.frame_t_ns().copy()
+    states, hit = worlds.step_frame()
+    assert np.array_equal(states[0], stopped) and not hit[0]  # not integrated further
+    assert (worlds.frame_t_ns() - t0).tolist() == [worlds.camera_ns] * 2  # its clock goes on
+    with pytest.raises(ValueError, match="collided"):
+        worlds.velocity(np.array([0]), np.array([1.0]), np.array([0.0]))
+    worlds.velocity(np.array([1]), np.array([1.0]), np.array([0.0]))  # the other copy flies on
+    with pytest.raises(ValueError, match="\\|forward\\|"):
+        worlds.velocity(np.array([1]), np.array([99.0]), np.array([0.0]))

@@ -21,7 +21,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--algo",
         choices=("sac", "ppo"),
         default=None,
-        help="algorithm (default sac; ppo fits the batched env worse here, see docs/rl.md)",
+        help="algorithm (default sac; ppo is there to compare, see docs/rl.md)",
     )
     p.add_argument("--steps", type=int, default=50_000, help="environment steps (default 50000)")
     p.add_argument(

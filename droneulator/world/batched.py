@@ -37,8 +37,8 @@ _VP, _VALT, _VYAW, _VCMD, _VSLEW, _VFILT = 0, 3, 4, 5, 7, 9
 VREF_SIZE = 11
 #: where the attitude quaternion starts in the packed state (a plain int for the compiled kernels)
 _Q = STATE.q.start
-#: flight modes of a copy
-HOLD, VELOCITY = 0, 1
+#: flight modes of a copy (a collided copy stays where it stopped until placed again)
+HOLD, VELOCITY, COLLIDED = 0, 1, 2
 
 
 @numba.njit(cache=True)
@@ -78,11 +78,11 @@ def _step_copy(
 ):  # fmt: skip
     """Step copy ``b`` one control period at a time up to the end of the period holding its next camera
     instant, as :meth:`World.step` does: the reference for the period, the SE(3) command, then RK4 split at
-    the camera instant, where the state is copied to ``cam[b]``. A copy that touches the scene stops there
-    (``hit[b]``) and is not integrated further."""
+    the camera instant, where the state is copied to ``cam[b]``. A copy that touches the scene stops there,
+    level (``hit[b]``, mode collided) and is not integrated further; its clock goes on."""
     s = states[b]
     dt = period_ns / NS
-    alive = True
+    alive = mode[b] != COLLIDED
     hit[b] = False
     while True:
         if mode[b] == VELOCITY:
@@ -104,6 +104,7 @@ def _step_copy(
                 if integrate(s, cmd[b], h, n_sub, P, G, D, sdf, origin, res, radius, out[b], work[b], R[b]):
                     hit[b] = True
                     alive = False
+                    mode[b] = COLLIDED
                     # Vehicle.on_collision: it stops where it is, level
                     for j in range(3, 6):
                         s[j] = 0.0
@@ -216,6 +217,8 @@ class BatchedWorlds:
             raise ValueError("forward and yaw_rate must be finite numbers")
         if np.any(np.abs(f) > self.max_speed) or np.any(np.abs(r) > math.pi):
             raise ValueError(f"need |forward| <= {self.max_speed} m/s and |yaw_rate| <= pi rad/s")
+        if np.any(self.mode[rows] == COLLIDED):
+            raise ValueError("a collided copy takes no command until it is placed again")
         entering = rows[self.mode[rows] != VELOCITY]
         for b in entering:
             v, hold = self._vref[b], self._hold[b]

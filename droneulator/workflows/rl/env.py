@@ -98,7 +98,8 @@ def strips(rows: np.ndarray, clip: float, samples: int = STRIP_SAMPLES) -> np.nd
 
 
 class LocalBackend:
-    """An in-process simulator (physics only, camera instants scheduled) plus a depth-only renderer."""
+    """An in-process simulator (physics only, camera instants scheduled) plus a depth-only renderer, or
+    the ray caster that gives the same depth (``depth="raycast"``)."""
 
     def __init__(self, cfg: SimConfig, depth: str = "render") -> None:
         from droneulator.sim.simulator import Simulator
