@@ -32,7 +32,8 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         type=int,
         default=None,
         metavar="B",
-        help="B batched worlds in this process (the native vector env, depth by ray casting; e.g. 256)",
+        help="B batched worlds in this process (the native vector env, depth by ray casting; e.g. 16 for "
+        "SAC, 256 for PPO)",
     )
     p.add_argument(
         "--depth",
@@ -50,7 +51,10 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "every --check-every steps (the checks' time is not counted as training time)",
     )
     p.add_argument(
-        "--check-every", type=int, default=100_000, help="steps between --stop-at checks (default 100000)"
+        "--check-every",
+        type=int,
+        default=None,
+        help="steps between --stop-at checks (default 10000 for SAC, 100000 for PPO)",
     )
     p.add_argument(
         "--vec",
@@ -88,7 +92,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         vec="native" if native else args.vec,
         depth=args.depth,
         stop_at=args.stop_at,
-        check_every=args.check_every,
+        check_every=args.check_every or (10_000 if algo == "sac" else 100_000),
         checkpoint_every=args.checkpoint_every,
         threads=args.threads,
         progress=not args.no_progress,
