@@ -160,7 +160,9 @@ def _astar(free: np.ndarray, si: int, sj: int, gi: int, gj: int) -> tuple[float,
 
 
 @numba.njit(cache=True)
-def _bilinear(values: np.ndarray, fx: float, fy: float) -> float:
+def bilinear(values: np.ndarray, fx: float, fy: float) -> float:
+    """``values`` (a node grid) at continuous node coordinates, bilinearly; used by
+    :meth:`DistanceField.distance` and the batched env's compiled step alike."""
     nx, ny = values.shape
     i = min(max(int(math.floor(fx)), 0), nx - 2)
     j = min(max(int(math.floor(fy)), 0), ny - 2)
@@ -291,7 +293,7 @@ class DistanceField:
         fx, fy = g.fractional(p)
         cx, cy = min(max(fx, 0.0), nx - 1.0), min(max(fy, 0.0), ny - 1.0)
         outside = math.hypot(fx - cx, fy - cy) * g.resolution
-        return float(_bilinear(self.values, cx, cy)) + outside
+        return float(bilinear(self.values, cx, cy)) + outside
 
     def is_reachable(self, p: np.ndarray) -> bool:
         i, j = self.grid.node(p)
@@ -313,7 +315,7 @@ class DistanceField:
         fx, fy = g.fractional(p)
         if not g.free[g.node(p)]:
             fx, fy = float(i), float(j)
-        a, b, reached = _carrot(g.free, self.next, i, j, fx, fy, length / g.resolution)
+        a, b, reached = carrot(g.free, self.next, i, j, fx, fy, length / g.resolution)
         return self.goal.copy() if reached else g.point(a, b)
 
 
@@ -329,7 +331,7 @@ def _line_of_sight(free: np.ndarray, fx: float, fy: float, tx: float, ty: float)
 
 
 @numba.njit(cache=True)
-def _carrot(
+def carrot(
     free: np.ndarray, nxt: np.ndarray, i: int, j: int, fx: float, fy: float, length: float
 ) -> tuple[int, int, bool]:
     """Walk the next-node chain from (i, j) up to ``length`` cells; returns the farthest node in line

@@ -35,7 +35,7 @@ from gymnasium.vector.utils import batch_space
 from droneulator.config import SimConfig
 from droneulator.frames import transforms_from_poses
 from droneulator.state import STATE
-from droneulator.workflows.rl.astar import _bilinear, _carrot
+from droneulator.workflows.rl.astar import bilinear, carrot
 from droneulator.workflows.rl.backend import CAMERA_NAME, Kinematics
 from droneulator.workflows.rl.env import DEPTH_SOURCES, STRIP_SAMPLES, NavTask, env_config, strips
 from droneulator.world.batched import BatchedWorlds
@@ -69,7 +69,7 @@ def _nav_rows(
         # distance along the shortest path (DistanceField.distance)
         fx, fy = (px - origin[0]) / res, (py - origin[1]) / res
         cx, cy = min(max(fx, 0.0), nx - 1.0), min(max(fy, 0.0), ny - 1.0)
-        d = _bilinear(values[b], cx, cy) + math.hypot(fx - cx, fy - cy) * res
+        d = bilinear(values[b], cx, cy) + math.hypot(fx - cx, fy - cy) * res
         steps[b] += 1
         r = k[0] * (d_prev[b] - d) - k[1]
         d_prev[b] = d
@@ -101,7 +101,7 @@ def _nav_rows(
                 ax, ay = fx, fy
                 if not free[_node(fx, fy, nx, ny)]:
                     ax, ay = float(i), float(j)
-                a, c, reached = _carrot(free, nxt[b], i, j, ax, ay, k[5] / res)
+                a, c, reached = carrot(free, nxt[b], i, j, ax, ay, k[5] / res)
                 if not reached:
                     tx, ty = origin[0] + a * res, origin[1] + c * res
         # the observation tail (NavTask.tail)
