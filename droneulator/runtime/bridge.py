@@ -63,6 +63,8 @@ class Bridge:
         self.ring = ring
         self.conn = conn
         self.frames = FramePublisher(node, cfg, images_policy(cfg))
+        self._publishing = False
+        self._stop = False
         self._latency: IO[str] | None = None
         if cfg.bridge.latency_log:
             self._latency = open(cfg.bridge.latency_log, "a", buffering=1)  # noqa: SIM115  (one write a line)
@@ -71,15 +73,27 @@ class Bridge:
         assert self._latency is not None
         self._latency.write(f"{stream} {stamp_ns} {time.time_ns()}\n")
 
+    def on_signal(self, *_: object) -> None:
+        """SIGTERM/SIGINT: exit at once between frames; mid-frame, finish the frame set first, so a
+        recording never ends with one topic of a frame and not the others."""
+        if self._publishing:
+            self._stop = True
+        else:
+            os._exit(0)
+
     def serve(self) -> None:
+        """Until the hub goes or a stop signal arrives; returns so the caller closes the Zenoh session
+        (flushing what was put) after the last whole frame set."""
         mark = self._mark if self._latency is not None else None
-        while True:
+        while not self._stop:
             try:
                 msg = self.conn.recv()
             except (EOFError, OSError):
                 return
             if isinstance(msg, Publish):
+                self._publishing = True
                 self.frames.publish(msg.states, self.ring.slot(msg.seq), mark)
+                self._publishing = False
                 try:
                     self.conn.send(Published(msg.seq))
                 except OSError:
@@ -103,6 +117,8 @@ def main() -> None:
     ring = FrameRing(os.environ[ENV_RING], cfg.camera_rigs(), cfg.runtime.frame_slots)
     with open_bridge_node(cfg, os.environ.get(ENV_ZENOH)) as node:
         bridge = Bridge(cfg, node, ring, conn)
+        signal.signal(signal.SIGTERM, bridge.on_signal)
+        signal.signal(signal.SIGINT, bridge.on_signal)
         log.info(
             "bridge ready: cameras on /%s, %s keys, images %s",
             cfg.bridge.namespace,
