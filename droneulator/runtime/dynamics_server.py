@@ -62,8 +62,14 @@ STATIC_TF_PERIOD_S = 1.0
 
 
 def open_zenoh_hub(cfg: SimConfig, private_endpoint: str | None) -> RosZenohNode:
-    """The run's main Zenoh session: the user's settings, plus the private endpoint the bridge connects to."""
-    if private_endpoint and cfg.bridge.mode != "client":
+    """The run's main Zenoh session: the user's settings, plus the private endpoint the bridge connects to.
+
+    A client (``bridge.mode=client``) is a leaf of the routers in ``bridge.connect`` and listens on
+    nothing: a Zenoh client session would otherwise still bind ``bridge.listen``, which no one reaches
+    through a leaf and which stops the run from starting when the port is taken."""
+    if cfg.bridge.mode == "client":
+        return RosZenohNode.from_config(cfg.bridge, listen=())
+    if private_endpoint:
         return RosZenohNode.from_config(cfg.bridge, listen=(*cfg.bridge.listen, private_endpoint))
     return RosZenohNode.from_config(cfg.bridge)
 
