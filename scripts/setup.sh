@@ -7,7 +7,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 extras="."
-[[ "${1:-}" == "--dev" ]] && extras=".[dev,colmap,rl,ros]"
+[[ "${1:-}" == "--dev" ]] && extras=".[dev,colmap,rl,ros,ray]"
 
 debs=(python3 python3-venv python3-dev libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri)
 # --dev: the browser UI's tests drive Debian's Chromium with Playwright (tests/test_ui.py)

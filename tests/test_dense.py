@@ -337,7 +337,8 @@ def test_leaf_cards_are_sampled_only_where_they_are_opaque(tree_truth):
 def test_capture_sparse_dense_and_score_end_to_end(tmp_path: Path):
     pytest.importorskip("pycolmap")
     from droneulator.config import load_config
-    from droneulator.workflows.photogrammetry.capture import capture
+    from droneulator.scenes import get_scene
+    from droneulator.workflows.photogrammetry.capture import aim_pitch, capture
     from droneulator.workflows.photogrammetry.dense import DenseOptions
     from droneulator.workflows.photogrammetry.mvs import MvsOptions as Mvs
     from droneulator.workflows.photogrammetry.reconstruct import ReconstructOptions, reconstruct
@@ -349,6 +350,11 @@ def test_capture_sparse_dense_and_score_end_to_end(tmp_path: Path):
          "capture.altitudes=[4.0]", "render.shadow_map_size=1024"],
         scene="tree_inspection",
     )  # fmt: skip
+    # the camera's aim at the crown from the scene's own landmarks, so no probe run is started to ask the
+    # simulator for them (test_photogrammetry's end-to-end capture covers the probe)
+    scene = get_scene(cfg.scene, cfg.seed)
+    landmarks = {k: v.tolist() for k, v in scene.landmarks.items()}
+    cfg.capture.pitch_deg = aim_pitch(cfg.capture, {"landmarks": landmarks})
     meta = capture(cfg, out, progress=False)
     assert meta["complete"]
     assert (out / "truth" / "mesh.npz").is_file()

@@ -377,7 +377,7 @@ def test_killed_render_server_is_restarted_and_the_flight_goes_on(run):
 
 
 def test_lockstep_loses_no_image_to_a_slow_subscriber():
-    """3 s of lockstep at 640x480 with a subscriber that spends 40 ms on every depth image (slower than
+    """2 s of lockstep at 640x480 with a subscriber that spends 40 ms on every depth image (slower than
     the 30 Hz camera): the clock waits for it, and every colour, depth and segmentation image arrives,
     stamps contiguous at the camera rate."""
     r = Run("orchard", cam=CameraConfig(name="front", width=640, height=480))
@@ -399,9 +399,9 @@ def test_lockstep_loses_no_image_to_a_slow_subscriber():
     try:
         subs = [session.declare_subscriber(k, slow(k)) for k in images]
         c = r.client
-        t_end = c.state()["t"] + 3.0
+        t_end = c.state()["t"] + 2.0
         wall0 = time.monotonic()
-        r.wait_for(lambda: c.state()["t"] >= t_end, 120, "3 s of sim time")
+        r.wait_for(lambda: c.state()["t"] >= t_end, 120, "2 s of sim time")
         wall = time.monotonic() - wall0
         last = c.state()["stamp_ns"] - 100_000_000
         r.wait_for(lambda: all(stamps[k] and stamps[k][-1] >= last for k in images), 60, "the subscriber")
@@ -413,11 +413,11 @@ def test_lockstep_loses_no_image_to_a_slow_subscriber():
     period = round(1e9 / 30)
     for k in images:
         got = np.array(stamps[k])
-        assert got[-1] - got[0] >= 2.5e9, k  # the subscription matches a few frames into the window
+        assert got[-1] - got[0] >= 1.5e9, k  # the subscription matches a few frames into the window
         gaps = np.diff(got)
         bad = gaps[gaps != period]
         assert bad.size == 0, f"{k}: {bad.size} gaps in the stamps, e.g. {bad[:5]} ns"
-    assert wall >= 0.9 * 90 * 0.04  # the clock waited for the subscriber (90 frames, 40 ms each)
+    assert wall >= 0.9 * 60 * 0.04  # the clock waited for the subscriber (60 frames, 40 ms each)
 
 
 def test_sigterm_stops_everything_within_2s():

@@ -25,17 +25,19 @@ from droneulator.cli import (
     scenes,
     score,
     snapshot,
+    sweep,
     train,
     ui,
 )
 from droneulator.cli.common import PIP_ONLY
+from droneulator.runtime.cluster import ClusterError
 from droneulator.runtime.preflight import StartupError
 from droneulator.runtime.spawn import CHILD_COMMAND, frozen, run_child
 
 #: the subcommands, in the order ``droneulator --help`` lists them
 COMMANDS = (
     scenes, snapshot, demo, run, ui, record, replay,
-    capture, reconstruct, score, train, evaluate, plan, config,
+    capture, reconstruct, score, sweep, train, evaluate, plan, config,
 )  # fmt: skip
 
 
@@ -64,6 +66,9 @@ def main(argv: list[str] | None = None) -> int:
     except StartupError as exc:
         print(f"droneulator: error: {exc}", file=sys.stderr)
         return exc.exit_code
-    except (ValueError, FileNotFoundError) as exc:
+    except (ValueError, FileNotFoundError, FileExistsError) as exc:
         print(f"droneulator: error: {exc}", file=sys.stderr)
         return 2
+    except ClusterError as exc:
+        print(f"droneulator: error: {exc}", file=sys.stderr)
+        return 1

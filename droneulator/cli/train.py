@@ -1,4 +1,5 @@
-"""``droneulator train``: SAC or PPO on the vineyard navigation environment (needs the rl extra)."""
+"""``droneulator train``: SAC or PPO on the vineyard navigation environment (needs the rl extra), with
+Stable-Baselines3 in this process or, with ``--ray``, Ray RLlib across a cluster (the ray extra)."""
 
 from __future__ import annotations
 
@@ -6,22 +7,27 @@ import argparse
 from pathlib import Path
 
 from droneulator.cli.common import add_rl_config_args
+from droneulator.config import SimConfig
 from droneulator.runtime import preflight
 
 
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "train",
-        help="train SAC or PPO on droneulator/VineyardNav-v0 with Stable-Baselines3 (needs the rl extra)",
+        help="train SAC or PPO on droneulator/VineyardNav-v0 with Stable-Baselines3 (the rl extra), or on "
+        "Ray RLlib with --ray (the ray extra too)",
         description="Train SAC (or PPO) on the vineyard navigation environment: single environments, or "
         "--num-envs B batched worlds in one process. Writes the final model, checkpoints, "
-        "monitor.csv, progress.csv, TensorBoard logs (tb/), config.json and train_summary.json to --out.",
+        "monitor.csv, progress.csv, TensorBoard logs (tb/), config.json and train_summary.json to --out. "
+        "With --ray: PPO (or SAC) on Ray RLlib, --env-runners runners of --num-envs worlds each, placed "
+        "by Ray over the cluster; writes checkpoint/, progress.csv, tb/ and train_summary.json "
+        "(see docs/cluster.md).",
     )
     p.add_argument(
         "--algo",
         choices=("sac", "ppo"),
         default=None,
-        help="algorithm (default sac; ppo is there to compare, see docs/rl.md)",
+        help="algorithm (default sac; with --ray ppo; see docs/rl.md and docs/cluster.md)",
     )
     p.add_argument("--steps", type=int, default=50_000, help="environment steps (default 50000)")
     p.add_argument(
@@ -33,7 +39,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         default=None,
         metavar="B",
         help="B batched worlds in this process (the native vector env, depth by ray casting; e.g. 16 for "
-        "SAC, 256 for PPO)",
+        "SAC, 256 for PPO); with --ray, in each env runner (default 64)",
     )
     p.add_argument(
         "--depth",
@@ -67,6 +73,25 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--checkpoint-every", type=int, default=10_000, help="checkpoint period in steps")
     p.add_argument("--threads", type=int, default=None, help="torch threads for the learner (default 1)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    ray = p.add_argument_group("on a Ray cluster (the ray extra)")
+    ray.add_argument(
+        "--ray",
+        default=None,
+        metavar="ADDRESS",
+        help="train on Ray RLlib: 'local' (start Ray here), 'auto' (the cluster this machine belongs to) "
+        "or the head node's HOST:PORT",
+    )
+    ray.add_argument("--env-runners", type=int, default=1, metavar="N", help="RLlib env runners (default 1)")
+    ray.add_argument(
+        "--learners",
+        type=int,
+        default=0,
+        metavar="N",
+        help="RLlib learners as Ray actors (default 0: the learner runs in this process)",
+    )
+    ray.add_argument(
+        "--resume", action="store_true", help="go on from --out's checkpoint to --steps in total"
+    )
     add_rl_config_args(p)
     p.set_defaults(func=cmd_train)
 
@@ -75,6 +100,10 @@ def cmd_train(args: argparse.Namespace) -> int:
     from droneulator.workflows.rl.train import train
 
     cfg = preflight.load(args.config, args.overrides, seed=args.scene_seed)
+    if args.ray is not None:
+        return _train_on_ray(args, cfg)
+    if args.resume or args.env_runners != 1 or args.learners:
+        raise ValueError("--resume, --env-runners and --learners go with --ray")
     native = args.num_envs is not None
     if native and args.num_envs < 1:
         raise ValueError(f"--num-envs must be at least 1, got {args.num_envs}")
@@ -110,4 +139,47 @@ def cmd_train(args: argparse.Namespace) -> int:
             if reached
             else f"the policy never reached {args.stop_at:.0%} of 10 held-out episodes"
         )
+    return 0
+
+
+def _train_on_ray(args: argparse.Namespace, cfg: SimConfig) -> int:
+    from droneulator.runtime.cluster import check_address
+    from droneulator.workflows.rl.rllib import train_on_ray
+
+    check_address(args.ray)
+    ignored = [
+        name
+        for name, given in (
+            ("--stop-at", args.stop_at is not None),
+            ("--envs", args.envs != 1),
+            ("--vec", args.vec != "auto"),
+            ("--learning-starts", args.learning_starts is not None),
+            ("--threads", args.threads is not None),
+        )
+        if given
+    ]
+    if ignored:
+        raise ValueError(f"{', '.join(ignored)}: not with --ray (see droneulator train --help)")
+    summary = train_on_ray(
+        cfg,
+        Path(args.out),
+        address=args.ray,
+        steps=args.steps,
+        seed=args.seed,
+        algo=args.algo or "ppo",
+        env_runners=args.env_runners,
+        num_envs=args.num_envs or 64,
+        depth=args.depth,
+        learners=args.learners,
+        checkpoint_every=args.checkpoint_every,
+        resume=args.resume,
+        progress=not args.no_progress,
+    )
+    print(
+        f"trained {summary['steps']} steps in {summary['wall_s']:.0f} s "
+        f"({summary['steps_per_s']:.0f} steps/s, {summary['env_runners']} env runner(s) x "
+        f"{summary['num_envs_per_env_runner']} worlds on "
+        f"{summary['ray_nodes']} Ray node(s)); {summary['held_out_successes']}/10 held-out episodes reached "
+        f"the goal; checkpoint: {summary['checkpoint']}"
+    )
     return 0

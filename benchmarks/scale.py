@@ -1,0 +1,168 @@
+"""Past one machine on Ray: what Ray costs and gives, against the same work without it, in one run.
+
+1. Training: PPO for ``--steps`` env steps on the batched vineyard env, ``--worlds`` worlds in all,
+   rollouts of 32 steps per world (a batch of worlds x 32), 5 epochs of minibatches of 2,048:
+   * without Ray: Stable-Baselines3 PPO on the native vector env in this process (``droneulator train
+     --num-envs``, the same settings);
+   * with Ray: ``droneulator train --ray`` (RLlib PPO, its current API stack) on a local multi-node
+     cluster of 1, 2 and 3 nodes (``ray.cluster_utils.Cluster``, one CPU each, as separate raylets),
+     one env runner per node, the worlds split between them; the learner in this process.
+   Reported: env steps/s over the run and training wall time, Ray's overhead as the ratio to the run
+   without Ray, and the env's own speed (random actions, no learning) for scale.
+2. Sweeps: ``droneulator sweep capture`` of ``--jobs`` small captures (160x120, 3 views, seeds 0..)
+   on a local Ray with 2 CPUs: 1 worker (2 CPUs per job) against 2 workers (1 CPU per job); jobs/hour.
+
+On this project's 2-core machine nodes beyond 2 share cores: the 3-node figure shows the cost of
+oversubscription, not of Ray. The 16-core curve (1-16 env runners) needs a bigger machine.
+
+Reproduce: ``python benchmarks/scale.py`` (about 10 min on 2 cores; ``--quick`` for a smoke run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from _common import write
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def env_speed(worlds: int, steps: int) -> float:
+    """Env steps/s of the batched env alone: random actions, autoresets, no learning."""
+    from droneulator.workflows.rl.vector import VineyardNavVectorEnv
+
+    env = VineyardNavVectorEnv(worlds)
+    env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    for _ in range(20):  # compile and warm up
+        env.step(rng.uniform(-1, 1, (worlds, 2)).astype(np.float32))
+    n = max(1, steps // worlds)
+    t0 = time.perf_counter()
+    for _ in range(n):
+        env.step(rng.uniform(-1, 1, (worlds, 2)).astype(np.float32))
+    rate = n * worlds / (time.perf_counter() - t0)
+    env.close()
+    return rate
+
+
+def without_ray(worlds: int, steps: int, out: Path) -> dict[str, Any]:
+    from droneulator.workflows.rl.train import train
+
+    s = train(None, out, steps=steps, n_envs=worlds, algo="ppo", vec="native", progress=False)
+    return {"steps": s["steps"], "wall_s": s["wall_s"], "steps_per_s": s["steps_per_s"]}
+
+
+def with_ray(nodes: int, worlds: int, steps: int, out: Path) -> dict[str, Any]:
+    import ray
+    from ray.cluster_utils import Cluster
+
+    from droneulator.workflows.rl.rllib import train_on_ray
+
+    t0 = time.perf_counter()
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
+    for _ in range(nodes - 1):
+        cluster.add_node(num_cpus=1)
+    cluster.wait_for_nodes()
+    start_s = time.perf_counter() - t0
+    try:
+        t1 = time.perf_counter()
+        s = train_on_ray(
+            None, out, address=cluster.address, steps=steps, env_runners=nodes,
+            num_envs=worlds // nodes, progress=False,
+        )  # fmt: skip
+        total_s = time.perf_counter() - t1
+    finally:
+        if ray.is_initialized():
+            ray.shutdown()
+        cluster.shutdown()
+    return {
+        "nodes": s["ray_nodes"],
+        "env_runners": nodes,
+        "worlds_per_runner": worlds // nodes,
+        "steps": s["steps"],
+        "wall_s": s["wall_s"],
+        "steps_per_s": s["steps_per_s"],
+        "cluster_start_s": start_s,
+        "build_and_eval_s": total_s - s["wall_s"],
+    }
+
+
+def sweep_rate(workers: int, jobs: int, out: Path) -> dict[str, Any]:
+    cmd = [
+        sys.executable, "-m", "droneulator.cli", "sweep", "capture", "--out", str(out),
+        "--seeds", f"0-{jobs - 1}", "--views", "3", "--ray", "local", "--cpus-per-job", str(2 / workers),
+        "--no-progress", "--set", "capture.width=160", "--set", "capture.height=120",
+        "--set", "capture.arc_deg=30", "--set", "capture.speed=2", "--set", "capture.pitch_deg=10",
+    ]  # fmt: skip
+    t0 = time.perf_counter()
+    done = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+    wall = time.perf_counter() - t0
+    if done.returncode != 0:
+        raise RuntimeError(done.stdout + done.stderr)
+    return {"workers": workers, "jobs": jobs, "wall_s": wall, "jobs_per_hour": jobs * 3600 / wall}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--steps", type=int, default=40_960, help="env steps per training run")
+    ap.add_argument("--worlds", type=int, default=96, help="batched worlds in all (split over runners)")
+    ap.add_argument("--nodes", type=int, nargs="+", default=[1, 2, 3])
+    ap.add_argument("--jobs", type=int, default=4, help="capture jobs per sweep")
+    ap.add_argument("--quick", action="store_true", help="smoke run: few steps, 2 jobs")
+    ap.add_argument("--output", default=None)
+    args = ap.parse_args()
+    if args.quick:
+        args.steps, args.jobs, args.nodes = 6_144, 2, [1, 2]
+    tmp = Path(tempfile.mkdtemp(prefix="droneulator-scale-"))
+    try:
+        env = env_speed(args.worlds, 20_000)
+        print(f"env alone ({args.worlds} worlds, random actions): {env:,.0f} steps/s", flush=True)
+        base = without_ray(args.worlds, args.steps, tmp / "sb3")
+        print(f"no Ray (SB3 PPO): {base['steps_per_s']:,.0f} steps/s, {base['wall_s']:.1f} s", flush=True)
+        runs = []
+        for n in args.nodes:
+            r = with_ray(n, args.worlds, args.steps, tmp / f"ray{n}")
+            r["ratio_to_no_ray"] = r["steps_per_s"] / base["steps_per_s"]
+            runs.append(r)
+            print(
+                f"Ray, {n} node(s) (RLlib PPO): {r['steps_per_s']:,.0f} steps/s, {r['wall_s']:.1f} s "
+                f"({r['ratio_to_no_ray']:.2f}x no Ray; cluster start {r['cluster_start_s']:.1f} s, build and "
+                f"held-out check {r['build_and_eval_s']:.1f} s)",
+                flush=True,
+            )
+        sweeps = []
+        for workers in (1, 2):
+            s = sweep_rate(workers, args.jobs, tmp / f"sweep{workers}")
+            sweeps.append(s)
+            print(f"sweep, {workers} worker(s): {s['jobs']} jobs in {s['wall_s']:.0f} s, "
+                  f"{s['jobs_per_hour']:.0f} jobs/h", flush=True)  # fmt: skip
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    print("\n| run | env steps/s | training wall (s) | x no Ray |\n|---|---|---|---|")
+    print(f"| SB3 PPO, no Ray | {base['steps_per_s']:,.0f} | {base['wall_s']:.1f} | 1.00 |")
+    for r in runs:
+        print(f"| RLlib PPO, {r['nodes']} node(s) | {r['steps_per_s']:,.0f} | {r['wall_s']:.1f} | "
+              f"{r['ratio_to_no_ray']:.2f} |")  # fmt: skip
+    write(
+        "scale",
+        {
+            "settings": {"steps": args.steps, "worlds": args.worlds, "jobs": args.jobs},
+            "env_alone_steps_per_s": env,
+            "no_ray": base,
+            "ray": runs,
+            "sweeps": sweeps,
+        },
+        args.output,
+    )
+
+
+if __name__ == "__main__":
+    main()

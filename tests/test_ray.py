@@ -1,0 +1,173 @@
+"""Past one machine on Ray: training on RLlib and dataset sweeps on a real two-node Ray cluster (two
+raylets on this machine, ``ray.cluster_utils.Cluster``), with the failures a cluster has: an env runner
+killed mid-training, a sweep interrupted and run again."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+import ray
+from ray.cluster_utils import Cluster
+
+from droneulator.cli import main
+from droneulator.runtime.cluster import ClusterError, check_address, connect
+from droneulator.workflows.rl.rllib import train_on_ray
+from droneulator.workflows.sweep import Job, make_jobs, parse_seeds
+
+ENV = {**os.environ, "PYTHONUNBUFFERED": "1"}
+
+
+@pytest.fixture(scope="module")
+def cluster() -> Any:
+    """A head node and a worker node, one CPU each: Ray places work on both."""
+    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
+    c.add_node(num_cpus=1)
+    c.wait_for_nodes()
+    yield c
+    c.shutdown()
+
+
+@pytest.mark.slow
+def test_training_on_two_nodes_survives_a_killed_env_runner_and_resumes(cluster: Any, tmp_path: Path) -> None:
+    """PPO on RLlib, two env runners of 16 batched worlds: they run on both nodes; one is SIGKILLed after
+    the second iteration, RLlib restarts it and training reaches its steps with both runners healthy;
+    checkpoint, progress and TensorBoard logs are written, and a resumed run goes on from the checkpoint."""
+    out = tmp_path / "run"
+    seen: list[dict[str, Any]] = []
+
+    def on_iteration(algorithm: Any, result: dict[str, Any]) -> None:
+        where = algorithm.env_runner_group.foreach_env_runner(
+            lambda _runner: (os.getpid(), ray.get_runtime_context().get_node_id()), local_env_runner=False
+        )
+        seen.append({"iteration": result["training_iteration"], "runners": where})
+        if result["training_iteration"] == 2:
+            os.kill(where[0][0], signal.SIGKILL)
+
+    steps = 2 * 16 * 32 * 6  # six iterations' worth
+    summary = train_on_ray(
+        None,
+        out,
+        address=cluster.address,
+        steps=steps,
+        env_runners=2,
+        num_envs=16,
+        restart_delay_s=1.0,
+        progress=False,
+        on_iteration=on_iteration,
+    )
+    assert len({node for _pid, node in seen[0]["runners"]}) == 2  # one env runner on each node
+    assert summary["ray_nodes"] == 2 and summary["steps"] >= steps
+    assert summary["env_runner_restarts"] == 1 and summary["healthy_env_runners"] == 2
+    killed = seen[1]["runners"][0][0]
+    assert killed not in dict(seen[-1]["runners"]) and len(seen[-1]["runners"]) == 2  # a new process
+    rows = list(csv.DictReader((out / "progress.csv").open()))
+    assert len(rows) == len(seen) and int(rows[-1]["env_steps"]) == summary["steps"]
+    healthy = [int(r["healthy_env_runners"]) for r in rows]
+    assert healthy[:2] == [2, 2] and 1 in healthy[2:] and healthy[-1] == 2  # trained on with one meanwhile
+    assert (out / "checkpoint" / "algorithm_state.pkl").is_file()
+    assert list((out / "tb").glob("events.out.tfevents.*"))
+    assert 0 <= summary["held_out_successes"] <= 10
+
+    resumed = train_on_ray(
+        None, out, address=cluster.address, steps=summary["steps"] + 1, env_runners=2, num_envs=16,
+        resume=True, progress=False,
+    )  # fmt: skip
+    rows = list(csv.DictReader((out / "progress.csv").open()))
+    assert resumed["resumed"] and resumed["steps"] > summary["steps"]
+    assert int(rows[len(seen)]["env_steps"]) > summary["steps"]  # counted on from the checkpoint, not from 0
+    assert resumed["wall_s"] > summary["wall_s"]
+
+
+@pytest.mark.slow
+def test_a_sweep_interrupted_and_run_again_does_not_redo_finished_jobs(cluster: Any, tmp_path: Path) -> None:
+    """``sweep capture`` of 4 small captures as Ray tasks on the two nodes, Ctrl-C once one is done; the
+    same command again runs only the other three; every dataset holds its views and the summary lists
+    all four."""
+    out = tmp_path / "sweep"
+    cmd = [
+        sys.executable, "-m", "droneulator.cli", "sweep", "capture", "--out", str(out), "--seeds", "0-1",
+        "--views", "2", "3", "--ray", cluster.address, "--cpus-per-job", "1", "--no-progress",
+        "--set", "capture.width=160", "--set", "capture.height=120", "--set", "capture.arc_deg=20",
+        "--set", "capture.speed=2", "--set", "capture.pitch_deg=10", "--set", "render.shadow_map_size=512",
+    ]  # fmt: skip
+    first = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
+    deadline = time.monotonic() + 240
+    while not list(out.glob("*/job.json")):
+        assert first.poll() is None and time.monotonic() < deadline, first.communicate()[0]
+        time.sleep(0.2)
+    first.send_signal(signal.SIGINT)
+    log = first.communicate(timeout=60)[0]
+    assert first.returncode == 130, log
+    assert "run the same command again to resume" in log
+    done = {p.parent.name: p.stat().st_mtime_ns for p in out.glob("*/job.json")}
+    assert 1 <= len(done) < 4
+
+    again = subprocess.run(cmd, capture_output=True, text=True, env=ENV, timeout=300)
+    assert again.returncode == 0, again.stdout + again.stderr
+    assert f"{len(done)} already done" in again.stderr and f"{4 - len(done)} to run" in again.stderr
+    after = {p.parent.name: p.stat().st_mtime_ns for p in out.glob("*/job.json")}
+    assert len(after) == 4 and all(after[name] == t for name, t in done.items())  # not redone
+    rows = list(csv.DictReader((out / "summary.csv").open()))
+    assert sorted(r["name"] for r in rows) == sorted(j.name for j in make_jobs("capture", ["tree_inspection"],
+                                                                               [0, 1], [2, 3]))  # fmt: skip
+    for row in rows:
+        folder = out / row["name"]
+        views = int(row["name"].rsplit("views", 1)[1])
+        assert row["status"] == "done" and int(row["views_captured"]) == views
+        assert len(list((folder / "images").glob("*.jpg"))) == views
+        assert json.loads((folder / "config.json").read_text())["capture"]["views"] == views
+        assert json.loads((folder / "metadata.json").read_text())["complete"]
+    assert "tree_inspection-seed1-views3" in again.stdout  # the table
+
+
+def test_seeds_jobs_and_addresses_are_checked() -> None:
+    assert parse_seeds(["0-3", "7", "2"]) == [0, 1, 2, 3, 7]
+    for bad in (["3-1"], ["x"], ["-2"], []):
+        with pytest.raises(ValueError):
+            parse_seeds(bad)
+    jobs = make_jobs("capture", ["tree_inspection", "orchard"], [0, 1], [18, 36])
+    assert len(jobs) == 8 and jobs[0] == Job("capture", "tree_inspection", 0, 18)
+    assert jobs[-1].name == "orchard-seed1-views36"
+    assert make_jobs("plan", ["planning"], [4])[0].name == "planning-seed4"
+    with pytest.raises(ValueError, match="unknown scene"):
+        make_jobs("capture", ["nowhere"], [0], [18])
+    with pytest.raises(ValueError, match="capture setting"):
+        make_jobs("plan", ["planning"], [0], [18])
+    assert check_address("local") == "local" and check_address("ray://10.0.0.1:10001")
+    for bad in ("", "10.0.0.1", "head:port", "head:0"):
+        with pytest.raises(ValueError, match="HOST:PORT"):
+            check_address(bad)
+    t = time.monotonic()
+    with pytest.raises(ClusterError, match="no Ray head node answers"), connect("127.0.0.1:9"):
+        pass
+    assert time.monotonic() - t < 10  # Ray itself would retry for minutes
+
+
+def test_bad_ray_settings_are_one_line_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Each is refused before Ray starts, in the command's own process (``cli.main``), with one line."""
+    (tmp_path / "run" / "checkpoint").mkdir(parents=True)
+    cases = [
+        (["train", "--ray", "local", "--stop-at", "0.9"], "--stop-at: not with --ray"),
+        (["train", "--env-runners", "2"], "go with --ray"),
+        (["train", "--ray", "nowhere"], "HOST:PORT"),
+        (["train", "--ray", "local", "--resume", "--out", str(tmp_path / "none")], "no checkpoint"),
+        (["train", "--ray", "local", "--out", str(tmp_path / "run")], "holds a run already"),
+        (["sweep", "plan", "--out", str(tmp_path / "s"), "--reconstruct"], "goes with sweep capture"),
+        (["sweep", "capture", "--out", str(tmp_path / "s"), "--seeds", "9-2"], "ends before it starts"),
+        (["sweep", "plan", "--out", str(tmp_path / "s"), "--set", "seed=1"], "no --config or --set"),
+    ]
+    for args, message in cases:
+        code = main(args)
+        err = capsys.readouterr().err
+        assert code == 2, (args, err)
+        assert message in err and err.count("\n") == 1, (args, err)
+    assert not ray.is_initialized()
