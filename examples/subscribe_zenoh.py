@@ -10,7 +10,8 @@ installation and no droneulator import is needed.
 
 It prints the odometry at 2 Hz of sim time and one line per colour frame, saves every ``--every``-th
 JPEG to ``--out`` (named by its stamp), and exits after ``--seconds`` of wall time or once
-``--frames`` images have arrived. ``--summary FILE`` writes the counts and the last odometry as JSON.
+``--frames`` images (and an odometry message) have arrived. ``--summary FILE`` writes the counts and
+the last odometry as JSON.
 """
 
 from __future__ import annotations
@@ -98,7 +99,9 @@ def main() -> int:
     ap.add_argument("--namespace", default="droneulator", help="the run's ROS namespace (bridge.namespace)")
     ap.add_argument("--camera", default="front", help="camera name")
     ap.add_argument("--seconds", type=float, default=10.0, help="stop after this many wall seconds")
-    ap.add_argument("--frames", type=int, default=0, help="stop after this many images (0: no limit)")
+    ap.add_argument(
+        "--frames", type=int, default=0, help="stop after this many images and one odometry (0: no limit)"
+    )
     ap.add_argument("--out", default=None, help="folder for the saved JPEG files")
     ap.add_argument("--every", type=int, default=10, help="save every N-th image")
     ap.add_argument("--summary", default=None, help="write the counts and the last odometry as JSON")
@@ -119,7 +122,9 @@ def main() -> int:
         ]
         print(f"listening on {args.connect}: {odom_key}, {image_key}")
         deadline = time.monotonic() + args.seconds
-        while time.monotonic() < deadline and not (args.frames and rx.images >= args.frames):
+        # with --frames, wait for odometry too: each subscription takes effect at the router on its own,
+        # and on a busy machine 20 images can arrive before the first odometry message does
+        while time.monotonic() < deadline and not (args.frames and rx.images >= args.frames and rx.odometry):
             time.sleep(0.05)
         for sub in subs:
             sub.undeclare()
