@@ -19,8 +19,10 @@ import ray
 from ray.cluster_utils import Cluster
 
 from droneulator.cli import main
+from droneulator.config import load_config
 from droneulator.runtime.cluster import ClusterError, check_address, connect
-from droneulator.workflows.rl.rllib import train_on_ray
+from droneulator.workflows.rl.rllib import algorithm_config, train_on_ray
+from droneulator.workflows.rl.train import PPO_HYPERPARAMETERS, SAC_HYPERPARAMETERS
 from droneulator.workflows.sweep import Job, make_jobs, parse_seeds
 
 ENV = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -127,6 +129,23 @@ def test_a_sweep_interrupted_and_run_again_does_not_redo_finished_jobs(cluster: 
         assert json.loads((folder / "config.json").read_text())["capture"]["views"] == views
         assert json.loads((folder / "metadata.json").read_text())["complete"]
     assert "tree_inspection-seed1-views3" in again.stdout  # the table
+
+
+@pytest.mark.parametrize("algo", ["ppo", "sac"])
+def test_both_algorithms_pass_rllibs_own_validation_with_the_sb3_runs_settings(algo: str) -> None:
+    """RLlib validates each config as it builds it (SAC's rollouts must hold its n-step return); the
+    settings are the SB3 runs', read from one table."""
+    config = algorithm_config(load_config(), algo, env_runners=2, num_envs=16, seed=0)
+    config.validate()
+    hyper = PPO_HYPERPARAMETERS if algo == "ppo" else SAC_HYPERPARAMETERS
+    assert config.rollout_fragment_length == hyper["n_steps"] and config.gamma == hyper["gamma"]
+    assert config.num_envs_per_env_runner == 16 and config.gym_env_vectorize_mode == "vector_entry_point"
+    if algo == "ppo":
+        assert config.train_batch_size_per_learner == 2 * 16 * hyper["n_steps"]
+        assert config.minibatch_size == min(hyper["batch_size"], 2 * 16 * hyper["n_steps"])
+    else:
+        assert config.n_step == hyper["n_steps"] and config.actor_lr == hyper["learning_rate"]
+        assert config.replay_buffer_config["capacity"] == hyper["buffer_size"]
 
 
 def test_seeds_jobs_and_addresses_are_checked() -> None:

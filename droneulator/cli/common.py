@@ -122,3 +122,14 @@ def report_recording(stats: object) -> None:
         print(f"  {n:8d}  {topic}", flush=True)
     for topic, n in sorted(stats.untyped.items()):
         print(f"  {n:8d}  {topic}  NOT RECORDED: its type was never announced", flush=True)
+
+
+def add_ray_arg(p: argparse._ActionsContainer, what: str) -> None:
+    """``--ray ADDRESS`` (:mod:`droneulator.runtime.cluster`): ``what`` the command runs on Ray."""
+    p.add_argument(
+        "--ray",
+        default=None,
+        metavar="ADDRESS",
+        help=f"{what}: 'local' (start Ray here), 'auto' (the cluster this machine belongs to) or "
+        "the head node's HOST:PORT",
+    )

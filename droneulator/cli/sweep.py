@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from droneulator.cli.common import add_file_args
+from droneulator.cli.common import add_file_args, add_ray_arg
 
 
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -39,12 +39,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--reconstruct", action="store_true", help="capture: reconstruct each dataset with COLMAP")
     p.add_argument("--goals", type=int, nargs="+", default=None, help="plan: only these goals (1-5)")
     p.add_argument("--out", required=True, help="sweep folder")
-    p.add_argument(
-        "--ray",
-        default=None,
-        metavar="ADDRESS",
-        help="run the jobs on Ray: 'local' (start Ray here), 'auto' (this machine's cluster) or HOST:PORT",
-    )
+    add_ray_arg(p, "run the jobs on Ray")
     p.add_argument(
         "--cpus-per-job", type=float, default=2.0, help="CPU cores Ray reserves per job (default 2)"
     )

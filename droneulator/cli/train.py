@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from droneulator.cli.common import add_rl_config_args
+from droneulator.cli.common import add_ray_arg, add_rl_config_args
 from droneulator.config import SimConfig
 from droneulator.runtime import preflight
 
@@ -74,13 +74,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--threads", type=int, default=None, help="torch threads for the learner (default 1)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     ray = p.add_argument_group("on a Ray cluster (the ray extra)")
-    ray.add_argument(
-        "--ray",
-        default=None,
-        metavar="ADDRESS",
-        help="train on Ray RLlib: 'local' (start Ray here), 'auto' (the cluster this machine belongs to) "
-        "or the head node's HOST:PORT",
-    )
+    add_ray_arg(ray, "train on Ray RLlib")
     ray.add_argument("--env-runners", type=int, default=1, metavar="N", help="RLlib env runners (default 1)")
     ray.add_argument(
         "--learners",

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import os
 import socket
 from collections.abc import Iterator
 from typing import Any
@@ -78,12 +77,7 @@ def connect(address: str, num_cpus: int | None = None) -> Iterator[Any]:
     kwargs: dict[str, Any] = {
         "include_dashboard": False,
         "log_to_driver": False,
-        "configure_logging": True,
         "logging_level": logging.WARNING,
-        # every worker finds the package as this process does (a source checkout on PYTHONPATH too)
-        "runtime_env": {"env_vars": {"PYTHONPATH": os.environ.get("PYTHONPATH", "")}}
-        if os.environ.get("PYTHONPATH")
-        else None,
     }
     if address == "local":
         kwargs["num_cpus"] = num_cpus

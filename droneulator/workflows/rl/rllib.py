@@ -34,35 +34,38 @@ import numpy as np
 from droneulator.config import SimConfig, to_dict
 from droneulator.workflows.rl import ENV_ID
 from droneulator.workflows.rl.env import env_config
+from droneulator.workflows.rl.train import (
+    CHECK_EPISODES,
+    PPO_HYPERPARAMETERS,
+    SAC_HYPERPARAMETERS,
+    held_out_successes,
+)
 
 ALGORITHMS = ("ppo", "sac")
 
-#: PPO on RLlib with the SB3 run's settings (PPO_HYPERPARAMETERS in train.py): 32-step rollouts per env,
-#: minibatches of 2,048, 5 epochs, tanh 2x64 networks
-PPO_SETTINGS: dict[str, Any] = {
-    "lr": 3e-4,
-    "gamma": 0.99,
-    "lambda_": 0.95,
-    "clip_param": 0.2,
-    "num_epochs": 5,
-    "minibatch_size": 2048,
-    "entropy_coeff": 0.0,
-    "vf_loss_coeff": 0.5,
-}
-ROLLOUT_LENGTH = 32
 
-#: SAC on RLlib with the SB3 run's settings (SAC_HYPERPARAMETERS in train.py)
-SAC_SETTINGS: dict[str, Any] = {
-    "actor_lr": 1e-3,
-    "critic_lr": 1e-3,
-    "alpha_lr": 1e-3,
-    "gamma": 0.99,
-    "tau": 0.01,
-    "n_step": 5,
-    "initial_alpha": 0.1,
-    "train_batch_size_per_learner": 256,
-    "num_steps_sampled_before_learning_starts": 2_000,
-}
+def ppo_settings() -> dict[str, Any]:
+    """RLlib's names for the SB3 PPO run's settings (:data:`~.train.PPO_HYPERPARAMETERS`, one source):
+    32-step rollouts per env, minibatches of 2,048, 5 epochs; SB3's default value-loss weight."""
+    h = PPO_HYPERPARAMETERS
+    return {
+        "lr": h["learning_rate"], "gamma": h["gamma"], "lambda_": h["gae_lambda"],
+        "clip_param": h["clip_range"], "num_epochs": h["n_epochs"], "minibatch_size": h["batch_size"],
+        "entropy_coeff": h["ent_coef"],
+        "vf_loss_coeff": 0.5,
+    }  # fmt: skip
+
+
+def sac_settings() -> dict[str, Any]:
+    """RLlib's names for the SB3 SAC run's settings (:data:`~.train.SAC_HYPERPARAMETERS`, one source)."""
+    h = SAC_HYPERPARAMETERS
+    lr = h["learning_rate"]
+    return {
+        "actor_lr": lr, "critic_lr": lr, "alpha_lr": lr, "gamma": h["gamma"], "tau": h["tau"],
+        "n_step": h["n_steps"], "initial_alpha": float(str(h["ent_coef"]).removeprefix("auto_")),
+        "train_batch_size_per_learner": h["batch_size"],
+        "num_steps_sampled_before_learning_starts": h["learning_starts"],
+    }  # fmt: skip
 
 
 def algorithm_config(
@@ -87,6 +90,8 @@ def algorithm_config(
         raise ValueError(f"learners must be 0 (this process) or more, got {learners}")
     config = PPOConfig() if algo == "ppo" else SACConfig()
     activation = "tanh" if algo == "ppo" else "relu"  # SB3's defaults for each
+    hyper = PPO_HYPERPARAMETERS if algo == "ppo" else SAC_HYPERPARAMETERS
+    hidden = hyper["policy_kwargs"]["net_arch"]
     config = (
         # the SimConfig itself, not a dict: unpickling it imports droneulator on the env runner, which
         # registers ENV_ID with Gymnasium there (Tune's env registry keys entries by the process's first
@@ -97,10 +102,11 @@ def algorithm_config(
             num_envs_per_env_runner=num_envs,
             gym_env_vectorize_mode="vector_entry_point",
             num_cpus_per_env_runner=1,
-            rollout_fragment_length=ROLLOUT_LENGTH if algo == "ppo" else 1,
+            # PPO: the rollout per env; SAC: at least its n-step return (RLlib checks it)
+            rollout_fragment_length=hyper["n_steps"],
         )
         .learners(num_learners=learners)
-        .rl_module(model_config={"fcnet_hiddens": [64, 64], "fcnet_activation": activation})
+        .rl_module(model_config={"fcnet_hiddens": hidden, "fcnet_activation": activation})
         .debugging(seed=seed, log_level="WARN")
         .fault_tolerance(
             restart_failed_env_runners=True,
@@ -109,20 +115,24 @@ def algorithm_config(
         )
     )
     if algo == "ppo":
-        batch = env_runners * num_envs * ROLLOUT_LENGTH
-        settings = {**PPO_SETTINGS, "minibatch_size": min(PPO_SETTINGS["minibatch_size"], batch)}
+        batch = env_runners * num_envs * PPO_HYPERPARAMETERS["n_steps"]
+        settings = ppo_settings()
+        settings["minibatch_size"] = min(settings["minibatch_size"], batch)
         config = config.training(train_batch_size_per_learner=batch, **settings)
     else:
-        buffer = {"type": "EpisodeReplayBuffer", "capacity": 200_000}  # uniform, as SB3's
-        config = config.training(**SAC_SETTINGS, replay_buffer_config=buffer)
+        # uniform sampling, as SB3's buffer
+        buffer = {"type": "EpisodeReplayBuffer", "capacity": SAC_HYPERPARAMETERS["buffer_size"]}
+        config = config.training(**sac_settings(), replay_buffer_config=buffer)
     return config
 
 
 class ModulePolicy:
-    """An RLlib module as a policy with SB3's ``predict`` (what :func:`held_out_successes` flies)."""
+    """An RLlib module as a policy with SB3's ``predict`` (what :func:`held_out_successes` flies);
+    ``squash``: the module's Gaussian is tanh-squashed (SAC's)."""
 
-    def __init__(self, module: Any) -> None:
+    def __init__(self, module: Any, squash: bool) -> None:
         self.module = module
+        self.squash = squash
 
     def predict(self, obs: np.ndarray, deterministic: bool = True) -> tuple[np.ndarray, None]:
         import torch
@@ -131,8 +141,8 @@ class ModulePolicy:
             out = self.module.forward_inference({"obs": torch.as_tensor(obs, dtype=torch.float32)})
         inputs = out["action_dist_inputs"].numpy()
         mean = inputs[:, : inputs.shape[1] // 2]  # a diagonal Gaussian's inputs: means, then log stds
-        if "sac" in type(self.module).__name__.lower():
-            mean = np.tanh(mean)  # SAC's squashed Gaussian
+        if self.squash:
+            mean = np.tanh(mean)
         return np.clip(mean, -1.0, 1.0), None
 
 
@@ -199,7 +209,6 @@ def train_on_ray(
 
     from droneulator.runtime.cluster import connect
     from droneulator.workflows.rl.evaluate import EVAL_SEED
-    from droneulator.workflows.rl.train import CHECK_EPISODES, held_out_successes
     from droneulator.workflows.rl.vector import VineyardNavVectorEnv
 
     if steps < 1:
@@ -263,7 +272,8 @@ def train_on_ray(
             healthy = algorithm.env_runner_group.num_healthy_remote_workers()
             env = VineyardNavVectorEnv(CHECK_EPISODES, cfg, depth)
             seeds = list(range(EVAL_SEED, EVAL_SEED + CHECK_EPISODES))
-            successes = held_out_successes(ModulePolicy(algorithm.get_module()), env, seeds)
+            policy = ModulePolicy(algorithm.get_module(), squash=algo == "sac")
+            successes = held_out_successes(policy, env, seeds)
             env.close()
         finally:
             writer.close()
@@ -288,7 +298,7 @@ def train_on_ray(
         "resumed": resume,
         "held_out_successes": successes,
         "held_out_episodes": CHECK_EPISODES,
-        "settings": PPO_SETTINGS if algo == "ppo" else SAC_SETTINGS,
+        "settings": ppo_settings() if algo == "ppo" else sac_settings(),
         "checkpoint": str(checkpoint),
     }
     (out / "train_summary.json").write_text(json.dumps(summary, indent=2, default=str))
