@@ -35,6 +35,25 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument(
         "--refine-rotations", action="store_true", help="let bundle adjustment refine the camera rotations"
     )
+    p.add_argument(
+        "--filter-max-error",
+        type=float,
+        default=2.0,
+        help="after bundle adjustment drop observations with a larger reprojection error (px; default 2)",
+    )
+    p.add_argument(
+        "--filter-min-angle",
+        type=float,
+        default=1.5,
+        help="... then points triangulated at a smaller angle (deg; default 1.5)",
+    )
+    p.add_argument(
+        "--filter-min-track",
+        type=int,
+        default=3,
+        help="... then points seen in fewer images (default 3; COLMAP's own default, 2, keeps two-view "
+        "points, which the tree's mismatches are)",
+    )
     p.add_argument("--no-dense", action="store_true", help="skip dense reconstruction")
     p.add_argument(
         "--mask",
@@ -76,6 +95,9 @@ def cmd_reconstruct(args: argparse.Namespace) -> int:
         prior_position_std_m=args.prior_std,
         verification=args.verification,
         refine_rotations=args.refine_rotations,
+        filter_max_reproj_error_px=args.filter_max_error,
+        filter_min_tri_angle_deg=args.filter_min_angle,
+        filter_min_track_length=args.filter_min_track,
         dense=not args.no_dense,
     )
     report = reconstruct(Path(args.dataset), opts)
