@@ -409,6 +409,11 @@ def main() -> None:
     ap.add_argument("--px4", default=None, metavar="BUILD|scripted",
                     help="fly with PX4 in the loop: a px4_sitl_default build directory, or 'scripted' for "
                          "the PX4-like peer of tests/scripted_px4.py (see the module docstring)")  # fmt: skip
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="config override for the simulator, e.g. --set wind.speed_m_s=3 --set "
+                         "'render.cameras=[{\"name\": \"front\", \"depth_model\": \"d435\"}]'; with "
+                         "randomize.enabled=true each flight's wind is drawn (set_wind) and the run's depth "
+                         "camera preset once")  # fmt: skip
     args = ap.parse_args()
     if args.settle is None:
         args.settle = 5.0 if args.px4 else 2.0
@@ -420,7 +425,10 @@ def main() -> None:
     lo, hi = scene.bounds_min, scene.bounds_max
     bounds = [lo[0], lo[1], 0.5, hi[0], hi[1], min(hi[2], 8.0)]
     picks = args.goals or list(range(1, len(GOALS_XY) + 1))
-    cfg = load_config(scene=args.scene, seed=args.seed)
+    cfg = load_config(scene=args.scene, seed=args.seed, overrides=args.overrides)
+    draws = np.random.default_rng([args.seed, 0x52414E44])
+    if cfg.randomize.enabled:  # the depth camera is fixed when the run starts: one draw of it for the run
+        cfg = cfg.randomize.apply(cfg, cfg.randomize.draw(draws, cfg.wind))
     if args.px4:  # what `droneulator run --px4` sets; the real PX4 instance 0 connects to 4560
         cfg.px4.enabled, cfg.vehicle.control_hz, cfg.vehicle.params = True, 250.0, "px4_quadx"
     runs = []
@@ -440,8 +448,18 @@ def main() -> None:
             for k, i in enumerate(i for i in picks for _ in range(args.repeat)):
                 gx, gy = GOALS_XY[i - 1]
                 goal = np.array([gx, gy, ALTITUDE])
+                conditions = None
+                if cfg.randomize.enabled:  # each flight in its own wind
+                    draw = cfg.randomize.draw(draws, cfg.wind)
+                    w = draw.wind
+                    client.request("set_wind", speed=w.speed_m_s, direction_deg=w.direction_deg,
+                                   turbulence_scale=w.turbulence_scale,
+                                   gust_speed=w.gust_speed_m_s)  # fmt: skip
+                    conditions = draw.describe()
+                    print(f"goal {i}: {conditions}", flush=True)
                 r = fly_one(run, client, goal_pub, goal, start, bounds, Path(tmp), args, k + 1)
                 r["goal_index"] = i
+                r["conditions"] = conditions
                 runs.append(r)
                 print(f"goal {i} {goal.tolist()}: reached={r['reached']} time={r['flight_time_s']} "
                       f"length={r['path_length_m']:.2f} error={r['goal_error_m']:.3f} "
@@ -479,7 +497,8 @@ def main() -> None:
     mode = "api" if not args.px4 else ("px4 scripted" if args.px4 == "scripted" else f"px4 {args.px4}")
     summary["mean_true_goal_error_m"] = float(np.mean([r["true_goal_error_m"] for r in runs]))
     out = write("planning", {"scene": args.scene, "seed": args.seed, "altitude": ALTITUDE, "mode": mode,
-                             "summary": summary, "runs": runs}, args.output)  # fmt: skip
+                             "overrides": args.overrides, "summary": summary, "runs": runs},
+                args.output)  # fmt: skip
     figure(args.scene, args.seed, runs, start, out.with_suffix(".png"))
 
 

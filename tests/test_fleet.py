@@ -216,7 +216,8 @@ def _ros2dds_type(topic: str) -> str:
     from droneulator.ros.topics import TYPES
 
     leaf = {
-        "odom": "odom", "odom_world": "odom_world", "tf": "tf", "tf_static": "tf_static", "clock": "clock",
+        "odom": "odom", "odom_world": "odom_world", "wind": "wind", "tf": "tf", "tf_static": "tf_static",
+        "clock": "clock",
         "pose": "pose", "camera_info": "info_rgb", "image_raw": "depth", "compressed": "rgb",
     }  # fmt: skip
     return TYPES[leaf[topic.rsplit("/", 1)[-1]]]
@@ -358,6 +359,7 @@ def test_a_two_vehicle_run_through_api_ros_px4_and_recording(tmp_path: Path) -> 
         for leaf in (
             "odom",
             "odom_world",
+            "wind",
             "front/color/image_raw/compressed",
             "front/depth/image_raw",
             "front/segmentation/image_raw/compressed",

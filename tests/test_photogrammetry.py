@@ -21,6 +21,7 @@ from droneulator.config import load_config
 from droneulator.sensors.camera import intrinsics
 from droneulator.workflows.photogrammetry.capture import aim_pitch, run_config, tree_landmarks
 from droneulator.workflows.photogrammetry.colmap_model import (
+    COLMAP_PIXEL_OFFSET,
     K_from_colmap_pinhole,
     KnownModel,
     colmap_pinhole_params,
@@ -267,6 +268,15 @@ def test_the_tree_comes_from_scene_info_landmarks_and_sets_the_capture_camera():
     assert run.camera_rigs() == {"uav0": [cam]}
     cfg.capture.vehicles = 2
     assert run_config(cfg, pitch).camera_rigs() == {"uav0": [cam], "uav1": [cam]}  # one camera each
+    # the configured camera's sensor noise and exposure reach the capture camera, not its geometry
+    front = {"rgb_noise": "machine_vision", "exposure_s": 0.004, "distortion": [-0.05, 0, 0, 0, 0]}
+    noisy = load_config(
+        None, [f"render.cameras=[{json.dumps(front)}]", "light.cloud_cover=1.0"], scene="tree_inspection"
+    )
+    (cam,) = run_config(noisy, pitch).render.cameras
+    assert (cam.rgb_noise, cam.exposure_s) == ("machine_vision", 0.004)
+    assert (cam.width, cam.hfov_deg, cam.distortion) == (1024, 70.0, (0.0,) * 5)
+    assert run_config(noisy, pitch).light.cloud_cover == 1.0
 
     with pytest.raises(ValueError, match="no 'tree' landmark"):
         tree_landmarks({"name": "vineyard", "landmarks": {"rows": [[0, 0, 0]]}})
@@ -318,6 +328,73 @@ def test_resume_captures_only_the_missing_views_and_keeps_the_others(tmp_path: P
     wider = dict(cam, K=(K * [[1.01], [1.01], [1]]).tolist())
     with pytest.raises(DatasetMismatchError):
         CaptureDataset.open(tmp_path, settings).set_camera(wider)
+
+
+# --------------------------------------------------------------------------- sparse point filter
+def _model_with_points(tmp_path: Path, points: dict[str, tuple[np.ndarray, dict[int, float]]]):
+    """A real pycolmap model of ``synthetic_views``' six cameras and ``points``: name -> (xyz, {view
+    index: pixel offset along x of that view's observation}), the observations otherwise exact."""
+    pycolmap = pytest.importorskip("pycolmap")
+    views, _ = synthetic_views()
+    write_text_model(tmp_path, KnownModel.from_views(K, W, H, views))
+    rec = pycolmap.Reconstruction(tmp_path)
+    observed: dict[int, list[tuple[str, np.ndarray]]] = {i: [] for i in range(len(views))}
+    for name, (X, offsets) in points.items():
+        for i, dx in offsets.items():
+            uv = project_opencv(K, views[i][2], X[None])[0] + COLMAP_PIXEL_OFFSET + [dx, 0.0]
+            observed[i].append((name, uv))
+    ids: dict[str, int] = {}
+    tracks = {name: pycolmap.Track() for name in points}
+    for i, obs in observed.items():
+        image_id = views[i][0]
+        rec.images[image_id].points2D = pycolmap.Point2DList([pycolmap.Point2D(uv) for _, uv in obs])
+        for k, (name, _) in enumerate(obs):
+            tracks[name].add_element(image_id, k)
+    for name, (X, _) in points.items():
+        ids[name] = rec.add_point3D(X, tracks[name], np.zeros(3, np.uint8))
+    return pycolmap, rec, ids
+
+
+def test_sparse_filter_drops_points_that_break_its_rules_and_keeps_the_others(tmp_path: Path):
+    from droneulator.workflows.photogrammetry.reconstruct import ReconstructOptions, filter_sparse
+
+    points = {
+        "good": (np.array([0.2, 0.1, 2.0]), {0: 0.0, 1: 0.0, 2: 0.0, 3: 0.0}),
+        "one observation off": (np.array([-0.3, 0.4, 2.5]), {0: 0.0, 1: 0.0, 2: 0.0, 3: 5.0}),
+        "two views": (np.array([0.5, -0.2, 1.5]), {0: 0.0, 1: 0.0}),
+        "two views once one is off": (np.array([0.0, 0.3, 3.0]), {1: 0.0, 2: 0.0, 3: 5.0}),
+        "every observation off": (np.array([0.3, 0.3, 1.0]), {0: 4.0, 2: -3.0, 4: 6.0}),
+        # 3 km beyond the tree, in front of views 0, 1 and 5 (6 m apart): rays 0.1 degrees apart
+        "far": (np.array([-3000.0, 0.0, 2.0]), {0: 0.0, 1: 0.0, 5: 0.0}),
+    }
+    opts = ReconstructOptions()
+    pycolmap, rec, ids = _model_with_points(tmp_path / "a", points)
+    assert rec.num_points3D() == 6
+    result = filter_sparse(
+        pycolmap,
+        rec,
+        opts.filter_max_reproj_error_px,
+        opts.filter_min_tri_angle_deg,
+        opts.filter_min_track_length,
+    )
+    assert result["before"] == {"points": 6, "observations": 19}
+    assert result["removed_points"] == {
+        "reprojection_error": 1, "negative_depth": 0, "triangulation_angle": 1, "short_track": 2
+    }  # fmt: skip
+    assert sorted(rec.point3D_ids()) == sorted([ids["good"], ids["one observation off"]])
+    assert rec.points3D[ids["good"]].track.length() == 4
+    off = rec.points3D[ids["one observation off"]]
+    assert off.track.length() == 3 and {e.image_id for e in off.track.elements} == {1, 2, 3}
+    assert (
+        result["after"] == {"points": 2, "observations": 7} and rec.compute_mean_reprojection_error() < 1e-6
+    )
+    # COLMAP's own default keeps two-view points; a looser reprojection limit keeps the offset observations
+    pycolmap, rec, ids = _model_with_points(tmp_path / "b", points)
+    result = filter_sparse(pycolmap, rec, 8.0, opts.filter_min_tri_angle_deg, 2)
+    assert set(rec.point3D_ids()) == {v for k, v in ids.items() if k != "far"}
+    assert result["removed_points"]["triangulation_angle"] == 1 and result["after"]["observations"] == 16
+    with pytest.raises(ValueError, match="filter_min_track_length"):
+        ReconstructOptions(filter_min_track_length=1)
 
 
 # --------------------------------------------------------------------------- end to end

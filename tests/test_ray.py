@@ -100,6 +100,7 @@ def test_a_sweep_interrupted_and_run_again_does_not_redo_finished_jobs(cluster: 
         "--views", "2", "3", "--ray", cluster.address, "--cpus-per-job", "1", "--no-progress",
         "--set", "capture.width=160", "--set", "capture.height=120", "--set", "capture.arc_deg=20",
         "--set", "capture.speed=2", "--set", "capture.pitch_deg=10", "--set", "render.shadow_map_size=512",
+        "--set", "randomize.enabled=true",
     ]  # fmt: skip
     first = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
     deadline = time.monotonic() + 240
@@ -121,13 +122,17 @@ def test_a_sweep_interrupted_and_run_again_does_not_redo_finished_jobs(cluster: 
     rows = list(csv.DictReader((out / "summary.csv").open()))
     assert sorted(r["name"] for r in rows) == sorted(j.name for j in make_jobs("capture", ["tree_inspection"],
                                                                                [0, 1], [2, 3]))  # fmt: skip
+    conditions = []
     for row in rows:
         folder = out / row["name"]
         views = int(row["name"].rsplit("views", 1)[1])
         assert row["status"] == "done" and int(row["views_captured"]) == views
         assert len(list((folder / "images").glob("*.jpg"))) == views
         assert json.loads((folder / "config.json").read_text())["capture"]["views"] == views
-        assert json.loads((folder / "metadata.json").read_text())["complete"]
+        meta = json.loads((folder / "metadata.json").read_text())
+        assert meta["complete"]
+        conditions.append(meta["plan"]["conditions"])  # domain randomisation: each job its own draw
+    assert len({json.dumps(c, sort_keys=True) for c in conditions}) == 2  # one draw per seed
     assert "tree_inspection-seed1-views3" in again.stdout  # the table
 
 

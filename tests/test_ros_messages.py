@@ -274,6 +274,9 @@ def test_state_packer_is_byte_identical_to_rosbags(frames):
         tf = M.tf_message([M.transform_stamped(t_ns, *frames, p, q)])
         assert bytes(packer.transform(t_ns, p, q)) == bytes(M.serialize(tf))
         assert packer.clock(t_ns) == bytes(M.serialize(M.clock(t_ns)))
+        assert bytes(packer.vector(t_ns, v)) == bytes(M.serialize(M.vector3_stamped(t_ns, frames[0], v)))
+        wind = REF.deserialize_cdr(bytes(packer.vector(t_ns, v)), "geometry_msgs/msg/Vector3Stamped")
+        assert wind.header.frame_id == frames[0] and [wind.vector.x, wind.vector.y, wind.vector.z] == list(v)
         odom = REF.deserialize_cdr(bytes(packer.odometry(t_ns, p, q, v, w)), "nav_msgs/msg/Odometry")
         assert odom.child_frame_id == frames[1] and odom.pose.pose.position.x == p[0]
     with pytest.raises(ValueError):

@@ -27,6 +27,7 @@ def test_names_and_types_are_the_documented_ones():
         "tf_static": "/tf_static",
         "odom": "/uav1/odom",
         "odom_world": "/uav1/odom_world",
+        "wind": "/uav1/wind",
         "cmd_vel": "/uav1/cmd_vel",
         "goal_pose": "/uav1/goal_pose",
         "position_cmd": "/uav1/position_cmd",

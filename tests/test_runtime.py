@@ -37,6 +37,7 @@ CAM = CameraConfig(name="front", width=320, height=240)
 TOPICS = {
     "droneulator/odom": "nav_msgs/msg/Odometry",
     "droneulator/odom_world": "nav_msgs/msg/Odometry",
+    "droneulator/wind": "geometry_msgs/msg/Vector3Stamped",
     "tf": "tf2_msgs/msg/TFMessage",
     "tf_static": "tf2_msgs/msg/TFMessage",
     "clock": "rosgraph_msgs/msg/Clock",
@@ -186,6 +187,13 @@ def test_fly_and_decode_every_topic(run):
         R = quat_to_matrix(np.array([q.x, q.y, q.z, q.w]))
         np.testing.assert_allclose(R @ [v.x, v.y, v.z], states[t]["velocity"], atol=1e-9)
         assert odom[t].header.frame_id == "odom" and odom[t].child_frame_id == "base_link"
+    # the true wind at each stamp, in odom, is the state's
+    wind = {stamp_ns(m): m for _, m in msgs["droneulator/wind"]}
+    assert len(set(wind) & set(states)) > 10
+    for t in set(wind) & set(states):
+        assert wind[t].header.frame_id == "odom"
+        w = wind[t].vector
+        np.testing.assert_allclose([w.x, w.y, w.z], states[t]["wind"], atol=1e-12)
     # odom_world: the same odometry with the twist in the world frame (EGO-Planner's convention)
     world = {stamp_ns(m): m for _, m in msgs["droneulator/odom_world"]}
     both = sorted(set(world) & set(odom))

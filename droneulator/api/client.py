@@ -167,9 +167,18 @@ class DroneulatorClient:
         yaw: float | None = None,
         airborne: bool | None = None,
         vehicle: str | None = None,
+        light: dict[str, Any] | None = None,
     ) -> dict[str, Any]:
+        """Restart every vehicle; ``light``: the light fields to change (None in it: that default)."""
         return self.request(
-            "reset", scene=scene, seed=seed, position=position, yaw=yaw, airborne=airborne, vehicle=vehicle
+            "reset",
+            scene=scene,
+            seed=seed,
+            position=position,
+            yaw=yaw,
+            airborne=airborne,
+            vehicle=vehicle,
+            light=light,
         )
 
     def state(self, vehicle: str | None = None) -> dict[str, Any]:

@@ -61,6 +61,9 @@ TYPES: dict[str, str] = {
     "string": "JSON string",
     "vec3": "array of 3 finite numbers",
     "streams": 'non-empty array of `"state"` and/or `"events"`',
+    "light": "JSON object of light settings (the config's `light` section, docs/light.md): "
+    "`time_of_day_h`, `latitude_deg`, `longitude_deg`, `utc_offset_h`, `cloud_cover`, `visibility_m` "
+    '(numbers) and `date` (`"YYYY-MM-DD"`), each null for its default',
 }
 
 
@@ -147,6 +150,12 @@ def _reset(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
             "invalid_argument", f"unknown scene {scene!r}; known scenes: {', '.join(list_scenes())}"
         )
     sim.vehicle(a.get("vehicle"))  # an unknown vehicle fails before anything changes
+    light = None
+    if "light" in a:
+        try:
+            light = dataclasses.replace(sim.config.light, **a["light"])
+        except ValueError as e:
+            raise CommandError("invalid_argument", f"`light`: {e}") from None
     state = sim.reset(
         seed=a.get("seed"),
         position=a.get("position"),
@@ -154,8 +163,10 @@ def _reset(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
         scene=scene,
         airborne=a.get("airborne"),
         vehicle=a.get("vehicle"),
+        **({} if light is None else {"light": light}),
     )
-    return {"scene": sim.scene.name, "seed": sim.config.seed, "state": state.to_dict()}
+    result = {"scene": sim.scene.name, "seed": sim.config.seed, "state": state.to_dict()}
+    return {**result, "light": dataclasses.asdict(sim.config.light)}
 
 
 def _state(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
@@ -183,6 +194,7 @@ def _scene_info(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
         "landmarks": {k: _plain(v) for k, v in sc.landmarks.items()},
         "scenes": list(list_scenes()),
         "vehicles": [v.describe() for v in sim.vehicles.values()],
+        "light": dataclasses.asdict(sim.config.light),
         "limits": {
             "max_speed": fl.max_speed,
             "max_yaw_rate": math.pi,
@@ -191,6 +203,33 @@ def _scene_info(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
             "goto_duration": [0.2, 3600.0],
         },
     }
+
+
+#: ``set_wind``'s fields -> the :class:`~droneulator.config.WindConfig` fields they set
+_WIND_FIELDS = {
+    "speed": "speed_m_s",
+    "direction_deg": "direction_deg",
+    "turbulence_scale": "turbulence_scale",
+    "gust_speed": "gust_speed_m_s",
+    "gust_interval": "gust_interval_s",
+    "gust_duration": "gust_duration_s",
+    "shelter": "shelter",
+}
+
+
+def _set_wind(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+    world = world_of(sim)
+    name = a.get("vehicle")
+    row = 0 if name is None else list(world.vehicles).index(world.vehicle(name).name)
+    changes = {field: a[arg] for arg, field in _WIND_FIELDS.items() if arg in a}
+    if "turbulence" in a:
+        changes["turbulence"] = "dryden" if a["turbulence"] else "none"
+    try:
+        config = dataclasses.replace(world.wind.configs[row], **changes)
+    except ValueError as e:
+        raise CommandError("invalid_argument", str(e)) from None
+    world.set_wind(config, name)
+    return {"wind": dataclasses.asdict(config), "vehicle": name, **_when(sim)}
 
 
 #: the ``vehicle`` field of every flight op
@@ -296,15 +335,18 @@ OPS: dict[str, Op] = {
             "reset",
             "Restart the flight of every vehicle at t = 0, each at its start, optionally in another scene "
             "or with another seed; `position`, `yaw` and `airborne` place the vehicle `vehicle` names. A "
-            "`position` above the ground starts hovering there unless `airborne` is false. Refused while "
-            "any vehicle's flight is locked for it.",
-            "`scene`, `seed`: what is loaded now; `state`: the new state of that vehicle (as `state`)",
+            "`position` above the ground starts hovering there unless `airborne` is false; `light` changes "
+            "the fields it names of the light (time of day, clouds, haze; RGB only). Refused while any "
+            "vehicle's flight is locked for it.",
+            "`scene`, `seed`: what is loaded now; `state`: the new state of that vehicle (as `state`); "
+            "`light`: the light settings now in effect",
             (
                 Arg("scene", "string", "scene name, see `scene_info.scenes` (default: keep)"),
                 Arg("seed", "integer", "scene layout and noise seed (default: keep)", bounds=(0, 2**32 - 1)),
                 Arg("position", "vec3", "start [x, y, z], world frame, m (default: the scene's spawn)"),
                 Arg("yaw", "number", "start heading, rad (default: the scene's spawn yaw)"),
                 Arg("airborne", "boolean", "hover at the start (default: true if z > 0.05 m)"),
+                Arg("light", "light", "light fields to change; the others keep their values (default: keep)"),
             ),
             _reset,
             flight=True,
@@ -317,7 +359,8 @@ OPS: dict[str, Op] = {
             "(equal to `t_ns` before the first reset); `position` [x, y, z] (m, world); "
             "`velocity` (m/s, world); `quaternion` [x, y, z, w] (body FLU to world); `angular_velocity` "
             "(rad/s, body); `yaw` (rad); `mode` (`idle`, `takeoff`, `goto`, `hold`, `velocity`, `track`, "
-            '`land`, `collided`, `external`); `vehicle`: its name. With `vehicle` `"*"`: `t`, `stamp_ns` '
+            '`land`, `collided`, `external`); `vehicle`: its name; `wind` [x, y, z] (m/s, world): the wind '
+            "at the vehicle, rotor wakes of vehicles above included. With `vehicle` `\"*\"`: `t`, `stamp_ns` "
             "and `vehicles` (name -> that state) for every vehicle",
             (
                 Arg(
@@ -327,6 +370,26 @@ OPS: dict[str, Op] = {
                 ),
             ),
             _state,
+        ),
+        Op(
+            "set_wind",
+            "Change the wind field (docs/wind.md) for every vehicle, or for `vehicle` only: fields left out "
+            "keep their values. The turbulence carries on, so the wind changes without a jump in its "
+            "random part; the wind each vehicle feels is in its `state` (`wind`) and on its ROS `wind` "
+            "topic.",
+            f"`wind`: the settings now in effect (the `wind` config section's fields); `vehicle`; `t`: {_T}",
+            (
+                Arg("speed", "number", "mean wind 6.1 m (20 ft) above the ground, m/s", bounds=(0.0, 40.0)),
+                Arg("direction_deg", "number", "where it blows from, degrees clockwise from north (270: W)"),
+                Arg("turbulence", "boolean", "Dryden turbulence on or off"),
+                Arg("turbulence_scale", "number", "turbulence intensity, x the standard's", bounds=(0, 5)),
+                Arg("gust_speed", "number", "peak speed of the discrete 1-cosine gusts, m/s", bounds=(0, 40)),
+                Arg("gust_interval", "number", "mean time between gusts, s", bounds=(0.1, 3600)),
+                Arg("gust_duration", "number", "length of one gust, s", bounds=(0.1, 60)),
+                Arg("shelter", "boolean", "the canopy shelters the wind"),
+                Arg("vehicle", "string", "the one vehicle whose wind changes (default: every vehicle)"),
+            ),
+            _set_wind,
         ),
         Op(
             "ping",
@@ -344,7 +407,8 @@ OPS: dict[str, Op] = {
             "`max_yaw_rate`, `default_speed`, `takeoff_altitude`, `goto_duration` range); `vehicles`: "
             "one entry per vehicle, first the default: `name`, `params` (airframe), `controlled_by` "
             "(`internal` or `px4`), `cameras` (names), and where it is reached when a runtime serves it: "
-            "`namespace` and `topics` (its ROS 2 topic names), `tf_prefix`, `px4_port` (PX4 vehicles)",
+            "`namespace` and `topics` (its ROS 2 topic names), `tf_prefix`, `px4_port` (PX4 vehicles); "
+            "`light`: the light settings (the config's `light` section as it is now; see `reset`)",
             (),
             _scene_info,
         ),
@@ -478,10 +542,39 @@ def _validate(arg: Arg, value: Any) -> Any:
             streams = " and/or ".join(f'"{s}"' for s in STREAMS)
             raise CommandError("invalid_argument", f"{what} must be a non-empty array of {streams}")
         out = tuple(s for s in STREAMS if s in value)
+    elif arg.type == "light":
+        out = _light_fields(value, what)
     else:
         raise AssertionError(f"unknown argument type {arg.type!r}")
     if arg.bounds is not None and not arg.bounds[0] <= out <= arg.bounds[1]:
         raise CommandError("out_of_range", f"{what} must lie in [{arg.bounds[0]:g}, {arg.bounds[1]:g}]")
+    return out
+
+
+def _light_fields(value: Any, what: str) -> dict[str, Any]:
+    """A ``light`` object's fields, each of the right JSON type (their ranges are the config's to check)."""
+    from droneulator.config.light import LightConfig
+
+    names = [f.name for f in dataclasses.fields(LightConfig)]
+    if not isinstance(value, dict):
+        accepted = ", ".join(names)
+        raise CommandError("invalid_argument", f"{what} must be an object of light fields ({accepted})")
+    unknown = sorted(set(value) - set(names))
+    if unknown:
+        raise CommandError(
+            "invalid_argument", f"unknown {what} field(s) {', '.join(unknown)}; accepted: {', '.join(names)}"
+        )
+    out: dict[str, Any] = {}
+    for name, v in value.items():
+        field = f"`{what.strip('`')}.{name}`"
+        if v is None:
+            out[name] = None
+        elif name == "date":
+            if not isinstance(v, str):
+                raise CommandError("invalid_argument", f'{field} must be a string like "2026-06-21"')
+            out[name] = v
+        else:
+            out[name] = _number(v, field)
     return out
 
 

@@ -8,6 +8,7 @@ from the command line, in that order (:mod:`~droneulator.config.loading`).
 """
 
 from droneulator.config.capture import CaptureConfig
+from droneulator.config.light import LightConfig
 from droneulator.config.loading import (
     ConfigError,
     apply_override,
@@ -16,6 +17,7 @@ from droneulator.config.loading import (
     load_file,
     to_dict,
 )
+from droneulator.config.randomize import RandomizeConfig
 from droneulator.config.rl import RLConfig
 from droneulator.config.sections import (
     CONTROLLERS,
@@ -35,6 +37,7 @@ from droneulator.config.sections import (
     VehicleSpec,
     fleet,
 )
+from droneulator.config.wind import WindConfig
 
 __all__ = [
     "CONTROLLERS",
@@ -47,14 +50,17 @@ __all__ = [
     "ConfigError",
     "FlightConfig",
     "GpsError",
+    "LightConfig",
     "PX4Config",
     "RLConfig",
+    "RandomizeConfig",
     "RenderConfig",
     "RuntimeConfig",
     "SimConfig",
     "UIConfig",
     "VehicleConfig",
     "VehicleSpec",
+    "WindConfig",
     "apply_override",
     "fleet",
     "from_dict",

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from droneulator.config.camera_presets import DEPTH_PRESETS
+
 
 @dataclass
 class RLConfig:
@@ -24,6 +26,9 @@ class RLConfig:
     #: depth is clipped here and normalised by it; the camera's far plane sits here too (faithful: a miss
     #: and a return beyond it both read 1.0)
     depth_clip: float = 10.0
+    #: the depth camera's error model (``render.cameras[].depth_model``'s presets): "ideal" (exact), "d435"
+    #: or "tof"; its noise is seeded by the config seed
+    depth_model: str = "ideal"
     forward_min: float = -2.0
     forward_max: float = 3.0
     max_yaw_rate: float = 1.5
@@ -57,3 +62,6 @@ class RLConfig:
             raise ValueError("rl.camera_width must be at least 32 (one pixel per strip sample)")
         if not 0 < self.min_separation < self.max_path_length:
             raise ValueError("rl.min_separation must be positive and below rl.max_path_length")
+        if self.depth_model not in DEPTH_PRESETS:
+            choices = ", ".join(DEPTH_PRESETS)
+            raise ValueError(f"rl.depth_model must be one of {choices}, got {self.depth_model!r}")

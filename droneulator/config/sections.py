@@ -7,8 +7,12 @@ import math
 import re
 from dataclasses import dataclass, field
 
+from droneulator.config.camera_presets import DEPTH_PRESETS, RGB_PRESETS, radial_invertible
 from droneulator.config.capture import CaptureConfig
+from droneulator.config.light import LightConfig
+from droneulator.config.randomize import RandomizeConfig
 from droneulator.config.rl import RLConfig
+from droneulator.config.wind import WindConfig
 
 
 @dataclass
@@ -25,6 +29,21 @@ class CameraConfig:
     rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
     near: float = 0.05
     far: float = 200.0
+    #: depth error model (camera_presets.DEPTH_PRESETS): "ideal" (exact), "d435" (RealSense D435 active
+    #: stereo) or "tof" (Azure Kinect-class time of flight); invalid pixels read NaN (docs/sensors.md)
+    depth_model: str = "ideal"
+    #: RGB sensor noise (camera_presets.RGB_PRESETS): "ideal", "machine_vision" or "small_pixel"
+    rgb_noise: str = "ideal"
+    #: lens distortion, OpenCV's plumb_bob (k1, k2, p1, p2, k3): all three images are distorted alike and
+    #: camera_info carries it as D
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    #: RGB exposure time (s): brightness relative to the rendered image (which stands for
+    #: camera_presets.REFERENCE_EXPOSURE_S) and the motion blur window; with auto_exposure, the longest
+    exposure_s: float = 0.002
+    #: pick exposure (then gain) each frame so that the mean brightness meets camera_presets.AE_TARGET
+    auto_exposure: bool = False
+    #: blur RGB along the image motion of the vehicle's velocity and rotation during the exposure
+    motion_blur: bool = False
 
     def __post_init__(self) -> None:
         if self.width <= 0 or self.height <= 0:
@@ -33,6 +52,22 @@ class CameraConfig:
             raise ValueError(f"camera {self.name!r}: hfov_deg must lie in [1, 170]")
         if not 0 < self.near < self.far:
             raise ValueError(f"camera {self.name!r}: need 0 < near < far")
+        who = f"camera {self.name!r}"
+        if self.depth_model not in DEPTH_PRESETS:
+            choices = ", ".join(DEPTH_PRESETS)
+            raise ValueError(f"{who}: depth_model must be one of {choices}, got {self.depth_model!r}")
+        if self.rgb_noise not in RGB_PRESETS:
+            choices = ", ".join(RGB_PRESETS)
+            raise ValueError(f"{who}: rgb_noise must be one of {choices}, got {self.rgb_noise!r}")
+        if not (math.isfinite(self.exposure_s) and 0.0 < self.exposure_s <= 1.0):
+            raise ValueError(f"{who}: exposure_s must lie in (0, 1] seconds, got {self.exposure_s!r}")
+        d = tuple(self.distortion)
+        if len(d) != 5 or not all(isinstance(v, int | float) and math.isfinite(v) for v in d):
+            raise ValueError(f"{who}: distortion must be five finite numbers (k1, k2, p1, p2, k3), got {d!r}")
+        self.distortion = (float(d[0]), float(d[1]), float(d[2]), float(d[3]), float(d[4]))
+        corner = math.hypot(self.width, self.height) / self.width * math.tan(math.radians(self.hfov_deg) / 2)
+        if not radial_invertible(self.distortion, corner):
+            raise ValueError(f"{who}: distortion {d} folds the image over (radial part not one-to-one)")
 
     @property
     def rpy(self) -> tuple[float, float, float]:
@@ -48,7 +83,8 @@ class RenderConfig:
     cameras: list[CameraConfig] = field(default_factory=lambda: [CameraConfig()])
 
 
-#: RotorPy wind profiles ``VehicleConfig.wind`` can name (built by :func:`droneulator.wind.make_wind`)
+#: RotorPy wind profiles ``VehicleConfig.wind`` can name (built by :func:`droneulator.wind.make_wind`); the
+#: wind field of the ``wind`` section (mean wind, Dryden turbulence, gusts, shelter) replaces them
 WIND_MODELS = ("none", "constant", "sinusoid", "dryden")
 
 
@@ -433,6 +469,12 @@ class SimConfig:
     capture: CaptureConfig = field(default_factory=CaptureConfig)
     rl: RLConfig = field(default_factory=RLConfig)
     ui: UIConfig = field(default_factory=UIConfig)
+    #: time of day, clouds and haze of the rendered scene (RGB only; see docs/light.md)
+    light: LightConfig = field(default_factory=LightConfig)
+    #: the wind field every vehicle flies in (calm by default; see docs/wind.md)
+    wind: WindConfig = field(default_factory=WindConfig)
+    #: domain randomisation: wind, light and depth-camera ranges drawn at every reset (off by default)
+    randomize: RandomizeConfig = field(default_factory=RandomizeConfig)
     #: the vehicles of the world; empty: one vehicle, ``uav0``, from the single-vehicle sections (so
     #: every single-vehicle config file keeps working)
     vehicles: list[VehicleSpec] = field(default_factory=list)
@@ -442,6 +484,11 @@ class SimConfig:
         twice = sorted({n for n in names if names.count(n) > 1})
         if twice:
             raise ValueError(f"vehicle names must be unique: {', '.join(twice)} given more than once")
+        if self.vehicle.wind != "none" and not self.wind.calm:
+            raise ValueError(
+                f"vehicle.wind={self.vehicle.wind!r} (a RotorPy wind profile) and the wind field "
+                "(wind.speed_m_s, wind.gust_speed_m_s) are two wind models: use one"
+            )
 
     def vehicle_specs(self) -> list[VehicleSpec]:
         """Every vehicle with its unset fields filled from the single-vehicle sections (copies).

@@ -13,7 +13,11 @@ How it is built, and why (each choice measured on Mesa llvmpipe, see ``benchmark
   A full-screen sky pass then fills only the pixels still at the far plane: gradient colour, class
   SKY and depth NaN, so misses need no conversion after readback.
 * The projection is mirrored vertically so GL row 0 is the image's top row: readback needs no flip.
-* The sun's shadow map is rendered once at start (static scene, static sun) and sampled with PCF.
+* The sun's shadow map is rendered once at start (static scene, static sun) and sampled with PCF; a new
+  light (:meth:`Renderer.set_light`) renders it again.
+* The light (:class:`~droneulator.render.light.Lighting`: sun direction and colour, hemisphere ambient,
+  sky gradient, haze) comes in as uniforms. Haze (Koschmieder fog) is a program variant of its own
+  (``FOG``), so the colour path without it and the depth-only path carry nothing for it.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from PIL import Image
 
 from droneulator import frames
 from droneulator.config import CameraConfig, SimConfig
+from droneulator.render.light import HAZE_LAYER_M, Lighting, historical_lighting, resolve_lighting
 from droneulator.scenes.base import MeshPart, Scene
 from droneulator.sensors.camera import Camera, gl_projection
 from droneulator.vehicles.mesh import TEXTURE as VEHICLE_TEXTURE
@@ -65,6 +70,9 @@ out vec4 v_uv_light;  // uv (xy), sky weight of the hemisphere ambient (z), sun 
 uniform vec3 u_eye;
 uniform vec3 u_sun;
 #endif
+#ifdef FOG
+out vec3 v_view;  // eye-space position: the distance the haze acts over
+#endif
 #ifdef SHADOWS
 uniform mat4 u_light;
 uniform float u_normal_offset;
@@ -84,6 +92,9 @@ void main() {
     gl_Position = u_proj * eye;
     v_meta = in_meta;
     v_depth_shadow = vec4(0.0, 0.0, 0.0, -eye.z);
+#ifdef FOG
+    v_view = eye.xyz;
+#endif
 #ifdef TEXCOORD
     v_uv_light = vec4(in_uv, 0.0, 0.0);
 #endif
@@ -116,6 +127,16 @@ uniform float u_texture_size;
 uniform sampler2DShadow u_shadow_map;
 #endif
 #ifdef COLOR
+uniform vec3 u_sun_color;
+uniform vec3 u_ambient_ground;  // hemisphere ambient: surfaces facing down, and up
+uniform vec3 u_ambient_sky;
+#endif
+#ifdef FOG
+in vec3 v_view;
+uniform float u_fog_beta;
+uniform vec3 u_fog_color;
+#endif
+#ifdef COLOR
 layout(location = 0) out vec4 o_color;
 layout(location = 1) out uint o_class;
 layout(location = 2) out float o_depth;
@@ -146,8 +167,13 @@ void main() {
 #else
     float lit = 1.0;
 #endif
-    vec3 ambient = mix(vec3(0.30, 0.28, 0.24), vec3(0.50, 0.55, 0.62), v_uv_light.z);
-    o_color = vec4(albedo.rgb * (ambient + vec3(0.78, 0.74, 0.66) * (v_uv_light.w * lit)), 1.0);
+    vec3 ambient = mix(u_ambient_ground, u_ambient_sky, v_uv_light.z);
+    vec3 color = albedo.rgb * (ambient + u_sun_color * (v_uv_light.w * lit));
+#ifdef FOG
+    // Koschmieder: what the camera sees fades to the haze's colour as exp(-beta * distance)
+    color = mix(u_fog_color, min(color, vec3(1.0)), exp(-u_fog_beta * length(v_view)));
+#endif
+    o_color = vec4(color, 1.0);
 #endif
     o_class = v_meta.x;
     o_depth = v_depth_shadow.w;
@@ -198,6 +224,11 @@ in vec2 v_ndc;
 uniform mat3 u_ray;  // NDC (x, y, 1) -> viewing ray in the GL world
 uniform vec3 u_zenith;
 uniform vec3 u_horizon;
+#ifdef FOG
+uniform float u_fog_beta;
+uniform vec3 u_fog_color;
+uniform float u_fog_layer;  // the haze layer's depth (m): a ray up at elevation e crosses layer / sin(e)
+#endif
 #ifdef COLOR
 layout(location = 0) out vec4 o_color;
 layout(location = 1) out uint o_class;
@@ -210,6 +241,9 @@ void main() {
 #ifdef COLOR
     float up = normalize(u_ray * vec3(v_ndc, 1.0)).y;
     vec3 sky = up > 0.0 ? mix(u_horizon, u_zenith, sqrt(up)) : u_horizon * (1.0 + 0.3 * up);
+#ifdef FOG
+    sky = mix(u_fog_color, sky, exp(-u_fog_beta * u_fog_layer / max(up, 1e-4)));
+#endif
     o_color = vec4(sky, 1.0);
 #endif
     o_class = 0u;
@@ -232,6 +266,8 @@ class CameraFrame:
     seg: np.ndarray  # (H, W) uint8 SemanticClass ids, SKY where nothing is hit
     K: np.ndarray  # (3, 3) intrinsics
     T_world_optical: np.ndarray  # (4, 4) optical frame in the Z-up world
+    #: plumb_bob (k1, k2, p1, p2, k3) of a distorted image (droneulator.sensors.camera_models); None: pinhole
+    D: np.ndarray | None = None
 
 
 def _mat(M: np.ndarray) -> bytes:
@@ -294,7 +330,9 @@ class Renderer:
 
     ``rigs`` maps each vehicle to its cameras, ``bodies`` each vehicle to its body mesh (body frame, see
     :func:`~droneulator.vehicles.mesh.vehicle_mesh`; drawn in every other vehicle's cameras; vehicles
-    given the same mesh share its buffers); ``cameras`` alone is one rig, :meth:`render`'s."""
+    given the same mesh share its buffers); ``cameras`` alone is one rig, :meth:`render`'s. ``light``:
+    the sun, sky and haze (:func:`~droneulator.render.light.resolve_lighting`); None: the scene's fixed
+    sun in a clear sky, as before the light settings existed."""
 
     def __init__(
         self,
@@ -306,6 +344,7 @@ class Renderer:
         *,
         rigs: dict[str, list[CameraConfig]] | None = None,
         bodies: dict[str, MeshPart] | None = None,
+        light: Lighting | None = None,
     ) -> None:
         """Upload ``scene`` and render its shadow map; ``ctx`` defaults to a new headless EGL context."""
         if (rigs is None) == (cameras is None):
@@ -321,14 +360,11 @@ class Renderer:
         self.shadows = shadows
         self._programs: dict[tuple[str, ...], moderngl.Program] = {}
         self._vaos: dict[tuple[str, ...], moderngl.VertexArray] = {}
-        self._sun = frames.zup_to_gl(scene.sun_direction)
-        self._sun = self._sun / np.linalg.norm(self._sun)
-        zenith = np.asarray(scene.sky_color, dtype=float)
-        self._zenith = tuple(zenith)
-        self._horizon = tuple(zenith + (1.0 - zenith) * 0.45)
         self._shadow_map: moderngl.Texture | None = None
+        self._shadow_map_size = shadow_map_size
         self._light = np.eye(4)
         self._normal_offset = 0.0
+        self._use_light(light or historical_lighting(scene))
         with self.ctx:  # current for this thread even when other renderers made their own contexts
             self._upload_textures(scene, with_bodies=bool(bodies))
             self._upload_geometry(scene)
@@ -336,6 +372,7 @@ class Renderer:
                 self._render_shadow_map(shadow_map_size)
             self._sky_vao = self.ctx.vertex_array(self._program(_SKY_VS, _SKY_FS, ("COLOR",)), [])
             self._sky_geometry_vao = self.ctx.vertex_array(self._program(_SKY_VS, _SKY_FS, ()), [])
+            self._sky_fog_vao: moderngl.VertexArray | None = None
             self.targets = [_Target(self.ctx, cam, vehicle) for vehicle, cams in rigs.items() for cam in cams]
             # one set of buffers per mesh, shared by every vehicle given the same one
             meshes: dict[int, _Body] = {}
@@ -346,6 +383,35 @@ class Renderer:
                 self._bodies[vehicle] = meshes[id(part)]
 
     # ------------------------------------------------------------------------------------ setup
+    def _use_light(self, lighting: Lighting) -> None:
+        """Take ``lighting``'s values (the sun as a unit vector in the GL world)."""
+        self.lighting = lighting
+        self._sun = frames.zup_to_gl(np.asarray(lighting.sun, dtype=float))
+        self._sun = self._sun / np.linalg.norm(self._sun)
+        self._zenith = tuple(lighting.zenith)
+        self._horizon = tuple(lighting.horizon)
+        self._fog_defines: tuple[str, ...] = ("FOG",) if lighting.fog else ()
+        self._light_uniforms = {
+            "u_sun_color": tuple(lighting.sun_color),
+            "u_ambient_ground": tuple(lighting.ambient_ground),
+            "u_ambient_sky": tuple(lighting.ambient_sky),
+            "u_fog_beta": float(lighting.fog_beta),
+            "u_fog_color": tuple(lighting.fog_color),
+            "u_fog_layer": HAZE_LAYER_M,
+        }
+
+    def set_light(self, lighting: Lighting) -> None:
+        """Light the scene with ``lighting`` from the next frame on (the shadow map is rendered again for
+        the new sun; nothing else is uploaded)."""
+        if self.ctx is None:
+            raise RuntimeError("renderer is closed")
+        self._use_light(lighting)
+        if self._shadow_map is not None:
+            with self.ctx:
+                self._shadow_map.release()
+                self._shadow_map = None
+                self._render_shadow_map(self._shadow_map_size)
+
     def _program(self, vs: str, fs: str, defines: tuple[str, ...]) -> moderngl.Program:
         key = (vs, fs, *defines)
         if key not in self._programs:
@@ -572,7 +638,7 @@ class Renderer:
         if self._n_triangles:
             tiles = self._visible_tiles(t.proj @ view, eye)
             for alpha in (False, True):  # opaque first: alpha-tested fragments then fail the depth test early
-                defines = ("COLOR", "TEXCOORD") if rgb else ()
+                defines = ("COLOR", "TEXCOORD", *self._fog_defines) if rgb else ()
                 if rgb and self._shadow_map is not None:
                     defines += ("SHADOWS",)
                 if alpha:
@@ -585,7 +651,7 @@ class Renderer:
                     )
         others = [v for v in (models or {}) if v != t.vehicle]
         if others:
-            defines = ("COLOR", "TEXCOORD", "MODEL") if rgb else ("MODEL",)
+            defines = ("COLOR", "TEXCOORD", "MODEL", *self._fog_defines) if rgb else ("MODEL",)
             if rgb and self._shadow_map is not None:
                 defines += ("SHADOWS",)
             for v in others:
@@ -595,6 +661,10 @@ class Renderer:
                 vao.render(moderngl.TRIANGLES)
         ctx.depth_func = "<="
         sky = self._sky_vao if rgb else self._sky_geometry_vao
+        if rgb and self._fog_defines:
+            if self._sky_fog_vao is None:
+                self._sky_fog_vao = ctx.vertex_array(self._program(_SKY_VS, _SKY_FS, ("COLOR", "FOG")), [])
+            sky = self._sky_fog_vao
         if rgb:
             P = t.proj
             ray = np.array(
@@ -603,6 +673,9 @@ class Renderer:
             sky.program["u_ray"].write(_mat(view[:3, :3].T @ ray))
             sky.program["u_zenith"].value = self._zenith
             sky.program["u_horizon"].value = self._horizon
+            if self._fog_defines:
+                for name in ("u_fog_beta", "u_fog_color", "u_fog_layer"):
+                    sky.program[name].value = self._light_uniforms[name]
         sky.render(moderngl.TRIANGLES, vertices=3)
         return T_wo
 
@@ -634,6 +707,10 @@ class Renderer:
                 prog[name].value = value
         if "u_light" in prog:
             prog["u_light"].write(_mat(self._light))
+        if "u_sun_color" in prog:  # colour programs only: the depth-only path sets nothing more
+            for name, value in self._light_uniforms.items():
+                if name in prog:
+                    prog[name].value = value
 
     def render_top_down(
         self, xy_min: tuple[float, float], xy_max: tuple[float, float], width: int, height: int
@@ -713,6 +790,7 @@ class Renderer:
                 *self._vaos.values(),
                 self._sky_vao,
                 self._sky_geometry_vao,
+                *([self._sky_fog_vao] if self._sky_fog_vao is not None else []),
                 *self._programs.values(),
             ):
                 obj.release()
@@ -750,4 +828,11 @@ def fleet_renderer(scene: Scene, config: SimConfig) -> Renderer:
         bodies=bodies,
         shadows=rc.shadows,
         shadow_map_size=rc.shadow_map_size,
+        light=config_lighting(scene, config),
     )
+
+
+def config_lighting(scene: Scene, config: SimConfig) -> Lighting:
+    """The light of ``scene`` under ``config.light``, the sun computed at the PX4 home unless the light
+    names its own place."""
+    return resolve_lighting(config.light, scene, (config.px4.home_lat_deg, config.px4.home_lon_deg))

@@ -51,6 +51,7 @@ __all__ = [
     "stamp",
     "tf_message",
     "transform_stamped",
+    "vector3_stamped",
     "twist_to_command",
     "type_hash",
 ]
@@ -113,6 +114,7 @@ _RegionOfInterest = _T["sensor_msgs/msg/RegionOfInterest"]
 _CompressedImage = _T["sensor_msgs/msg/CompressedImage"]
 _Image = _T["sensor_msgs/msg/Image"]
 _PoseStamped = _T["geometry_msgs/msg/PoseStamped"]
+_Vector3Stamped = _T["geometry_msgs/msg/Vector3Stamped"]
 _PositionCommand = _T[POSITION_COMMAND]
 
 _NS_PER_S = 1_000_000_000
@@ -220,20 +222,32 @@ def transform_stamped(
     return _TransformStamped(header=header(t_ns, parent), child_frame_id=child, transform=transform)
 
 
+def vector3_stamped(t_ns: int, frame_id: str, vector: ArrayLike) -> Any:
+    """geometry_msgs/Vector3Stamped: a vector (e.g. the wind's velocity) expressed in ``frame_id``."""
+    x, y, z = _vec3(vector, "vector")
+    return _Vector3Stamped(header=header(t_ns, frame_id), vector=_Vector3(x=x, y=y, z=z))
+
+
 def tf_message(transforms: Sequence[Any]) -> Any:
     """tf2_msgs/TFMessage carrying ``transforms`` (from :func:`transform_stamped`), for /tf and /tf_static."""
     return _TFMessage(transforms=list(transforms))
 
 
-def camera_info(t_ns: int, frame_id: str, width: int, height: int, K: ArrayLike) -> Any:
-    """sensor_msgs/CameraInfo of an ideal pinhole camera.
+def camera_info(
+    t_ns: int, frame_id: str, width: int, height: int, K: ArrayLike, D: ArrayLike | None = None
+) -> Any:
+    """sensor_msgs/CameraInfo of a pinhole camera with ``plumb_bob`` distortion ``D`` = (k1, k2, p1, p2,
+    k3) as OpenCV defines it (None: five zeros, an ideal pinhole).
 
-    ``plumb_bob`` with five zero distortion coefficients, ``R`` identity and ``P = [K | 0]``
-    (monocular, so no baseline term); binning 0 and an empty ROI mean full resolution.
+    ``R`` identity and ``P = [K | 0]`` (monocular, so no baseline term; the rectified image of a
+    distorted camera keeps K); binning 0 and an empty ROI mean full resolution.
     """
     k = np.array(K, dtype=np.float64).reshape(-1)
     if k.shape != (9,):
         raise ValueError(f"K must be 3x3, got shape {np.shape(K)}")
+    d = np.zeros(5, dtype=np.float64) if D is None else np.array(D, dtype=np.float64).reshape(-1)
+    if d.shape != (5,):
+        raise ValueError(f"D must hold the five plumb_bob coefficients, got shape {np.shape(D)}")
     p = np.zeros((3, 4), dtype=np.float64)
     p[:, :3] = k.reshape(3, 3)
     return _CameraInfo(
@@ -241,7 +255,7 @@ def camera_info(t_ns: int, frame_id: str, width: int, height: int, K: ArrayLike)
         height=int(height),
         width=int(width),
         distortion_model="plumb_bob",
-        d=np.zeros(5, dtype=np.float64),
+        d=d,
         k=k,
         r=np.eye(3, dtype=np.float64).reshape(-1),
         p=p.reshape(-1),
@@ -355,8 +369,8 @@ def serialize(msg: Any) -> CdrBytes:
 
 
 class StatePacker:
-    """CDR bytes of the per-step state messages (Clock, Odometry, one-transform TFMessage) in a few
-    microseconds, for the odometry latency path.
+    """CDR bytes of the per-step state messages (Clock, Odometry, one-transform TFMessage, the wind's
+    Vector3Stamped) in a few microseconds, for the odometry latency path.
 
     Their layout is fixed once the frame ids are: a template is serialised by rosbags once, the byte
     offsets of the stamp and the numeric fields are found in it (from sentinel values), and each call
@@ -378,6 +392,8 @@ class StatePacker:
         self._tf = bytes(serialize(tf))
         self._tf_pose = self._offset(self._tf, s)
         self._tf_stamp = 8  # encapsulation (4) + sequence length (4): the first transform's header
+        self._vec = bytes(serialize(vector3_stamped(0, frame_id, [s, 2 * s, 3 * s])))
+        self._vec_value = self._offset(self._vec, s)
 
     @staticmethod
     def _offset(buf: bytes, value: float) -> int:
@@ -404,6 +420,13 @@ class StatePacker:
         _TWIST.pack_into(buf, self._odom_twist, *v_body, *w_body)
         return buf
 
+    def vector(self, t_ns: int, vector: np.ndarray) -> bytearray:
+        """A Vector3Stamped in the packer's ``frame_id``."""
+        buf = bytearray(self._vec)
+        _STAMP.pack_into(buf, 4, *self._stamp(t_ns))
+        _VEC.pack_into(buf, self._vec_value, *vector)
+        return buf
+
     def transform(self, t_ns: int, position: np.ndarray, quat_xyzw: np.ndarray) -> bytearray:
         buf = bytearray(self._tf)
         _STAMP.pack_into(buf, self._tf_stamp, *self._stamp(t_ns))
@@ -415,6 +438,7 @@ _CLOCK = struct.Struct("<HHiI")
 _STAMP = struct.Struct("<iI")
 _POSE = struct.Struct("<7d")
 _TWIST = struct.Struct("<6d")
+_VEC = struct.Struct("<3d")
 
 
 def decode(typename: str, payload: bytes | bytearray | memoryview) -> Any:

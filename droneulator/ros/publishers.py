@@ -80,8 +80,8 @@ def fleet_names(cfg: SimConfig) -> dict[str, VehicleNames]:
 class _VehicleOut:
     """One vehicle's state publishers and message packer."""
 
-    def __init__(self, names: VehicleNames, odom: Any, odom_world: Any, tf: Any) -> None:
-        self.names, self.odom, self.odom_world, self.tf = names, odom, odom_world, tf
+    def __init__(self, names: VehicleNames, odom: Any, odom_world: Any, tf: Any, wind: Any) -> None:
+        self.names, self.odom, self.odom_world, self.tf, self.wind = names, odom, odom_world, tf, wind
         self.pack = M.StatePacker(names.odom_frame, names.base_frame)
 
 
@@ -107,7 +107,11 @@ class StatePublisher:
         for spec, (name, names) in zip(cfg.vehicle_specs(), fleet_names(cfg).items(), strict=True):
             t = names.topics()
             self.vehicles[name] = _VehicleOut(
-                names, pub(t["odom"], "odom"), pub(t["odom_world"], "odom_world"), pub(t["tf"], "tf")
+                names,
+                pub(t["odom"], "odom"),
+                pub(t["odom_world"], "odom_world"),
+                pub(t["tf"], "tf"),
+                pub(t["wind"], "wind"),
             )
             assert spec.cameras is not None
             self._static.setdefault(t["tf_static"], []).extend(static_transforms(spec.cameras, names))
@@ -120,7 +124,7 @@ class StatePublisher:
 
     def publish_states(self, states: Mapping[str, VehicleState]) -> None:
         """Publish the states of one instant: every odometry first (the latency-critical stream), then
-        ``/clock`` once, then TF and ``odom_world``.
+        ``/clock`` once, then TF, ``odom_world`` and the true wind (``wind``, in ``odom``).
 
         The fixed-layout packer makes this a few microseconds a vehicle (rosbags' generic serialiser
         takes ~0.1 ms).
@@ -138,6 +142,8 @@ class StatePublisher:
             out.tf.publish(out.pack.transform(t, p, q), t)
             w_world = body_to_world(q, st.angular_velocity)
             out.odom_world.publish(out.pack.odometry(t, p, q, st.velocity, w_world), t)
+            if st.wind is not None:
+                out.wind.publish(out.pack.vector(t, st.wind), t)
 
     def publish_static(self, stamp_ns: int) -> None:
         """The static transforms stamped ``stamp_ns`` (re-sent periodically and at every reset)."""
@@ -195,7 +201,7 @@ class FramePublisher:
             T_world_body = transform_from_pose(st.position, st.quaternion)
             for cam, frame_id, odom_frame, K, mount, pubs in self.cams[vehicle]:
                 im = images[vehicle][cam.name]
-                info = M.serialize(M.camera_info(t, frame_id, cam.width, cam.height, K))
+                info = M.serialize(M.camera_info(t, frame_id, cam.width, cam.height, K, cam.distortion))
                 for key in ("info_rgb", "info_depth", "info_seg"):
                     pubs[key].publish(info, t)
                 cam_p, cam_q = pose_from_transform(T_world_optical(T_world_body, mount))

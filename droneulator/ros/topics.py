@@ -8,6 +8,7 @@ client, the benchmarks) finds them here instead of spelling them out itself::
     /tf, /tf_static                                  tf2_msgs/TFMessage
     /<ns>/odom                                       nav_msgs/Odometry (twist in base_link, REP 105)
     /<ns>/odom_world                                 nav_msgs/Odometry (twist in odom: EGO-Planner's)
+    /<ns>/wind                                       geometry_msgs/Vector3Stamped (true wind in odom, m/s)
     /<ns>/cmd_vel, /<ns>/goal_pose       (in)        geometry_msgs/Twist, geometry_msgs/PoseStamped
     /<ns>/position_cmd                   (in)        quadrotor_msgs/PositionCommand (EGO-Planner's)
     /<ns>/<cam>/pose                                 geometry_msgs/PoseStamped (optical frame in odom)
@@ -57,6 +58,7 @@ TYPES: dict[str, str] = {
     "tf_static": "tf2_msgs/msg/TFMessage",
     "odom": "nav_msgs/msg/Odometry",
     "odom_world": "nav_msgs/msg/Odometry",
+    "wind": "geometry_msgs/msg/Vector3Stamped",
     "cmd_vel": "geometry_msgs/msg/Twist",
     "goal_pose": "geometry_msgs/msg/PoseStamped",
     "position_cmd": "quadrotor_msgs/msg/PositionCommand",
@@ -109,6 +111,7 @@ def vehicle_topics(ns: str) -> dict[str, str]:
         "tf_static": TF_STATIC,
         "odom": f"/{ns}/odom",
         "odom_world": f"/{ns}/odom_world",
+        "wind": f"/{ns}/wind",
         "cmd_vel": f"/{ns}/cmd_vel",
         "goal_pose": f"/{ns}/goal_pose",
         "position_cmd": f"/{ns}/position_cmd",

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import os
 import secrets
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from multiprocessing import resource_tracker
 from multiprocessing.connection import Client, Connection
 from multiprocessing.shared_memory import SharedMemory
@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from droneulator.config import CameraConfig
+from droneulator.config import CameraConfig, LightConfig
 
 if TYPE_CHECKING:
     from droneulator.sim.simulator import VehicleState
@@ -37,7 +37,7 @@ ENV_AUTHKEY = "DRONEULATOR_HUB_AUTHKEY"
 ENV_RING = "DRONEULATOR_FRAME_RING"
 ENV_CONFIG = "DRONEULATOR_CONFIG_JSON"
 ENV_ZENOH = "DRONEULATOR_ZENOH_ENDPOINT"
-PROTOCOL_VERSION = 3
+PROTOCOL_VERSION = 4
 
 
 # --------------------------------------------------------------------------- typed messages
@@ -98,10 +98,11 @@ class Published:
 
 @dataclass(frozen=True)
 class LoadScene:
-    """Hub -> both: the API reset the simulation into another scene or seed."""
+    """Hub -> both: the API reset the simulation into another scene, seed or light."""
 
     scene: str
     seed: int
+    light: LightConfig = field(default_factory=LightConfig)
 
 
 HubMessage = Render | Rendered | Publish | Published | LoadScene

@@ -1,6 +1,7 @@
 """The render server: draws every vehicle's camera rig for each set of states the dynamics server sends
-(each vehicle's body in the others' cameras), into the shared-memory frame ring, and acknowledges
-each frame set.
+(each vehicle's body in the others' cameras), through each camera's realism models
+(:mod:`droneulator.sensors.camera_models`, as the in-process world applies them), into the shared-memory
+frame ring, and acknowledges each frame set.
 
 States arrive in the Z-up world (RotorPy); the renderer converts them to its Y-up OpenGL world
 through :mod:`droneulator.frames` (``gl_view_matrix``), nowhere else.
@@ -19,6 +20,7 @@ import numpy as np
 from droneulator.config import SimConfig, from_dict
 from droneulator.frames import transform_from_pose
 from droneulator.render import Renderer, fleet_renderer
+from droneulator.render.renderer import config_lighting
 from droneulator.runtime.ipc import (
     ENV_CONFIG,
     ENV_RING,
@@ -30,6 +32,7 @@ from droneulator.runtime.ipc import (
     hub_connect,
 )
 from droneulator.scenes import get_scene
+from droneulator.sensors.camera_models import CameraModel, fleet_camera_models
 
 log = logging.getLogger("droneulator.render")
 
@@ -39,10 +42,12 @@ def serve(cfg: SimConfig) -> None:
     rigs = cfg.camera_rigs()
     ring = FrameRing(os.environ[ENV_RING], rigs, cfg.runtime.frame_slots)
 
-    def make(scene: str, seed: int) -> Renderer:
-        return fleet_renderer(get_scene(scene, seed), cfg)
+    def make(scene: str, seed: int) -> tuple[Renderer, dict[str, dict[str, CameraModel]]]:
+        """The renderer and the cameras' realism models (reseeded with the scene, as the world's are)."""
+        return fleet_renderer(get_scene(scene, seed), cfg), fleet_camera_models(cfg, seed)
 
-    renderer = make(welcome.scene, welcome.seed)
+    renderer, models = make(welcome.scene, welcome.seed)
+    loaded = (welcome.scene, welcome.seed)
     log.info(
         "render server ready: %s, %s",
         welcome.scene,
@@ -64,7 +69,11 @@ def serve(cfg: SimConfig) -> None:
                     }
                     slot = ring.slot(seq)
                     for vehicle, frames in renderer.render_rigs(poses).items():
+                        st = states[vehicle]
                         for name, f in frames.items():
+                            model = models.get(vehicle, {}).get(name)
+                            if model is not None:
+                                f = model.apply(f, st.velocity, st.angular_velocity)
                             out = slot[vehicle][name]
                             np.copyto(out.rgb, f.rgb)
                             np.copyto(out.depth, f.depth)
@@ -73,9 +82,15 @@ def serve(cfg: SimConfig) -> None:
                         conn.send(Rendered(seq))
                     except OSError:
                         return
-                case LoadScene(scene, seed):
+                case LoadScene(scene, seed, light):
+                    cfg.light = light
+                    if (scene, seed) == loaded:  # the light alone: the scene stays uploaded
+                        renderer.set_light(config_lighting(renderer.scene, cfg))
+                        log.info("light changed: %s", light)
+                        continue
                     renderer.close()
-                    renderer = make(scene, seed)
+                    renderer, models = make(scene, seed)
+                    loaded = (scene, seed)
                     log.info("scene changed to %s (seed %d)", scene, seed)
     finally:
         renderer.close()

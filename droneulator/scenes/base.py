@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import IntEnum
+from typing import Any
 
 import numpy as np
 
@@ -86,6 +87,9 @@ class Scene:
     bounds_max: np.ndarray
     sun_direction: np.ndarray = field(default_factory=lambda: np.array([0.4, 0.3, 0.85]))
     sky_color: tuple[float, float, float] = (0.53, 0.72, 0.92)
+    #: the scene's own light settings (``LightConfig`` field -> value, e.g. ``{"time_of_day_h": 8.0}``):
+    #: what a config's null light fields take; empty: the fixed ``sun_direction`` and a clear sky
+    light: dict[str, Any] = field(default_factory=dict)
     #: named points of interest, e.g. the centre tree of tree_inspection
     landmarks: dict[str, np.ndarray] = field(default_factory=dict)
 

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from droneulator.commands.errors import CommandError
-from droneulator.config import SimConfig
+from droneulator.config import LightConfig, SimConfig
 from droneulator.controllers.flight import Event, Mode
 from droneulator.vehicles.vehicle import NS, Vehicle, VehicleState
 from droneulator.world import World
@@ -105,12 +105,14 @@ class Simulator:
         yaw: float | None = None,
         scene: str | None = None,
         airborne: bool | None = None,
+        light: LightConfig | None = None,
     ) -> VehicleState:
         """Restart the flight at t = 0 from ``position`` (default: the scene's spawn on the ground).
 
-        A position above the ground starts hovering there (mode ``hold``) unless ``airborne=False``.
+        A position above the ground starts hovering there (mode ``hold``) unless ``airborne=False``;
+        ``light`` replaces the light section (time of day, clouds, haze: RGB only).
         """
-        return self.world.reset(seed, position, yaw, scene, airborne)
+        return self.world.reset(seed, position, yaw, scene, airborne, light=light)
 
     def step(self, n: int = 1) -> StepResult:
         """Advance ``n`` control periods; returns the frames rendered and events raised meanwhile."""

@@ -53,6 +53,8 @@ class VehicleState:
     mode: str
     reference: np.ndarray | None = None  # packed flat output being tracked
     vehicle: str = "uav0"
+    #: the wind at the vehicle (world frame, m/s; rotor wakes of vehicles above included): ground truth
+    wind: np.ndarray | None = None
 
     @property
     def t(self) -> float:
@@ -79,6 +81,7 @@ class VehicleState:
             "angular_velocity": self.angular_velocity.tolist(),
             "yaw": self.yaw,
             "mode": self.mode,
+            "wind": None if self.wind is None else self.wind.tolist(),
         }
 
 
@@ -206,6 +209,7 @@ class Vehicle:
             self.flight.mode.value,
             None if self._reference is None else self._reference.copy(),
             self.name,
+            s[STATE.wind].copy(),
         )
 
     @property

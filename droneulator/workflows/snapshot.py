@@ -26,7 +26,7 @@ def camera_info(frame: Any, t_ns: int) -> dict[str, Any]:
         "width": w,
         "height": h,
         "distortion_model": "plumb_bob",
-        "D": [0.0] * 5,
+        "D": [0.0] * 5 if frame.D is None else [float(d) for d in frame.D],
         "K": K.ravel().tolist(),
         "R": np.eye(3).ravel().tolist(),
         "P": np.hstack([K, np.zeros((3, 1))]).ravel().tolist(),

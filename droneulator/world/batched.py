@@ -9,13 +9,17 @@ equals the single world's to float rounding; only the flight modes learning uses
 velocity mode (:class:`~droneulator.controllers.velocity.VelocityReference`, the paper's unicycle
 command path, here as a compiled twin).
 
-Wind is still air (``vehicle.wind = "none"``); the copies share the scene, so its layout is the
-config's scene and seed.
+The copies share the scene, so its layout is the config's scene and seed. Each copy flies in its own
+realisation of the wind field (:mod:`droneulator.wind.field`, ``config.wind``; settable per copy with
+:meth:`BatchedWorlds.set_wind`, for domain randomisation), sampled once a camera frame and held over it
+(a single world samples it every control period: the two agree exactly in calm air only). RotorPy's wind
+profiles (``vehicle.wind``) are not batched.
 """
 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numba
 import numpy as np
@@ -29,6 +33,7 @@ from droneulator.scenes import get_scene
 from droneulator.state import FLAT_SIZE, STATE, STATE_SIZE
 from droneulator.vehicles.dynamics import OUTPUT_SIZE, ParamTable, integrate, work_arrays
 from droneulator.vehicles.vehicle import Vehicle
+from droneulator.wind.field import WindField
 from droneulator.world.world import NS
 
 #: the velocity reference of each copy: position (3), held altitude, yaw, command (forward, yaw rate),
@@ -91,7 +96,6 @@ def _step_copy(
             for j in range(FLAT_SIZE):
                 flat[b, j] = hold[b, j]
         se3_into(s, flat[b], gains, cmd[b], R[b])
-        s[13], s[14], s[15] = 0.0, 0.0, 0.0
         t_end = t_ns[b] + period_ns
         framed = False
         while t_ns[b] < t_end:
@@ -148,7 +152,10 @@ class BatchedWorlds:
         if int(num_worlds) < 1:
             raise ValueError(f"num_worlds must be at least 1, got {num_worlds!r}")
         if config.vehicle.wind != "none":
-            raise ValueError("batched worlds fly in still air: set vehicle.wind = 'none'")
+            raise ValueError(
+                "batched worlds take the wind field (the wind section), not RotorPy's profiles: "
+                "set vehicle.wind = 'none'"
+            )
         specs = config.vehicle_specs()
         if len(specs) != 1:
             raise ValueError("each batched world holds one vehicle: give at most one vehicle in the config")
@@ -183,6 +190,13 @@ class BatchedWorlds:
         self._work, self._R = work_arrays(n)
         self.camera_states = np.zeros((n, STATE_SIZE))
         self.hit = np.zeros(n, dtype=bool)
+        #: every copy's wind, sampled once a camera frame
+        self.wind = WindField(config.wind, n, self.camera_ns / NS, config.seed, self.scene.collision)
+
+    def set_wind(self, configs: Any, idx: np.ndarray | None = None) -> None:
+        """The wind settings (one :class:`~droneulator.config.WindConfig`, or one per copy) of copies ``idx``
+        (None: all), from their next step on."""
+        self.wind.configure(configs, list(self._rows(idx)))
 
     def _rows(self, idx: np.ndarray | None) -> np.ndarray:
         return np.arange(self.num_worlds) if idx is None else np.asarray(idx, dtype=np.int64).reshape(-1)
@@ -206,6 +220,7 @@ class BatchedWorlds:
         self.mode[rows] = HOLD
         self.t_ns[rows] = 0
         self._next_frame[rows] = self.camera_ns
+        self.wind.reset_rows(rows)
 
     def velocity(self, idx: np.ndarray | None, forward: np.ndarray, yaw_rate: np.ndarray) -> None:
         """Velocity-mode commands (forward speed m/s, yaw rate rad/s) for copies ``idx`` (None: all); a
@@ -242,6 +257,10 @@ class BatchedWorlds:
         arrays this object reuses (rows of copies not run keep old values)."""
         mask = np.ones(self.num_worlds, dtype=bool) if run is None else np.asarray(run, dtype=bool)
         col = self.scene.collision
+        if not self.wind.calm:
+            self.states[:, STATE.wind] = self.wind.update(self.states[:, STATE.x], self.states[:, STATE.v])
+        else:
+            self.states[:, STATE.wind] = 0.0
         _step_copies(
             self.states, self._vref, self.mode, self._hold, self.t_ns, self._next_frame, mask, self.period_ns,
             self.camera_ns, self._substep, self._lim, self._P, self._G, self._D, self._gains, col.sdf,

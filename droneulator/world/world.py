@@ -5,8 +5,9 @@ Simulation time is an integer count of nanoseconds. :meth:`World.step` advances 
 1. every vehicle's flight controller gives its rotor command or its reference (vehicles holding or with
    the motors off keep the last one, without a call);
 2. the SE(3) controller turns every reference into rotor commands in one compiled loop;
-3. each vehicle's wind is its own wind model's sample plus the rotor wakes of the vehicles above it
-   (:mod:`droneulator.world.downwash`);
+3. each vehicle's wind is the wind field's where it is (:mod:`droneulator.wind.field`: mean wind, Dryden
+   turbulence, gusts, the canopy's shelter; or a RotorPy profile, ``vehicle.wind``) plus the rotor wakes
+   of the vehicles above it (:mod:`droneulator.world.downwash`);
 4. one compiled step integrates every vehicle's row of the state array (``states``, laid out
    ``(worlds, vehicles, STATE_SIZE)`` with one world here), split at camera instants so that every
    frame is rendered from the exact state at ``k / camera_hz``, with the scene's collisions per row;
@@ -30,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from droneulator.commands.errors import CommandError
-from droneulator.config import SimConfig, load_config
+from droneulator.config import LightConfig, SimConfig, load_config
 from droneulator.controllers.flight import Event, Mode
 from droneulator.controllers.se3 import se3_rows
 from droneulator.scenes import get_scene
@@ -46,6 +47,7 @@ from droneulator.vehicles.dynamics import (
     work_arrays,
 )
 from droneulator.vehicles.vehicle import Vehicle, VehicleState
+from droneulator.wind.field import WindField
 from droneulator.world.contact import contacts
 from droneulator.world.downwash import WakeModel, downwash
 
@@ -135,8 +137,11 @@ class World:
         self.render_enabled = render
         self.camera_schedule = render or external_cameras
         self.renderer = None
+        self.camera_models: dict[str, dict[str, Any]] = {}
         self.scene: Scene
         self.t_ns = 0
+        #: the wind field every vehicle flies in (:mod:`droneulator.wind.field`), seeded by the world's seed
+        self.wind = WindField(cfg.wind, n, self.control_period_ns / NS, cfg.seed)
         self._load_scene(cfg.scene, cfg.seed)
         self.reset()
 
@@ -146,13 +151,17 @@ class World:
         # a scene without room for the fleet fails here (ValueError), before anything changes
         scene.spawn_points(sum(spec.spawn is None for spec in self.specs))
         self.scene = scene
+        self.wind.collision = scene.collision
         if self.renderer is not None:
             self.renderer.close()
             self.renderer = None
         if self.render_enabled:
             from droneulator.render import fleet_renderer
+            from droneulator.sensors.camera_models import fleet_camera_models
 
             self.renderer = fleet_renderer(self.scene, self.config)
+            #: the realism models of the cameras that are not ideal, reseeded with the scene
+            self.camera_models = fleet_camera_models(self.config, seed)
 
     @property
     def vehicle_list(self) -> list[Vehicle]:
@@ -188,15 +197,25 @@ class World:
         scene: str | None = None,
         airborne: bool | None = None,
         vehicle: str | None = None,
+        light: LightConfig | None = None,
     ) -> VehicleState:
         """Restart at t = 0: every vehicle at its start (on the ground), the first one (or ``vehicle``) at
         ``position`` / ``yaw`` if given. A position above the ground starts hovering there (mode ``hold``)
-        unless ``airborne=False``. Returns that vehicle's state."""
+        unless ``airborne=False``. ``light`` replaces the light section (RGB only). Returns that vehicle's
+        state."""
         target = self.vehicle(vehicle)
+        light = self.config.light if light is None else light
         if scene is not None or (seed is not None and seed != self.config.seed):
             new = (scene or self.config.scene, self.config.seed if seed is None else seed)
-            self._load_scene(*new)  # raises for an unknown scene before anything changes
+            previous, self.config.light = self.config.light, light
+            try:
+                self._load_scene(*new)  # raises for an unknown scene before anything changes
+            except Exception:
+                self.config.light = previous
+                raise
             self.config.scene, self.config.seed = new
+        elif light != self.config.light:
+            self.set_light(light)
         starts = dict(zip(self.vehicles, self.spawns(), strict=True))
         if position is not None or yaw is not None:
             pos, yaw0 = starts[target.name]
@@ -212,9 +231,41 @@ class World:
         for v in self.vehicles.values():
             pos, heading = starts[v.name]
             v.place(pos, float(heading), airborne if v is target else None)
-        #: no wind model: every vehicle's wind is zero (but for the wakes), set at once
-        self._still_air = self.config.vehicle.wind == "none"
+        # a fresh realisation each episode, the same sequence of them under the same seed
+        self._episodes = getattr(self, "_episodes", -1) + 1
+        self.wind.reset(np.random.SeedSequence([self.config.seed, 0x57494E44, self._episodes]))
+        self._update_still_air()
         return target.state
+
+    def set_light(self, light: LightConfig) -> None:
+        """Light the scene with ``light`` from the next frame on (the renderer's shadow map is drawn again,
+        nothing else changes). ValueError for a scene whose own light settings are bad."""
+        if self.renderer is not None:
+            from droneulator.render.renderer import config_lighting
+
+            lighting = config_lighting(self.scene, dataclasses.replace(self.config, light=light))
+            self.renderer.set_light(lighting)
+        self.config.light = light
+
+    def _update_still_air(self) -> None:
+        #: no wind model and a calm field: every vehicle's wind is zero (but for the wakes), set at once
+        self._still_air = self.config.vehicle.wind == "none" and self.wind.calm
+
+    def set_wind(self, config: Any, vehicle: str | None = None) -> None:
+        """Change the wind field's settings (a :class:`~droneulator.config.WindConfig`) for every vehicle,
+        or for ``vehicle`` only; the turbulence carries on, so the wind changes without a jump in its
+        random part. A RotorPy profile (``vehicle.wind``) and the field are two models: a CommandError."""
+        if self.config.vehicle.wind != "none" and not config.calm:
+            raise CommandError(
+                "invalid_argument",
+                f"this world flies RotorPy's {self.config.vehicle.wind!r} wind (vehicle.wind): the wind "
+                "field needs vehicle.wind = 'none'",
+            )
+        rows = None if vehicle is None else [list(self.vehicles).index(self.vehicle(vehicle).name)]
+        self.wind.configure(config, rows)
+        if vehicle is None:
+            self.config.wind = config
+        self._update_still_air()
 
     # ------------------------------------------------------------------ clocks
     @property
@@ -258,6 +309,8 @@ class World:
                 se3_rows(rows, flats, self._se3, self._gains, self._gidx, cmds, self._Rc, parallel)
             if self._still_air:
                 rows[:, STATE.wind] = 0.0
+            elif self.config.vehicle.wind == "none":
+                rows[:, STATE.wind] = self.wind.update(rows[:, STATE.x], rows[:, STATE.v])
             else:
                 for i, v in enumerate(vs):
                     rows[i, STATE.wind] = v.wind.update(t, rows[i, STATE.x])
@@ -342,7 +395,8 @@ class World:
     # ------------------------------------------------------------------ rendering
     def render(self) -> FrameSet:
         """Render every camera of every vehicle from the current states in one call (also usable outside
-        the camera schedule). The images are copies the caller owns."""
+        the camera schedule). The images are copies the caller owns, as each camera delivers them
+        (:mod:`droneulator.sensors.camera_models`: noise, distortion, exposure; untouched when ideal)."""
         if self.renderer is None:
             raise RuntimeError("this World was created with render=False")
         states = self.states_now()
@@ -356,6 +410,10 @@ class World:
             }
             for name, frames_ in drawn.items()
         }
+        for name, models in self.camera_models.items():
+            st = states[name]
+            for cam, model in models.items():
+                cams[name][cam] = model.apply(cams[name][cam], st.velocity, st.angular_velocity)
         return FrameSet(self.t_ns, states, cams)
 
     def close(self) -> None:

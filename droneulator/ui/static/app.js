@@ -22,6 +22,7 @@ const TELEMETRY_MS = 250;
 const ui = {
   config: null,
   scene: null, // scene_info of the loaded scene
+  light: null, // the light settings of the last level loaded here (reset's reply)
   vehicles: [], // scene_info's vehicles, the first the default one
   selected: null, // the vehicle the controls follow
   states: {}, // every vehicle's latest state, by name
@@ -183,6 +184,28 @@ async function buildLevels() {
   if (!$("levels").hidden) loadPreviews();
 }
 
+// The light options of the level select as the `light` field of `reset`: only the fields set ("as now"
+// keeps the simulator's), null for a default; null when none is set.
+const LIGHT_FIELDS = { "light-time": "time_of_day_h", "light-sky": "cloud_cover", "light-haze": "visibility_m" };
+function chosenLight() {
+  const light = {};
+  for (const [id, field] of Object.entries(LIGHT_FIELDS)) {
+    const value = $(id).value;
+    if (value !== "") light[field] = value === "null" ? null : Number(value);
+  }
+  return Object.keys(light).length ? light : null;
+}
+
+// One line for the telemetry: "08:00, overcast, visibility 200 m".
+function describeLight(l) {
+  const h = l.time_of_day_h;
+  const two = (n) => String(n).padStart(2, "0");
+  const parts = [h === null ? "fixed sun" : `${two(Math.floor(h))}:${two(Math.round((h % 1) * 60))}`];
+  if (l.cloud_cover) parts.push(l.cloud_cover >= 1 ? "overcast" : `cloud ${l.cloud_cover}`);
+  if (l.visibility_m !== null) parts.push(`visibility ${l.visibility_m} m`);
+  return parts.join(", ");
+}
+
 async function chooseScene(name) {
   const seed = Number($("seed").value);
   if (!Number.isInteger(seed) || seed < 0) {
@@ -191,7 +214,9 @@ async function chooseScene(name) {
   }
   document.body.classList.add("loading");
   try {
-    await send("reset", { scene: name, seed }, `loading ${name}`);
+    const light = chosenLight();
+    const res = await send("reset", { scene: name, seed, ...(light ? { light } : {}) }, `loading ${name}`);
+    ui.light = res.light ?? null;
     await loadScene();
     showPage("fly");
   } catch {
@@ -351,6 +376,7 @@ function renderTelemetry() {
       ["real-time factor", rtf === null ? "…" : rtf.toFixed(2)]);
   }
   if (ui.scene) rows.push(["scene", `${ui.scene.name} (seed ${ui.scene.seed})`]);
+  if (ui.light) rows.push(["light", describeLight(ui.light)]);
   const im = ui.images;
   if (im) {
     rows.push(["images shown", `${cams.count}`],

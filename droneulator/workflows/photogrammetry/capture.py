@@ -44,6 +44,7 @@ from droneulator.config import CameraConfig, CaptureConfig, SimConfig, fleet
 from droneulator.ros.topics import ns_to_seconds
 from droneulator.ros.zenoh_node import RosZenohNode
 from droneulator.runtime.launch import launch_run
+from droneulator.scenes import get_scene
 from droneulator.workflows.photogrammetry.dataset import CaptureDataset, plan_settings
 from droneulator.workflows.photogrammetry.fly import Flyer, StoppedError
 from droneulator.workflows.photogrammetry.plan import (
@@ -70,14 +71,22 @@ MOUNT = CameraConfig().position
 TRUTH_GROUND_MARGIN_M = 5.0
 
 
-def camera_for(cap: CaptureConfig, pitch_deg: float) -> CameraConfig:
-    """The capture camera: ``cap``'s resolution and field of view, at the default mount, pitched down."""
+#: the configured camera's settings the capture camera keeps: how the sensor renders light, none of
+#: its geometry (the dataset's camera is a pinhole of ``capture``'s resolution and field of view)
+PHOTOMETRIC_FIELDS = ("rgb_noise", "exposure_s", "auto_exposure")
+
+
+def camera_for(cap: CaptureConfig, pitch_deg: float, like: CameraConfig | None = None) -> CameraConfig:
+    """The capture camera: ``cap``'s resolution and field of view, at the default mount, pitched down,
+    with the sensor noise and exposure of ``like`` (the config's camera of that name, when it has one),
+    so that ``--set 'render.cameras=[{"rgb_noise": "machine_vision"}]'`` reaches the capture."""
     return CameraConfig(
         name=cap.camera,
         width=cap.width,
         height=cap.height,
         hfov_deg=cap.hfov_deg,
         rpy_deg=(0.0, pitch_deg, 0.0),
+        **({f: getattr(like, f) for f in PHOTOMETRIC_FIELDS} if like is not None else {}),
     )
 
 
@@ -104,13 +113,15 @@ def aim_pitch(cap: CaptureConfig, info: dict[str, Any]) -> float:
 
 
 def run_config(cfg: SimConfig, pitch_deg: float) -> SimConfig:
-    """The config of the simulator a capture starts: lockstep, the capture camera alone; with
-    ``capture.vehicles`` above one, that many vehicles (the config's own ``vehicles`` if it names them,
-    else ``uav0`` ..), each with the capture camera."""
+    """The config of the simulator a capture starts: lockstep, the capture camera alone (keeping the
+    sensor noise and exposure of the config's camera of its name); with ``capture.vehicles`` above one,
+    that many vehicles (the config's own ``vehicles`` if it names them, else ``uav0`` ..), each with the
+    capture camera."""
     cap = cfg.capture
     run_cfg = copy.deepcopy(cfg)
     run_cfg.runtime.mode = "lockstep"
-    run_cfg.render.cameras = [camera_for(cap, pitch_deg)]
+    like = next((c for c in cfg.render.cameras if c.name == cap.camera), None)
+    run_cfg.render.cameras = [camera_for(cap, pitch_deg, like)]
     run_cfg.render.camera_hz = cap.camera_hz
     run_cfg.bridge.jpeg_quality = cap.jpeg_quality
     if cap.vehicles > 1:
@@ -131,14 +142,12 @@ def write_truth(cfg: SimConfig, out: Path, info: dict[str, Any]) -> None:
     )
 
 
-def probe_scene_info(cfg: SimConfig, log_path: Path) -> dict[str, Any]:
-    """``scene_info`` of ``cfg.scene`` from a short run with a small camera (the capture camera's pitch
-    depends on the tree's landmarks, and a run's camera rig is fixed when it starts)."""
-    probe = copy.deepcopy(cfg)
-    probe.render.cameras = [CameraConfig(name=cfg.capture.camera, width=64, height=48)]
-    probe.render.shadows = False
-    with launch_run(probe, log=log_path) as run, run.client() as client:
-        return client.scene_info()
+def scene_landmarks(cfg: SimConfig) -> dict[str, Any]:
+    """The ``name`` and ``landmarks`` of ``cfg.scene`` as ``scene_info`` gives them, from the seeded scene
+    built here (the capture camera's pitch depends on the tree's landmarks, and a run's camera rig is fixed
+    when it starts: reading them here spares a probe run of the simulator)."""
+    scene = get_scene(cfg.scene, cfg.seed)
+    return {"name": scene.name, "landmarks": {k: np.asarray(v).tolist() for k, v in scene.landmarks.items()}}
 
 
 def capture(
@@ -156,6 +165,11 @@ def capture(
     its ROS topics are read from ``zenoh_endpoint`` (default: ``cfg.bridge.listen``).
     """
     out = Path(out)
+    draw = None
+    if cfg.randomize.enabled:  # domain randomisation: one draw of conditions for the whole capture
+        draw = cfg.randomize.draw(np.random.default_rng([cfg.seed, 0x52414E44]), cfg.wind)
+        cfg = cfg.randomize.apply(cfg, draw)
+        log(f"randomised conditions: {draw.describe()}")
     cap = cfg.capture
     wall0 = time.monotonic()
     timings: dict[str, float] = {}
@@ -164,7 +178,7 @@ def capture(
             sim_log = out / "simulator.log"
             pitch = cap.pitch_deg
             if pitch is None:
-                pitch = aim_pitch(cap, probe_scene_info(cfg, sim_log))
+                pitch = aim_pitch(cap, scene_landmarks(cfg))
             run = stack.enter_context(launch_run(run_config(cfg, pitch), log=sim_log))
             api_url = run.url
             client = run.client()
@@ -202,7 +216,10 @@ def capture(
         cam["frame_id"] = cam["frame_id"].removeprefix(topics.frame_prefix)
         if url is not None:
             pitch = pitch_used
-        dataset = CaptureDataset.open(out, plan_settings(cfg, pitch, cam))
+        settings = plan_settings(cfg, pitch, cam)
+        if draw is not None:  # part of the plan: a resumed capture must fly in the same conditions
+            settings["conditions"] = dataclasses.asdict(draw)
+        dataset = CaptureDataset.open(out, settings)
         dataset.set_camera(cam)
         write_truth(cfg, out, info)
         timings["startup_s"] = time.monotonic() - wall0

@@ -40,8 +40,10 @@ import gymnasium as gym
 import numpy as np
 
 from droneulator.config import CameraConfig, RLConfig, SimConfig, load_config
+from droneulator.config.randomize import Draw
 from droneulator.frames import wrap_angle
 from droneulator.scenes.base import Scene
+from droneulator.sensors.camera_models import CameraModel, camera_rng
 from droneulator.workflows.rl.astar import DistanceField, OccupancyGrid, occupancy_from_scene
 from droneulator.workflows.rl.backend import CAMERA_NAME, SCENE, Backend, Kinematics
 
@@ -55,8 +57,22 @@ _GRIDS: dict[tuple[Any, ...], OccupancyGrid] = {}
 
 
 def rl_camera(rl: RLConfig) -> CameraConfig:
-    """The RL depth camera: level, at the default mount, far plane at the depth clip."""
-    return CameraConfig(CAMERA_NAME, rl.camera_width, rl.camera_height, rl.hfov_deg, far=rl.depth_clip)
+    """The RL depth camera: level, at the default mount, far plane at the depth clip, ``rl.depth_model``'s
+    errors."""
+    size = (rl.camera_width, rl.camera_height)
+    return CameraConfig(CAMERA_NAME, *size, rl.hfov_deg, far=rl.depth_clip, depth_model=rl.depth_model)
+
+
+def depth_camera_models(cfg: SimConfig) -> dict[str, CameraModel | None]:
+    """The depth errors of every preset an episode may fly with, by name (None: ideal): the camera's own
+    (``rl.depth_model``), and with domain randomisation (``randomize``) each of ``randomize.depth_models``."""
+    cam = cfg.render.cameras[0]
+    names = [cam.depth_model, *(cfg.randomize.depth_models if cfg.randomize.enabled else [])]
+    models: dict[str, CameraModel | None] = {}
+    for name in dict.fromkeys(names):
+        preset = dataclasses.replace(cam, depth_model=name)
+        models[name] = None if name == "ideal" else CameraModel(preset, camera_rng(cfg.seed))
+    return models
 
 
 def env_config(config: SimConfig | None = None, **rl_overrides: Any) -> SimConfig:
@@ -74,9 +90,10 @@ def env_config(config: SimConfig | None = None, **rl_overrides: Any) -> SimConfi
 def runtime_overrides(cfg: SimConfig) -> list[str]:
     """``--set`` options for ``droneulator run`` so that its camera matches the RL camera (remote mode)."""
     cam = rl_camera(cfg.rl)
+    model = "" if cam.depth_model == "ideal" else f', "depth_model": "{cam.depth_model}"'
     spec = (
         f'[{{"name": "{cam.name}", "width": {cam.width}, "height": {cam.height}, '
-        f'"hfov_deg": {cam.hfov_deg}, "far": {cam.far}}}]'
+        f'"hfov_deg": {cam.hfov_deg}, "far": {cam.far}{model}}}]'
     )
     return [f"render.cameras={spec}", "render.shadows=false"]
 
@@ -118,11 +135,22 @@ class LocalBackend:
             from droneulator.render.raycast import DepthCaster
 
             self.caster = DepthCaster(self.scene, cfg.render.cameras[0])
+        self.camera_models = depth_camera_models(cfg)
+        #: the depth preset of the episode (``rl.depth_model``, or randomisation's draw)
+        self.depth_model = cfg.render.cameras[0].depth_model
+
+    def randomize(self, draw: Draw) -> None:
+        """Fly the next episode in the conditions of ``draw``: its wind and depth camera preset."""
+        self.sim.world.set_wind(draw.wind)
+        self.depth_model = draw.depth_model
 
     def _depth(self, T_world_body: np.ndarray) -> np.ndarray:
         if self.caster is not None:
-            return self.caster.depth(T_world_body[None])[0]
-        return self.renderer.render(T_world_body, rgb=False)[CAMERA_NAME].depth.copy()
+            depth = self.caster.depth(T_world_body[None])[0]
+        else:
+            depth = self.renderer.render(T_world_body, rgb=False)[CAMERA_NAME].depth.copy()
+        model = self.camera_models[self.depth_model]
+        return depth if model is None else model.apply_depth(depth)
 
     @staticmethod
     def _kinematics(st: Any) -> Kinematics:
@@ -362,6 +390,8 @@ class VineyardNavEnv(NavTask, gym.Env[np.ndarray, np.ndarray]):
     ) -> None:
         cfg = env_config(config, **rl_overrides)
         self.mode = mode
+        if cfg.randomize.enabled and mode != "local":
+            raise ValueError("domain randomisation (randomize.enabled) needs mode='local'")
         if mode == "local":
             backend: Backend = LocalBackend(cfg, depth)
         elif mode == "remote":
@@ -383,6 +413,9 @@ class VineyardNavEnv(NavTask, gym.Env[np.ndarray, np.ndarray]):
             start, yaw, goal, field = self.given_task(opts)
         else:
             start, yaw, goal, field = self.sample_task(self.np_random)
+        if self.config.randomize.enabled:
+            self.conditions = self.config.randomize.draw(self.np_random, self.config.wind)
+            self.backend.randomize(self.conditions)  # type: ignore[attr-defined]
         depth, kin = self.backend.reset(np.array([start[0], start[1], self.rl.altitude]), yaw)
         self.begin(start, yaw, goal, field, kin)
         return self.observe(depth, kin), self.step_info(kin, None, (0.0, 0.0))

@@ -35,6 +35,7 @@ from pettingzoo import ParallelEnv
 from droneulator.config import SimConfig, fleet
 from droneulator.scenes.base import MeshPart, Scene
 from droneulator.scenes.collision import sdf_lookup_many
+from droneulator.sensors.camera_models import fleet_camera_models
 from droneulator.vehicles.vehicle import VehicleState
 from droneulator.workflows.rl.backend import CAMERA_NAME, Kinematics
 from droneulator.workflows.rl.env import NavTask, env_config
@@ -108,6 +109,8 @@ class VineyardNavParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
             bodies[v.name] = meshes[v.spec.params]
         rigs = {v.name: v.cameras for v in vehicles.values()}
         self.renderer = Renderer(self.scene, rigs=rigs, bodies=bodies, shadows=False)
+        #: each vehicle's depth errors (rl.depth_model; none when ideal), seeded per vehicle
+        self.camera_models = {name: models[CAMERA_NAME] for name, models in fleet_camera_models(cfg).items()}
         spots = parking_spots(self.scene, num_agents, cfg.vehicle.collision_radius)
         #: where each agent's vehicle waits, motors off, once its episode has ended
         self.parking = dict(zip(self.possible_agents, spots, strict=True))
@@ -206,7 +209,11 @@ class VineyardNavParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
         """The depth image of each vehicle in ``states``, drawn in one call, each seeing the others'
         bodies (only theirs: done agents' vehicles are out of the picture)."""
         frames = self.renderer.render_rigs({name: st.T_world_body for name, st in states.items()}, rgb=False)
-        return {name: frames[name][CAMERA_NAME].depth for name in states}
+        depth = {name: frames[name][CAMERA_NAME].depth for name in states}
+        for name in states:
+            if name in self.camera_models:
+                depth[name] = self.camera_models[name].apply_depth(depth[name])
+        return depth
 
     def close(self) -> None:
         if getattr(self, "renderer", None) is not None:

@@ -24,6 +24,7 @@ Stable-Baselines3 expects). ``info`` holds every single-env key as an array with
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -37,7 +38,14 @@ from droneulator.frames import transforms_from_poses
 from droneulator.state import STATE
 from droneulator.workflows.rl.astar import bilinear, carrot
 from droneulator.workflows.rl.backend import CAMERA_NAME, Kinematics
-from droneulator.workflows.rl.env import DEPTH_SOURCES, STRIP_SAMPLES, NavTask, env_config, strips
+from droneulator.workflows.rl.env import (
+    DEPTH_SOURCES,
+    STRIP_SAMPLES,
+    NavTask,
+    depth_camera_models,
+    env_config,
+    strips,
+)
 from droneulator.world.batched import BatchedWorlds
 from droneulator.world.world import NS
 
@@ -118,37 +126,75 @@ def _nav_rows(
 
 
 class RenderedRows:
-    """The OpenGL renderer's depth centre rows for many poses, drawn one pose after the other."""
+    """The OpenGL renderer's depth centre rows for many poses, drawn one pose after the other; through the
+    camera's depth model (``rl.depth_model``) on the whole images when it is not ideal."""
 
     def __init__(self, cfg: SimConfig, scene: Any) -> None:
         from droneulator.render.renderer import Renderer
 
         self.renderer = Renderer(scene, cfg.render.cameras, shadows=False)
+        self.models = depth_camera_models(cfg)
 
-    def rows(self, poses: np.ndarray) -> np.ndarray:
-        out = []
-        for T in poses:
-            depth = self.renderer.render(T, rgb=False)[CAMERA_NAME].depth
-            out.append(depth[depth.shape[0] // 2].copy())
-        return np.array(out).reshape(len(poses), -1)
+    def rows(self, poses: np.ndarray, models: Sequence[str]) -> np.ndarray:
+        """Centre rows at ``poses``, each through the depth preset ``models`` names for it."""
+        if all(self.models[m] is None for m in models):
+            out = []
+            for T in poses:
+                depth = self.renderer.render(T, rgb=False)[CAMERA_NAME].depth
+                out.append(depth[depth.shape[0] // 2].copy())
+            return np.array(out).reshape(len(poses), -1)
+        depth = np.stack([self.renderer.render(T, rgb=False)[CAMERA_NAME].depth for T in poses])
+        return centre_rows(apply_models(self.models, depth, models))
 
     def close(self) -> None:
         self.renderer.close()
 
 
 class CastRows:
-    """Depth centre rows for many poses by ray casting (:mod:`droneulator.render.raycast`)."""
+    """Depth centre rows for many poses by ray casting (:mod:`droneulator.render.raycast`); through the
+    camera's depth model (``rl.depth_model``), applied to the whole ``(B, H, W)`` batch at once, when it is
+    not ideal (its edges and thin structures need the rows around the centre)."""
 
     def __init__(self, cfg: SimConfig, scene: Any) -> None:
         from droneulator.render.raycast import DepthCaster
 
         self.caster = DepthCaster(scene, cfg.render.cameras[0])
+        self.models = depth_camera_models(cfg)
 
-    def rows(self, poses: np.ndarray) -> np.ndarray:
-        return self.caster.centre_row(poses)
+    def rows(self, poses: np.ndarray, models: Sequence[str]) -> np.ndarray:
+        """Centre rows at ``poses``, each through the depth preset ``models`` names for it: whole images are
+        cast only for the poses whose preset is not ideal."""
+        noisy = np.array([self.models[m] is not None for m in models], dtype=bool)
+        if not noisy.any():
+            return self.caster.centre_row(poses)
+        if noisy.all():
+            return centre_rows(apply_models(self.models, self.caster.depth(poses), models))
+        out = np.empty((len(poses), next(iter(self.caster.cameras.values())).width), dtype=np.float32)
+        out[~noisy] = self.caster.centre_row(poses[~noisy])
+        picked = [m for m, n in zip(models, noisy, strict=True) if n]
+        out[noisy] = centre_rows(apply_models(self.models, self.caster.depth(poses[noisy]), picked))
+        return out
 
     def close(self) -> None:
         """Nothing to release: the caster holds arrays only."""
+
+
+def apply_models(models: dict[str, Any], depth: np.ndarray, names: Sequence[str]) -> np.ndarray:
+    """``depth`` (B, H, W) with image ``b`` through the depth model ``names[b]`` (each model on its
+    images in one batch)."""
+    out = depth.copy()
+    which = np.asarray(names)
+    for name in dict.fromkeys(names):
+        model = models[name]
+        if model is not None:
+            sel = which == name
+            out[sel] = model.apply_depth(depth[sel])
+    return out
+
+
+def centre_rows(depth: np.ndarray) -> np.ndarray:
+    """The centre rows (row ``h // 2``) of a ``(B, H, W)`` batch of depth images."""
+    return np.ascontiguousarray(depth[:, depth.shape[1] // 2])
 
 
 def depth_rows(cfg: SimConfig, scene: Any, source: str) -> RenderedRows | CastRows:
@@ -227,6 +273,9 @@ class VineyardNavVectorEnv(VectorEnv):
         self._dist = np.zeros(n)
         self._goal_dist = np.zeros(n)
         self.depth_source = depth_rows(cfg, self.scene, depth)
+        #: each env's depth preset this episode (``rl.depth_model``, or randomisation's draw)
+        self._depth_models = [cfg.render.cameras[0].depth_model] * n
+        self._base_wind = cfg.wind
 
     # ------------------------------------------------------------------ helpers
     def _reset_envs(self, idx: np.ndarray, options: dict[str, Any] | None) -> None:
@@ -243,6 +292,11 @@ class VineyardNavVectorEnv(VectorEnv):
                 begun.append(task.sample_task(self._rngs[i]))
         positions = np.array([(start[0], start[1], rl.altitude) for start, *_ in begun]).reshape(-1, 3)
         self.worlds.place(idx, positions, np.array([yaw for _, yaw, *_ in begun]))
+        if self.config.randomize.enabled:
+            draws = [self.config.randomize.draw(self._rngs[i], self._base_wind) for i in idx]
+            self.worlds.set_wind([d.wind for d in draws], idx)
+            for i, d in zip(idx, draws, strict=True):
+                self._depth_models[i] = d.depth_model
         for i, (start, yaw, goal, field) in zip(idx, begun, strict=True):
             kin = self._kinematics(int(i), 0)
             task = self.tasks[i]
@@ -272,7 +326,9 @@ class VineyardNavVectorEnv(VectorEnv):
         if len(idx) == 0:
             return
         poses = transforms_from_poses(rows[idx, 0:3], rows[idx, 6:10])
-        self._obs[idx, :STRIP_SAMPLES] = strips(self.depth_source.rows(poses), self.config.rl.depth_clip)
+        models = [self._depth_models[i] for i in idx]
+        depth = self.depth_source.rows(poses, models)
+        self._obs[idx, :STRIP_SAMPLES] = strips(depth, self.config.rl.depth_clip)
 
     def _infos(self, rows: np.ndarray, t: np.ndarray, mask: np.ndarray) -> dict[str, Any]:
         """The single env's info keys as arrays (Gymnasium's vector form, every env present)."""

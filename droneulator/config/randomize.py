@@ -1,0 +1,130 @@
+"""Domain randomisation (the ``randomize`` section): ranges the wind, the light and the depth camera's
+error model are drawn from at every reset, so a policy or a benchmark meets the field's variety.
+
+Drawn per episode from the episode's own generator (seeded: the same seeds draw the same conditions),
+by :meth:`RandomizeConfig.draw`. The RL environments (single and batched), ``droneulator capture`` and
+the planning benchmark apply what is drawn; see docs/realism.md.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from droneulator.config.camera_presets import DEPTH_PRESETS
+from droneulator.config.wind import WindConfig
+
+
+def _range(name: str, value: Any, lo: float, hi: float) -> tuple[float, float]:
+    ok = isinstance(value, list | tuple) and len(value) == 2
+    ok = ok and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+    ok = ok and all(math.isfinite(v) for v in value)
+    if not ok or not lo <= value[0] <= value[1] <= hi:
+        want = f"[low, high] with {lo} <= low <= high <= {hi}"
+        raise ValueError(f"randomize.{name} must be {want}, got {value!r}")
+    return float(value[0]), float(value[1])
+
+
+@dataclass
+class Draw:
+    """What one reset draws: the wind, the depth camera's preset, the light's time of day (h), cloud
+    cover and visibility (m; None: clear air)."""
+
+    wind: WindConfig
+    depth_model: str
+    time_of_day_h: float
+    cloud_cover: float
+    visibility_m: float | None
+
+    def describe(self) -> str:
+        """One line for a log."""
+        haze = "clear" if self.visibility_m is None else f"visibility {self.visibility_m:.0f} m"
+        return (
+            f"wind {self.wind.speed_m_s:.1f} m/s from {self.wind.direction_deg:.0f} deg (gusts "
+            f"{self.wind.gust_speed_m_s:.1f} m/s), {self.time_of_day_h:.1f} h, cloud cover "
+            f"{self.cloud_cover:.2f}, {haze}, depth {self.depth_model}"
+        )
+
+
+@dataclass
+class RandomizeConfig:
+    """Off by default. Each range is ``[low, high]`` (uniform); ``depth_models`` is a list of the depth
+    presets to choose from, uniformly."""
+
+    enabled: bool = False
+    #: mean wind W20 (m/s) and where it blows from (degrees clockwise from north)
+    wind_speed_m_s: tuple[float, float] = (0.0, 6.0)
+    wind_direction_deg: tuple[float, float] = (0.0, 360.0)
+    #: Dryden intensity factor, and the 1-cosine gusts' peak as a fraction of the mean wind
+    turbulence_scale: tuple[float, float] = (0.5, 1.5)
+    gust_fraction: tuple[float, float] = (0.0, 0.6)
+    #: the depth camera's error model, one of these presets (``render.cameras[].depth_model``)
+    depth_models: list[str] = field(default_factory=lambda: ["ideal", "d435"])
+    #: the light (RGB only): local time (h), cloud cover, and the share of episodes in haze with a
+    #: visibility drawn from ``visibility_m``
+    time_of_day_h: tuple[float, float] = (7.0, 19.0)
+    cloud_cover: tuple[float, float] = (0.0, 1.0)
+    haze_prob: float = 0.2
+    visibility_m: tuple[float, float] = (150.0, 2000.0)
+
+    def __post_init__(self) -> None:
+        self.wind_speed_m_s = _range("wind_speed_m_s", self.wind_speed_m_s, 0.0, 40.0)
+        self.wind_direction_deg = _range("wind_direction_deg", self.wind_direction_deg, -360.0, 720.0)
+        self.turbulence_scale = _range("turbulence_scale", self.turbulence_scale, 0.0, 5.0)
+        self.gust_fraction = _range("gust_fraction", self.gust_fraction, 0.0, 5.0)
+        self.time_of_day_h = _range("time_of_day_h", self.time_of_day_h, 0.0, 24.0)
+        self.cloud_cover = _range("cloud_cover", self.cloud_cover, 0.0, 1.0)
+        self.visibility_m = _range("visibility_m", self.visibility_m, 1.0, 1e6)
+        if not (isinstance(self.haze_prob, int | float) and 0.0 <= self.haze_prob <= 1.0):
+            raise ValueError(f"randomize.haze_prob must lie in [0, 1], got {self.haze_prob!r}")
+        bad = [m for m in self.depth_models if m not in DEPTH_PRESETS]
+        if not self.depth_models or bad:
+            raise ValueError(
+                f"randomize.depth_models must be a non-empty list of {', '.join(DEPTH_PRESETS)}; "
+                f"got {bad or '[]'}"
+            )
+
+    def draw(self, rng: np.random.Generator, wind: WindConfig | None = None) -> Draw:
+        """One episode's conditions; ``wind``: the settings the drawn ones replace fields of."""
+        speed = float(rng.uniform(*self.wind_speed_m_s))
+        drawn_wind = dataclasses.replace(
+            wind or WindConfig(),
+            speed_m_s=speed,
+            direction_deg=float(rng.uniform(*self.wind_direction_deg)) % 360.0,
+            turbulence_scale=float(rng.uniform(*self.turbulence_scale)),
+            gust_speed_m_s=speed * float(rng.uniform(*self.gust_fraction)),
+        )
+        depth = self.depth_models[int(rng.integers(len(self.depth_models)))]
+        hazy = bool(rng.random() < self.haze_prob)
+        return Draw(
+            wind=drawn_wind,
+            depth_model=depth,
+            time_of_day_h=float(rng.uniform(*self.time_of_day_h)) % 24.0,
+            cloud_cover=float(rng.uniform(*self.cloud_cover)),
+            visibility_m=float(rng.uniform(*self.visibility_m)) if hazy else None,
+        )
+
+    def apply(self, cfg: Any, draw: Draw) -> Any:
+        """A copy of ``cfg`` (a :class:`~droneulator.config.SimConfig`) in the conditions of ``draw``: its
+        wind, its light's time of day, clouds and haze, and every camera's depth preset (for a workflow
+        that draws once, e.g. a capture)."""
+        out = copy.deepcopy(cfg)
+        out.wind = draw.wind
+        out.light = dataclasses.replace(
+            out.light,
+            time_of_day_h=draw.time_of_day_h,
+            cloud_cover=draw.cloud_cover,
+            visibility_m=draw.visibility_m,
+        )
+        out.render.cameras = [
+            dataclasses.replace(c, depth_model=draw.depth_model) for c in out.render.cameras
+        ]
+        for v in out.vehicles:
+            if v.cameras is not None:
+                v.cameras = [dataclasses.replace(c, depth_model=draw.depth_model) for c in v.cameras]
+        return out
