@@ -10,6 +10,7 @@ a flight of a few kilometres the WMM changes by hundredths of a degree.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -40,6 +41,13 @@ def wmm_field_ned_gauss(lat_deg: float, lon_deg: float, alt_m: float, year: floa
     ``alt_m`` is the height above the WGS84 ellipsoid (the ~50 m geoid separation changes the field
     by well under a nanotesla). A year outside the model's validity is a :class:`ValueError`.
     """
+    return np.array(_wmm_field(float(lat_deg), float(lon_deg), float(alt_m), float(year)))
+
+
+@functools.lru_cache(maxsize=64)
+def _wmm_field(lat_deg: float, lon_deg: float, alt_m: float, year: float) -> tuple[float, float, float]:
+    """:func:`wmm_field_ned_gauss`, computed once per place and year (every vehicle of a fleet asks for
+    the field at the same home: 9 ms each)."""
     from wmm import wmm_calc  # imported here: only a run without an explicit field needs it
 
     model = wmm_calc()
@@ -47,9 +55,10 @@ def wmm_field_ned_gauss(lat_deg: float, lon_deg: float, alt_m: float, year: floa
         model.setup_time(dyear=float(year))
     except ValueError as exc:
         raise ValueError(f"px4.mag_wmm_year={year}: {exc}") from None
-    model.setup_env(float(lat_deg), float(lon_deg), float(alt_m), unit="m")
+    model.setup_env(lat_deg, lon_deg, alt_m, unit="m")
     out = model.get_all()
-    return np.array([float(out[k][0]) for k in ("x", "y", "z")]) * GAUSS_PER_NT
+    x, y, z = (float(out[k][0]) * GAUSS_PER_NT for k in ("x", "y", "z"))
+    return x, y, z
 
 
 def field_elements(field_ned: Any) -> FieldElements:

@@ -100,6 +100,8 @@ class World:
         cfg = self.config
         self.specs = cfg.vehicle_specs()
         n = len(self.specs)
+        # a scene without room for the fleet fails here (ValueError), before any vehicle is built
+        get_scene(cfg.scene, cfg.seed).spawn_points(sum(spec.spawn is None for spec in self.specs))
         #: every vehicle's state, ``(worlds, vehicles, STATE_SIZE)``: one world here
         self.states = np.zeros((1, n, STATE_SIZE))
         self._rows = self.states[0]
