@@ -428,7 +428,9 @@ def test_lockstep_loses_no_image_to_a_slow_subscriber():
     assert wall >= 0.9 * 60 * 0.04  # the clock waited for the subscriber (60 frames, 40 ms each)
 
 
-def test_sigterm_stops_everything_within_2s():
+def test_sigterm_stops_everything_within_its_grace_period():
+    from droneulator.runtime.supervisor import STOP_GRACE_S
+
     r = Run("default")
     try:
         kids = r.children()
@@ -436,7 +438,8 @@ def test_sigterm_stops_everything_within_2s():
         t0 = time.monotonic()
         r.proc.send_signal(signal.SIGTERM)
         r.proc.wait(5)
-        assert time.monotonic() - t0 < 2.0
+        # the children get STOP_GRACE_S before SIGKILL; then the supervisor's own exit (slow on a loaded CPU)
+        assert time.monotonic() - t0 < STOP_GRACE_S + 1.5
         time.sleep(0.2)
         for pid in kids.values():
             with pytest.raises(ProcessLookupError):
