@@ -186,6 +186,36 @@ def test_hover_in_gusty_wind_holds_position_and_reports_the_wind():
     assert v.state.to_dict()["wind"] == pytest.approx(list(winds_a[-1]))
 
 
+def test_a_goto_in_wind_arrives_within_the_acceptance_radius_and_in_calm_air_settled():
+    """This controller has no integral term: a steady wind holds it off its target, so the tight arrival
+    criterion never holds; the goto arrives, unsettled, once it is within flight.acceptance_radius
+    flight.arrive_timeout_s after its reference ended. In calm air it settles as before."""
+    for speed, settled in ((0.0, True), (5.0, False)):
+        cfg = load_config(overrides=[f"wind.speed_m_s={speed}", "wind.turbulence=none", "wind.shelter=false"])
+        world = World(cfg, scene="default", render=False)
+        v = world.vehicle()
+        start = v.state.position + [0.0, 0.0, 3.0]
+        world.reset(position=start)
+        target = start + [2.0, 0.0, 0.0]
+        duration = v.goto(target)
+        events = []
+        for _ in range(round((duration + 10.0) * cfg.vehicle.control_hz)):
+            events += [e for e in world.step().events if e.type == "arrived"]
+            if events:
+                break
+        (arrived,) = events
+        error = np.linalg.norm(np.array(arrived.data["position"]) - target)
+        assert arrived.data["settled"] is settled
+        if settled:
+            assert error < cfg.flight.arrive_tolerance and arrived.t < duration + 1.0
+        else:  # pushed off by the steady wind (from the west: downwind is +x), and accepted on time
+            assert cfg.flight.arrive_tolerance < error <= cfg.flight.acceptance_radius
+            assert arrived.t == pytest.approx(duration + cfg.flight.arrive_timeout_s, abs=0.02)
+        assert v.mode.value == "hold"
+    with pytest.raises(ValueError, match="flight.acceptance_radius must be a positive number"):
+        load_config(overrides=["flight.acceptance_radius=0"])
+
+
 def test_set_wind_changes_the_wind_of_one_vehicle_or_all_and_rejects_bad_values():
     cfg = load_config()
     cfg.vehicles = [VehicleSpec(name="a"), VehicleSpec(name="b")]

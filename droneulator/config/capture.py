@@ -42,6 +42,12 @@ class CaptureConfig:
     settle_yaw_deg: float = 1.0
     settle_rate_dps: float = 3.0
     settle_time_s: float = 0.3
+    #: a viewpoint not settled that way this long (sim s) after its leg's reference ended is taken once
+    #: the vehicle is within acceptance_m of it and acceptance_deg of its heading (in wind the simulator's
+    #: controller keeps an offset and gusts keep it moving; the recorded pose is exact either way)
+    accept_after_s: float = 3.0
+    acceptance_m: float = 0.5
+    acceptance_deg: float = 10.0
     #: wall-clock limit for one leg (flight and settling), seconds
     leg_timeout_s: float = 120.0
     #: vehicles flying the capture at once (``--vehicles``), each its own contiguous arc of every ring
@@ -68,6 +74,11 @@ class CaptureConfig:
             raise ValueError("capture.max_leg_deg must lie in (0, 180]")
         if not 1 <= self.jpeg_quality <= 100:
             raise ValueError("capture.jpeg_quality must lie in [1, 100]")
+        if not (self.accept_after_s > 0 and self.acceptance_m > 0 and 0 < self.acceptance_deg <= 180):
+            raise ValueError(
+                "capture.accept_after_s and capture.acceptance_m must be positive, capture.acceptance_deg "
+                "in (0, 180]"
+            )
 
     def ring_altitudes(self) -> list[float]:
         """The rings' altitudes: ``altitudes`` when given, else ``round(views / 18)`` rings (1 to 3)

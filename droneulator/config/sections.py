@@ -148,6 +148,12 @@ class FlightConfig:
     leash: float = 1.0
     arrive_tolerance: float = 0.05
     arrive_speed: float = 0.05
+    #: a goto or take-off not settled within arrive_tolerance and arrive_speed this long (sim s) after its
+    #: reference ended arrives once within acceptance_radius (m) of its target, as an autopilot's waypoint
+    #: acceptance radius (PX4's NAV_ACC_RAD): in wind this controller keeps a steady offset (it has no
+    #: integral term) and gusts keep it moving, so the tight criterion may never hold
+    arrive_timeout_s: float = 3.0
+    acceptance_radius: float = 0.5
     #: the SE(3) controller keeps its thrust vector within this tilt of vertical (degrees, in (0, 90))
     #: and its vertical part at least ``min_lift`` times the weight, as PX4's MPC_TILTMAX_AIR and
     #: MPC_THR_MIN do, and gives up yaw moment before thrust when a rotor saturates (PX4's mixer);
@@ -157,6 +163,10 @@ class FlightConfig:
     min_lift: float = 0.2
 
     def __post_init__(self) -> None:
+        for name in ("arrive_tolerance", "arrive_speed", "arrive_timeout_s", "acceptance_radius"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ValueError(f"flight.{name} must be a positive number, got {value!r}")
         if self.max_tilt_deg is not None and not 0.0 < self.max_tilt_deg < 90.0:
             raise ValueError(f"flight.max_tilt_deg must lie in (0, 90), got {self.max_tilt_deg}")
         if not 0.0 <= self.min_lift < 1.0:

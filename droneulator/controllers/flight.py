@@ -267,22 +267,15 @@ class FlightController:
                 self.motors_off()
                 events.append(Event("landed", t, {"position": s[STATE.x].tolist()}))
                 return self._zero, None, events
-            if done and self.mode == Mode.GOTO and self._then_land and self._settled(s):
+            arrival = self._arrival(s, t) if done and self.mode in (Mode.GOTO, Mode.TAKEOFF) else None
+            if arrival is not None and self._then_land:
                 self.land(s, t)  # the landing spot is reached: the second leg starts now
                 assert self.trajectory is not None
                 return None, self.trajectory.flat(t), events
-            if done and self.mode in (Mode.GOTO, Mode.TAKEOFF) and self._settled(s):
-                events.append(
-                    Event(
-                        "arrived",
-                        t,
-                        {
-                            "target": self.target.tolist(),
-                            "position": s[STATE.x].tolist(),
-                            "command": self.mode.value,
-                        },
-                    )
-                )
+            if arrival is not None:
+                assert self.target is not None
+                data = {"target": self.target.tolist(), "position": s[STATE.x].tolist()}
+                events.append(Event("arrived", t, {**data, "command": self.mode.value, "settled": arrival}))
                 self.mode = Mode.HOLD
         return None, flat, events
 
@@ -293,9 +286,15 @@ class FlightController:
         cmd, flat, events = self.update(s, t, dt)
         return (self.se3.motor_speeds(s, flat) if cmd is None else cmd), flat, events
 
-    def _settled(self, s: np.ndarray) -> bool:
-        assert self.target is not None
-        return (
-            float(np.linalg.norm(s[STATE.x] - self.target)) < self.cfg.arrive_tolerance
-            and float(np.linalg.norm(s[STATE.v])) < self.cfg.arrive_speed
-        )
+    def _arrival(self, s: np.ndarray, t: float) -> bool | None:
+        """Whether the vehicle, its reference ended, has arrived: True when settled (within
+        ``arrive_tolerance`` and slower than ``arrive_speed``), False when only within ``acceptance_radius``
+        ``arrive_timeout_s`` after the reference ended (a wind it cannot settle in), None when not yet."""
+        assert self.target is not None and self.trajectory is not None
+        error = float(np.linalg.norm(s[STATE.x] - self.target))
+        if error < self.cfg.arrive_tolerance and float(np.linalg.norm(s[STATE.v])) < self.cfg.arrive_speed:
+            return True
+        end = self.trajectory.t0 + self.trajectory.duration
+        if t - end >= self.cfg.arrive_timeout_s and error <= self.cfg.acceptance_radius:
+            return False
+        return None

@@ -181,6 +181,8 @@ class CaptureDataset:
                 "max_path_error_m": max((g["max_path_error_m"] for g in legs), default=None),
                 "max_altitude_error_m": max((g["max_altitude_error_m"] for g in legs), default=None),
                 "capture_legs": len(legs),
+                # gotos that ended within the acceptance radius without settling (wind; accept_after_s)
+                "unsettled_gotos": sum(v["leg"].get("unsettled", 0) for v in views),
             },
             "plan": s,
             "runs": runs,

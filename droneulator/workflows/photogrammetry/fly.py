@@ -41,6 +41,8 @@ class LegStats:
     flight_sim_s: float = 0.0
     settle_sim_s: float = 0.0
     gotos: int = 0
+    #: gotos that ended within the acceptance radius without settling (wind)
+    unsettled: int = 0
 
     def merge(self, other: LegStats) -> None:
         self.max_path_error_m = max(self.max_path_error_m, other.max_path_error_m)
@@ -48,6 +50,7 @@ class LegStats:
         self.flight_sim_s += other.flight_sim_s
         self.settle_sim_s += other.settle_sim_s
         self.gotos += other.gotos
+        self.unsettled += other.unsettled
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -57,6 +60,7 @@ class LegStats:
             "flight_sim_s": round(self.flight_sim_s, 3),
             "settle_sim_s": round(self.settle_sim_s, 3),
             "gotos": self.gotos,
+            "unsettled": self.unsettled,
         }
 
 
@@ -106,11 +110,20 @@ class Flyer:
             and float(np.linalg.norm(s.angular)) <= math.radians(c.settle_rate_dps)
         )
 
+    def _accepted(self, s: OdomSample, goal: np.ndarray, yaw: float) -> bool:
+        c = self.cap
+        return float(np.linalg.norm(s.position - goal)) <= c.acceptance_m and abs(
+            wrap_angle(yaw_of(s.quaternion) - yaw)
+        ) <= math.radians(c.acceptance_deg)
+
     def goto(self, goal: np.ndarray, yaw: float, kind: str) -> tuple[LegStats, int]:
-        """Fly one min-snap leg to ``goal``; returns its tracking statistics and the settle stamp (ns)."""
+        """Fly one min-snap leg to ``goal``; returns its tracking statistics and the settle stamp (ns): when
+        the odometry has stayed within the settle tolerances for ``settle_time_s``, or, ``accept_after_s``
+        after the leg's reference ended without that (wind), when it is within the acceptance radius."""
         start = self.commanded if self.commanded is not None else self.topics.latest_odom().position
         reply = self.client.goto(goal.tolist(), yaw=yaw, speed=self.cap.speed, vehicle=self.vehicle)
         t0 = int(reply["stamp_ns"])  # the ROS clock, which the odometry stamps use
+        accept_from = t0 + seconds_to_ns(float(reply["duration"]) + self.cap.accept_after_s)
         stats = LegStats(kind, gotos=1)
         self.commanded = goal.copy()
         deadline = time.monotonic() + self.cap.leg_timeout_s
@@ -124,6 +137,10 @@ class Flyer:
             stats.max_path_error_m = max(stats.max_path_error_m, float(path_err.max()))
             stats.max_altitude_error_m = max(stats.max_altitude_error_m, float(alt_err.max()))
             for s in samples:
+                if s.stamp >= accept_from and self._accepted(s, goal, yaw):
+                    stats.flight_sim_s = ns_to_seconds(s.stamp - t0)
+                    stats.unsettled = 1
+                    return stats, s.stamp
                 if not self._in_tolerance(s, goal, yaw):
                     run_start = None
                     continue
