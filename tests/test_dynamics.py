@@ -73,10 +73,15 @@ def test_contact_forces_vanish_above_the_ground():
     assert below[3] - got[3] < 0  # friction opposes the sliding
 
 
-@pytest.mark.parametrize("name", ["hummingbird", "crazyflie"])
+@pytest.mark.parametrize("name", ["hummingbird", "crazyflie", "crazyflie_brushless", "px4_quadx"])
 def test_se3_controller_equals_rotorpy(name):
     qp = get_params(name)
     ref, fast = SE3Control(qp), FastSE3Control(qp)
+    # the gains and allocation it computes itself (without importing RotorPy's controller) are RotorPy's
+    assert (fast.mass, fast.kp_att, fast.kd_att, fast.k_eta) == (ref.mass, ref.kp_att, ref.kd_att, ref.k_eta)
+    for mine, theirs in ((fast.inertia, ref.inertia), (fast.kp_pos, ref.kp_pos), (fast.kd_pos, ref.kd_pos)):
+        np.testing.assert_array_equal(mine, theirs)
+    np.testing.assert_allclose(fast.TM_to_f, ref.TM_to_f, rtol=1e-15, atol=0)
     traj = MinSnap(
         np.array([[0, 0, 1.0], [2, 1, 2.0], [3, -1, 1.5]]),
         yaw_angles=np.array([0, 1.0, -0.5]),

@@ -2,8 +2,10 @@
 
 ``rotorpy.controllers.quadrotor_control.SE3Control.update`` costs ~0.3 ms per call here, more
 than the whole physics step. :class:`FastSE3Control` computes the identical motor-speed command
-(same gains, same allocation matrix; equality with RotorPy is asserted in the tests) in a few
-microseconds.
+(RotorPy's gains, the same allocation matrix; equality with RotorPy is asserted in the tests) in a few
+microseconds. It takes them from the airframe's parameters itself rather than from an ``SE3Control``:
+RotorPy's controller module imports torch when torch is installed, seconds and hundreds of megabytes
+in every simulator process.
 
 Optionally it bounds the desired thrust vector as an autopilot's position controller does (PX4's
 ``MPC_TILTMAX_AIR`` and ``MPC_THR_MIN``): its vertical part at least ``min_lift`` times the weight and
@@ -22,7 +24,6 @@ from typing import Any
 
 import numba
 import numpy as np
-from rotorpy.controllers.quadrotor_control import SE3Control
 
 from droneulator.frames_numba import quat_to_matrix_into
 from droneulator.state import STATE
@@ -144,8 +145,26 @@ def se3_rows(
     (_se3_parallel if parallel else _se3_serial)(states, flats, active, gains, gidx, out, R)
 
 
+#: RotorPy ``SE3Control``'s position gains (the same for every airframe), and its attitude gains unless the
+#: airframe's parameters name their own (``kp_att``, ``kd_att``)
+KP_POS = (6.5, 6.5, 15.0)
+KD_POS = (4.0, 4.0, 9.0)
+KP_ATT = 310.0
+KD_ATT = 57.0
+
+
+def allocation(quad_params: dict[str, Any]) -> np.ndarray:
+    """RotorPy's control allocation: the matrix from (thrust, roll, pitch, yaw moments) to the rotor forces,
+    the inverse of the map from rotor forces (all along body z) to thrust and moments."""
+    ratio = float(quad_params["k_m"]) / float(quad_params["k_eta"])  # rotor torque per unit thrust
+    arms = np.array([np.cross(np.asarray(r, dtype=float), (0.0, 0.0, 1.0))[:2]
+                     for r in quad_params["rotor_pos"].values()])  # fmt: skip
+    f_to_tm = np.vstack([np.ones(len(arms)), arms.T, ratio * np.asarray(quad_params["rotor_directions"])])
+    return np.linalg.inv(f_to_tm)
+
+
 class FastSE3Control:
-    """Gains and allocation taken from a RotorPy ``SE3Control`` built with the same parameters.
+    """RotorPy ``SE3Control``'s gains and allocation for an airframe's parameters (RotorPy's dict).
 
     ``max_tilt_deg`` (in (0, 90); None: no bounds, RotorPy's exact controller) and ``min_lift`` (share of
     the weight, in [0, 1)) bound the desired thrust vector; with them the yaw moment is also given up
@@ -160,20 +179,22 @@ class FastSE3Control:
             raise ValueError(f"min_lift must lie in [0, 1), got {min_lift}")
         self.tan_max_tilt = 0.0 if max_tilt_deg is None else math.tan(math.radians(max_tilt_deg))
         self.min_lift = float(min_lift)
-        ref = SE3Control(quad_params)
         # rotor force range for the yaw desaturation, on with the thrust bounds (both 0: off)
         bounded = max_tilt_deg is not None
         k = float(quad_params["k_eta"])
         self.f_min = k * float(quad_params["rotor_speed_min"]) ** 2 if bounded else 0.0
         self.f_max = k * float(quad_params["rotor_speed_max"]) ** 2 if bounded else 0.0
-        self.mass = float(ref.mass)
-        self.inertia = np.ascontiguousarray(ref.inertia, dtype=float)
-        self.kp_pos = np.asarray(ref.kp_pos, dtype=float)
-        self.kd_pos = np.asarray(ref.kd_pos, dtype=float)
-        self.kp_att = float(ref.kp_att)
-        self.kd_att = float(ref.kd_att)
-        self.TM_to_f = np.ascontiguousarray(ref.TM_to_f, dtype=float)
-        self.k_eta = float(ref.k_eta)
+        q = quad_params
+        self.mass = float(q["mass"])
+        self.inertia = np.array([[q["Ixx"], q["Ixy"], q["Ixz"]],
+                                 [q["Ixy"], q["Iyy"], q["Iyz"]],
+                                 [q["Ixz"], q["Iyz"], q["Izz"]]], dtype=float)  # fmt: skip
+        self.kp_pos = np.array(KP_POS)
+        self.kd_pos = np.array(KD_POS)
+        self.kp_att = float(q.get("kp_att", KP_ATT))
+        self.kd_att = float(q.get("kd_att", KD_ATT))
+        self.TM_to_f = np.ascontiguousarray(allocation(q))
+        self.k_eta = float(q["k_eta"])
         self._gains = self.gains()
         self._R = np.empty((3, 3))
 

@@ -10,13 +10,37 @@ minimum-snap solution for that boundary-value problem.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import sys
+from collections.abc import Iterator
 
 import numba
 import numpy as np
-from rotorpy.trajectories.minsnap import MinSnap
 
 from droneulator.state import FLAT_SIZE
+
+
+@contextlib.contextmanager
+def _without(modules: tuple[str, ...]) -> Iterator[None]:
+    """Make ``import`` of ``modules`` fail inside the block (those not imported yet), as if they were not
+    installed. RotorPy's trajectory module tries to import torch for its batched class only, which the
+    simulator does not use: with the ``rl`` extra installed that import alone took 2-4 s and 300 MB in
+    every simulator process. A process that imported torch before keeps it (nothing to save there); the
+    module's batched class (``BatchedMinSnap``) is then unusable in this process."""
+    blocked = [name for name in modules if name not in sys.modules]
+    for name in blocked:
+        sys.modules[name] = None  # type: ignore[assignment]
+    try:
+        yield
+    finally:
+        for name in blocked:
+            if sys.modules.get(name, 0) is None:
+                del sys.modules[name]
+
+
+with _without(("torch", "roma")):
+    from rotorpy.trajectories.minsnap import MinSnap
 
 #: time scaling of the rest-to-rest 7th-order polynomial s(tau) = 35t^4 - 84t^5 + 70t^6 - 20t^7
 _REST_TO_REST = np.array([-20.0, 70.0, -84.0, 35.0, 0.0, 0.0, 0.0, 0.0])

@@ -1,17 +1,27 @@
-"""Wind models from RotorPy, chosen by name in ``VehicleConfig.wind``."""
+"""Wind: the wind field of the ``wind`` section (:mod:`.field`, :mod:`.dryden`), and RotorPy's wind profiles
+chosen by name in ``VehicleConfig.wind`` (:func:`make_wind`).
+
+RotorPy's wind module is imported only for a profile that needs it: it imports torch when torch is
+installed, which costs seconds and hundreds of megabytes in every simulator process."""
 
 from __future__ import annotations
 
 from typing import Protocol
 
 import numpy as np
-from rotorpy.wind.default_winds import ConstantWind, NoWind, SinusoidWind
 
 from droneulator.config import WIND_MODELS, VehicleConfig
 
 
 class WindModel(Protocol):
     def update(self, t: float, position: np.ndarray) -> np.ndarray: ...
+
+
+class Calm:
+    """No wind (``vehicle.wind = "none"``): zero at every time and place."""
+
+    def update(self, t: float, position: np.ndarray) -> np.ndarray:
+        return np.zeros(3)
 
 
 def make_wind(cfg: VehicleConfig, seed: int, dt: float) -> WindModel:
@@ -22,7 +32,9 @@ def make_wind(cfg: VehicleConfig, seed: int, dt: float) -> WindModel:
     """
     mean = np.asarray(cfg.wind_velocity, dtype=float)
     if cfg.wind == "none":
-        return NoWind()
+        return Calm()
+    from rotorpy.wind.default_winds import ConstantWind, SinusoidWind
+
     if cfg.wind == "constant":
         return ConstantWind(*mean)
     if cfg.wind == "sinusoid":
