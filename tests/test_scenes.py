@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -51,6 +52,46 @@ def test_unknown_scene_names_the_known_ones() -> None:
 
 def test_get_scene_is_cached() -> None:
     assert get_scene("default", 0) is get_scene("default", 0)
+
+
+def test_disk_cache_gives_the_built_scene_rebuilds_a_bad_file_and_keeps_its_limit(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from droneulator import scenes
+
+    monkeypatch.setenv("DRONEULATOR_CACHE_DIR", str(tmp_path))
+    scenes._load()
+    builds: list[int] = []
+
+    def build() -> Scene:
+        builds.append(1)
+        return scenes._REGISTRY["planning"][1](3)
+
+    a = scenes._cached("planning", 3, build)
+    b = scenes._cached("planning", 3, build)
+    assert len(builds) == 1 and b is not a  # the second came from the file
+    for pa, pb in zip(a.parts, b.parts, strict=True):
+        for field in ("positions", "normals", "uvs", "class_ids", "indices"):
+            np.testing.assert_array_equal(getattr(pa, field), getattr(pb, field))
+    assert a.textures.keys() == b.textures.keys()
+    for name in a.textures:
+        np.testing.assert_array_equal(a.textures[name], b.textures[name])
+    np.testing.assert_array_equal(a.collision.sdf, b.collision.sdf)
+    assert a.landmarks.keys() == b.landmarks.keys() and (a.name, a.seed) == (b.name, b.seed)
+    # a truncated file (a crash mid-write elsewhere) is built again and replaced
+    (path,) = tmp_path.glob("planning-3-*.pkl")
+    path.write_bytes(path.read_bytes()[:100])
+    scenes._cached("planning", 3, build)
+    assert len(builds) == 2 and scenes._cached("planning", 3, build) is not None and len(builds) == 2
+    # the least recently used go beyond the limit
+    monkeypatch.setattr(scenes, "CACHE_FILES", 2)
+    for seed in (4, 5, 6):
+        scenes._cached("planning", seed, lambda: a)
+    assert sorted(p.name.split("-")[1] for p in tmp_path.glob("*.pkl")) == ["5", "6"]
+    # off: built every time, nothing written
+    monkeypatch.setenv("DRONEULATOR_CACHE_DIR", "off")
+    scenes._cached("planning", 7, build)
+    assert len(builds) == 3 and not list(tmp_path.glob("planning-7-*"))
 
 
 def test_scene_builds_within_budget(scene: Scene) -> None:

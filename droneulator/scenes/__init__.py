@@ -3,13 +3,26 @@
 Builders are plain functions ``(seed: int) -> Scene`` decorated with :func:`register`. The scene
 modules are imported lazily on the first registry query, so importing :mod:`droneulator.scenes.base`
 alone stays cheap (no numba, no texture generation).
+
+A built scene is also kept on disk (:func:`cache_dir`), keyed by its name, seed and a hash of this
+package's source and numpy's version: a scene takes 1-3 s to build (its textures, meshes and collision
+grid) and every process of a run (dynamics and render server) and every test process needs it; a
+pickled one loads in about 10 ms. At most :data:`CACHE_FILES` scenes are kept (the least recently
+used go). ``DRONEULATOR_CACHE_DIR`` moves the cache; set to ``off`` it turns it off.
 """
 
 from __future__ import annotations
 
 import functools
+import hashlib
 import importlib
+import logging
+import os
+import pickle
+import sys
+import tempfile
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 
@@ -47,9 +60,67 @@ def list_scenes() -> dict[str, str]:
     return {name: desc for name, (desc, _fn) in sorted(_REGISTRY.items())}
 
 
+#: scenes kept on disk at most (each is 30-40 MB)
+CACHE_FILES = 16
+
+log = logging.getLogger("droneulator.scenes")
+
+
+def cache_dir() -> Path | None:
+    """Where built scenes are kept: ``$DRONEULATOR_CACHE_DIR`` (``off``: nowhere), else
+    ``$XDG_CACHE_HOME/droneulator/scenes`` (``~/.cache/...``); None in a frozen bundle, whose scene code
+    has no source to key the files by."""
+    env = os.environ.get("DRONEULATOR_CACHE_DIR")
+    if env == "off" or getattr(sys, "frozen", False):
+        return None
+    if env:
+        return Path(env)
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "droneulator" / "scenes"
+
+
+@functools.lru_cache(maxsize=1)
+def _source_key() -> str:
+    """A hash of every module of this package (what a scene is built from) and of numpy's version."""
+    h = hashlib.sha256(np.__version__.encode())
+    for path in sorted(Path(__file__).parent.glob("*.py")):
+        h.update(path.name.encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _cached(name: str, seed: int, build: Callable[[], Scene]) -> Scene:
+    """``build()``'s scene from the disk cache when there, else built and stored (a failure to read or
+    write the cache only costs the build)."""
+    root = cache_dir()
+    if root is None:
+        return build()
+    path = root / f"{name}-{seed}-{_source_key()}.pkl"
+    try:
+        with path.open("rb") as f:
+            scene = pickle.load(f)
+        os.utime(path)  # recently used
+        return scene
+    except FileNotFoundError:
+        pass
+    except Exception as exc:  # a truncated or foreign file: build it again
+        log.warning("scene cache %s unreadable (%s): building the scene", path, exc)
+    scene = build()
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=root, suffix=".tmp", delete=False) as f:
+            pickle.dump(scene, f, protocol=pickle.HIGHEST_PROTOCOL)
+        os.replace(f.name, path)  # atomic: a process starting meanwhile never reads half a file
+        kept = sorted(root.glob("*.pkl"), key=lambda p: p.stat().st_mtime, reverse=True)
+        for old in kept[CACHE_FILES:]:
+            old.unlink(missing_ok=True)
+    except OSError as exc:
+        log.warning("scene cache %s not written: %s", root, exc)
+    return scene
+
+
 @functools.lru_cache(maxsize=16)
 def _build(name: str, seed: int) -> Scene:
-    return _REGISTRY[name][1](seed)
+    return _cached(name, seed, lambda: _REGISTRY[name][1](seed))
 
 
 def get_scene(name: str, seed: int = 0) -> Scene:
