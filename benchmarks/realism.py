@@ -8,13 +8,21 @@ horizontal and vertical position error, the mean and the standard deviation of t
 the same hover between two of the vineyard's rows, 1.5 m up in a wind across them (the canopy's
 shelter), against a hover above the canopy.
 
-Prints the table, writes ``benchmarks/results/realism.json`` and the figure
-``benchmarks/results/realism_wind.png`` (copied to ``docs/img/wind_hover.png``).
+rl (``--part rl``): two SAC policies on the batched vineyard env (``--rl-envs`` worlds, ``--rl-steps`` steps
+each, training seed 0), one in the ideal default conditions and one with domain randomisation
+(``randomize.enabled``: wind, gusts and the depth camera drawn at every reset); both flown on the same 50
+held-out episodes (seeds 1,000,100 to 1,000,149, never trained on) in ideal conditions and in the field's
+(``FIELD``: a 5 m/s mean wind from a direction drawn per episode with Dryden turbulence and gusts of half
+that, and the RealSense D435 depth model). ``--rl-reuse`` keeps models already trained in ``--rl-out``.
+
+Prints the tables, writes ``benchmarks/results/realism.json`` (``--part wind`` also the figure
+``benchmarks/results/realism_wind.png``, copied to ``docs/img/wind_hover.png``).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 from pathlib import Path
 from typing import Any
@@ -143,21 +151,98 @@ def plot(result: dict[str, Any], path: Path) -> None:
     plt.close(fig)
 
 
+#: the field conditions the RL policies are flown in: every episode a 5 m/s mean wind (W20) from a
+#: direction of its own, standard Dryden turbulence, 1-cosine gusts of 2.5 m/s every 8 s on average, and
+#: the D435's depth errors (as randomisation ranges of zero width, so each episode's seed draws them)
+FIELD = [
+    "randomize.enabled=true",
+    "randomize.wind_speed_m_s=[5, 5]",
+    "randomize.turbulence_scale=[1, 1]",
+    "randomize.gust_fraction=[0.5, 0.5]",
+    "wind.gust_interval_s=8",
+    'randomize.depth_models=["d435"]',
+]
+#: the 50 held-out episodes (as benchmarks/rl.py's): seeds past the 10 that training checks use
+EVAL_50 = 1_000_100
+
+
+def rl_part(args: argparse.Namespace) -> dict[str, Any]:
+    """Train (or reuse) the ideal and the randomised policy; fly both in ideal and field conditions."""
+    from stable_baselines3 import SAC
+
+    from droneulator.workflows.rl.train import held_out_successes, train
+    from droneulator.workflows.rl.vector import VineyardNavVectorEnv
+
+    out = Path(args.rl_out)
+    policies = {"ideal": [], "randomised": ["randomize.enabled=true"]}
+    trained: dict[str, Any] = {}
+    for name, overrides in policies.items():
+        folder = out / name
+        if not (args.rl_reuse and (folder / "model.zip").is_file()):
+            print(f"training the {name} policy: SAC, {args.rl_envs} worlds, {args.rl_steps} steps")
+            train(load_config(overrides=overrides), folder, steps=args.rl_steps, n_envs=args.rl_envs,
+                  algo="sac", vec="native", progress=not args.no_progress)  # fmt: skip
+        trained[name] = json.loads((folder / "train_summary.json").read_text())
+    seeds = list(range(EVAL_50, EVAL_50 + 50))
+    conditions = {"ideal": [], "field": FIELD}
+    table: dict[str, dict[str, int]] = {}
+    for name in policies:
+        policy = SAC.load(out / name / "model.zip", device="cpu")
+        table[name] = {}
+        for cond, overrides in conditions.items():
+            env = VineyardNavVectorEnv(len(seeds), load_config(overrides=overrides))
+            try:
+                table[name][cond] = held_out_successes(policy, env, seeds)
+            finally:
+                env.close()
+    print(f"\n50 held-out episodes (seeds {seeds[0]}-{seeds[-1]}); field: " + ", ".join(FIELD))
+    print(f"{'policy':>12} | {'train steps':>11} | {'train wall s':>12} | {'ideal':>7} | {'field':>7}")
+    for name in policies:
+        t = trained[name]
+        print(f"{name:>12} | {t['steps']:>11} | {t['wall_s']:>12.0f} | {table[name]['ideal']:>4}/50 | "
+              f"{table[name]['field']:>4}/50")  # fmt: skip
+    return {
+        "algo": "sac",
+        "num_envs": args.rl_envs,
+        "steps": args.rl_steps,
+        "field_overrides": FIELD,
+        "eval_seeds": [seeds[0], seeds[-1]],
+        "successes_of_50": table,
+        "training": {
+            name: {k: trained[name].get(k) for k in ("steps", "wall_s", "steps_per_s")} for name in policies
+        },  # fmt: skip
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--part", nargs="+", choices=["wind", "rl"], default=["wind"], help="what to measure")
     ap.add_argument("--speeds", type=float, nargs="+", default=[0.0, 1.0, 2.0, 3.0, 5.0, 7.0, 10.0])
     ap.add_argument("--seconds", type=float, default=60.0, help="simulated seconds per hover")
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--shelter-speed", type=float, default=5.0)
+    ap.add_argument("--rl-steps", type=int, default=100_000, help="training steps of each RL policy")
+    ap.add_argument("--rl-envs", type=int, default=16, help="batched worlds SAC trains on")
+    ap.add_argument("--rl-out", default="out/bench_realism_rl", help="the RL policies' run folders")
+    ap.add_argument("--rl-reuse", action="store_true", help="keep RL models already trained in --rl-out")
+    ap.add_argument("--no-progress", action="store_true")
     ap.add_argument("--out", help="JSON path (default benchmarks/results/realism.json)")
     args = ap.parse_args()
-    result = {"wind": wind_part(args), "seconds": args.seconds, "seeds": args.seeds}
+    path = Path(args.out) if args.out else RESULTS / "realism.json"
+    result = json.loads(path.read_text()) if path.is_file() else {}  # keep the parts not run now
+    result.pop("benchmark", None)
+    result.pop("machine", None)
+    if "wind" in args.part:
+        result.update({"wind": wind_part(args), "seconds": args.seconds, "seeds": args.seeds})
+    if "rl" in args.part:
+        result["rl"] = rl_part(args)
     write("realism", result, args.out)
-    fig = RESULTS / "realism_wind.png"
-    plot(result["wind"], fig)
-    docs = Path(__file__).resolve().parent.parent / "docs" / "img" / "wind_hover.png"
-    shutil.copyfile(fig, docs)
-    print(f"wrote {fig} and {docs}")
+    if "wind" in args.part:
+        fig = RESULTS / "realism_wind.png"
+        plot(result["wind"], fig)
+        docs = Path(__file__).resolve().parent.parent / "docs" / "img" / "wind_hover.png"
+        shutil.copyfile(fig, docs)
+        print(f"wrote {fig} and {docs}")
 
 
 if __name__ == "__main__":
