@@ -424,6 +424,8 @@ def test_rl_vector_env_observes_through_the_depth_model() -> None:
         ('render.cameras=[{"distortion": [-1.5, 0.0, 0.0, 0.0, 0.0]}]', "folds the image over"),
         ('render.cameras=[{"auto_exposure": "sometimes"}]', "not a boolean"),
         ("rl.depth_model=lidar", "rl.depth_model must be one of"),
+        ('render.cameras=[{"depth_noise_scale": -1}]', r"depth_noise_scale must lie in \[0, 10\]"),
+        ("randomize.depth_dropout_scale=[2, 1]", "randomize.depth_dropout_scale must be"),
     ],
 )
 def test_bad_camera_model_settings_are_clear_errors(override: str, message: str) -> None:

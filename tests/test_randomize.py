@@ -25,6 +25,35 @@ def test_draws_are_seeded_and_inside_their_ranges():
     hazy = [d.visibility_m for d in draws if d.visibility_m is not None]
     assert 60 < len(hazy) < 140 and min(hazy) >= 150.0
     assert all(7.0 <= d.time_of_day_h <= 19.0 and 0.0 <= d.cloud_cover <= 1.0 for d in draws)
+    noise = np.array([d.depth_noise_scale for d in draws])
+    dropout = np.array([d.depth_dropout_scale for d in draws])
+    assert noise.min() >= 0.5 and noise.max() <= 2.0 and dropout.min() >= 0.5 and dropout.max() <= 1.5
+    cfg = spec.apply(load_config(), draws[0])
+    cam = cfg.render.cameras[0]
+    assert (cam.depth_model, cam.depth_noise_scale, cam.depth_dropout_scale) == (
+        draws[0].depth_model, draws[0].depth_noise_scale, draws[0].depth_dropout_scale
+    )  # fmt: skip
+
+
+def test_depth_noise_and_dropouts_follow_their_factors_per_image():
+    """A batch of the same wall at 4 m through the D435 model with per-image factors: the depth error's
+    std follows the noise factor, and a thin post's dropouts follow the dropout factor."""
+    from droneulator.config import CameraConfig
+    from droneulator.config.camera_presets import DEPTH_PRESETS
+    from droneulator.sensors.camera import intrinsics
+    from droneulator.sensors.depth_models import apply_depth_model
+
+    cam = CameraConfig(width=320, height=240, hfov_deg=90.0)
+    K = intrinsics(cam)
+    wall = np.full((3, 240, 320), 4.0, dtype=np.float32)
+    wall[:, :, 200:202] = 2.0  # a 2 px post in front: a thin structure
+    noise = np.array([0.5, 1.0, 2.0])
+    dropout = np.array([0.0, 1.0, 10.0 / 7.0])  # 0, the preset's 0.7 and 1.0
+    out = apply_depth_model(wall, DEPTH_PRESETS["d435"], K, np.random.default_rng(0), noise, dropout)
+    err = np.nanstd((out - 4.0)[:, 20:-20, 20:150], axis=(1, 2))
+    np.testing.assert_allclose(err / err[1], noise, rtol=0.08)
+    lost = np.isnan(out[:, 20:-20, 200:202]).mean(axis=(1, 2))
+    assert lost[0] < 0.02 and 0.4 < lost[1] < 0.95 and lost[2] > 0.98
 
 
 @pytest.mark.parametrize(
@@ -80,8 +109,10 @@ def test_the_batched_env_draws_per_env_and_applies_each_envs_depth_model():
         # the same poses through each env's own preset: ideal rows exact, d435 rows noisy
         poses = np.repeat(np.eye(4)[None], 16, axis=0)
         poses[:, :3, 3] = env.worlds.states[0, STATE.x]
-        ideal = env.depth_source.rows(poses, ["ideal"] * 16)
-        mixed = env.depth_source.rows(poses, models)
+        scales = env._depth_scales.copy()
+        assert scales[:, 0].min() >= 0.5 and scales[:, 0].max() <= 2.0 and scales[:, 0].std() > 0.1
+        ideal = env.depth_source.rows(poses, ["ideal"] * 16, scales)
+        mixed = env.depth_source.rows(poses, models, scales)
         for b, m in enumerate(models):
             same = np.array_equal(mixed[b], ideal[b], equal_nan=True)
             assert same == (m == "ideal"), (b, m)

@@ -1,5 +1,6 @@
 """Domain randomisation (the ``randomize`` section): ranges the wind, the light and the depth camera's
-error model are drawn from at every reset, so a policy or a benchmark meets the field's variety.
+error model (its preset and how noisy that camera is) are drawn from at every reset, so a policy or a
+benchmark meets the field's variety.
 
 Drawn per episode from the episode's own generator (seeded: the same seeds draw the same conditions),
 by :meth:`RandomizeConfig.draw`. The RL environments (single and batched), ``droneulator capture`` and
@@ -40,6 +41,9 @@ class Draw:
     time_of_day_h: float
     cloud_cover: float
     visibility_m: float | None
+    #: the depth preset's noise and dropout probabilities, scaled (``CameraConfig.depth_noise_scale``, ...)
+    depth_noise_scale: float = 1.0
+    depth_dropout_scale: float = 1.0
 
     def describe(self) -> str:
         """One line for a log."""
@@ -47,7 +51,8 @@ class Draw:
         return (
             f"wind {self.wind.speed_m_s:.1f} m/s from {self.wind.direction_deg:.0f} deg (gusts "
             f"{self.wind.gust_speed_m_s:.1f} m/s), {self.time_of_day_h:.1f} h, cloud cover "
-            f"{self.cloud_cover:.2f}, {haze}, depth {self.depth_model}"
+            f"{self.cloud_cover:.2f}, {haze}, depth {self.depth_model} (noise x{self.depth_noise_scale:.2f}, "
+            f"dropouts x{self.depth_dropout_scale:.2f})"
         )
 
 
@@ -65,6 +70,10 @@ class RandomizeConfig:
     gust_fraction: tuple[float, float] = (0.0, 0.6)
     #: the depth camera's error model, one of these presets (``render.cameras[].depth_model``)
     depth_models: list[str] = field(default_factory=lambda: ["ideal", "d435"])
+    #: factors on the drawn preset's noise (stereo subpixel error, ToF std) and on its dropout and flying
+    #: pixel probabilities: one camera is better than another of the same model
+    depth_noise_scale: tuple[float, float] = (0.5, 2.0)
+    depth_dropout_scale: tuple[float, float] = (0.5, 1.5)
     #: the light (RGB only): local time (h), cloud cover, and the share of episodes in haze with a
     #: visibility drawn from ``visibility_m``
     time_of_day_h: tuple[float, float] = (7.0, 19.0)
@@ -80,6 +89,8 @@ class RandomizeConfig:
         self.time_of_day_h = _range("time_of_day_h", self.time_of_day_h, 0.0, 24.0)
         self.cloud_cover = _range("cloud_cover", self.cloud_cover, 0.0, 1.0)
         self.visibility_m = _range("visibility_m", self.visibility_m, 1.0, 1e6)
+        self.depth_noise_scale = _range("depth_noise_scale", self.depth_noise_scale, 0.0, 10.0)
+        self.depth_dropout_scale = _range("depth_dropout_scale", self.depth_dropout_scale, 0.0, 10.0)
         if not (isinstance(self.haze_prob, int | float) and 0.0 <= self.haze_prob <= 1.0):
             raise ValueError(f"randomize.haze_prob must lie in [0, 1], got {self.haze_prob!r}")
         bad = [m for m in self.depth_models if m not in DEPTH_PRESETS]
@@ -101,12 +112,17 @@ class RandomizeConfig:
         )
         depth = self.depth_models[int(rng.integers(len(self.depth_models)))]
         hazy = bool(rng.random() < self.haze_prob)
+        time_of_day = float(rng.uniform(*self.time_of_day_h)) % 24.0
+        cloud = float(rng.uniform(*self.cloud_cover))
+        visibility = float(rng.uniform(*self.visibility_m)) if hazy else None
         return Draw(
             wind=drawn_wind,
             depth_model=depth,
-            time_of_day_h=float(rng.uniform(*self.time_of_day_h)) % 24.0,
-            cloud_cover=float(rng.uniform(*self.cloud_cover)),
-            visibility_m=float(rng.uniform(*self.visibility_m)) if hazy else None,
+            time_of_day_h=time_of_day,
+            cloud_cover=cloud,
+            visibility_m=visibility,
+            depth_noise_scale=float(rng.uniform(*self.depth_noise_scale)),
+            depth_dropout_scale=float(rng.uniform(*self.depth_dropout_scale)),
         )
 
     def apply(self, cfg: Any, draw: Draw) -> Any:
@@ -121,10 +137,13 @@ class RandomizeConfig:
             cloud_cover=draw.cloud_cover,
             visibility_m=draw.visibility_m,
         )
-        out.render.cameras = [
-            dataclasses.replace(c, depth_model=draw.depth_model) for c in out.render.cameras
-        ]
+        depth = {
+            "depth_model": draw.depth_model,
+            "depth_noise_scale": draw.depth_noise_scale,
+            "depth_dropout_scale": draw.depth_dropout_scale,
+        }
+        out.render.cameras = [dataclasses.replace(c, **depth) for c in out.render.cameras]
         for v in out.vehicles:
             if v.cameras is not None:
-                v.cameras = [dataclasses.replace(c, depth_model=draw.depth_model) for c in v.cameras]
+                v.cameras = [dataclasses.replace(c, **depth) for c in v.cameras]
         return out

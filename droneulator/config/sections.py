@@ -32,6 +32,11 @@ class CameraConfig:
     #: depth error model (camera_presets.DEPTH_PRESETS): "ideal" (exact), "d435" (RealSense D435 active
     #: stereo) or "tof" (Azure Kinect-class time of flight); invalid pixels read NaN (docs/sensors.md)
     depth_model: str = "ideal"
+    #: multiply the depth preset's noise (stereo subpixel error, ToF noise std) and its dropout and flying
+    #: pixel probabilities: a camera better or worse than the preset's typical one (domain randomisation
+    #: draws them)
+    depth_noise_scale: float = 1.0
+    depth_dropout_scale: float = 1.0
     #: RGB sensor noise (camera_presets.RGB_PRESETS): "ideal", "machine_vision" or "small_pixel"
     rgb_noise: str = "ideal"
     #: lens distortion, OpenCV's plumb_bob (k1, k2, p1, p2, k3): all three images are distorted alike and
@@ -59,6 +64,10 @@ class CameraConfig:
         if self.rgb_noise not in RGB_PRESETS:
             choices = ", ".join(RGB_PRESETS)
             raise ValueError(f"{who}: rgb_noise must be one of {choices}, got {self.rgb_noise!r}")
+        for name in ("depth_noise_scale", "depth_dropout_scale"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and 0.0 <= value <= 10.0):
+                raise ValueError(f"{who}: {name} must lie in [0, 10], got {value!r}")
         if not (math.isfinite(self.exposure_s) and 0.0 < self.exposure_s <= 1.0):
             raise ValueError(f"{who}: exposure_s must lie in (0, 1] seconds, got {self.exposure_s!r}")
         d = tuple(self.distortion)

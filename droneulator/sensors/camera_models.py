@@ -99,7 +99,7 @@ class CameraModel:
                 du, dv = image_motion(depth, self.K, v, w)
                 radiance = motion_blur(radiance, du * np.float32(exposure), dv * np.float32(exposure))
         if self.depth_model.kind != "ideal":
-            depth = apply_depth_model(depth, self.depth_model, self.K, self.rng)
+            depth = self._depth(depth)
         if self._maps is not None:
             if radiance is not None:
                 radiance = distort(radiance, self._maps)
@@ -112,10 +112,22 @@ class CameraModel:
         D = self.D.copy() if self.distorted else None
         return dataclasses.replace(frame, rgb=rgb, depth=depth, seg=seg, D=D)
 
-    def apply_depth(self, depth: np.ndarray) -> np.ndarray:
+    def _depth(
+        self, depth: np.ndarray, noise_scale: Any = None, dropout_scale: Any = None
+    ) -> np.ndarray:
+        cfg = self.cfg
+        noise = cfg.depth_noise_scale if noise_scale is None else noise_scale
+        dropout = cfg.depth_dropout_scale if dropout_scale is None else dropout_scale
+        return apply_depth_model(depth, self.depth_model, self.K, self.rng, noise, dropout)
+
+    def apply_depth(
+        self, depth: np.ndarray, noise_scale: Any = None, dropout_scale: Any = None
+    ) -> np.ndarray:
         """This camera's depth image(s) of exact ``depth`` ``(..., H, W)`` (the RL environments' batches):
-        the depth model, then the lens distortion."""
-        out = apply_depth_model(depth, self.depth_model, self.K, self.rng)
+        the depth model, then the lens distortion. ``noise_scale`` / ``dropout_scale`` (a number or one per
+        image; None: the camera's ``depth_noise_scale`` / ``depth_dropout_scale``) scale the preset's
+        noise and dropouts (:func:`~droneulator.sensors.depth_models.apply_depth_model`)."""
+        out = self._depth(depth, noise_scale, dropout_scale)
         if self._maps is not None:
             flat = out.reshape(-1, *out.shape[-2:])
             out = np.stack([distort(d, self._maps, nearest=True, fill=float("nan")) for d in flat])

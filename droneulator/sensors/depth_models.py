@@ -24,32 +24,45 @@ DROPOUT_BLOCK_PX = 8
 
 
 def apply_depth_model(
-    depth: np.ndarray, model: DepthModel, K: np.ndarray, rng: np.random.Generator
+    depth: np.ndarray,
+    model: DepthModel,
+    K: np.ndarray,
+    rng: np.random.Generator,
+    noise_scale: float | np.ndarray = 1.0,
+    dropout_scale: float | np.ndarray = 1.0,
 ) -> np.ndarray:
     """``depth`` as the camera of ``model`` with intrinsics ``K`` measures it (a new float32 array).
 
     Structure-dependent invalidity (stereo occlusion, thin structures) and flying pixels are found on the
-    exact depth, then noise is added and pixels out of range are invalidated."""
+    exact depth, then noise is added and pixels out of range are invalidated. ``noise_scale`` multiplies
+    the preset's noise (the stereo subpixel error, the ToF noise std) and ``dropout_scale`` its thin
+    structure dropout and flying pixel probabilities (at most 1): one number, or one per image of a
+    ``(B, H, W)`` batch (domain randomisation draws them per episode)."""
     z = np.asarray(depth, dtype=np.float32)
     if model.kind == "ideal":
         return z.copy()
+    per_image = z.shape[:-2] + (1, 1)
+    noise = np.broadcast_to(np.asarray(noise_scale, dtype=np.float32), z.shape[:-2]).reshape(per_image)
+    drop = np.broadcast_to(np.asarray(dropout_scale, dtype=np.float32), z.shape[:-2]).reshape(per_image)
     fx = float(K[0, 0])
     invalid = ~np.isfinite(z)
     if model.occlusion:
         invalid |= stereo_occluded(z, fx * model.baseline_m)
     if model.thin_px > 0 and model.thin_dropout > 0:
         thin = thin_structures(z, model.thin_px)
-        invalid |= thin & (_block_uniform(z.shape, rng) < model.thin_dropout)
-    out = flying_pixels(z, model.flying_prob, rng) if model.flying_prob > 0 else z.copy()
+        invalid |= thin & (_block_uniform(z.shape, rng) < np.minimum(model.thin_dropout * drop, 1.0))
+    flying = np.minimum(model.flying_prob * drop, 1.0)
+    out = flying_pixels(z, flying, rng) if model.flying_prob > 0 else z.copy()
     if model.kind == "stereo":
         fb = fx * model.baseline_m
         with np.errstate(divide="ignore", invalid="ignore"):
             disparity = fb / out
-            noisy = disparity + model.subpixel * correlated_normal(z.shape, model.noise_window_px, rng)
+            error = (model.subpixel * noise) * correlated_normal(z.shape, model.noise_window_px, rng)
+            noisy = disparity + error
             out = np.where(noisy > 0, fb / noisy, np.nan).astype(np.float32)
         min_range = fb / model.disparities
     elif model.kind == "tof":
-        sigma = model.noise_floor_m + model.noise_slope * out
+        sigma = (model.noise_floor_m + model.noise_slope * out) * noise
         out = out + sigma * correlated_normal(z.shape, model.noise_window_px, rng)
         min_range = model.min_range_m
         invalid |= low_return(z, K, model.max_range_m)
@@ -122,7 +135,9 @@ def _block_uniform(shape: tuple[int, ...], rng: np.random.Generator) -> np.ndarr
     return np.repeat(np.repeat(coarse, b, axis=-2), b, axis=-1)[..., :h, :w]
 
 
-def flying_pixels(depth: np.ndarray, probability: float, rng: np.random.Generator) -> np.ndarray:
+def flying_pixels(
+    depth: np.ndarray, probability: float | np.ndarray, rng: np.random.Generator
+) -> np.ndarray:
     """A copy of ``depth`` in which each pixel at a depth edge (its 3x3 neighbourhood spans more than
     :data:`EDGE_STEP` of its nearest depth) reads, with ``probability``, a random mix of the nearest and
     farthest depth around it: a stereo window or a ToF pixel straddling the edge sees both surfaces."""

@@ -136,13 +136,17 @@ class LocalBackend:
 
             self.caster = DepthCaster(self.scene, cfg.render.cameras[0])
         self.camera_models = depth_camera_models(cfg)
-        #: the depth preset of the episode (``rl.depth_model``, or randomisation's draw)
-        self.depth_model = cfg.render.cameras[0].depth_model
+        #: the depth preset of the episode and its noise and dropout factors (``rl.depth_model``'s camera,
+        #: or randomisation's draw)
+        cam = cfg.render.cameras[0]
+        self.depth_model = cam.depth_model
+        self.depth_scales = (cam.depth_noise_scale, cam.depth_dropout_scale)
 
     def randomize(self, draw: Draw) -> None:
-        """Fly the next episode in the conditions of ``draw``: its wind and depth camera preset."""
+        """Fly the next episode in the conditions of ``draw``: its wind and depth camera."""
         self.sim.world.set_wind(draw.wind)
         self.depth_model = draw.depth_model
+        self.depth_scales = (draw.depth_noise_scale, draw.depth_dropout_scale)
 
     def _depth(self, T_world_body: np.ndarray) -> np.ndarray:
         if self.caster is not None:
@@ -150,7 +154,7 @@ class LocalBackend:
         else:
             depth = self.renderer.render(T_world_body, rgb=False)[CAMERA_NAME].depth.copy()
         model = self.camera_models[self.depth_model]
-        return depth if model is None else model.apply_depth(depth)
+        return depth if model is None else model.apply_depth(depth, *self.depth_scales)
 
     @staticmethod
     def _kinematics(st: Any) -> Kinematics:

@@ -135,8 +135,9 @@ class RenderedRows:
         self.renderer = Renderer(scene, cfg.render.cameras, shadows=False)
         self.models = depth_camera_models(cfg)
 
-    def rows(self, poses: np.ndarray, models: Sequence[str]) -> np.ndarray:
-        """Centre rows at ``poses``, each through the depth preset ``models`` names for it."""
+    def rows(self, poses: np.ndarray, models: Sequence[str], scales: np.ndarray) -> np.ndarray:
+        """Centre rows at ``poses``, each through the depth preset ``models`` names for it, with its noise
+        and dropout factors (``scales``, ``(B, 2)``)."""
         if all(self.models[m] is None for m in models):
             out = []
             for T in poses:
@@ -144,7 +145,7 @@ class RenderedRows:
                 out.append(depth[depth.shape[0] // 2].copy())
             return np.array(out).reshape(len(poses), -1)
         depth = np.stack([self.renderer.render(T, rgb=False)[CAMERA_NAME].depth for T in poses])
-        return centre_rows(apply_models(self.models, depth, models))
+        return centre_rows(apply_models(self.models, depth, models, scales))
 
     def close(self) -> None:
         self.renderer.close()
@@ -161,34 +162,38 @@ class CastRows:
         self.caster = DepthCaster(scene, cfg.render.cameras[0])
         self.models = depth_camera_models(cfg)
 
-    def rows(self, poses: np.ndarray, models: Sequence[str]) -> np.ndarray:
-        """Centre rows at ``poses``, each through the depth preset ``models`` names for it: whole images are
-        cast only for the poses whose preset is not ideal."""
+    def rows(self, poses: np.ndarray, models: Sequence[str], scales: np.ndarray) -> np.ndarray:
+        """Centre rows at ``poses``, each through the depth preset ``models`` names for it with its noise and
+        dropout factors (``scales``, ``(B, 2)``): whole images are cast only for the poses whose preset is
+        not ideal."""
         noisy = np.array([self.models[m] is not None for m in models], dtype=bool)
         if not noisy.any():
             return self.caster.centre_row(poses)
         if noisy.all():
-            return centre_rows(apply_models(self.models, self.caster.depth(poses), models))
+            return centre_rows(apply_models(self.models, self.caster.depth(poses), models, scales))
         out = np.empty((len(poses), next(iter(self.caster.cameras.values())).width), dtype=np.float32)
         out[~noisy] = self.caster.centre_row(poses[~noisy])
         picked = [m for m, n in zip(models, noisy, strict=True) if n]
-        out[noisy] = centre_rows(apply_models(self.models, self.caster.depth(poses[noisy]), picked))
+        depth = self.caster.depth(poses[noisy])
+        out[noisy] = centre_rows(apply_models(self.models, depth, picked, scales[noisy]))
         return out
 
     def close(self) -> None:
         """Nothing to release: the caster holds arrays only."""
 
 
-def apply_models(models: dict[str, Any], depth: np.ndarray, names: Sequence[str]) -> np.ndarray:
-    """``depth`` (B, H, W) with image ``b`` through the depth model ``names[b]`` (each model on its
-    images in one batch)."""
+def apply_models(
+    models: dict[str, Any], depth: np.ndarray, names: Sequence[str], scales: np.ndarray
+) -> np.ndarray:
+    """``depth`` (B, H, W) with image ``b`` through the depth model ``names[b]`` with noise and dropout
+    factors ``scales[b]`` (each model on its images in one batch)."""
     out = depth.copy()
     which = np.asarray(names)
     for name in dict.fromkeys(names):
         model = models[name]
         if model is not None:
             sel = which == name
-            out[sel] = model.apply_depth(depth[sel])
+            out[sel] = model.apply_depth(depth[sel], scales[sel, 0], scales[sel, 1])
     return out
 
 
@@ -274,7 +279,10 @@ class VineyardNavVectorEnv(VectorEnv):
         self._goal_dist = np.zeros(n)
         self.depth_source = depth_rows(cfg, self.scene, depth)
         #: each env's depth preset this episode (``rl.depth_model``, or randomisation's draw)
-        self._depth_models = [cfg.render.cameras[0].depth_model] * n
+        cam = cfg.render.cameras[0]
+        self._depth_models = [cam.depth_model] * n
+        #: each env's depth noise and dropout factors this episode
+        self._depth_scales = np.tile([cam.depth_noise_scale, cam.depth_dropout_scale], (n, 1))
         self._base_wind = cfg.wind
 
     # ------------------------------------------------------------------ helpers
@@ -297,6 +305,7 @@ class VineyardNavVectorEnv(VectorEnv):
             self.worlds.set_wind([d.wind for d in draws], idx)
             for i, d in zip(idx, draws, strict=True):
                 self._depth_models[i] = d.depth_model
+                self._depth_scales[i] = d.depth_noise_scale, d.depth_dropout_scale
         for i, (start, yaw, goal, field) in zip(idx, begun, strict=True):
             kin = self._kinematics(int(i), 0)
             task = self.tasks[i]
@@ -327,7 +336,7 @@ class VineyardNavVectorEnv(VectorEnv):
             return
         poses = transforms_from_poses(rows[idx, 0:3], rows[idx, 6:10])
         models = [self._depth_models[i] for i in idx]
-        depth = self.depth_source.rows(poses, models)
+        depth = self.depth_source.rows(poses, models, self._depth_scales[idx])
         self._obs[idx, :STRIP_SAMPLES] = strips(depth, self.config.rl.depth_clip)
 
     def _infos(self, rows: np.ndarray, t: np.ndarray, mask: np.ndarray) -> dict[str, Any]:
