@@ -454,6 +454,11 @@ def test_level_select_light_options_change_the_view() -> None:
             client.reset(light={"cloud_cover": 3})
         assert client.scene_info()["light"]["visibility_m"] == 60.0
         client.state()  # still answering
+        # a sparser canopy: the hub has both servers build the scene again, the views go on
+        shown = page.evaluate("window.droneulatorUI.cameras.count")
+        assert client.reset(vegetation=0.3)["vegetation"] == 0.3
+        assert client.scene_info()["vegetation"] == 0.3 and client.scene_info()["light"]["visibility_m"] == 60
+        page.wait_for_function(f"window.droneulatorUI.cameras.count > {shown + 5}", timeout=90000)
         browser.close()
     finally:
         pw.stop()

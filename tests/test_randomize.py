@@ -35,6 +35,29 @@ def test_draws_are_seeded_and_inside_their_ranges():
     )  # fmt: skip
 
 
+def test_the_scene_is_drawn_for_a_run_and_for_an_rl_environment_when_it_is_built():
+    from droneulator.workflows.rl.env import env_config
+
+    spec = ["randomize.enabled=true", "randomize.scene_seed=[10, 12]", "randomize.vegetation=[0.5, 1.5]"]
+    cfg = load_config(overrides=spec)
+    draws = [cfg.randomize.draw(np.random.default_rng(s)) for s in range(60)]
+    assert {d.scene_seed for d in draws} == {10, 11, 12}
+    assert all(0.5 <= d.vegetation <= 1.5 for d in draws) and np.std([d.vegetation for d in draws]) > 0.2
+    run = cfg.randomize.apply(cfg, draws[0])  # a capture or a planning run: its scene
+    assert (run.seed, run.vegetation) == (draws[0].scene_seed, draws[0].vegetation)
+    a, b = env_config(cfg), env_config(cfg)
+    assert (a.seed, a.vegetation) == (b.seed, b.vegetation) and a.seed in (10, 11, 12)  # from the seed
+    assert 0.5 <= a.vegetation <= 1.5
+    env = VineyardNavVectorEnv(2, cfg)
+    try:
+        assert (env.scene.seed, env.scene.vegetation) == (a.seed, a.vegetation)  # every copy's scene
+    finally:
+        env.close()
+    assert env_config(load_config()).vegetation == 1.0  # no randomisation: the config's scene
+    with pytest.raises(ValueError, match="randomize.vegetation"):
+        load_config(overrides=["randomize.vegetation=[0, 1]"])
+
+
 def test_depth_noise_and_dropouts_follow_their_factors_per_image():
     """A batch of the same wall at 4 m through the D435 model with per-image factors: the depth error's
     std follows the noise factor, and a thin post's dropouts follow the dropout factor."""

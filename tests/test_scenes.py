@@ -94,6 +94,19 @@ def test_disk_cache_gives_the_built_scene_rebuilds_a_bad_file_and_keeps_its_limi
     assert len(builds) == 3 and not list(tmp_path.glob("planning-7-*"))
 
 
+@pytest.mark.parametrize("name", ["vineyard", "tree_inspection"])
+def test_vegetation_density_scales_the_leaves_and_keeps_the_collision_model(name: str) -> None:
+    def canopy(s: Scene) -> int:
+        return sum(int((p.class_ids[p.indices[:, 0]] == SemanticClass.CANOPY).sum()) for p in s.parts)
+
+    sparse, full, dense = (get_scene(name, 0, v) for v in (0.4, 1.0, 1.6))
+    assert full is get_scene(name, 0) and full.vegetation == 1.0 and sparse.vegetation == 0.4
+    assert canopy(sparse) < 0.75 * canopy(full) and canopy(dense) > 1.25 * canopy(full)
+    np.testing.assert_array_equal(sparse.collision.sdf, full.collision.sdf)
+    with pytest.raises(ValueError, match=r"vegetation must lie in \[0.1, 3\]"):
+        get_scene(name, 0, 5.0)
+
+
 def test_scene_builds_within_budget(scene: Scene) -> None:
     assert scene.parts
     assert 0 < scene.triangle_count <= TRIANGLE_BUDGET.get(scene.name, 100_000)

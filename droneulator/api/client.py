@@ -168,12 +168,15 @@ class DroneulatorClient:
         airborne: bool | None = None,
         vehicle: str | None = None,
         light: dict[str, Any] | None = None,
+        vegetation: float | None = None,
     ) -> dict[str, Any]:
-        """Restart every vehicle; ``light``: the light fields to change (None in it: that default)."""
+        """Restart every vehicle; ``light``: the light fields to change (None in it: that default);
+        ``vegetation``: rebuild the scene with that vegetation density."""
         return self.request(
             "reset",
             scene=scene,
             seed=seed,
+            vegetation=vegetation,
             position=position,
             yaw=yaw,
             airborne=airborne,

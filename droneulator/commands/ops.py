@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from droneulator.commands.errors import ERROR_CODES, CommandError
+from droneulator.config.scene import VEGETATION_RANGE
 
 #: what the ops run on: the world's command surface (:class:`~droneulator.world.World`: ``vehicle(name)``
 #: with its flight commands and state, ``vehicles``, ``reset``, ``scene``, ``config``, ``t``,
@@ -158,6 +159,7 @@ def _reset(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
             raise CommandError("invalid_argument", f"`light`: {e}") from None
     state = sim.reset(
         seed=a.get("seed"),
+        vegetation=a.get("vegetation"),
         position=a.get("position"),
         yaw=a.get("yaw"),
         scene=scene,
@@ -165,7 +167,12 @@ def _reset(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
         vehicle=a.get("vehicle"),
         **({} if light is None else {"light": light}),
     )
-    result = {"scene": sim.scene.name, "seed": sim.config.seed, "state": state.to_dict()}
+    result = {
+        "scene": sim.scene.name,
+        "seed": sim.config.seed,
+        "vegetation": sim.config.vegetation,
+        "state": state.to_dict(),
+    }
     return {**result, "light": dataclasses.asdict(sim.config.light)}
 
 
@@ -195,6 +202,7 @@ def _scene_info(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
         "scenes": list(list_scenes()),
         "vehicles": [v.describe() for v in sim.vehicles.values()],
         "light": dataclasses.asdict(sim.config.light),
+        "vegetation": sim.config.vegetation,
         "limits": {
             "max_speed": fl.max_speed,
             "max_yaw_rate": math.pi,
@@ -338,11 +346,17 @@ OPS: dict[str, Op] = {
             "`position` above the ground starts hovering there unless `airborne` is false; `light` changes "
             "the fields it names of the light (time of day, clouds, haze; RGB only). Refused while any "
             "vehicle's flight is locked for it.",
-            "`scene`, `seed`: what is loaded now; `state`: the new state of that vehicle (as `state`); "
-            "`light`: the light settings now in effect",
+            "`scene`, `seed`, `vegetation`: what is loaded now; `state`: the new state of that vehicle (as "
+            "`state`); `light`: the light settings now in effect",
             (
                 Arg("scene", "string", "scene name, see `scene_info.scenes` (default: keep)"),
                 Arg("seed", "integer", "scene layout and noise seed (default: keep)", bounds=(0, 2**32 - 1)),
+                Arg(
+                    "vegetation",
+                    "number",
+                    "vegetation density the scene is built with, 1 as designed (default: keep)",
+                    bounds=VEGETATION_RANGE,
+                ),
                 Arg("position", "vec3", "start [x, y, z], world frame, m (default: the scene's spawn)"),
                 Arg("yaw", "number", "start heading, rad (default: the scene's spawn yaw)"),
                 Arg("airborne", "boolean", "hover at the start (default: true if z > 0.05 m)"),
@@ -408,7 +422,8 @@ OPS: dict[str, Op] = {
             "one entry per vehicle, first the default: `name`, `params` (airframe), `controlled_by` "
             "(`internal` or `px4`), `cameras` (names), and where it is reached when a runtime serves it: "
             "`namespace` and `topics` (its ROS 2 topic names), `tf_prefix`, `px4_port` (PX4 vehicles); "
-            "`light`: the light settings (the config's `light` section as it is now; see `reset`)",
+            "`light`: the light settings (the config's `light` section as it is now; see `reset`); "
+            "`vegetation`: the scene's vegetation density",
             (),
             _scene_info,
         ),

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from droneulator.config.camera_presets import DEPTH_PRESETS
+from droneulator.config.scene import VEGETATION_RANGE
 from droneulator.config.wind import WindConfig
 
 
@@ -44,6 +45,9 @@ class Draw:
     #: the depth preset's noise and dropout probabilities, scaled (``CameraConfig.depth_noise_scale``, ...)
     depth_noise_scale: float = 1.0
     depth_dropout_scale: float = 1.0
+    #: the scene's layout seed (None: the config's) and vegetation density (``SimConfig.vegetation``)
+    scene_seed: int | None = None
+    vegetation: float = 1.0
 
     def describe(self) -> str:
         """One line for a log."""
@@ -53,6 +57,8 @@ class Draw:
             f"{self.wind.gust_speed_m_s:.1f} m/s), {self.time_of_day_h:.1f} h, cloud cover "
             f"{self.cloud_cover:.2f}, {haze}, depth {self.depth_model} (noise x{self.depth_noise_scale:.2f}, "
             f"dropouts x{self.depth_dropout_scale:.2f})"
+            + ("" if self.scene_seed is None else f", scene seed {self.scene_seed}")
+            + ("" if self.vegetation == 1.0 else f", vegetation x{self.vegetation:.2f}")
         )
 
 
@@ -74,6 +80,12 @@ class RandomizeConfig:
     #: pixel probabilities: one camera is better than another of the same model
     depth_noise_scale: tuple[float, float] = (0.5, 2.0)
     depth_dropout_scale: tuple[float, float] = (0.5, 1.5)
+    #: the scene: a layout seed drawn from ``[low, high]`` (null: the config's seed) and the vegetation
+    #: density (``SimConfig.vegetation``: x the leaves, a sparse or a dense canopy; [1, 1]: as designed).
+    #: Each is a new scene (built once, then cached), so a capture or a planning run draws them once, and
+    #: an RL environment when it is built (its copies share one scene), not at every reset
+    scene_seed: tuple[int, int] | None = None
+    vegetation: tuple[float, float] = (1.0, 1.0)
     #: the light (RGB only): local time (h), cloud cover, and the share of episodes in haze with a
     #: visibility drawn from ``visibility_m``
     time_of_day_h: tuple[float, float] = (7.0, 19.0)
@@ -91,6 +103,12 @@ class RandomizeConfig:
         self.visibility_m = _range("visibility_m", self.visibility_m, 1.0, 1e6)
         self.depth_noise_scale = _range("depth_noise_scale", self.depth_noise_scale, 0.0, 10.0)
         self.depth_dropout_scale = _range("depth_dropout_scale", self.depth_dropout_scale, 0.0, 10.0)
+        self.vegetation = _range("vegetation", self.vegetation, *VEGETATION_RANGE)
+        if self.scene_seed is not None:
+            lo, hi = _range("scene_seed", self.scene_seed, 0, 2**32 - 1)
+            if lo != int(lo) or hi != int(hi):
+                raise ValueError(f"randomize.scene_seed must be two integers, got {self.scene_seed!r}")
+            self.scene_seed = (int(lo), int(hi))
         if not (isinstance(self.haze_prob, int | float) and 0.0 <= self.haze_prob <= 1.0):
             raise ValueError(f"randomize.haze_prob must lie in [0, 1], got {self.haze_prob!r}")
         bad = [m for m in self.depth_models if m not in DEPTH_PRESETS]
@@ -115,22 +133,31 @@ class RandomizeConfig:
         time_of_day = float(rng.uniform(*self.time_of_day_h)) % 24.0
         cloud = float(rng.uniform(*self.cloud_cover))
         visibility = float(rng.uniform(*self.visibility_m)) if hazy else None
+        noise = float(rng.uniform(*self.depth_noise_scale))
+        dropout = float(rng.uniform(*self.depth_dropout_scale))
+        seeds = self.scene_seed
+        scene_seed = None if seeds is None else int(rng.integers(seeds[0], seeds[1] + 1))
         return Draw(
             wind=drawn_wind,
             depth_model=depth,
             time_of_day_h=time_of_day,
             cloud_cover=cloud,
             visibility_m=visibility,
-            depth_noise_scale=float(rng.uniform(*self.depth_noise_scale)),
-            depth_dropout_scale=float(rng.uniform(*self.depth_dropout_scale)),
+            depth_noise_scale=noise,
+            depth_dropout_scale=dropout,
+            scene_seed=scene_seed,
+            vegetation=float(rng.uniform(*self.vegetation)),
         )
 
     def apply(self, cfg: Any, draw: Draw) -> Any:
         """A copy of ``cfg`` (a :class:`~droneulator.config.SimConfig`) in the conditions of ``draw``: its
-        wind, its light's time of day, clouds and haze, and every camera's depth preset (for a workflow
-        that draws once, e.g. a capture)."""
+        wind, its light's time of day, clouds and haze, every camera's depth model, and its scene's seed
+        and vegetation (for a workflow that draws once, e.g. a capture)."""
         out = copy.deepcopy(cfg)
         out.wind = draw.wind
+        if draw.scene_seed is not None:
+            out.seed = draw.scene_seed
+        out.vegetation = draw.vegetation
         out.light = dataclasses.replace(
             out.light,
             time_of_day_h=draw.time_of_day_h,

@@ -12,6 +12,7 @@ from droneulator.config.capture import CaptureConfig
 from droneulator.config.light import LightConfig
 from droneulator.config.randomize import RandomizeConfig
 from droneulator.config.rl import RLConfig
+from droneulator.config.scene import check_vegetation
 from droneulator.config.wind import WindConfig
 
 
@@ -479,6 +480,9 @@ def fleet(n: int, prefix: str = "uav") -> list[VehicleSpec]:
 class SimConfig:
     scene: str = "default"
     seed: int = 0
+    #: the scene's vegetation density (config.scene.VEGETATION_RANGE): its leaves (cards per cluster, per
+    #: metre of hedge) x this, a sparse or a dense canopy; its collision model stays (docs/realism.md)
+    vegetation: float = 1.0
     render: RenderConfig = field(default_factory=RenderConfig)
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     flight: FlightConfig = field(default_factory=FlightConfig)
@@ -499,6 +503,7 @@ class SimConfig:
     vehicles: list[VehicleSpec] = field(default_factory=list)
 
     def __post_init__(self) -> None:
+        self.vegetation = check_vegetation(self.vegetation)
         names = [v.name for v in self.vehicles]
         twice = sorted({n for n in names if names.count(n) > 1})
         if twice:

@@ -110,7 +110,7 @@ class DynamicsServer:
         self._next_state_ns = 0
         self._last_t_ns = 0
         self._last_static = -float("inf")
-        self._scene_key = (cfg.scene, cfg.seed, cfg.light)
+        self._scene_key = (cfg.scene, cfg.seed, cfg.light, cfg.vegetation)
         #: the light the render server starts with (its config's): the world's may have changed since
         self._start_light = cfg.light
         self.stopping = threading.Event()
@@ -166,10 +166,11 @@ class DynamicsServer:
                 self.peers[role].close()
             self.peers[role] = conn
             log.info("%s connected", role)
-            scene = (self.world.config.scene, self.world.config.seed)
-            light = self.world.config.light
-            if scene != (self.cfg.scene, self.cfg.seed) or light != self._start_light:
-                self._send(role, LoadScene(*scene, light))
+            w = self.world.config
+            if (w.scene, w.seed, w.vegetation) != (self.cfg.scene, self.cfg.seed, self.cfg.vegetation) or (
+                w.light != self._start_light
+            ):
+                self._send(role, LoadScene(w.scene, w.seed, w.light, w.vegetation))
             stage = "render" if role == "renderer" else "publish"
             for seq, (st, states) in sorted(self.in_flight.items()):
                 if st == stage:  # work the previous instance never finished
@@ -234,7 +235,8 @@ class DynamicsServer:
         events and states to the API. ``stepped_wall_ns``: when the step that produced them ended."""
         with self.lock:  # a command may reset the simulation between the step and here
             states = self.world.states_now()
-            scene = (self.world.config.scene, self.world.config.seed, self.world.config.light)
+            w = self.world.config
+            scene = (w.scene, w.seed, w.light, w.vegetation)
         st = next(iter(states.values()))
         if st.t_ns < self._last_t_ns:  # reset through the API: re-send the static TF at once
             self._last_static = -float("inf")
@@ -250,7 +252,7 @@ class DynamicsServer:
             if now - self._last_static > STATIC_TF_PERIOD_S:
                 self._last_static = now
                 self.ros.publish_static(st.stamp_ns)
-        if scene != self._scene_key:  # reset to another scene or light through the API
+        if scene != self._scene_key:  # reset to another scene, light or vegetation through the API
             self._scene_key = scene
             self.in_flight.clear()
             for role in ROLES:

@@ -37,7 +37,7 @@ ENV_AUTHKEY = "DRONEULATOR_HUB_AUTHKEY"
 ENV_RING = "DRONEULATOR_FRAME_RING"
 ENV_CONFIG = "DRONEULATOR_CONFIG_JSON"
 ENV_ZENOH = "DRONEULATOR_ZENOH_ENDPOINT"
-PROTOCOL_VERSION = 4
+PROTOCOL_VERSION = 5
 
 
 # --------------------------------------------------------------------------- typed messages
@@ -98,11 +98,12 @@ class Published:
 
 @dataclass(frozen=True)
 class LoadScene:
-    """Hub -> both: the API reset the simulation into another scene, seed or light."""
+    """Hub -> both: the API reset the simulation into another scene, seed, light or vegetation density."""
 
     scene: str
     seed: int
     light: LightConfig = field(default_factory=LightConfig)
+    vegetation: float = 1.0
 
 
 HubMessage = Render | Rendered | Publish | Published | LoadScene

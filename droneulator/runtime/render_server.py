@@ -42,12 +42,13 @@ def serve(cfg: SimConfig) -> None:
     rigs = cfg.camera_rigs()
     ring = FrameRing(os.environ[ENV_RING], rigs, cfg.runtime.frame_slots)
 
-    def make(scene: str, seed: int) -> tuple[Renderer, dict[str, dict[str, CameraModel]]]:
+    def make(scene: str, seed: int, vegetation: float) -> tuple[Renderer, dict[str, dict[str, CameraModel]]]:
         """The renderer and the cameras' realism models (reseeded with the scene, as the world's are)."""
-        return fleet_renderer(get_scene(scene, seed), cfg), fleet_camera_models(cfg, seed)
+        renderer = fleet_renderer(get_scene(scene, seed, vegetation), cfg)
+        return renderer, fleet_camera_models(cfg, seed)
 
-    renderer, models = make(welcome.scene, welcome.seed)
-    loaded = (welcome.scene, welcome.seed)
+    renderer, models = make(welcome.scene, welcome.seed, cfg.vegetation)
+    loaded = (welcome.scene, welcome.seed, cfg.vegetation)
     log.info(
         "render server ready: %s, %s",
         welcome.scene,
@@ -82,16 +83,16 @@ def serve(cfg: SimConfig) -> None:
                         conn.send(Rendered(seq))
                     except OSError:
                         return
-                case LoadScene(scene, seed, light):
+                case LoadScene(scene, seed, light, vegetation):
                     cfg.light = light
-                    if (scene, seed) == loaded:  # the light alone: the scene stays uploaded
+                    if (scene, seed, vegetation) == loaded:  # the light alone: the scene stays uploaded
                         renderer.set_light(config_lighting(renderer.scene, cfg))
                         log.info("light changed: %s", light)
                         continue
                     renderer.close()
-                    renderer, models = make(scene, seed)
-                    loaded = (scene, seed)
-                    log.info("scene changed to %s (seed %d)", scene, seed)
+                    renderer, models = make(scene, seed, vegetation)
+                    loaded = (scene, seed, vegetation)
+                    log.info("scene changed to %s (seed %d, vegetation %g)", scene, seed, vegetation)
     finally:
         renderer.close()
         ring.close()

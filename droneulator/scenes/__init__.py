@@ -1,6 +1,8 @@
 """Scene registry: procedural, seeded scenes built on demand and cached per (name, seed).
 
-Builders are plain functions ``(seed: int) -> Scene`` decorated with :func:`register`. The scene
+Builders are plain functions ``(seed: int, vegetation: float = 1.0) -> Scene`` decorated with
+:func:`register`; ``vegetation`` scales the leaves (cards per cluster or per metre of hedge: a sparse or
+a dense canopy), not the collision model. The scene
 modules are imported lazily on the first registry query, so importing :mod:`droneulator.scenes.base`
 alone stays cheap (no numba, no texture generation).
 
@@ -26,9 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
+from droneulator.config.scene import check_vegetation
 from droneulator.scenes.base import MeshPart, Scene
 
-SceneBuilder = Callable[[int], Scene]
+SceneBuilder = Callable[[int, float], Scene]
 
 _SCENE_MODULES = ("default", "orchard", "planning", "tree_inspection", "vineyard")
 _REGISTRY: dict[str, tuple[str, SceneBuilder]] = {}
@@ -88,13 +91,14 @@ def _source_key() -> str:
     return h.hexdigest()[:16]
 
 
-def _cached(name: str, seed: int, build: Callable[[], Scene]) -> Scene:
+def _cached(name: str, seed: int, build: Callable[[], Scene], vegetation: float = 1.0) -> Scene:
     """``build()``'s scene from the disk cache when there, else built and stored (a failure to read or
     write the cache only costs the build)."""
     root = cache_dir()
     if root is None:
         return build()
-    path = root / f"{name}-{seed}-{_source_key()}.pkl"
+    density = "" if vegetation == 1.0 else f"-v{vegetation:g}"
+    path = root / f"{name}-{seed}{density}-{_source_key()}.pkl"
     try:
         with path.open("rb") as f:
             scene = pickle.load(f)
@@ -119,16 +123,22 @@ def _cached(name: str, seed: int, build: Callable[[], Scene]) -> Scene:
 
 
 @functools.lru_cache(maxsize=16)
-def _build(name: str, seed: int) -> Scene:
-    return _cached(name, seed, lambda: _REGISTRY[name][1](seed))
+def _build(name: str, seed: int, vegetation: float) -> Scene:
+    def build() -> Scene:
+        scene = _REGISTRY[name][1](seed, vegetation)
+        scene.vegetation = vegetation
+        return scene
+
+    return _cached(name, seed, build, vegetation)
 
 
-def get_scene(name: str, seed: int = 0) -> Scene:
-    """The scene ``name`` built with ``seed`` (cached: repeated calls return the same object)."""
+def get_scene(name: str, seed: int = 0, vegetation: float = 1.0) -> Scene:
+    """The scene ``name`` built with ``seed`` and ``vegetation`` density (cached: repeated calls return the
+    same object)."""
     _load()
     if name not in _REGISTRY:
         raise ValueError(f"unknown scene {name!r}; known scenes: {', '.join(sorted(_REGISTRY))}")
-    return _build(name, int(seed))
+    return _build(name, int(seed), check_vegetation(vegetation))
 
 
 def assemble_scene(

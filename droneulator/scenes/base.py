@@ -92,6 +92,8 @@ class Scene:
     light: dict[str, Any] = field(default_factory=dict)
     #: named points of interest, e.g. the centre tree of tree_inspection
     landmarks: dict[str, np.ndarray] = field(default_factory=dict)
+    #: the density its leaves were built with (1: as designed; :func:`droneulator.scenes.get_scene`)
+    vegetation: float = 1.0
 
     #: where further vehicles stand, in order, before the free points of :meth:`spawn_points` (e.g. one
     #: per orchard row); on the ground, z = 0

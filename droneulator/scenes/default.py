@@ -15,7 +15,7 @@ HALF_SIZE = 30.0
 
 
 @register("default", "Open 60 m x 60 m meadow with 4-6 scattered broadleaf trees; spawn in the clear centre")
-def build_default(seed: int) -> Scene:
+def build_default(seed: int, vegetation: float = 1.0) -> Scene:
     rng = np.random.default_rng([seed, 0xDEF])
     ground = PartBuilder("ground", "ground")
     ground.add(ground_with_skirt((-HALF_SIZE, HALF_SIZE), (-HALF_SIZE, HALF_SIZE)), SemanticClass.GROUND)
@@ -45,7 +45,8 @@ def build_default(seed: int) -> Scene:
     infos = []
     for i, base in enumerate(spots):
         tree_rng = np.random.default_rng([seed, 0xDEF, i])
-        info = build_tree(base, shade_tree_params(tree_rng, detail=1.0, scale=0.8), tree_rng, bark, foliage)
+        params = shade_tree_params(tree_rng, detail=1.0, scale=0.8)
+        info = build_tree(base, params, tree_rng, bark, foliage, vegetation=vegetation)
         prims += info.primitives
         infos.append(info)
     nearest = min(spots, key=lambda q: float(np.linalg.norm(q[:2])))

@@ -20,7 +20,7 @@ TREE_SPACING = 3.0
     f"{ROWS} rows x {TREES_PER_ROW} fruit trees ({ROW_SPACING} m rows, {TREE_SPACING} m "
     "spacing) with grass alleys; spawn at the head of the middle alley",
 )
-def build_orchard(seed: int) -> Scene:
+def build_orchard(seed: int, vegetation: float = 1.0) -> Scene:
     rng = np.random.default_rng([seed, 0x0C4])
     ground = PartBuilder("ground", "ground")
     bark = PartBuilder("bark", "bark")
@@ -42,6 +42,7 @@ def build_orchard(seed: int) -> Scene:
                 bark,
                 foliage,
                 fruit,
+                vegetation,
             )
             prims += info.primitives
             infos.append(info)

@@ -29,7 +29,7 @@ BOULDERS = ((-4.0, 3.8), (-3.5, -4.2), (6.5, 1.5), (9.0, -2.5))
     "One broad tree at the origin between a start on the -x side and goals on the +x side, flanked by two "
     "young trees and boulders: the local-planning benchmark's course",
 )
-def build_planning(seed: int) -> Scene:
+def build_planning(seed: int, vegetation: float = 1.0) -> Scene:
     rng = np.random.default_rng([seed, 0x91A])
     ground = PartBuilder("ground", "ground")
     ground.add(ground_with_skirt((-30.0, 30.0), (-30.0, 30.0)), SemanticClass.GROUND)
@@ -57,12 +57,13 @@ def build_planning(seed: int) -> Scene:
         detail=1.0,
         crown_aspect=0.9,
     )
-    hero = build_tree(np.zeros(3), hero_params, hero_rng, bark, foliage, fruit)
+    hero = build_tree(np.zeros(3), hero_params, hero_rng, bark, foliage, fruit, vegetation)
     prims: list = list(hero.primitives)
     trunks = [hero.base]
     for i, (x, y) in enumerate(CLUTTER_TREES):
         tree_rng = np.random.default_rng([seed, 0x91A, 1 + i])
-        tree = build_tree(np.array([x, y, 0.0]), fruit_tree_params(tree_rng), tree_rng, bark, foliage, fruit)
+        params = fruit_tree_params(tree_rng)
+        tree = build_tree(np.array([x, y, 0.0]), params, tree_rng, bark, foliage, fruit, vegetation)
         prims += tree.primitives
         trunks.append(tree.base)
     for x, y in BOULDERS:

@@ -24,7 +24,7 @@ HALF_BOUNDS = 20.0
     "One detailed fruit tree at the origin in a clearing ringed by distant trees and rocks; landmarks give "
     "its position, height and crown radius",
 )
-def build_tree_inspection(seed: int) -> Scene:
+def build_tree_inspection(seed: int, vegetation: float = 1.0) -> Scene:
     rng = np.random.default_rng([seed, 0x7EE])
     ground = PartBuilder("ground", "ground")
     ground.add(ground_with_skirt((-40.0, 40.0), (-40.0, 40.0)), SemanticClass.GROUND)
@@ -47,7 +47,7 @@ def build_tree_inspection(seed: int) -> Scene:
     params.card_size = 0.75
     params.leaf_density = 1.2
     params.branch_count = int(hero_rng.integers(8, 11))
-    hero = build_tree(np.zeros(3), params, hero_rng, bark, foliage, fruit)
+    hero = build_tree(np.zeros(3), params, hero_rng, bark, foliage, fruit, vegetation)
     prims: list = list(hero.primitives)
 
     # background ring: scenery only (no collision), so it is kept well outside the flyable bounds
@@ -62,6 +62,7 @@ def build_tree_inspection(seed: int) -> Scene:
             tree_rng,
             bark,
             foliage,
+            vegetation=vegetation,
         )
     for _ in range(int(rng.integers(6, 10))):
         a = rng.uniform(0, 2 * math.pi)

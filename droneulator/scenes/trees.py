@@ -12,6 +12,7 @@ planner) would see as free space and the vehicle would collide with.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -273,12 +274,16 @@ def build_tree(
     bark: PartBuilder,
     foliage: PartBuilder,
     fruit: PartBuilder | None = None,
+    vegetation: float = 1.0,
 ) -> TreeInfo:
     """Grow one tree standing at ``base`` (on the ground) into the given part builders.
 
     ``bark`` receives trunk (TRUNK) and branches (BRANCH), ``foliage`` the alpha-tested leaf cards
-    (CANOPY, uv rectangles into a leaf atlas), ``fruit`` small spheres (FRUIT) if given.
+    (CANOPY, uv rectangles into a leaf atlas), ``fruit`` small spheres (FRUIT) if given. ``vegetation``
+    scales the leaf cards per cluster (the scene's vegetation density: a sparse or a dense crown).
     """
+    if vegetation != 1.0:
+        params = dataclasses.replace(params, leaf_density=params.leaf_density * vegetation)
     grower = _TreeGrower(base, params, rng)
     grower.grow()
     return grower.emit(bark, foliage, fruit)

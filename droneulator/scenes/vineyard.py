@@ -44,7 +44,7 @@ CARDS_PER_METRE = 20
     f"{ROWS} trellised vine rows ({ROW_LENGTH:.0f} m long, {ROW_SPACING} m apart) with posts, wires and "
     "leaf hedges; ~2.6 m grass alleys for navigation/RL",
 )
-def build_vineyard(seed: int) -> Scene:
+def build_vineyard(seed: int, vegetation: float = 1.0) -> Scene:
     rng = np.random.default_rng([seed, 0x71E])
     ground = PartBuilder("ground", "ground")
     bark = PartBuilder("bark", "bark")
@@ -111,24 +111,18 @@ def build_vineyard(seed: int) -> Scene:
                     )
                     r_shoot = np.linspace(0.012, 0.0, len(shoot))
                     bark.add(tube(shoot, r_shoot, sides=3, tile=0.3), SemanticClass.BRANCH)
-        # leaf hedge: crossed cards filling a slab around the wires
-        n = int(CARDS_PER_METRE * (x1 - x0))
-        centers = np.stack(
-            [
-                rng.uniform(x0 - 0.1, x1 + 0.1, n),
-                y + rng.normal(0, 0.09, n),
-                rng.uniform(CANOPY_Z[0] + 0.35, CANOPY_Z[1] - 0.25, n),
-            ],
-            1,
-        )
-        sizes = rng.uniform(0.45, 0.6, n)
-        out = np.stack([np.zeros(n), np.sign(centers[:, 1] - y + 1e-9), np.zeros(n)], 1)
-        shade = out * 0.6 + np.array([0.0, 0.0, 0.5]) + rng.normal(0, 0.25, (n, 3))
-        rects = atlas_rect(rng.integers(0, ATLAS_GRID * ATLAS_GRID, n))
-        foliage.add(
-            crossed_cards(centers, _flattened(random_rotations(rng, n)), sizes, rects, shade),
-            SemanticClass.CANOPY,
-        )
+        # leaf hedge: crossed cards filling a slab around the wires. The designed count always comes from
+        # the layout's generator (so the rest of the layout, and its collision model, is the same at any
+        # vegetation density); a sparser hedge keeps a share of them, a denser one adds cards of its own
+        designed = int(CARDS_PER_METRE * (x1 - x0))
+        cards = [_leaf_cards(rng, designed, x0, x1, y)]
+        n = int(CARDS_PER_METRE * vegetation * (x1 - x0))
+        if n > designed:
+            extra = np.random.default_rng([seed, 0x71E, int(np.argmin(np.abs(row_y - y))), 0xDE75E])
+            cards.append(_leaf_cards(extra, n - designed, x0, x1, y))
+        columns = zip(*cards, strict=True)
+        centers, rotations, sizes, rects, shade = (np.concatenate(parts)[:n] for parts in columns)
+        foliage.add(crossed_cards(centers, rotations, sizes, rects, shade), SemanticClass.CANOPY)
         cz = (CANOPY_Z[0] + CANOPY_Z[1]) / 2
         prims.append(
             Box(
@@ -176,6 +170,27 @@ def build_vineyard(seed: int) -> Scene:
             "trunks": np.array(stems),
         },
     )
+
+
+def _leaf_cards(
+    rng: np.random.Generator, n: int, x0: float, x1: float, y: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``n`` leaf cards of the hedge of the row at ``y``: centres, rotations, sizes, atlas rectangles and
+    shading normals, drawn in this order from ``rng``."""
+    centers = np.stack(
+        [
+            rng.uniform(x0 - 0.1, x1 + 0.1, n),
+            y + rng.normal(0, 0.09, n),
+            rng.uniform(CANOPY_Z[0] + 0.35, CANOPY_Z[1] - 0.25, n),
+        ],
+        1,
+    )
+    sizes = rng.uniform(0.45, 0.6, n)
+    out = np.stack([np.zeros(n), np.sign(centers[:, 1] - y + 1e-9), np.zeros(n)], 1)
+    shade = out * 0.6 + np.array([0.0, 0.0, 0.5]) + rng.normal(0, 0.25, (n, 3))
+    rects = atlas_rect(rng.integers(0, ATLAS_GRID * ATLAS_GRID, n))
+    rotations = _flattened(random_rotations(rng, n))
+    return centers, rotations, sizes, rects, shade
 
 
 def _tilt(lean: np.ndarray) -> np.ndarray:

@@ -106,13 +106,15 @@ class Simulator:
         scene: str | None = None,
         airborne: bool | None = None,
         light: LightConfig | None = None,
+        vegetation: float | None = None,
     ) -> VehicleState:
         """Restart the flight at t = 0 from ``position`` (default: the scene's spawn on the ground).
 
         A position above the ground starts hovering there (mode ``hold``) unless ``airborne=False``;
-        ``light`` replaces the light section (time of day, clouds, haze: RGB only).
+        ``light`` replaces the light section (time of day, clouds, haze: RGB only); ``vegetation`` rebuilds
+        the scene with that vegetation density.
         """
-        return self.world.reset(seed, position, yaw, scene, airborne, light=light)
+        return self.world.reset(seed, position, yaw, scene, airborne, light=light, vegetation=vegetation)
 
     def step(self, n: int = 1) -> StepResult:
         """Advance ``n`` control periods; returns the frames rendered and events raised meanwhile."""

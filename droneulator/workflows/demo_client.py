@@ -96,7 +96,7 @@ def _fly(cfg: SimConfig, out: Path, stop: threading.Event) -> None:
     t_start = state["t"]
     next_log = state["t"]
     try:
-        for leg in plan_mission(get_scene(cfg.scene, cfg.seed), cfg):
+        for leg in plan_mission(get_scene(cfg.scene, cfg.seed, cfg.vegetation), cfg):
             if stop.is_set():
                 return
             client.request(leg.op, **leg.args)

@@ -161,7 +161,7 @@ class BatchedWorlds:
             raise ValueError("each batched world holds one vehicle: give at most one vehicle in the config")
         self.config = config
         self.num_worlds = n = int(num_worlds)
-        self.scene = get_scene(config.scene, config.seed)
+        self.scene = get_scene(config.scene, config.seed, config.vegetation)
         spec = specs[0]
         # one template vehicle of the spec gives the packed airframe, gains and limits every copy uses
         template_row, template_motion = np.zeros(STATE_SIZE), np.zeros(6)

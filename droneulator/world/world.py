@@ -101,7 +101,7 @@ class World:
         self.specs = cfg.vehicle_specs()
         n = len(self.specs)
         # a scene without room for the fleet fails here (ValueError), before any vehicle is built
-        get_scene(cfg.scene, cfg.seed).spawn_points(sum(spec.spawn is None for spec in self.specs))
+        get_scene(cfg.scene, cfg.seed, cfg.vegetation).spawn_points(sum(s.spawn is None for s in self.specs))
         #: every vehicle's state, ``(worlds, vehicles, STATE_SIZE)``: one world here
         self.states = np.zeros((1, n, STATE_SIZE))
         self._rows = self.states[0]
@@ -144,12 +144,12 @@ class World:
         self.t_ns = 0
         #: the wind field every vehicle flies in (:mod:`droneulator.wind.field`), seeded by the world's seed
         self.wind = WindField(cfg.wind, n, self.control_period_ns / NS, cfg.seed)
-        self._load_scene(cfg.scene, cfg.seed)
+        self._load_scene(cfg.scene, cfg.seed, cfg.vegetation)
         self.reset()
 
     # ------------------------------------------------------------------ setup
-    def _load_scene(self, name: str, seed: int) -> None:
-        scene = get_scene(name, seed)
+    def _load_scene(self, name: str, seed: int, vegetation: float) -> None:
+        scene = get_scene(name, seed, vegetation)
         # a scene without room for the fleet fails here (ValueError), before anything changes
         scene.spawn_points(sum(spec.spawn is None for spec in self.specs))
         self.scene = scene
@@ -200,22 +200,28 @@ class World:
         airborne: bool | None = None,
         vehicle: str | None = None,
         light: LightConfig | None = None,
+        vegetation: float | None = None,
     ) -> VehicleState:
         """Restart at t = 0: every vehicle at its start (on the ground), the first one (or ``vehicle``) at
         ``position`` / ``yaw`` if given. A position above the ground starts hovering there (mode ``hold``)
-        unless ``airborne=False``. ``light`` replaces the light section (RGB only). Returns that vehicle's
-        state."""
+        unless ``airborne=False``. ``light`` replaces the light section (RGB only); ``vegetation`` rebuilds
+        the scene with that density. Returns that vehicle's state."""
         target = self.vehicle(vehicle)
         light = self.config.light if light is None else light
-        if scene is not None or (seed is not None and seed != self.config.seed):
-            new = (scene or self.config.scene, self.config.seed if seed is None else seed)
+        cfg = self.config
+        new = (
+            scene or cfg.scene,
+            cfg.seed if seed is None else seed,
+            cfg.vegetation if vegetation is None else float(vegetation),
+        )
+        if scene is not None or new != (cfg.scene, cfg.seed, cfg.vegetation):
             previous, self.config.light = self.config.light, light
             try:
                 self._load_scene(*new)  # raises for an unknown scene before anything changes
             except Exception:
                 self.config.light = previous
                 raise
-            self.config.scene, self.config.seed = new
+            self.config.scene, self.config.seed, self.config.vegetation = new
         elif light != self.config.light:
             self.set_light(light)
         starts = dict(zip(self.vehicles, self.spawns(), strict=True))

@@ -135,7 +135,7 @@ def write_truth(cfg: SimConfig, out: Path, info: dict[str, Any]) -> None:
     (rebuilt here from its name and seed, which ``scene_info`` confirmed): the scorer's reference."""
     from droneulator.scenes import get_scene
 
-    scene = get_scene(info["name"], int(info["seed"]))
+    scene = get_scene(info["name"], int(info["seed"]), float(info.get("vegetation", 1.0)))
     tree_radius = float(np.asarray(scene.landmarks.get("crown_radius", [3.0])).reshape(-1)[0]) + 1.0
     truth_mesh(scene, tree_radius, ground_radius=cfg.capture.radius + TRUTH_GROUND_MARGIN_M).save(
         Path(out) / "truth" / "mesh.npz"
@@ -146,7 +146,7 @@ def scene_landmarks(cfg: SimConfig) -> dict[str, Any]:
     """The ``name`` and ``landmarks`` of ``cfg.scene`` as ``scene_info`` gives them, from the seeded scene
     built here (the capture camera's pitch depends on the tree's landmarks, and a run's camera rig is fixed
     when it starts: reading them here spares a probe run of the simulator)."""
-    scene = get_scene(cfg.scene, cfg.seed)
+    scene = get_scene(cfg.scene, cfg.seed, cfg.vegetation)
     return {"name": scene.name, "landmarks": {k: np.asarray(v).tolist() for k, v in scene.landmarks.items()}}
 
 

@@ -77,9 +77,17 @@ def depth_camera_models(cfg: SimConfig) -> dict[str, CameraModel | None]:
 
 def env_config(config: SimConfig | None = None, **rl_overrides: Any) -> SimConfig:
     """A copy of ``config`` set up for the environment: vineyard scene, the RL camera only, no shadows
-    (depth is unaffected), ``rl`` fields replaced by ``rl_overrides``."""
+    (depth is unaffected), ``rl`` fields replaced by ``rl_overrides``. With domain randomisation of the
+    scene (``randomize.scene_seed``, ``randomize.vegetation``) the layout seed and the vegetation density
+    are drawn here, once, from the config's seed: an environment (and all the copies of a batched one)
+    keeps its scene for its life."""
     cfg = copy.deepcopy(config) if config is not None else load_config()
     cfg.scene = SCENE
+    spec = cfg.randomize
+    if spec.enabled and (spec.scene_seed is not None or spec.vegetation != (1.0, 1.0)):
+        draw = spec.draw(np.random.default_rng([cfg.seed, 0x5CE4E]))
+        cfg.seed = cfg.seed if draw.scene_seed is None else draw.scene_seed
+        cfg.vegetation = draw.vegetation
     if rl_overrides:
         cfg.rl = dataclasses.replace(cfg.rl, **rl_overrides)
     cfg.render.cameras = [rl_camera(cfg.rl)]

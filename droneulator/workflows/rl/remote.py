@@ -48,7 +48,7 @@ class RemoteBackend:
             if info["name"] != SCENE:
                 self.client.reset(scene=SCENE, seed=cfg.seed)
                 info = self.client.scene_info()
-            self.scene = get_scene(info["name"], int(info["seed"]))
+            self.scene = get_scene(info["name"], int(info["seed"]), float(info.get("vegetation", 1.0)))
             endpoints = (zenoh,) if zenoh else tuple(cfg.bridge.listen)
             self.node = RosZenohNode.from_config(cfg.bridge, listen=(), connect=endpoints)
         except BaseException:
