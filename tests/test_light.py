@@ -15,6 +15,8 @@ import subprocess
 
 import numpy as np
 import pytest
+from test_render import cylinder
+from test_render import quad as render_quad
 
 from droneulator import frames
 from droneulator.commands.ops import RequestError, execute, make_request
@@ -41,35 +43,13 @@ GREY[..., 3] = DARK[..., 3] = 255
 
 # ----------------------------------------------------------------------------------------- small scenes
 def quad(corners, cls: SemanticClass, texture: str = "grey") -> MeshPart:
-    corners = np.asarray(corners, dtype=np.float32)
-    n = np.cross(corners[1] - corners[0], corners[2] - corners[0])
-    return MeshPart(
-        f"quad{int(cls)}{texture}",
-        corners,
-        np.tile(n / np.linalg.norm(n), (4, 1)).astype(np.float32),
-        np.array([[0, 0], [1, 0], [1, 1], [0, 1]], dtype=np.float32),
-        np.full(4, cls, dtype=np.uint8),
-        np.array([[0, 1, 2], [0, 2, 3]], dtype=np.uint32),
-        texture,
-    )
+    return render_quad(corners, cls, texture)
 
 
 def pole(height: float = 3.0, radius: float = 0.15, sides: int = 16) -> MeshPart:
-    """A vertical cylinder on the origin (a tree trunk)."""
-    ang = np.linspace(0, 2 * math.pi, sides, endpoint=False)
-    ring = np.stack([np.cos(ang), np.sin(ang), np.zeros(sides)], 1)
-    pos = np.concatenate([radius * ring, radius * ring + [0, 0, height]])
-    i = np.arange(sides)
-    j = (i + 1) % sides
-    idx = np.concatenate([np.stack([i, j, j + sides], 1), np.stack([i, j + sides, i + sides], 1)])
-    return MeshPart(
-        "pole",
-        pos.astype(np.float32),
-        np.concatenate([ring, ring]).astype(np.float32),
-        np.zeros((2 * sides, 2), np.float32),
-        np.full(2 * sides, SemanticClass.TRUNK, np.uint8),
-        idx.astype(np.uint32),
-        "grey",
+    """A vertical cylinder on the origin (a tree trunk), grey."""
+    return dataclasses.replace(
+        cylinder((0.0, 0.0), radius, height, SemanticClass.TRUNK, sides), texture="grey"
     )
 
 
