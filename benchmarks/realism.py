@@ -153,7 +153,8 @@ def plot(result: dict[str, Any], path: Path) -> None:
 
 #: the field conditions the RL policies are flown in: every episode a 5 m/s mean wind (W20) from a
 #: direction of its own, standard Dryden turbulence, 1-cosine gusts of 2.5 m/s every 8 s on average, and
-#: the D435's depth errors (as randomisation ranges of zero width, so each episode's seed draws them)
+#: the D435 preset's depth errors (as randomisation ranges of zero width but for the wind's direction, so
+#: each episode's seed draws them)
 FIELD = [
     "randomize.enabled=true",
     "randomize.wind_speed_m_s=[5, 5]",
@@ -161,6 +162,8 @@ FIELD = [
     "randomize.gust_fraction=[0.5, 0.5]",
     "wind.gust_interval_s=8",
     'randomize.depth_models=["d435"]',
+    "randomize.depth_noise_scale=[1, 1]",
+    "randomize.depth_dropout_scale=[1, 1]",
 ]
 #: the 50 held-out episodes (as benchmarks/rl.py's): seeds past the 10 that training checks use
 EVAL_50 = 1_000_100
