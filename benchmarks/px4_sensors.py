@@ -245,10 +245,12 @@ def main() -> None:
                     "gps_vel_vertical_noise",
                     "gps_delay_s",
                     "gps_hz",
-                    "mag_noise",
-                    "accel_noise",
+                    "imu_preset",
+                    "mag_preset",
                 )
-            },
+            }
+            # the noise in effect (the presets', or the fields set): per sample, the IMU at PX4's 250 Hz
+            | {"mag_noise": cfg.mag_error(), "accel_noise": cfg.imu_error(250.0).accel_sigma},
         },
         args.out,
     )

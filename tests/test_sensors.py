@@ -305,3 +305,96 @@ def test_each_vehicle_carries_its_own_rig_from_its_config_table():
 def test_a_bad_sensor_list_is_refused_with_the_kinds(sensors: list[str], message: str):
     with pytest.raises(ValueError, match=message):
         SensorSuite(PX4Config(), 0, sensors)
+
+
+# --------------------------------------------------------------------------- noise presets
+PRESETS = {
+    "imu_preset": ("sitl", "icm42688p", "bmi088", "adis16448"),
+    "baro_preset": ("sitl", "ms5611", "dps310"),
+    "mag_preset": ("sitl", "hmc5883l", "rm3100"),
+    "gps_preset": ("sitl", "realistic", "m8n", "f9p_rtk"),
+}
+
+
+def test_every_preset_resolves_and_a_bad_name_or_value_is_a_one_line_error_naming_the_choices():
+    for name, choices in PRESETS.items():
+        for choice in choices:
+            assert getattr(load_config(overrides=[f"px4.{name}={choice}"]).px4, name) == choice
+        with pytest.raises(ValueError) as e:
+            load_config(overrides=[f"px4.{name}=mpu6050"])
+        assert str(e.value) == f"px4.{name} must be one of {', '.join(choices)}, got 'mpu6050'"
+    for name in ("accel_noise", "gyro_noise", "mag_noise", "baro_noise_hpa"):
+        assert getattr(PX4Config(), name) is None  # null: the preset's
+        with pytest.raises(ValueError) as e:
+            load_config(overrides=[f"px4.{name}=-0.1"])
+        assert "\n" not in str(e.value) and f"px4.{name} must be a number >= 0 or null" in str(e.value)
+
+
+def test_the_default_presets_are_the_simulators_own_numbers_and_draw_what_it_drew_before():
+    """sitl: 0.02 m/s^2 and 0.002 rad/s per IMU sample at any rate, 0.002 G, 0.01 hPa, the sitl GPS;
+    and the default suite's IMU and barometer read exactly what the models read before presets (the same
+    formula on the same streams), the magnetometer too to rounding (its rotation is now compiled), so
+    every PX4 flight and stream is unchanged."""
+    cfg = PX4Config(mag_field_ned_gauss=(0.2, 0.0, 0.4))
+    for rate in (100.0, 250.0, 1000.0):
+        imu = cfg.imu_error(rate)
+        got = (imu.accel_sigma, imu.gyro_sigma, imu.accel_range_g, imu.gyro_range_dps)
+        assert got == (0.02, 0.002, 16, 2000)
+    assert (cfg.mag_error(), cfg.baro_error()) == (0.002, 0.01)
+    assert cfg.gps_error() == GPS_PRESETS["sitl"] and cfg.gps_error().fix_type == 3
+    truth = Truth(0, Z3, Z3, np.array([0.1, -0.2, 0.3, 0.9]), np.array([0.1, 0.2, -0.3]), Z3, Z3)
+    suite = SensorSuite(cfg, 7, imu_hz=100.0)
+    streams = [np.random.default_rng(s) for s in np.random.SeedSequence(7).spawn(4)]  # imu, mag, baro, gps
+    accel, gyro = suite.imu(truth)
+    np.testing.assert_array_equal(accel, truth.specific_force_frd + streams[0].normal(0.0, 0.02, 3))
+    np.testing.assert_array_equal(gyro, truth.gyro_frd + streams[0].normal(0.0, 0.002, 3))
+    field = F.quat_to_matrix(truth.quaternion_ned_frd).T @ np.array([0.2, 0.0, 0.4])  # NED -> FRD
+    np.testing.assert_allclose(suite.mag(truth), field + streams[1].normal(0.0, 0.002, 3), rtol=0, atol=1e-15)
+    from droneulator.sensors.baro import isa_pressure_pa
+
+    assert suite.baro(truth).pressure_hpa == isa_pressure_pa(10.0) / 100.0 + streams[2].normal(0.0, 0.01)
+    assert [r.seq for r in suite.latest.values()] == [1, 2, 3] and suite.latest["imu"].t_ns == 0
+
+
+@pytest.mark.parametrize(("preset", "rate"), [("icm42688p", 250.0), ("bmi088", 1000.0), ("adis16448", 100.0)])
+def test_imu_noise_is_the_parts_density_at_the_sampling_rate(preset: str, rate: float):
+    """20,000 samples at rest: each axis' std is density * sqrt(rate) within 3 % (Kalibr's convention),
+    about the truth (at rest: +9.81 up in FLU, -9.81 on FRD z)."""
+    from droneulator.config import IMU_PRESETS
+
+    part = IMU_PRESETS[preset]
+    suite = SensorSuite(PX4Config(imu_preset=preset, mag_field_ned_gauss=(0.2, 0.0, 0.4)), 3, ["imu"], rate)
+    truth = Truth(0, Z3, Z3, LEVEL, Z3, Z3, Z3, specific_force=np.array([0.0, 0.0, 9.81]))
+    samples = [suite.imu(truth) for _ in range(20_000)]
+    accel, gyro = (np.array([s[i] for s in samples]) for i in (0, 1))
+    want_a, want_g = part.accel_density * math.sqrt(rate), part.gyro_density * math.sqrt(rate)
+    np.testing.assert_allclose(accel.std(axis=0), want_a, rtol=0.03)
+    np.testing.assert_allclose(gyro.std(axis=0), want_g, rtol=0.03)
+    np.testing.assert_allclose(accel.mean(axis=0), [0.0, 0.0, -9.81], atol=4 * want_a / math.sqrt(20_000))
+    assert suite.models["imu"].accel_range == pytest.approx(part.accel_range_g * 9.80665)
+    # an explicit accel_noise wins over the preset; the gyro keeps the preset's
+    mixed = PX4Config(imu_preset=preset, accel_noise=0.5).imu_error(rate)
+    assert (mixed.accel_sigma, mixed.gyro_sigma) == (0.5, pytest.approx(want_g))
+
+
+@pytest.mark.parametrize(("mag", "baro"), [("rm3100", "dps310"), ("hmc5883l", "ms5611")])
+def test_magnetometer_and_barometer_noise_is_the_parts_rms_per_sample(mag: str, baro: str):
+    from droneulator.config import BARO_PRESETS, MAG_PRESETS
+
+    cfg = PX4Config(mag_preset=mag, baro_preset=baro, mag_field_ned_gauss=(0.2, 0.0, 0.4))
+    suite = SensorSuite(cfg, 5, ["mag", "baro"])
+    truth = at_rest(0)
+    fields = np.array([suite.mag(truth) for _ in range(20_000)])
+    np.testing.assert_allclose(fields.std(axis=0), MAG_PRESETS[mag].noise_gauss, rtol=0.03)
+    pressures = np.array([suite.baro(truth).pressure_hpa for _ in range(20_000)])
+    assert pressures.std() == pytest.approx(BARO_PRESETS[baro].noise_hpa, rel=0.03)
+
+
+def test_an_rtk_fixed_receiver_reports_fix_type_6_and_centimetre_accuracy():
+    cfg = PX4Config(gps_preset="f9p_rtk", mag_field_ned_gauss=(0.2, 0.0, 0.4))
+    g = SensorSuite(cfg, 2).gps(at_rest(0))
+    assert g.fix_type == 6
+    # eph never reads under 1 cm (HIL_GPS carries centimetres; PX4 takes 0 as a perfect fix)
+    assert (g.eph_m, g.epv_m) == (0.01, pytest.approx(math.hypot(0.0148, 0.002)))
+    err = errors_at_rest(cfg, 60.0)
+    assert np.abs(err).max() < 0.08

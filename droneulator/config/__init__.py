@@ -21,13 +21,11 @@ from droneulator.config.randomize import RandomizeConfig
 from droneulator.config.rl import RLConfig
 from droneulator.config.sections import (
     CONTROLLERS,
-    GPS_PRESETS,
     PX4_ON_LOSS,
     WIND_MODELS,
     BridgeConfig,
     CameraConfig,
     FlightConfig,
-    GpsError,
     PX4Config,
     RenderConfig,
     RuntimeConfig,
@@ -37,11 +35,22 @@ from droneulator.config.sections import (
     VehicleSpec,
     fleet,
 )
+from droneulator.config.sensor_presets import (
+    BARO_PRESETS,
+    GPS_PRESETS,
+    IMU_PRESETS,
+    MAG_PRESETS,
+    GpsError,
+    ImuModel,
+)
 from droneulator.config.wind import WindConfig
 
 __all__ = [
+    "BARO_PRESETS",
     "CONTROLLERS",
     "GPS_PRESETS",
+    "IMU_PRESETS",
+    "MAG_PRESETS",
     "PX4_ON_LOSS",
     "WIND_MODELS",
     "BridgeConfig",
@@ -50,6 +59,7 @@ __all__ = [
     "ConfigError",
     "FlightConfig",
     "GpsError",
+    "ImuModel",
     "LightConfig",
     "PX4Config",
     "RLConfig",

@@ -13,6 +13,15 @@ from droneulator.config.light import LightConfig
 from droneulator.config.randomize import RandomizeConfig
 from droneulator.config.rl import RLConfig
 from droneulator.config.scene import check_vegetation
+from droneulator.config.sensor_presets import (
+    BARO_PRESETS,
+    GPS_PRESETS,
+    IMU_PRESETS,
+    MAG_PRESETS,
+    GpsError,
+    ImuModel,
+    check_preset,
+)
 from droneulator.config.wind import WindConfig
 
 
@@ -267,27 +276,6 @@ class BridgeConfig:
 PX4_ON_LOSS = ("land", "hold", "fall")
 
 
-@dataclass(frozen=True)
-class GpsError:
-    """The GPS position error model: Gauss-Markov 1-sigma (horizontal per axis, vertical; m), its
-    correlation time (s) and white per-fix jitter (m)."""
-
-    horizontal_m: float
-    vertical_m: float
-    correlation_time_s: float
-    jitter_m: float
-
-
-#: ``px4.gps_preset``: "sitl" matches PX4's own Gazebo simulation (GZBridge::addGpsNoise: an AR(1) error
-#: of about 2 cm horizontal and 3 cm vertical, correlated over about half a second), what a PX4 user
-#: expects from SITL; "realistic" is a single-frequency receiver (u-blox M8 class) wandering 0.3 m / 0.5 m
-#: over a minute, with which a real PX4's GPS-referenced take-off to 5 m ends 4.6-5.7 m up
-GPS_PRESETS: dict[str, GpsError] = {
-    "sitl": GpsError(horizontal_m=0.02, vertical_m=0.03, correlation_time_s=0.5, jitter_m=0.0),
-    "realistic": GpsError(horizontal_m=0.3, vertical_m=0.5, correlation_time_s=60.0, jitter_m=0.02),
-}
-
-
 @dataclass
 class PX4Config:
     """PX4 SITL simulator interface (``droneulator run --px4``). Noise is deterministic under the seed."""
@@ -307,16 +295,26 @@ class PX4Config:
     #: explicit Earth field (gauss, NED) replacing the WMM's, e.g. to test PX4's magnetometer checks
     mag_field_ned_gauss: tuple[float, float, float] | None = None
     gps_hz: float = 10.0
-    #: sensor noise (1-sigma) and constant biases
-    accel_noise: float = 0.02
-    gyro_noise: float = 0.002
+    #: noise presets, each named after a real part (config/sensor_presets.py, docs/sensors.md): IMU
+    #: (IMU_PRESETS: sitl, icm42688p, bmi088, adis16448), barometer (BARO_PRESETS: sitl, ms5611, dps310),
+    #: magnetometer (MAG_PRESETS: sitl, hmc5883l, rm3100); "sitl" keeps the simulator's own figures
+    imu_preset: str = "sitl"
+    baro_preset: str = "sitl"
+    mag_preset: str = "sitl"
+    #: per-sample white noise (1-sigma): accelerometer (m/s^2), gyroscope (rad/s), magnetometer (gauss),
+    #: barometer (hPa); null: the preset's (an IMU preset's density at the physics rate; read them resolved
+    #: with :meth:`imu_error`, :meth:`mag_error` and :meth:`baro_error`)
+    accel_noise: float | None = None
+    gyro_noise: float | None = None
+    mag_noise: float | None = None
+    baro_noise_hpa: float | None = None
+    #: constant biases (body FRD)
     accel_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
     gyro_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    mag_noise: float = 0.002
-    baro_noise_hpa: float = 0.01
     #: GPS position error preset (GPS_PRESETS): "sitl" (the few centimetres PX4's own Gazebo simulation
-    #: gives, so EKF2's GPS-referenced height and position sit on the truth) or "realistic" (a
-    #: single-frequency receiver's 0.3 m / 0.5 m wandering over a minute)
+    #: gives, so EKF2's GPS-referenced height and position sit on the truth), "realistic" or its other name
+    #: "m8n" (a single-frequency u-blox M8N-class receiver's 0.3 m / 0.5 m wandering over a minute) or
+    #: "f9p_rtk" (a u-blox ZED-F9P's RTK fixed solution: about 1 cm, reported as fix type 6)
     gps_preset: str = "sitl"
     #: GPS position error: a first-order Gauss-Markov process per axis with this stationary 1-sigma
     #: (horizontal per axis / vertical, m) and correlation time, plus white per-fix jitter; the fix
@@ -359,7 +357,31 @@ class PX4Config:
             (self.gps_correlation_time_s, base.correlation_time_s),
             (self.gps_jitter_m, base.jitter_m),
         ]
-        return GpsError(*(float(base_value if value is None else value) for value, base_value in pick))
+        values = (float(base_value if value is None else value) for value, base_value in pick)
+        return GpsError(*values, fix_type=base.fix_type)
+
+    def imu_error(self, rate_hz: float) -> ImuModel:
+        """The IMU in effect when sampled ``rate_hz`` times a second: ``imu_preset``'s part, its
+        per-sample sigmas at that rate (``density * sqrt(rate_hz)``) unless ``accel_noise`` / ``gyro_noise``
+        are set, and its full-scale ranges."""
+        base = IMU_PRESETS[self.imu_preset]
+        accel = base.accel_noise(rate_hz) if self.accel_noise is None else float(self.accel_noise)
+        gyro = base.gyro_noise(rate_hz) if self.gyro_noise is None else float(self.gyro_noise)
+        return ImuModel(
+            base.part, base.accel_density, base.gyro_density, base.accel_range_g, base.gyro_range_dps,
+            accel_sigma=accel, gyro_sigma=gyro,
+        )  # fmt: skip
+
+    def baro_error(self) -> float:
+        """Per-sample barometer noise in effect (hPa, 1-sigma): ``baro_noise_hpa``, else the preset's."""
+        if self.baro_noise_hpa is None:
+            return float(BARO_PRESETS[self.baro_preset].noise_hpa)
+        return float(self.baro_noise_hpa)
+
+    def mag_error(self) -> float:
+        """Per-sample magnetometer noise in effect (gauss per axis, 1-sigma): ``mag_noise``, else the
+        preset's."""
+        return float(MAG_PRESETS[self.mag_preset].noise_gauss if self.mag_noise is None else self.mag_noise)
 
     def __post_init__(self) -> None:
         for name in ("gps_hz", "mag_hz", "baro_hz"):
@@ -375,10 +397,23 @@ class PX4Config:
             raise ValueError("px4.instance and px4.base_port must give a TCP port in [0, 65535]")
         if not -90.0 <= self.home_lat_deg <= 90.0 or not -180.0 <= self.home_lon_deg <= 180.0:
             raise ValueError("px4.home_lat_deg / home_lon_deg must be a valid WGS84 position")
-        if self.gps_preset not in GPS_PRESETS:
-            choices = ", ".join(GPS_PRESETS)
-            raise ValueError(f"px4.gps_preset must be one of {choices}, got {self.gps_preset!r}")
-        for name in ("gps_noise_m", "gps_vertical_noise_m", "gps_jitter_m", "gps_correlation_time_s"):
+        for name, table in (
+            ("gps_preset", GPS_PRESETS),
+            ("imu_preset", IMU_PRESETS),
+            ("baro_preset", BARO_PRESETS),
+            ("mag_preset", MAG_PRESETS),
+        ):
+            check_preset("px4", name, getattr(self, name), table)
+        for name in (
+            "gps_noise_m",
+            "gps_vertical_noise_m",
+            "gps_jitter_m",
+            "gps_correlation_time_s",
+            "accel_noise",
+            "gyro_noise",
+            "mag_noise",
+            "baro_noise_hpa",
+        ):
             value = getattr(self, name)
             number = isinstance(value, int | float) and not isinstance(value, bool)
             if value is not None and not (number and math.isfinite(value) and value >= 0):

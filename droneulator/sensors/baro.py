@@ -51,16 +51,19 @@ class BaroSample:
 
 @register("baro")
 class Barometer:
-    """Absolute pressure with ``cfg.baro_bias_hpa`` and ``cfg.baro_noise_hpa``."""
+    """Absolute pressure with ``cfg.baro_bias_hpa`` and the noise of
+    :meth:`~droneulator.config.PX4Config.baro_error` (``baro_preset``, or ``baro_noise_hpa`` set)."""
 
     def __init__(self, cfg: Any, rng: np.random.Generator) -> None:
         self.cfg = cfg
         self.rng = rng
+        #: per-sample pressure noise (hPa, 1-sigma)
+        self.sigma_hpa = cfg.baro_error()
 
     def sample(self, truth: Truth) -> BaroSample:
         """Absolute pressure (ISA at the true altitude, plus bias and noise), the pressure altitude
         it implies, and the ISA temperature."""
         alt = altitude_msl(self.cfg, truth)
         p_hpa = isa_pressure_pa(alt) / 100.0 + self.cfg.baro_bias_hpa
-        p_hpa += self.rng.normal(0.0, self.cfg.baro_noise_hpa)
+        p_hpa += self.rng.normal(0.0, self.sigma_hpa)
         return BaroSample(p_hpa, isa_altitude_m(p_hpa * 100.0), isa_temperature_k(alt) - KELVIN)

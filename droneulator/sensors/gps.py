@@ -40,6 +40,7 @@ class GpsSample:
     #: horizontal (per axis, as EKF2 uses it) / vertical 1-sigma position accuracy (m)
     eph_m: float
     epv_m: float
+    #: MAVLink GPS_FIX_TYPE: 3 (3D fix), 6 (RTK fixed) as the preset says
     fix_type: int
     satellites: int
     #: sim time (ns) of the state this fix describes: the sampling time less ``gps_delay_s``
@@ -136,7 +137,7 @@ class Gps:
             course,
             eph_m=max(math.hypot(e.horizontal_m, e.jitter_m), MIN_ACCURACY_M),
             epv_m=max(math.hypot(e.vertical_m, e.jitter_m), MIN_ACCURACY_M),
-            fix_type=3,
+            fix_type=e.fix_type,
             satellites=c.gps_satellites,
             time_ns=int(t_fix),
         )

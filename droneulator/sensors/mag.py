@@ -17,12 +17,14 @@ from typing import Any
 
 import numpy as np
 
-from droneulator.frames import quat_to_matrix
+from droneulator.frames import ned_to_enu
+from droneulator.frames_numba import flu_to_frd, world_to_body
 from droneulator.sensors.registry import register
 from droneulator.sensors.truth import Truth
 
-#: gauss per nanotesla
+#: gauss per nanotesla, tesla per gauss
 GAUSS_PER_NT = 1e-5
+TESLA_PER_GAUSS = 1e-4
 
 
 @dataclass(frozen=True)
@@ -81,13 +83,17 @@ def earth_field_ned(cfg: Any) -> np.ndarray:
 @register("mag")
 class Magnetometer:
     """Field in gauss; ``cfg`` gives the home position, ``mag_wmm_year`` or ``mag_field_ned_gauss``,
-    ``mag_bias`` and ``mag_noise``."""
+    ``mag_bias`` and the noise (:meth:`~droneulator.config.PX4Config.mag_error`: ``mag_preset``, or
+    ``mag_noise`` set)."""
 
     def __init__(self, cfg: Any, rng: np.random.Generator) -> None:
         self.cfg = cfg
         self.rng = rng
-        #: the Earth field (gauss, NED)
+        #: per-sample noise of each axis (gauss, 1-sigma)
+        self.sigma_gauss = cfg.mag_error()
+        #: the Earth field (gauss, NED), and in the simulator's ENU world
         self.field_ned = earth_field_ned(cfg)
+        self._field_enu = np.ascontiguousarray(ned_to_enu(self.field_ned))
 
     @property
     def elements(self) -> FieldElements:
@@ -95,7 +101,8 @@ class Magnetometer:
         return field_elements(self.field_ned)
 
     def sample(self, truth: Truth) -> np.ndarray:
-        """Magnetic field in the FRD body frame (gauss): the NED field rotated into the body."""
-        R_ned_frd = quat_to_matrix(truth.quaternion_ned_frd)
-        field = R_ned_frd.T @ self.field_ned
-        return field + np.asarray(self.cfg.mag_bias) + self.rng.normal(0.0, self.cfg.mag_noise, 3)
+        """Magnetic field in the FRD body frame (gauss): the NED field rotated into the body (as the ENU
+        field into the FLU body, then FLU -> FRD: the same rotation, without SciPy's 0.2 ms per call)."""
+        q = np.ascontiguousarray(truth.quaternion, dtype=np.float64)
+        field = flu_to_frd(world_to_body(q, self._field_enu))
+        return field + np.asarray(self.cfg.mag_bias) + self.rng.normal(0.0, self.sigma_gauss, 3)

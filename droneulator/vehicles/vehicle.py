@@ -142,7 +142,9 @@ class Vehicle:
         self.flight_config: FlightConfig = spec.flight
         self.flight = FlightController(self.quad_params, spec.flight)
         #: its cameras and noisy sensors, from its config table (:mod:`droneulator.sensors.rig`)
-        self.rig = build_rig(spec.cameras, spec.sensors, config.px4, config.seed, index)
+        self.rig = build_rig(
+            spec.cameras, spec.sensors, config.px4, config.seed, index, imu_hz=config.vehicle.control_hz
+        )
         self.collision_radius = config.vehicle.collision_radius
         self.s = row
         self.wind = make_wind(config.vehicle, config.seed, 1.0 / config.vehicle.control_hz)
