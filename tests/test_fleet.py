@@ -23,7 +23,7 @@ from test_px4 import Peer, by_type
 from droneulator.api.client import ApiError
 from droneulator.commands import CommandPath, make_request
 from droneulator.config import CameraConfig, VehicleSpec, fleet, load_config
-from droneulator.frames import enu_to_geodetic
+from droneulator.frames import enu_to_geodetic, ned_to_enu, quat_to_matrix
 from droneulator.px4.link import PX4Fleet
 from droneulator.recording.recorder import Recorder, run_recorder_config
 from droneulator.recording.replay import ReplayConfig, replay
@@ -31,6 +31,10 @@ from droneulator.ros.publishers import FramePublisher, StatePublisher
 from droneulator.ros.topics import vehicle_names
 from droneulator.ros.zenoh_node import RosZenohNode, ZenohNodeConfig
 from droneulator.runtime.launch import free_port, launch_run
+from droneulator.sensors import Truth
+from droneulator.sensors.baro import isa_pressure_pa
+from droneulator.sensors.mag import earth_field_ned
+from droneulator.sensors.suite import Schedule
 from droneulator.world import World
 
 TS = get_typestore(Stores.ROS2_JAZZY)
@@ -169,8 +173,16 @@ def test_every_vehicles_topics_decode_with_their_frames_and_stamps(key_mode: str
             states.publish_static(shot.t_ns)
             states.publish_states(shot.states)
             frames.publish(shot.states, shot.cameras)
+            for v in world.vehicle_list:  # as the dynamics server samples a vehicle it flies itself
+                v.rig.suite.sample_due(Truth.from_sim(v), Schedule())
+            home = world.config.px4
+            field_ned = earth_field_ned(home)
+            states.publish_sensors(shot.states, {n: v.rig.suite.latest for n, v in world.vehicles.items()})
         end = time.monotonic() + 10
-        while time.monotonic() < end and len(got) < 2 * (7 + 4) + 2:
+        # per vehicle odom, odom_world, wind, 4 sensor and 7 camera keys; /clock and the tf keys (shared
+        # /tf and /tf_static with prefixed frames, each vehicle's own two in Nav2's convention)
+        keys = 2 * (3 + 4 + 7) + 1 + (2 if fleet_tf == "prefix" else 4)
+        while time.monotonic() < end and len(got) < keys:
             time.sleep(0.05)
     finally:
         sub.undeclare()
@@ -196,6 +208,28 @@ def test_every_vehicles_topics_decode_with_their_frames_and_stamps(key_mode: str
         assert decoded[cam["pose"]].header.frame_id == names.odom_frame
         depth = decoded[cam["depth"]]
         assert (depth.width, depth.height) == (SMALL.width, SMALL.height)
+        # the sensor topics: in the vehicle's base_link (FLU), stamped with the instant sampled, SI units
+        t = names.topics()
+        imu, mag = decoded[t["imu"]], decoded[t["magnetic_field"]]
+        baro, fix = decoded[t["air_pressure"]], decoded[t["gps_fix"]]
+        for msg in (imu, mag, baro, fix):
+            assert msg.header.frame_id == names.base_frame
+            assert msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == stamp
+        st = shot.states[v]
+        R = quat_to_matrix(st.quaternion)  # body FLU -> world ENU
+        accel = [imu.linear_acceleration.x, imu.linear_acceleration.y, imu.linear_acceleration.z]
+        np.testing.assert_allclose(accel, R.T @ [0.0, 0.0, 9.81], atol=0.1)  # at rest: +g up, 5 sigma
+        assert imu.orientation_covariance[0] == -1 and imu.linear_acceleration_covariance[0] == 0.02**2
+        field_body = R.T @ ned_to_enu(field_ned) * 1e-4  # the WMM field (gauss, NED) in base_link, tesla
+        got_field = [mag.magnetic_field.x, mag.magnetic_field.y, mag.magnetic_field.z]
+        np.testing.assert_allclose(got_field, field_body, atol=5 * 0.002e-4)
+        isa = isa_pressure_pa(home.home_alt_m + st.position[2])
+        assert baro.fluid_pressure == pytest.approx(isa, abs=5.0)  # Pa: 0.01 hPa noise, 5 sigma
+        lat, lon, alt = enu_to_geodetic(st.position, home.home_lat_deg, home.home_lon_deg, home.home_alt_m)
+        assert (fix.status.status, fix.position_covariance_type) == (0, 2)
+        assert (fix.latitude, fix.longitude, fix.altitude) == (
+            pytest.approx(lat, abs=1e-6), pytest.approx(lon, abs=1e-6), pytest.approx(alt, abs=0.2),
+        )  # fmt: skip
     children = set()
     for topic in {n.tf for n in ns.values()}:
         children |= {t.child_frame_id for t in _all_tf(got, topic, key_mode)}
@@ -217,7 +251,8 @@ def _ros2dds_type(topic: str) -> str:
 
     leaf = {
         "odom": "odom", "odom_world": "odom_world", "wind": "wind", "tf": "tf", "tf_static": "tf_static",
-        "clock": "clock",
+        "clock": "clock", "imu": "imu", "fix": "gps_fix", "air_pressure": "air_pressure",
+        "magnetic_field": "magnetic_field",
         "pose": "pose", "camera_info": "info_rgb", "image_raw": "depth", "compressed": "rgb",
     }  # fmt: skip
     return TYPES[leaf[topic.rsplit("/", 1)[-1]]]
@@ -324,11 +359,19 @@ def test_a_two_vehicle_run_through_api_ros_px4_and_recording(tmp_path: Path) -> 
             assert e.value.code == "flight_locked"
             c.takeoff(2.0, vehicle="uav0")  # the API still flies uav0
             session = zenoh.open(_client_of(run.zenoh_endpoint))
+            ros: dict[str, list[Any]] = defaultdict(list)  # uav1's IMU and magnetometer topics
+            leaves = {"imu": "sensor_msgs/msg/Imu", "magnetic_field": "sensor_msgs/msg/MagneticField"}
+            subs = [
+                session.declare_subscriber(f"droneulator/uav1/{leaf}", _recorder(ros, leaf, typename))
+                for leaf, typename in leaves.items()
+            ]
             pub = session.declare_publisher("droneulator/uav1/cmd_vel")
             pub.put(bytes(TS.serialize_cdr(_twist(1.0), "geometry_msgs/msg/Twist")))
+            hil = {}  # HIL_SENSOR PX4 got, by sim time (ns)
             for _ in range(12):  # up to 12 s of sim time, stepped by PX4's lockstep messages
                 for _ in range(250):
-                    peer.step((0.0,) * 4, armed=False)
+                    for m in by_type(peer.step((0.0,) * 4, armed=False), "HIL_SENSOR"):
+                        hil[m.time_usec * 1000] = m
                 if c.state(vehicle="uav0")["mode"] == "hold":
                     break
             arrived = c.wait_for_event("arrived", timeout=30, vehicle="uav0")
@@ -337,7 +380,10 @@ def test_a_two_vehicle_run_through_api_ros_px4_and_recording(tmp_path: Path) -> 
             assert any(refused in line for line in run.log.lines())
             assert c.state(vehicle="uav1")["position"][2] < 0.05  # disarmed PX4: resting
             pub.undeclare()
+            for sub in subs:
+                sub.undeclare()
             session.close()
+            _same_sample_as_px4(ros, hil)
             peer.close()  # PX4 leaves with its vehicle on the ground: the API may fly it again
             peer = None
             a, b = (np.array(c.state(vehicle=v)["position"]) for v in ("uav0", "uav1"))
@@ -365,11 +411,41 @@ def test_a_two_vehicle_run_through_api_ros_px4_and_recording(tmp_path: Path) -> 
             "front/segmentation/image_raw/compressed",
             "front/color/camera_info",
             "front/pose",
+            "imu",
+            "gps/fix",
+            "air_pressure",
+            "magnetic_field",
         ):
             assert f"/droneulator/{v}/{leaf}" in topics
     assert {"/clock", "/tf", "/tf_static"} <= topics
     counts = replay(bag, ReplayConfig(listen=(f"tcp/127.0.0.1:{free_port()}",), rate=1000.0))
     assert {t for t, n in counts.items() if n} == topics
+
+
+def _recorder(into: dict[str, list[Any]], leaf: str, typename: str) -> Any:
+    def on_sample(sample: zenoh.Sample) -> None:
+        into[leaf].append(TS.deserialize_cdr(sample.payload.to_bytes(), typename))
+
+    return on_sample
+
+
+def _same_sample_as_px4(ros: dict[str, list[Any]], hil: dict[int, Any]) -> None:
+    """The ROS IMU of a PX4 vehicle is the HIL_SENSOR sample its PX4 got at that instant, value for value
+    (float32 on the wire, FRD -> FLU: y and z change sign), not a second draw; the magnetometer too."""
+    stamp = lambda m: m.header.stamp.sec * 10**9 + m.header.stamp.nanosec  # noqa: E731
+    imus = [(m, hil[stamp(m)]) for m in ros["imu"] if stamp(m) in hil]
+    assert len(imus) > 100, (len(ros["imu"]), len(hil))
+    for m, h in imus:
+        assert m.header.frame_id == "uav1/base_link"
+        a, w = m.linear_acceleration, m.angular_velocity
+        assert [a.x, a.y, a.z, w.x, w.y, w.z] == [h.xacc, -h.yacc, -h.zacc, h.xgyro, -h.ygyro, -h.zgyro]
+    assert np.mean([m.linear_acceleration.z for m, _ in imus]) == pytest.approx(9.81, abs=0.01)  # at rest
+    mags = [(m, hil[stamp(m)]) for m in ros["magnetic_field"] if stamp(m) in hil]
+    fresh = [(m, h) for m, h in mags if h.fields_updated & 0b111000000]  # a new sample in that HIL_SENSOR
+    assert len(fresh) > 50
+    for m, h in fresh:
+        f = m.magnetic_field
+        np.testing.assert_allclose([f.x, f.y, f.z], np.array([h.xmag, -h.ymag, -h.zmag]) * 1e-4, rtol=1e-6)
 
 
 def _flies(c: Any, vehicle: str) -> bool:

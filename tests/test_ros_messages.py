@@ -281,3 +281,43 @@ def test_state_packer_is_byte_identical_to_rosbags(frames):
         assert odom.child_frame_id == frames[1] and odom.pose.pose.position.x == p[0]
     with pytest.raises(ValueError):
         packer.clock(2**31 * 1_000_000_000)
+
+
+@pytest.mark.parametrize("frame", ["base_link", "uav1/base_link_with_a_long_name"])
+def test_sensor_packer_is_byte_identical_to_rosbags_and_reads_as_rep_145_says(frame):
+    """Imu, MagneticField and FluidPressure from the fixed-layout packer are rosbags' bytes; decoded by an
+    independent typestore they carry the covariances given, and an Imu without orientation says so
+    (orientation_covariance[0] = -1)."""
+    rng = np.random.default_rng(4)
+    var = {"gyro_var": 2.5e-6, "accel_var": 4e-4, "mag_var": 4e-14, "pressure_var": 1.44}
+    packer = M.SensorPacker(frame, **var)
+    for t_ns in (0, 1, 12_345_678_901, 2**31 * 1_000_000_000 - 1):
+        gyro, accel, field = rng.normal(size=3), rng.normal(size=3) * 10, rng.normal(size=3) * 5e-5
+        pressure = float(rng.uniform(90_000, 102_000))
+        ref = M.imu(t_ns, frame, gyro, accel, [var["gyro_var"]] * 3, [var["accel_var"]] * 3)
+        assert bytes(packer.imu(t_ns, gyro, accel)) == bytes(M.serialize(ref))
+        ref = M.magnetic_field(t_ns, frame, field, [var["mag_var"]] * 3)
+        assert bytes(packer.magnetic_field(t_ns, field)) == bytes(M.serialize(ref))
+        ref = M.fluid_pressure(t_ns, frame, pressure, var["pressure_var"])
+        assert bytes(packer.fluid_pressure(t_ns, pressure)) == bytes(M.serialize(ref))
+        imu = REF.deserialize_cdr(bytes(packer.imu(t_ns, gyro, accel)), "sensor_msgs/msg/Imu")
+        assert imu.header.frame_id == frame
+        assert imu.header.stamp.sec * 10**9 + imu.header.stamp.nanosec == t_ns
+        assert imu.orientation_covariance[0] == -1.0 and imu.orientation.w == 1.0
+        assert [imu.angular_velocity.x, imu.angular_velocity.y, imu.angular_velocity.z] == list(gyro)
+        a = imu.linear_acceleration
+        assert [a.x, a.y, a.z] == list(accel)
+        assert imu.linear_acceleration_covariance.tolist() == np.diag([4e-4] * 3).reshape(-1).tolist()
+        assert imu.angular_velocity_covariance.tolist() == np.diag([2.5e-6] * 3).reshape(-1).tolist()
+        mag = REF.deserialize_cdr(bytes(packer.magnetic_field(t_ns, field)), "sensor_msgs/msg/MagneticField")
+        assert [mag.magnetic_field.x, mag.magnetic_field.y, mag.magnetic_field.z] == list(field)
+        raw = bytes(packer.fluid_pressure(t_ns, pressure))
+        baro = REF.deserialize_cdr(raw, "sensor_msgs/msg/FluidPressure")
+        assert (baro.fluid_pressure, baro.variance, baro.header.frame_id) == (pressure, 1.44, frame)
+    fix = M.nav_sat_fix(5, frame, 53.2, -0.55, 12.5, [1e-4, 1e-4, 4e-4], M.STATUS_GBAS_FIX)
+    fix = roundtrip(fix, "sensor_msgs/msg/NavSatFix")
+    assert (fix.status.status, fix.status.service, fix.position_covariance_type) == (2, 1, 2)
+    assert (fix.latitude, fix.longitude, fix.altitude) == (53.2, -0.55, 12.5)
+    assert fix.position_covariance.tolist() == np.diag([1e-4, 1e-4, 4e-4]).reshape(-1).tolist()
+    with pytest.raises(ValueError, match="cov"):
+        M.imu(0, frame, gyro, accel, [1.0, 2.0])

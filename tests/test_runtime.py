@@ -26,10 +26,19 @@ from websockets.sync.client import connect
 
 from droneulator.api.client import ApiError
 from droneulator.config import CameraConfig, load_config
-from droneulator.frames import camera_mount, quat_from_yaw, quat_to_matrix
+from droneulator.frames import (
+    camera_mount,
+    enu_to_geodetic,
+    geodetic_to_enu,
+    ned_to_enu,
+    quat_from_yaw,
+    quat_to_matrix,
+)
 from droneulator.runtime.launch import free_port, launch_run
 from droneulator.scenes import get_scene
+from droneulator.sensors.baro import isa_pressure_pa
 from droneulator.sensors.camera import intrinsics
+from droneulator.sensors.mag import earth_field_ned
 
 pytestmark = pytest.mark.slow
 TS = get_typestore(Stores.ROS2_JAZZY)
@@ -38,6 +47,10 @@ TOPICS = {
     "droneulator/odom": "nav_msgs/msg/Odometry",
     "droneulator/odom_world": "nav_msgs/msg/Odometry",
     "droneulator/wind": "geometry_msgs/msg/Vector3Stamped",
+    "droneulator/imu": "sensor_msgs/msg/Imu",
+    "droneulator/gps/fix": "sensor_msgs/msg/NavSatFix",
+    "droneulator/air_pressure": "sensor_msgs/msg/FluidPressure",
+    "droneulator/magnetic_field": "sensor_msgs/msg/MagneticField",
     "tf": "tf2_msgs/msg/TFMessage",
     "tf_static": "tf2_msgs/msg/TFMessage",
     "clock": "rosgraph_msgs/msg/Clock",
@@ -145,6 +158,59 @@ def run():
     r = Run("tree_inspection")
     yield r
     r.close()
+
+
+def test_sensor_topics_read_the_vehicle_at_rest(run):
+    """The vehicle as it rests after start-up (this test runs first on the module's run): the IMU reads +g
+    on base_link's z (FLU, REP 103) with the default preset's 0.02 m/s^2 noise at every state stamp, the
+    magnetometer the WMM field rotated into the body in tesla, the pressure ISA at the altitude in Pa,
+    the fix the home position, each with the noise models' variances."""
+    c = run.client
+    st = c.state()
+    assert st["mode"] == "idle" and np.linalg.norm(st["velocity"]) < 1e-3
+    run.wait_for(lambda: len(run.msgs["droneulator/imu"]) >= 150, 60, "150 IMU messages")
+    with run.lock:
+        msgs = {k: [m for _, m in v] for k, v in run.msgs.items()}
+    odom = {stamp_ns(m): m for m in msgs["droneulator/odom"]}
+    imu = [m for m in msgs["droneulator/imu"] if stamp_ns(m) in odom]
+    assert len(imu) >= 0.9 * len(msgs["droneulator/imu"])  # one IMU sample per state, at its stamp
+    q = odom[stamp_ns(imu[-1])].pose.pose.orientation
+    R = quat_to_matrix(np.array([q.x, q.y, q.z, q.w]))  # base_link -> odom (ENU)
+    accel = np.array([[v.x, v.y, v.z] for v in (m.linear_acceleration for m in imu)])
+    gyro = np.array([[v.x, v.y, v.z] for v in (m.angular_velocity for m in imu)])
+    n = len(imu)
+    np.testing.assert_allclose(accel.mean(axis=0), R.T @ [0, 0, 9.81], atol=5 * 0.02 / np.sqrt(n))
+    np.testing.assert_allclose(accel.std(axis=0), 0.02, rtol=0.25)
+    np.testing.assert_allclose(gyro.mean(axis=0), 0.0, atol=5 * 0.002 / np.sqrt(n))
+    for m in imu:
+        assert m.header.frame_id == "base_link" and m.orientation_covariance[0] == -1.0
+        assert m.linear_acceleration_covariance[::4].tolist() == [0.02**2] * 3
+        assert m.angular_velocity_covariance[::4].tolist() == [0.002**2] * 3
+
+    cfg = load_config(scene="tree_inspection").px4
+    mag = msgs["droneulator/magnetic_field"]
+    field = np.array([[m.magnetic_field.x, m.magnetic_field.y, m.magnetic_field.z] for m in mag])
+    want = R.T @ ned_to_enu(earth_field_ned(cfg)) * 1e-4  # WMM2025 at home, gauss NED -> tesla base_link
+    np.testing.assert_allclose(field.mean(axis=0), want, atol=5 * 0.002e-4 / np.sqrt(len(mag)))
+    assert {m.header.frame_id for m in mag} == {"base_link"} and len(mag) > 50
+    assert mag[0].magnetic_field_covariance[0] == pytest.approx((0.002e-4) ** 2)
+    p = odom[stamp_ns(imu[-1])].pose.pose.position
+    baro = msgs["droneulator/air_pressure"]
+    pressure = np.mean([m.fluid_pressure for m in baro])
+    assert pressure == pytest.approx(isa_pressure_pa(cfg.home_alt_m + p.z), abs=5 * 1.0 / np.sqrt(len(baro)))
+    assert baro[0].variance == pytest.approx(1.0) and baro[0].header.frame_id == "base_link"  # (0.01 hPa)^2
+    fixes = msgs["droneulator/gps/fix"]
+    home = (cfg.home_lat_deg, cfg.home_lon_deg, cfg.home_alt_m)
+    lat, lon, alt = enu_to_geodetic(np.array([p.x, p.y, p.z]), *home)
+    for f in fixes:
+        assert (f.status.status, f.position_covariance_type, f.header.frame_id) == (0, 2, "base_link")
+        assert f.position_covariance[::4].tolist() == pytest.approx([0.02**2, 0.02**2, 0.03**2])
+        # the fix describes the state gps_delay_s (10 ms) before it was sent with a state (the first fix
+        # of the run, with no state that old, its own)
+        assert stamp_ns(f) + 10_000_000 in odom or stamp_ns(f) == 0
+        east, north, up = geodetic_to_enu(f.latitude, f.longitude, f.altitude, lat, lon, alt)
+        assert abs(east) < 0.15 and abs(north) < 0.15 and abs(up) < 0.2
+    assert len(fixes) >= 5
 
 
 def test_fly_and_decode_every_topic(run):

@@ -61,7 +61,7 @@ from droneulator.logs import LogThrottle
 from droneulator.px4.mixing import MotorMap
 from droneulator.sensors import SensorSuite, Truth
 from droneulator.sensors.baro import BaroSample
-from droneulator.sensors.suite import PX4_SENSORS
+from droneulator.sensors.suite import PX4_SENSORS, Schedule
 
 if TYPE_CHECKING:
     import threading
@@ -401,7 +401,7 @@ class PX4Link:
         self._arm_refused = False
         #: wall time of the first batch sent since PX4's last data (None: PX4 owes no answer)
         self._unanswered_since: float | None = None
-        self._next_ns: dict[str, int] = {}
+        self._schedule = Schedule()
         self._last_t_ns: int | None = None
         self._pace_wall = time.monotonic()
         self._pace_sim = self.world.t_ns
@@ -727,20 +727,14 @@ class PX4Link:
 
     def _due(self, name: str, t_ns: int, hz: float) -> bool:
         """True when sensor ``name`` (sampled at ``hz`` in sim time) has a sample due at ``t_ns``."""
-        period = max(1, round(NS / hz))
-        nxt = self._next_ns.get(name)
-        if nxt is not None and t_ns < nxt:
-            return False
-        nxt = t_ns + period if nxt is None or nxt + period <= t_ns else nxt + period
-        self._next_ns[name] = nxt
-        return True
+        return self._schedule.due(name, t_ns, hz)
 
     # ------------------------------------------------------------------ sending
     def _send_batch(self, truth: Truth) -> None:
         """HEARTBEAT (1 Hz), HIL_GPS (gps_hz), HIL_STATE_QUATERNION and HIL_SENSOR for ``truth``."""
         t_ns = truth.t_ns
         if self._last_t_ns is not None and t_ns < self._last_t_ns:
-            self._next_ns.clear()  # the simulation was reset: restart every schedule
+            self._schedule.clear()  # the simulation was reset: restart every schedule
         self._last_t_ns = t_ns
         t_us = t_ns // 1000
         self._sent_us = t_us
@@ -760,6 +754,8 @@ class PX4Link:
     def _sensor_message(self, truth: Truth, t_us: int) -> Any:
         accel, gyro = self.sensors.imu(truth)
         accel, gyro = fifo_clip(accel, ACCEL_FIFO_SCALE), fifo_clip(gyro, GYRO_FIFO_SCALE)
+        # what PX4 gets (float32, within its int16 FIFO) is the vehicle's newest IMU sample: ROS publishes it
+        self.sensors.record("imu", truth.t_ns, (accel.astype(np.float64), gyro.astype(np.float64)))
         fields = SENSOR_ACCEL | SENSOR_GYRO
         if self._due("mag", truth.t_ns, self.cfg.mag_hz):
             self._last_mag = self.sensors.mag(truth)

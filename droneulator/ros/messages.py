@@ -38,11 +38,16 @@ __all__ = [
     "SerdeError",
     "StatePacker",
     "camera_info",
+    "SensorPacker",
     "clock",
     "compressed_image",
     "decode",
+    "fluid_pressure",
     "header",
     "image",
+    "imu",
+    "magnetic_field",
+    "nav_sat_fix",
     "odometry",
     "pose_stamped",
     "position_command",
@@ -116,6 +121,11 @@ _Image = _T["sensor_msgs/msg/Image"]
 _PoseStamped = _T["geometry_msgs/msg/PoseStamped"]
 _Vector3Stamped = _T["geometry_msgs/msg/Vector3Stamped"]
 _PositionCommand = _T[POSITION_COMMAND]
+_Imu = _T["sensor_msgs/msg/Imu"]
+_MagneticField = _T["sensor_msgs/msg/MagneticField"]
+_FluidPressure = _T["sensor_msgs/msg/FluidPressure"]
+_NavSatFix = _T["sensor_msgs/msg/NavSatFix"]
+_NavSatStatus = _T["sensor_msgs/msg/NavSatStatus"]
 
 _NS_PER_S = 1_000_000_000
 
@@ -307,6 +317,98 @@ def position_command(
     )
 
 
+def _cov3(cov: ArrayLike | None, name: str) -> np.ndarray:
+    if cov is None:
+        return np.zeros(9, dtype=np.float64)
+    a = np.array(cov, dtype=np.float64).reshape(-1)
+    if a.shape == (3,):
+        return np.diag(a).reshape(-1)  # a diagonal
+    if a.shape != (9,):
+        raise ValueError(f"{name} must be 3x3 (9 values) or its diagonal (3 values), got {np.shape(cov)}")
+    return a
+
+
+#: REP 145: ``orientation_covariance[0] = -1`` says the message carries no orientation
+NO_ORIENTATION = np.array([-1.0, 0, 0, 0, 0, 0, 0, 0, 0])
+
+
+def imu(
+    t_ns: int,
+    frame_id: str,
+    angular_velocity: ArrayLike,
+    linear_acceleration: ArrayLike,
+    angular_velocity_cov: ArrayLike | None = None,
+    linear_acceleration_cov: ArrayLike | None = None,
+    orientation_xyzw: ArrayLike | None = None,
+    orientation_cov: ArrayLike | None = None,
+) -> Any:
+    """sensor_msgs/Imu in ``frame_id`` (the body, FLU: REP 103): rates (rad/s) and specific force (m/s^2,
+    +9.81 up at rest). Covariances are 3x3 row-major or their diagonal. Without ``orientation_xyzw`` the
+    orientation is the identity with ``orientation_covariance[0] = -1`` (REP 145: no orientation given)."""
+    wx, wy, wz = _vec3(angular_velocity, "angular_velocity")
+    ax, ay, az = _vec3(linear_acceleration, "linear_acceleration")
+    if orientation_xyzw is None:
+        q, q_cov = _Quaternion(x=0.0, y=0.0, z=0.0, w=1.0), NO_ORIENTATION.copy()
+    else:
+        q, q_cov = _quat(orientation_xyzw, "orientation_xyzw"), _cov3(orientation_cov, "orientation_cov")
+    return _Imu(
+        header=header(t_ns, frame_id),
+        orientation=q,
+        orientation_covariance=q_cov,
+        angular_velocity=_Vector3(x=wx, y=wy, z=wz),
+        angular_velocity_covariance=_cov3(angular_velocity_cov, "angular_velocity_cov"),
+        linear_acceleration=_Vector3(x=ax, y=ay, z=az),
+        linear_acceleration_covariance=_cov3(linear_acceleration_cov, "linear_acceleration_cov"),
+    )
+
+
+def magnetic_field(t_ns: int, frame_id: str, field_tesla: ArrayLike, cov: ArrayLike | None = None) -> Any:
+    """sensor_msgs/MagneticField: the field (tesla) in ``frame_id``, covariance (T^2) 3x3 or diagonal."""
+    x, y, z = _vec3(field_tesla, "field_tesla")
+    return _MagneticField(
+        header=header(t_ns, frame_id),
+        magnetic_field=_Vector3(x=x, y=y, z=z),
+        magnetic_field_covariance=_cov3(cov, "cov"),
+    )
+
+
+def fluid_pressure(t_ns: int, frame_id: str, pressure_pa: float, variance: float = 0.0) -> Any:
+    """sensor_msgs/FluidPressure: absolute pressure (Pa) and its variance (Pa^2; 0 is unknown)."""
+    return _FluidPressure(
+        header=header(t_ns, frame_id), fluid_pressure=float(pressure_pa), variance=float(variance)
+    )
+
+
+#: sensor_msgs/NavSatStatus values
+STATUS_NO_FIX, STATUS_FIX, STATUS_SBAS_FIX, STATUS_GBAS_FIX = -1, 0, 1, 2
+SERVICE_GPS = 1
+COVARIANCE_TYPE_DIAGONAL_KNOWN = 2
+
+
+def nav_sat_fix(
+    t_ns: int,
+    frame_id: str,
+    lat_deg: float,
+    lon_deg: float,
+    alt_m: float,
+    cov_enu: ArrayLike | None = None,
+    status: int = STATUS_FIX,
+    service: int = SERVICE_GPS,
+    cov_type: int = COVARIANCE_TYPE_DIAGONAL_KNOWN,
+) -> Any:
+    """sensor_msgs/NavSatFix: a WGS84 fix with its position covariance (m^2, east/north/up, 3x3 or its
+    diagonal), ``status`` (-1 no fix, 0 fix, 1 SBAS, 2 ground-based augmentation: RTK) and ``service``."""
+    return _NavSatFix(
+        header=header(t_ns, frame_id),
+        status=_NavSatStatus(status=int(status), service=int(service)),
+        latitude=float(lat_deg),
+        longitude=float(lon_deg),
+        altitude=float(alt_m),
+        position_covariance=_cov3(cov_enu, "cov_enu"),
+        position_covariance_type=int(cov_type),
+    )
+
+
 def compressed_image(t_ns: int, frame_id: str, fmt: str, data_bytes: bytes | bytearray) -> Any:
     """sensor_msgs/CompressedImage; ``fmt`` is the image_transport format string ("jpeg", "png").
 
@@ -434,11 +536,55 @@ class StatePacker:
         return buf
 
 
+class SensorPacker:
+    """CDR bytes of one vehicle's sensor messages in ``frame_id`` (its base_link): Imu (no orientation),
+    MagneticField and FluidPressure with fixed covariances, from templates as :class:`StatePacker` does
+    (byte-identical to :func:`serialize` of :func:`imu`, :func:`magnetic_field`, :func:`fluid_pressure`;
+    tested). Variances: ``gyro_var`` (rad/s)^2, ``accel_var`` (m/s^2)^2 per axis, ``mag_var`` T^2 per
+    axis, ``pressure_var`` Pa^2."""
+
+    _SENTINEL = StatePacker._SENTINEL
+
+    def __init__(
+        self, frame_id: str, gyro_var: float = 0.0, accel_var: float = 0.0, mag_var: float = 0.0,
+        pressure_var: float = 0.0,
+    ) -> None:  # fmt: skip
+        s = self._SENTINEL
+        probe = imu(0, frame_id, [s, 2 * s, 3 * s], [4 * s, 5 * s, 6 * s], [gyro_var] * 3, [accel_var] * 3)
+        self._imu = bytes(serialize(probe))
+        self._imu_gyro = StatePacker._offset(self._imu, s)
+        self._imu_accel = StatePacker._offset(self._imu, 4 * s)
+        self._mag = bytes(serialize(magnetic_field(0, frame_id, [s, 2 * s, 3 * s], [mag_var] * 3)))
+        self._mag_value = StatePacker._offset(self._mag, s)
+        self._baro = bytes(serialize(fluid_pressure(0, frame_id, s, pressure_var)))
+        self._baro_value = StatePacker._offset(self._baro, s)
+
+    def imu(self, t_ns: int, gyro_flu: np.ndarray, accel_flu: np.ndarray) -> bytearray:
+        buf = bytearray(self._imu)
+        _STAMP.pack_into(buf, 4, *StatePacker._stamp(t_ns))
+        _VEC.pack_into(buf, self._imu_gyro, *gyro_flu)
+        _VEC.pack_into(buf, self._imu_accel, *accel_flu)
+        return buf
+
+    def magnetic_field(self, t_ns: int, field_tesla: np.ndarray) -> bytearray:
+        buf = bytearray(self._mag)
+        _STAMP.pack_into(buf, 4, *StatePacker._stamp(t_ns))
+        _VEC.pack_into(buf, self._mag_value, *field_tesla)
+        return buf
+
+    def fluid_pressure(self, t_ns: int, pressure_pa: float) -> bytearray:
+        buf = bytearray(self._baro)
+        _STAMP.pack_into(buf, 4, *StatePacker._stamp(t_ns))
+        _DOUBLE.pack_into(buf, self._baro_value, pressure_pa)
+        return buf
+
+
 _CLOCK = struct.Struct("<HHiI")
 _STAMP = struct.Struct("<iI")
 _POSE = struct.Struct("<7d")
 _TWIST = struct.Struct("<6d")
 _VEC = struct.Struct("<3d")
+_DOUBLE = struct.Struct("<d")
 
 
 def decode(typename: str, payload: bytes | bytearray | memoryview) -> Any:

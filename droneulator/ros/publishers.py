@@ -3,9 +3,10 @@
 Each vehicle's names come from :func:`~droneulator.ros.topics.vehicle_names` (a world of one keeps the
 single-vehicle names; a fleet gets ``/<ns>/<vehicle>/...`` and prefixed or namespaced TF).
 
-* :class:`StatePublisher`: ``/clock``, ``/<ns>/odom``, ``/tf`` and ``/tf_static``. It runs in the process
-  that owns the vehicle state (the dynamics server), right after the physics step that produced the
-  state, so odometry never waits for another process.
+* :class:`StatePublisher`: ``/clock``, ``/<ns>/odom``, ``/tf`` and ``/tf_static``, and each vehicle's
+  sensor topics (``imu``, ``gps/fix``, ``air_pressure``, ``magnetic_field``: the readings of its noisy
+  sensor models). It runs in the process that owns the vehicle state (the dynamics server), right after
+  the physics step that produced the state, so odometry never waits for another process.
 * :class:`FramePublisher`: every camera's images, camera_info and optical-frame pose (the bridge process).
 * :func:`subscribe_commands`: ``/<ns>/cmd_vel``, ``/<ns>/goal_pose`` and ``/<ns>/position_cmd`` into the
   one :class:`~droneulator.commands.path.CommandPath`, with the WebSocket API's validation and flight lock.
@@ -25,6 +26,7 @@ import numpy as np
 from droneulator.frames import (
     T_link_optical,
     T_world_optical,
+    frd_to_flu,
     pose_from_transform,
     transform_from_pose,
     yaw_of,
@@ -32,8 +34,9 @@ from droneulator.frames import (
 from droneulator.frames_numba import body_to_world, world_to_body
 from droneulator.imaging import encode_jpeg, encode_png
 from droneulator.ros import messages as M
-from droneulator.ros.topics import CLOCK, MAP_FRAME, TYPES, VehicleNames, vehicle_names
+from droneulator.ros.topics import CLOCK, MAP_FRAME, SENSOR_TOPICS, TYPES, VehicleNames, vehicle_names
 from droneulator.sensors.camera import Camera
+from droneulator.sensors.mag import TESLA_PER_GAUSS
 
 if TYPE_CHECKING:
     import zenoh
@@ -41,6 +44,7 @@ if TYPE_CHECKING:
     from droneulator.commands import CommandPath
     from droneulator.config import CameraConfig, SimConfig
     from droneulator.ros.zenoh_node import RosZenohNode
+    from droneulator.sensors.suite import Reading
     from droneulator.sim.simulator import VehicleState
 
 _IDENTITY_Q = np.array([0.0, 0.0, 0.0, 1.0])
@@ -83,6 +87,35 @@ class _VehicleOut:
     def __init__(self, names: VehicleNames, odom: Any, odom_world: Any, tf: Any, wind: Any) -> None:
         self.names, self.odom, self.odom_world, self.tf, self.wind = names, odom, odom_world, tf, wind
         self.pack = M.StatePacker(names.odom_frame, names.base_frame)
+        #: sensor kind -> publisher, for the noisy sensors the vehicle carries
+        self.sensors: dict[str, Any] = {}
+        self.sensor_pack: M.SensorPacker | None = None
+        #: sensor kind -> ``seq`` of the reading last published
+        self.sent: dict[str, int] = {}
+
+
+def sensor_variances(cfg: SimConfig) -> dict[str, float]:
+    """The variances the sensor messages carry (REP 145: the noise models' own): gyroscope (rad/s)^2 and
+    accelerometer (m/s^2)^2 per axis at the physics rate (every step is one IMU sample), magnetometer
+    T^2 per axis, pressure Pa^2, from ``cfg.px4``'s presets and overrides."""
+    px4 = cfg.px4
+    imu = px4.imu_error(cfg.vehicle.control_hz)
+    return {
+        "gyro": float(imu.gyro_sigma) ** 2,
+        "accel": float(imu.accel_sigma) ** 2,
+        "mag": (px4.mag_error() * TESLA_PER_GAUSS) ** 2,
+        "pressure": (px4.baro_error() * 100.0) ** 2,
+    }
+
+
+def nav_sat_status(fix_type: int) -> int:
+    """sensor_msgs/NavSatStatus ``status`` of a MAVLink GPS_FIX_TYPE: RTK float or fixed (5, 6) is a
+    ground-based augmented fix, DGPS (4) an SBAS one, 2D/3D (2, 3) a plain fix, less none."""
+    if fix_type >= 5:
+        return M.STATUS_GBAS_FIX
+    if fix_type == 4:
+        return M.STATUS_SBAS_FIX
+    return M.STATUS_FIX if fix_type >= 2 else M.STATUS_NO_FIX
 
 
 class StatePublisher:
@@ -104,15 +137,24 @@ class StatePublisher:
         #: static transforms by tf_static topic: one message per topic holds every vehicle's on it
         self._static: dict[str, list[tuple[str, str, np.ndarray, np.ndarray]]] = {}
         self._static_pubs: dict[str, Any] = {}
+        var = sensor_variances(cfg)
         for spec, (name, names) in zip(cfg.vehicle_specs(), fleet_names(cfg).items(), strict=True):
             t = names.topics()
-            self.vehicles[name] = _VehicleOut(
+            out = self.vehicles[name] = _VehicleOut(
                 names,
                 pub(t["odom"], "odom"),
                 pub(t["odom_world"], "odom_world"),
                 pub(t["tf"], "tf"),
                 pub(t["wind"], "wind"),
             )
+            for kind in spec.sensors or ():
+                if kind in SENSOR_TOPICS:
+                    key = SENSOR_TOPICS[kind]
+                    out.sensors[kind] = pub(t[key], key)
+            if out.sensors:
+                out.sensor_pack = M.SensorPacker(
+                    names.base_frame, var["gyro"], var["accel"], var["mag"], var["pressure"]
+                )
             assert spec.cameras is not None
             self._static.setdefault(t["tf_static"], []).extend(static_transforms(spec.cameras, names))
             self._static_pubs[t["tf_static"]] = pub(t["tf_static"], "tf_static")
@@ -144,6 +186,54 @@ class StatePublisher:
             out.odom_world.publish(out.pack.odometry(t, p, q, st.velocity, w_world), t)
             if st.wind is not None:
                 out.wind.publish(out.pack.vector(t, st.wind), t)
+
+    def publish_sensors(
+        self, states: Mapping[str, VehicleState], readings: Mapping[str, Mapping[str, Reading]]
+    ) -> None:
+        """Publish each vehicle's newest sensor readings (``readings[vehicle][kind]``, a
+        :class:`~droneulator.sensors.suite.SensorSuite`'s ``latest``) not published yet, for the sensors
+        it carries, in its base_link frame (FLU, REP 103; converted from the models' FRD by
+        :func:`~droneulator.frames.frd_to_flu`):
+
+        * ``imu``: sensor_msgs/Imu, rates (rad/s) and specific force (m/s^2: +9.81 on z at rest), no
+          orientation (REP 145: ``orientation_covariance[0] = -1``), the noise variances on the diagonals;
+        * ``magnetic_field``: sensor_msgs/MagneticField in tesla;
+        * ``air_pressure``: sensor_msgs/FluidPressure in Pa with its variance;
+        * ``gps/fix``: sensor_msgs/NavSatFix (frame base_link: the antenna is at the body origin) with
+          the fix's status, and eph^2, eph^2, epv^2 as the diagonal ENU covariance.
+
+        Each is stamped with the sim instant of the truth it was drawn from (a GPS fix: the instant it
+        describes, ``gps_delay_s`` before it was sent), on the same clock as ``states`` (``stamp_ns``).
+        """
+        for name, st in states.items():
+            out = self.vehicles[name]
+            got = readings.get(name)
+            if not out.sensors or not got:
+                continue
+            pack = out.sensor_pack
+            assert pack is not None
+            offset = st.stamp_ns - st.t_ns  # stamp clock - episode clock since the last reset
+            for kind, pub in out.sensors.items():
+                r = got.get(kind)
+                if r is None or r.seq == out.sent.get(kind) or r.t_ns > st.t_ns:
+                    continue  # nothing new, or drawn before a reset
+                out.sent[kind] = r.seq
+                t = offset + r.t_ns
+                if kind == "imu":
+                    accel, gyro = r.value
+                    pub.publish(pack.imu(t, frd_to_flu(gyro), frd_to_flu(accel)), t)
+                elif kind == "mag":
+                    pub.publish(pack.magnetic_field(t, frd_to_flu(r.value) * TESLA_PER_GAUSS), t)
+                elif kind == "baro":
+                    pub.publish(pack.fluid_pressure(t, r.value.pressure_hpa * 100.0), t)
+                else:
+                    g = r.value
+                    t = offset + g.time_ns
+                    cov = (g.eph_m**2, g.eph_m**2, g.epv_m**2)
+                    status = nav_sat_status(g.fix_type)
+                    frame = out.names.base_frame
+                    fix = M.nav_sat_fix(t, frame, g.lat_deg, g.lon_deg, g.alt_msl_m, cov, status)
+                    pub.publish(M.serialize(fix), t)
 
     def publish_static(self, stamp_ns: int) -> None:
         """The static transforms stamped ``stamp_ns`` (re-sent periodically and at every reset)."""

@@ -9,6 +9,10 @@ client, the benchmarks) finds them here instead of spelling them out itself::
     /<ns>/odom                                       nav_msgs/Odometry (twist in base_link, REP 105)
     /<ns>/odom_world                                 nav_msgs/Odometry (twist in odom: EGO-Planner's)
     /<ns>/wind                                       geometry_msgs/Vector3Stamped (true wind in odom, m/s)
+    /<ns>/imu                                        sensor_msgs/Imu (base_link FLU, no orientation)
+    /<ns>/gps/fix                                    sensor_msgs/NavSatFix (WGS84, ENU covariance)
+    /<ns>/air_pressure                               sensor_msgs/FluidPressure (Pa, base_link)
+    /<ns>/magnetic_field                             sensor_msgs/MagneticField (tesla, base_link)
     /<ns>/cmd_vel, /<ns>/goal_pose       (in)        geometry_msgs/Twist, geometry_msgs/PoseStamped
     /<ns>/position_cmd                   (in)        quadrotor_msgs/PositionCommand (EGO-Planner's)
     /<ns>/<cam>/pose                                 geometry_msgs/PoseStamped (optical frame in odom)
@@ -59,6 +63,10 @@ TYPES: dict[str, str] = {
     "odom": "nav_msgs/msg/Odometry",
     "odom_world": "nav_msgs/msg/Odometry",
     "wind": "geometry_msgs/msg/Vector3Stamped",
+    "imu": "sensor_msgs/msg/Imu",
+    "gps_fix": "sensor_msgs/msg/NavSatFix",
+    "air_pressure": "sensor_msgs/msg/FluidPressure",
+    "magnetic_field": "sensor_msgs/msg/MagneticField",
     "cmd_vel": "geometry_msgs/msg/Twist",
     "goal_pose": "geometry_msgs/msg/PoseStamped",
     "position_cmd": "quadrotor_msgs/msg/PositionCommand",
@@ -69,6 +77,16 @@ TYPES: dict[str, str] = {
     "info_rgb": "sensor_msgs/msg/CameraInfo",
     "info_depth": "sensor_msgs/msg/CameraInfo",
     "info_seg": "sensor_msgs/msg/CameraInfo",
+}
+
+
+#: the topic key (of :func:`vehicle_topics`) of each noisy sensor kind (``VehicleConfig.sensors``) a
+#: vehicle publishes; the airspeed sensor has no topic
+SENSOR_TOPICS: dict[str, str] = {
+    "imu": "imu",
+    "gps": "gps_fix",
+    "baro": "air_pressure",
+    "mag": "magnetic_field",
 }
 
 
@@ -112,6 +130,10 @@ def vehicle_topics(ns: str) -> dict[str, str]:
         "odom": f"/{ns}/odom",
         "odom_world": f"/{ns}/odom_world",
         "wind": f"/{ns}/wind",
+        "imu": f"/{ns}/imu",
+        "gps_fix": f"/{ns}/gps/fix",
+        "air_pressure": f"/{ns}/air_pressure",
+        "magnetic_field": f"/{ns}/magnetic_field",
         "cmd_vel": f"/{ns}/cmd_vel",
         "goal_pose": f"/{ns}/goal_pose",
         "position_cmd": f"/{ns}/position_cmd",

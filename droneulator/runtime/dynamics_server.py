@@ -11,10 +11,13 @@ only when it is free, so it draws the latest state at whatever rate it manages, 
 published with ``DROP``.
 
 Odometry, TF and ``/clock`` leave from here, right after the physics step that produced the state
-(no process hop). ROS commands (``cmd_vel``, ``goal_pose``) arrive here too and go through the same
-:class:`~droneulator.commands.path.CommandPath` as WebSocket commands. The Zenoh session of this
-process is the run's hub on Zenoh as well: by default a router listening on ``bridge.listen``, which
-the bridge process reaches over a private Unix socket.
+(no process hop), and so do the sensor topics (IMU, GPS fix, air pressure, magnetic field): a vehicle a
+connected PX4 flies publishes what its PX4 link sent PX4 (the link samples its sensors every step), any
+other vehicle what this server samples of its sensors at each state publish (the IMU every time, the
+others at ``px4.mag_hz``, ``baro_hz`` and ``gps_hz``). ROS commands (``cmd_vel``, ``goal_pose``) arrive
+here too and go through the same :class:`~droneulator.commands.path.CommandPath` as WebSocket commands.
+The Zenoh session of this process is the run's hub on Zenoh as well: by default a router listening on
+``bridge.listen``, which the bridge process reaches over a private Unix socket.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from droneulator.api.server import ApiServer
 from droneulator.commands import CommandPath
 from droneulator.config import SimConfig, from_dict
 from droneulator.ros.publishers import StatePublisher, fleet_names, subscribe_commands
+from droneulator.ros.topics import SENSOR_TOPICS
 from droneulator.ros.zenoh_node import RosZenohNode
 from droneulator.runtime.ipc import (
     ENV_ADDRESS,
@@ -52,6 +56,8 @@ from droneulator.runtime.ipc import (
     Rendered,
     Welcome,
 )
+from droneulator.sensors import Truth
+from droneulator.sensors.suite import Schedule
 from droneulator.vehicles.vehicle import NS, VehicleState
 from droneulator.world import World
 from droneulator.world.world import StepResult
@@ -93,6 +99,11 @@ class DynamicsServer:
         )
         self.node = open_zenoh_hub(cfg, zenoh_endpoint)
         self.ros = StatePublisher(self.node, cfg)
+        #: vehicles with a sensor topic, and when each of their sensors is next sampled here
+        self._sensing = [
+            name for name, v in self.world.vehicles.items() if any(k in v.rig.suite for k in SENSOR_TOPICS)
+        ]
+        self._sensor_schedules = {name: Schedule() for name in self._sensing}
         subscribe_commands(self.node, cfg, self.commands)
         self._latency: IO[str] | None = None
         if cfg.bridge.latency_log:
@@ -237,6 +248,7 @@ class DynamicsServer:
             states = self.world.states_now()
             w = self.world.config
             scene = (w.scene, w.seed, w.light, w.vegetation)
+            truths = self._sensor_truths(states)
         st = next(iter(states.values()))
         if st.t_ns < self._last_t_ns:  # reset through the API: re-send the static TF at once
             self._last_static = -float("inf")
@@ -248,6 +260,8 @@ class DynamicsServer:
                 self._latency.write(f"odom {st.stamp_ns} {stepped_wall_ns}\n")
             self.ros.publish_states(states)
             self.api.publish_states(states)
+            if self._sensing:
+                self._publish_sensors(states, truths)
             now = time.monotonic()
             if now - self._last_static > STATIC_TF_PERIOD_S:
                 self._last_static = now
@@ -267,6 +281,24 @@ class DynamicsServer:
             self._send("renderer", Render(self.seq, cam_state))
         for e in res.events:
             self.api.publish_event(e.to_dict())
+
+    def _sensor_truths(self, states: dict[str, VehicleState]) -> dict[str, Truth]:
+        """(Under the lock, with the ``states`` just taken) the truth each sensing vehicle's sensors are
+        sampled from, when the states are about to be published (as :meth:`_after_step` decides), for the
+        vehicles no connected PX4 flies: a PX4's link has sampled its vehicle's sensors this step already."""
+        st = next(iter(states.values()))
+        if not self._sensing or not (st.t_ns < self._last_t_ns or st.stamp_ns >= self._next_state_ns):
+            return {}
+        fed = {link.vehicle.name for link in self.px4.links if link.connected} if self.px4 is not None else ()
+        return {n: Truth.from_sim(self.world.vehicles[n]) for n in self._sensing if n not in fed}
+
+    def _publish_sensors(self, states: dict[str, VehicleState], truths: dict[str, Truth]) -> None:
+        """Sample the sensors of the vehicles in ``truths`` (the IMU now, the others when due), then publish
+        every sensing vehicle's newest readings: one sample per reading, whoever drew it."""
+        vehicles = self.world.vehicles
+        for name, truth in truths.items():
+            vehicles[name].rig.suite.sample_due(truth, self._sensor_schedules[name])
+        self.ros.publish_sensors(states, {name: vehicles[name].rig.suite.latest for name in self._sensing})
 
     def _pipeline_warm(self) -> bool:
         """Renderer and bridge connected and a first frame through both (shaders compiled, scene
