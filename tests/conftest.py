@@ -32,10 +32,21 @@ def _tracked_open(*args, **kwargs) -> zenoh.Session:
 zenoh.open = _tracked_open
 
 
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """When the bundle's tests are among those to run, start building the bundle now, in the background
+    (tests/test_bundle.py): PyInstaller's minutes then overlap the tests that come before them."""
+    if any("bundle" in getattr(item, "fixturenames", ()) for item in session.items):
+        from test_bundle import start_build
+
+        start_build()
+
+
 @pytest.hookimpl(trylast=True)
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     global _exit_status
     _exit_status = int(exitstatus)
+    if "test_bundle" in sys.modules:
+        sys.modules["test_bundle"].stop_build()
     left = [s for s in _sessions if not s.is_closed()]
     for s in left:
         s.close()
