@@ -411,6 +411,7 @@ def test_capture_resume_with_two_vehicles_and_reconstruct_end_to_end(tmp_path: P
         f"capture.height={H}",
         "capture.hfov_deg=90",
         "capture.arc_deg=90",
+        "capture.camera_hz=4",  # the views need a frame once settled, no more
         "render.shadow_map_size=1024",
     ]
     cfg = load_config(None, overrides, scene="tree_inspection")
