@@ -3,7 +3,7 @@
 One run serves the flight tests, in order: level select, loading vineyard, live RGB, click-to-fly,
 keyboard flying, an out-of-bounds click, and last the simulator restarting under the open page. What the
 page did is always checked through the API with the project's own client, never through the page alone.
-Screenshots go to docs/img/ui_*.png.
+Screenshots go to out/screenshots/ui_*.png (tests/screenshots.py).
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from screenshots import SHOTS
 
 from droneulator.config import CameraConfig, load_config
 from droneulator.imaging import depth_to_rgb
@@ -33,7 +34,6 @@ CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 needs_chromium = pytest.mark.skipif(
     CHROMIUM is None, reason="Chromium is not installed (scripts/setup.sh --dev)"
 )
-IMG = Path(__file__).resolve().parents[1] / "docs" / "img"
 
 #: pixel statistics of an <img> or a camera view's <canvas> drawn on a canvas: mean and standard
 #: deviation of the luminance
@@ -236,7 +236,7 @@ def test_level_select_lists_every_scene_with_a_preview(stack: Stack) -> None:
         stats = card.query_selector("img").evaluate(IMAGE_STATS)
         assert stats["std"] > 10, f"{card.get_attribute('data-scene')}: blank preview {stats}"
         assert list_scenes()[card.get_attribute("data-scene")] in card.inner_text()
-    page.screenshot(path=str(IMG / "ui_levels.png"))
+    page.screenshot(path=str(SHOTS / "ui_levels.png"))
 
 
 @pytest.mark.slow
@@ -315,7 +315,7 @@ def test_map_click_flies_there(stack: Stack) -> None:
     stack.wait(lambda: client.state()["mode"] == "goto", 10, "the goto to start")
     state = stack.wait(lambda: (s := client.state())["mode"] == "hold" and s, 60, "the vehicle to arrive")
     assert math.dist(state["position"][:2], target) < 0.3, state["position"]
-    page.screenshot(path=str(IMG / "ui_flight.png"), full_page=True)
+    page.screenshot(path=str(SHOTS / "ui_flight.png"), full_page=True)
 
 
 @pytest.mark.slow
@@ -343,7 +343,7 @@ def test_out_of_bounds_click_shows_the_api_message(stack: Stack) -> None:
     page.click("#map", position={"x": 4, "y": 4})  # the dimmed margin outside the flyable box
     error = page.wait_for_selector("#errors .error:has-text('out of bounds')", timeout=10000)
     assert "is outside the scene bounds" in error.inner_text()  # the API's own words
-    page.screenshot(path=str(IMG / "ui_error.png"))
+    page.screenshot(path=str(SHOTS / "ui_error.png"))
 
 
 @pytest.mark.slow
@@ -440,7 +440,7 @@ def test_px4_status_and_flight_controls_locked_while_px4_flies(stack: Stack) -> 
         page.wait_for_function(
             "window.droneulatorUI.map.meta && window.droneulatorUI.cameras.count > 3", timeout=60000
         )
-        page.screenshot(path=str(IMG / "ui_px4.png"), full_page=True)
+        page.screenshot(path=str(SHOTS / "ui_px4.png"), full_page=True)
         stop.set()  # PX4 goes away: the simulator takes over and the UI may fly again
         page.wait_for_function(
             "document.getElementById('px4-status').textContent.includes('disconnected')", timeout=30000

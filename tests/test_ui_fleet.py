@@ -1,7 +1,7 @@
 """The browser UI with a fleet: a real Chromium (Playwright) against a real two-vehicle ``droneulator run
 --ui``. The page draws both vehicles, the selector points the camera views and the map click at the
 second one, and that vehicle, not the first, flies there; every effect is checked through the API.
-Screenshot: docs/img/ui_fleet.png.
+Screenshot: out/screenshots/ui_fleet.png (tests/screenshots.py).
 """
 
 from __future__ import annotations
@@ -9,16 +9,15 @@ from __future__ import annotations
 import math
 import shutil
 import time
-from pathlib import Path
 from typing import Any
 
 import pytest
+from screenshots import SHOTS
 
 from droneulator.config import CameraConfig, fleet, load_config
 from droneulator.runtime.launch import free_port, launch_run
 from droneulator.ui.images import vehicle_streams
 
-IMG = Path(__file__).resolve().parents[1] / "docs" / "img"
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 #: RGB of the map's pixel where world point (x, y) is drawn
@@ -129,7 +128,7 @@ def test_ui_flies_the_second_vehicle_by_a_map_click() -> None:
                 )
 
             wait(drawn, 5, "both vehicles drawn on the map", run.log)
-            page.screenshot(path=str(IMG / "ui_fleet.png"), full_page=True)
+            page.screenshot(path=str(SHOTS / "ui_fleet.png"), full_page=True)
 
             # a click on the other vehicle's arrow selects it and flies nothing
             click_map(page, *uav0["position"][:2])
