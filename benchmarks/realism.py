@@ -10,7 +10,8 @@ shelter), against a hover above the canopy.
 
 rl (``--part rl``): two SAC policies on the batched vineyard env (``--rl-envs`` worlds, ``--rl-steps`` steps
 each, training seed 0), one in the ideal default conditions and one with domain randomisation
-(``randomize.enabled``: wind, gusts and the depth camera drawn at every reset); both flown on the same 50
+(``randomize.enabled``: wind, gusts and the depth camera drawn at every reset, and four scene variants
+whose layouts are not the evaluation's, ``RANDOMISED``); both flown on the same 50
 held-out episodes (seeds 1,000,100 to 1,000,149, never trained on) in ideal conditions and in the field's
 (``FIELD``: a 5 m/s mean wind from a direction drawn per episode with Dryden turbulence and gusts of half
 that, and the RealSense D435 depth model). ``--rl-reuse`` keeps models already trained in ``--rl-out``.
@@ -165,6 +166,10 @@ FIELD = [
     "randomize.depth_noise_scale=[1, 1]",
     "randomize.depth_dropout_scale=[1, 1]",
 ]
+#: the randomised policy's training conditions: the defaults of the ``randomize`` section (wind 0-6 m/s
+#: with gusts, the depth camera ideal or D435 with noise and dropout factors, the light) and four scene
+#: variants: layout seeds from 1-1000 (so never the evaluation's layout, seed 0) and vegetation 0.5-1.5
+RANDOMISED = ["randomize.enabled=true", "randomize.scene_seed=[1, 1000]", "randomize.vegetation=[0.5, 1.5]"]
 #: the 50 held-out episodes (as benchmarks/rl.py's): seeds past the 10 that training checks use
 EVAL_50 = 1_000_100
 
@@ -177,7 +182,7 @@ def rl_part(args: argparse.Namespace) -> dict[str, Any]:
     from droneulator.workflows.rl.vector import VineyardNavVectorEnv
 
     out = Path(args.rl_out)
-    policies = {"ideal": [], "randomised": ["randomize.enabled=true"]}
+    policies = {"ideal": [], "randomised": RANDOMISED}
     trained: dict[str, Any] = {}
     for name, overrides in policies.items():
         folder = out / name
@@ -209,6 +214,7 @@ def rl_part(args: argparse.Namespace) -> dict[str, Any]:
         "num_envs": args.rl_envs,
         "steps": args.rl_steps,
         "field_overrides": FIELD,
+        "randomised_overrides": RANDOMISED,
         "eval_seeds": [seeds[0], seeds[-1]],
         "successes_of_50": table,
         "training": {

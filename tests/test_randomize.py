@@ -35,8 +35,10 @@ def test_draws_are_seeded_and_inside_their_ranges():
     )  # fmt: skip
 
 
-def test_the_scene_is_drawn_for_a_run_and_for_an_rl_environment_when_it_is_built():
-    from droneulator.workflows.rl.env import env_config
+def test_the_scene_is_drawn_for_a_run_and_per_episode_among_an_rl_environments_variants():
+    from test_rl_vector import rollout_single, rollout_vector
+
+    from droneulator.workflows.rl.env import env_config, scene_variants
 
     spec = ["randomize.enabled=true", "randomize.scene_seed=[10, 12]", "randomize.vegetation=[0.5, 1.5]"]
     cfg = load_config(overrides=spec)
@@ -45,15 +47,43 @@ def test_the_scene_is_drawn_for_a_run_and_for_an_rl_environment_when_it_is_built
     assert all(0.5 <= d.vegetation <= 1.5 for d in draws) and np.std([d.vegetation for d in draws]) > 0.2
     run = cfg.randomize.apply(cfg, draws[0])  # a capture or a planning run: its scene
     assert (run.seed, run.vegetation) == (draws[0].scene_seed, draws[0].vegetation)
-    a, b = env_config(cfg), env_config(cfg)
-    assert (a.seed, a.vegetation) == (b.seed, b.vegetation) and a.seed in (10, 11, 12)  # from the seed
-    assert 0.5 <= a.vegetation <= 1.5
-    env = VineyardNavVectorEnv(2, cfg)
+    assert (env_config(env_config(cfg)).seed, env_config(cfg).vegetation) == (cfg.seed, 1.0)  # idempotent
+    variants = [(c.seed, c.vegetation) for c in scene_variants(env_config(cfg))]
+    assert variants == [(c.seed, c.vegetation) for c in scene_variants(env_config(cfg))]  # from the seed
+    assert len(variants) == cfg.randomize.scene_variants == 4
+    assert {s for s, _ in variants} <= {10, 11, 12} and all(0.5 <= v <= 1.5 for _, v in variants)
+    assert len(scene_variants(env_config(load_config()))) == 1  # no randomisation: the config's scene
+
+    # calm and ideal otherwise, so that the batched env must equal the single env episode by episode
+    calm_spec = [*spec, "randomize.wind_speed_m_s=[0, 0]", 'randomize.depth_models=["ideal"]']
+    calm = load_config(overrides=calm_spec)
+    n, steps = 3, 300
+    actions = np.random.default_rng(7).uniform(-1, 1, (steps, n, 2)).astype(np.float32)
+    venv = VineyardNavVectorEnv(n, calm)
     try:
-        assert (env.scene.seed, env.scene.vegetation) == (a.seed, a.vegetation)  # every copy's scene
+        vec = rollout_vector(venv, 100, actions)
+        assert len(venv._batches) >= 2  # the envs flew in several scenes
+    finally:
+        venv.close()
+    env = VineyardNavEnv(calm, depth="raycast")
+    try:
+        for i in range(n):
+            one = rollout_single(env, 100 + i, actions[:, i])
+            np.testing.assert_allclose(np.array(vec["obs"])[:, i], np.array(one["obs"]), atol=1e-5, rtol=0)
+            np.testing.assert_allclose(np.array(vec["reward"])[:, i], one["reward"], atol=1e-6, rtol=0)
+            np.testing.assert_array_equal(np.array(vec["terminated"])[:, i], one["terminated"])
+        flown = set()
+        for seed in range(8):  # each reset: one of the variants, the world and its depth that scene's
+            env.reset(seed=seed)
+            scene = env.backend.scene
+            assert (scene.seed, scene.vegetation) == (env.conditions.scene_seed, env.conditions.vegetation)
+            assert env.scene is scene and (scene.seed, scene.vegetation) in variants
+            flown.add((scene.seed, scene.vegetation))
+        assert len(flown) >= 3
     finally:
         env.close()
-    assert env_config(load_config()).vegetation == 1.0  # no randomisation: the config's scene
+    with pytest.raises(ValueError, match="randomize.scene_variants"):
+        load_config(overrides=["randomize.scene_variants=0"])
     with pytest.raises(ValueError, match="randomize.vegetation"):
         load_config(overrides=["randomize.vegetation=[0, 1]"])
 
@@ -134,8 +164,8 @@ def test_the_batched_env_draws_per_env_and_applies_each_envs_depth_model():
         poses[:, :3, 3] = env.worlds.states[0, STATE.x]
         scales = env._depth_scales.copy()
         assert scales[:, 0].min() >= 0.5 and scales[:, 0].max() <= 2.0 and scales[:, 0].std() > 0.1
-        ideal = env.depth_source.rows(poses, ["ideal"] * 16, scales)
-        mixed = env.depth_source.rows(poses, models, scales)
+        ideal = env._batch(0).depth.rows(poses, ["ideal"] * 16, scales)
+        mixed = env._batch(0).depth.rows(poses, models, scales)
         for b, m in enumerate(models):
             same = np.array_equal(mixed[b], ideal[b], equal_nan=True)
             assert same == (m == "ideal"), (b, m)

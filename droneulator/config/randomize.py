@@ -82,10 +82,12 @@ class RandomizeConfig:
     depth_dropout_scale: tuple[float, float] = (0.5, 1.5)
     #: the scene: a layout seed drawn from ``[low, high]`` (null: the config's seed) and the vegetation
     #: density (``SimConfig.vegetation``: x the leaves, a sparse or a dense canopy; [1, 1]: as designed).
-    #: Each is a new scene (built once, then cached), so a capture or a planning run draws them once, and
-    #: an RL environment when it is built (its copies share one scene), not at every reset
+    #: Each is a new scene, seconds to build the first time, so a capture or a planning run draws them
+    #: once, and an RL environment draws ``scene_variants`` of them when it is built (the same ones for
+    #: every environment made from one config) and flies each episode in one of those, drawn at reset
     scene_seed: tuple[int, int] | None = None
     vegetation: tuple[float, float] = (1.0, 1.0)
+    scene_variants: int = 4
     #: the light (RGB only): local time (h), cloud cover, and the share of episodes in haze with a
     #: visibility drawn from ``visibility_m``
     time_of_day_h: tuple[float, float] = (7.0, 19.0)
@@ -109,6 +111,9 @@ class RandomizeConfig:
             if lo != int(lo) or hi != int(hi):
                 raise ValueError(f"randomize.scene_seed must be two integers, got {self.scene_seed!r}")
             self.scene_seed = (int(lo), int(hi))
+        variants = self.scene_variants
+        if isinstance(variants, bool) or not isinstance(variants, int) or not 1 <= variants <= 64:
+            raise ValueError(f"randomize.scene_variants must be an integer in [1, 64], got {variants!r}")
         if not (isinstance(self.haze_prob, int | float) and 0.0 <= self.haze_prob <= 1.0):
             raise ValueError(f"randomize.haze_prob must lie in [0, 1], got {self.haze_prob!r}")
         bad = [m for m in self.depth_models if m not in DEPTH_PRESETS]
@@ -117,6 +122,24 @@ class RandomizeConfig:
                 f"randomize.depth_models must be a non-empty list of {', '.join(DEPTH_PRESETS)}; "
                 f"got {bad or '[]'}"
             )
+
+    @property
+    def scene_drawn(self) -> bool:
+        """Whether the scene's layout seed or vegetation density is drawn at all."""
+        return self.enabled and (self.scene_seed is not None or self.vegetation != (1.0, 1.0))
+
+    def scene_variants_of(self, seed: int, vegetation: float = 1.0) -> list[tuple[int, float]]:
+        """The scenes, ``(layout seed, vegetation)``, an RL environment of a config with seed ``seed`` and
+        vegetation ``vegetation`` flies its episodes in: that one alone, or with the scene drawn,
+        ``scene_variants`` draws (duplicates dropped) from a generator seeded by ``seed``."""
+        if not self.scene_drawn:
+            return [(int(seed), float(vegetation))]
+        rng = np.random.default_rng([seed, 0x5CE4E])
+        seeds, scenes = self.scene_seed, []
+        for _ in range(self.scene_variants):
+            layout = int(seed) if seeds is None else int(rng.integers(seeds[0], seeds[1] + 1))
+            scenes.append((layout, float(rng.uniform(*self.vegetation))))
+        return list(dict.fromkeys(scenes))
 
     def draw(self, rng: np.random.Generator, wind: WindConfig | None = None) -> Draw:
         """One episode's conditions; ``wind``: the settings the drawn ones replace fields of."""

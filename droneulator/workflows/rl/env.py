@@ -77,22 +77,32 @@ def depth_camera_models(cfg: SimConfig) -> dict[str, CameraModel | None]:
 
 def env_config(config: SimConfig | None = None, **rl_overrides: Any) -> SimConfig:
     """A copy of ``config`` set up for the environment: vineyard scene, the RL camera only, no shadows
-    (depth is unaffected), ``rl`` fields replaced by ``rl_overrides``. With domain randomisation of the
-    scene (``randomize.scene_seed``, ``randomize.vegetation``) the layout seed and the vegetation density
-    are drawn here, once, from the config's seed: an environment (and all the copies of a batched one)
-    keeps its scene for its life."""
+    (depth is unaffected), ``rl`` fields replaced by ``rl_overrides``. The scene's seed and vegetation
+    stay the config's (applying this twice changes nothing): with domain randomisation of the scene the
+    environment flies in :func:`scene_variants` of it."""
     cfg = copy.deepcopy(config) if config is not None else load_config()
     cfg.scene = SCENE
-    spec = cfg.randomize
-    if spec.enabled and (spec.scene_seed is not None or spec.vegetation != (1.0, 1.0)):
-        draw = spec.draw(np.random.default_rng([cfg.seed, 0x5CE4E]))
-        cfg.seed = cfg.seed if draw.scene_seed is None else draw.scene_seed
-        cfg.vegetation = draw.vegetation
     if rl_overrides:
         cfg.rl = dataclasses.replace(cfg.rl, **rl_overrides)
     cfg.render.cameras = [rl_camera(cfg.rl)]
     cfg.render.shadows = False
     return cfg
+
+
+def scene_variants(cfg: SimConfig) -> list[SimConfig]:
+    """The configs of the scenes an environment of ``cfg`` flies its episodes in: ``cfg`` alone, or with
+    domain randomisation of the scene (``randomize.scene_seed``, ``randomize.vegetation``) one per scene
+    of :meth:`~droneulator.config.RandomizeConfig.scene_variants_of` (their seed is the layout's). Every
+    environment made from ``cfg`` gets the same ones, so a batched env and the single env agree."""
+    variants = cfg.randomize.scene_variants_of(cfg.seed, cfg.vegetation)
+    if variants == [(cfg.seed, cfg.vegetation)]:
+        return [cfg]
+    out = []
+    for seed, vegetation in variants:
+        c = copy.deepcopy(cfg)
+        c.seed, c.vegetation = seed, vegetation
+        out.append(c)
+    return out
 
 
 def runtime_overrides(cfg: SimConfig) -> list[str]:
@@ -200,19 +210,13 @@ class NavTask:
     def __init__(self, config: SimConfig, scene: Scene) -> None:
         self.config = config
         self.rl = config.rl
-        self.scene = scene
-        self.grid = occupancy_grid(scene, self.rl, config.vehicle.collision_radius)
+        self.use_scene(scene)
         self.frame_dt = 1.0 / config.render.camera_hz
         low = np.concatenate([np.zeros(STRIP_SAMPLES), -np.ones(3)]).astype(np.float32)
         self.observation_space = gym.spaces.Box(low, np.ones(OBS_SIZE, dtype=np.float32), dtype=np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), dtype=np.float32)
         self._mid = 0.5 * (self.rl.forward_min + self.rl.forward_max)
         self._half = 0.5 * (self.rl.forward_max - self.rl.forward_min)
-        lm = scene.landmarks
-        rows = np.asarray(lm["row_y"], dtype=float)
-        spacing = float(rows[1] - rows[0]) if len(rows) > 1 else 3.0
-        self.lanes = np.sort(np.concatenate([lm["alley_y"], [rows[0] - spacing / 2, rows[-1] + spacing / 2]]))
-        self.row_x = (float(lm["row_x_min"][0]), float(lm["row_x_max"][0]))
         self.field: DistanceField | None = None
         self.goal = np.zeros(2)
         self.start = np.zeros(3)
@@ -222,6 +226,17 @@ class NavTask:
         #: the vehicle state of the latest observation
         self.kinematics: Kinematics | None = None
         self.initial_distance = 0.0
+
+    def use_scene(self, scene: Scene) -> None:
+        """Fly the next tasks in ``scene`` (a scene variant of domain randomisation): its occupancy grid,
+        alleys and rows."""
+        self.scene = scene
+        self.grid = occupancy_grid(scene, self.rl, self.config.vehicle.collision_radius)
+        lm = scene.landmarks
+        rows = np.asarray(lm["row_y"], dtype=float)
+        spacing = float(rows[1] - rows[0]) if len(rows) > 1 else 3.0
+        self.lanes = np.sort(np.concatenate([lm["alley_y"], [rows[0] - spacing / 2, rows[-1] + spacing / 2]]))
+        self.row_x = (float(lm["row_x_min"][0]), float(lm["row_x_max"][0]))
 
     # ------------------------------------------------------------------ mappings
     def action_to_command(self, action: np.ndarray) -> tuple[float, float]:
@@ -386,7 +401,8 @@ class VineyardNavEnv(NavTask, gym.Env[np.ndarray, np.ndarray]):
     ``config``: a :class:`SimConfig` (its ``rl`` section and vehicle/flight settings are used);
     ``mode``: "local" or "remote" (then ``url`` of the WebSocket API and ``zenoh`` endpoint of the
     bridge); ``depth`` (local mode): ``"render"`` or ``"raycast"`` (:data:`DEPTH_SOURCES`); further keyword
-    arguments replace fields of ``config.rl``.
+    arguments replace fields of ``config.rl``. With domain randomisation of the scene each reset draws
+    one of :func:`scene_variants` (a backend for each, built the first time it is drawn).
     """
 
     metadata = {"render_modes": [], "render_fps": 30}
@@ -404,8 +420,12 @@ class VineyardNavEnv(NavTask, gym.Env[np.ndarray, np.ndarray]):
         self.mode = mode
         if cfg.randomize.enabled and mode != "local":
             raise ValueError("domain randomisation (randomize.enabled) needs mode='local'")
+        self.variants = scene_variants(cfg)
+        self._backends: dict[int, Backend] = {}
+        self._depth = depth
         if mode == "local":
-            backend: Backend = LocalBackend(cfg, depth)
+            backend: Backend = LocalBackend(self.variants[0], depth)
+            self._backends[0] = backend
         elif mode == "remote":
             from droneulator.workflows.rl.remote import RemoteBackend
 
@@ -421,12 +441,21 @@ class VineyardNavEnv(NavTask, gym.Env[np.ndarray, np.ndarray]):
     ) -> tuple[np.ndarray, dict[str, Any]]:
         gym.Env.reset(self, seed=seed)
         opts = options or {}
+        variant = self.variants[0]
+        if len(self.variants) > 1:
+            k = int(self.np_random.integers(len(self.variants)))
+            if k not in self._backends:
+                self._backends[k] = LocalBackend(self.variants[k], self._depth)
+            self.backend, variant = self._backends[k], self.variants[k]
+            self.use_scene(self.backend.scene)
         if "start" in opts or "goal" in opts:
             start, yaw, goal, field = self.given_task(opts)
         else:
             start, yaw, goal, field = self.sample_task(self.np_random)
         if self.config.randomize.enabled:
-            self.conditions = self.config.randomize.draw(self.np_random, self.config.wind)
+            draw = self.config.randomize.draw(self.np_random, self.config.wind)
+            scene = {"scene_seed": variant.seed, "vegetation": variant.vegetation}
+            self.conditions = dataclasses.replace(draw, **scene)
             self.backend.randomize(self.conditions)  # type: ignore[attr-defined]
         depth, kin = self.backend.reset(np.array([start[0], start[1], self.rl.altitude]), yaw)
         self.begin(start, yaw, goal, field, kin)
@@ -441,10 +470,12 @@ class VineyardNavEnv(NavTask, gym.Env[np.ndarray, np.ndarray]):
         return self.observe(depth, kin), reward, terminated, truncated, self.step_info(kin, reason, command)
 
     def close(self) -> None:
-        backend = getattr(self, "backend", None)
-        if backend is not None:
-            backend.close()
-            self.backend = None  # type: ignore[assignment]
+        backends = getattr(self, "_backends", {}) or {0: getattr(self, "backend", None)}
+        for backend in backends.values():
+            if backend is not None:
+                backend.close()
+        self._backends = {}
+        self.backend = None  # type: ignore[assignment]
         super().close()
 
 

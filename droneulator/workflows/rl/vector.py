@@ -8,6 +8,11 @@ compiled call, and the depth of all of them comes from one batched call (``depth
 BVH ray caster, the default here; ``"render"``, the OpenGL renderer drawing them one after the other,
 as the single env does by default).
 
+With domain randomisation of the scene, each env flies each episode in one of the single env's scene
+variants (:func:`~droneulator.workflows.rl.env.scene_variants`), drawn at its reset as the single env
+draws it: every variant is a batch of worlds of that scene, and an env's vehicle flies in the batch of its
+episode's scene (the batches of the other scenes leave its row idle).
+
 Each env follows the single env's rules exactly (one :class:`~droneulator.workflows.rl.env.NavTask` per
 env: task sampling, reward, terminations, time limit), so env ``i`` seeded ``s`` with the same actions
 gives the single env's observations, rewards, terminations and truncations when both take depth from
@@ -44,6 +49,8 @@ from droneulator.workflows.rl.env import (
     NavTask,
     depth_camera_models,
     env_config,
+    occupancy_grid,
+    scene_variants,
     strips,
 )
 from droneulator.world.batched import BatchedWorlds
@@ -243,7 +250,15 @@ class VineyardNavVectorEnv(VectorEnv):
         cfg = env_config(config, **rl_overrides)
         self.config = cfg
         self.num_envs = n = int(num_envs)
-        self.worlds = BatchedWorlds(cfg, n)
+        #: the scenes episodes fly in (one, or randomisation's variants), each with a batch of worlds,
+        #: its depth source and its occupancy grid, built the first time an env draws it
+        self.variants = scene_variants(cfg)
+        self._batches: dict[int, _SceneBatch] = {}
+        self._variant = np.zeros(n, dtype=np.int64)
+        self._depth = depth
+        if depth not in DEPTH_SOURCES:
+            raise ValueError(f"depth must be one of {', '.join(DEPTH_SOURCES)}, got {depth!r}")
+        self.worlds = self._batch(0).worlds
         self.scene = self.worlds.scene
         self.tasks = [NavTask(cfg, self.scene) for _ in range(n)]
         task = self.tasks[0]
@@ -257,8 +272,6 @@ class VineyardNavVectorEnv(VectorEnv):
             rl.lookahead if rl.heading == "path" else 0.0, task._mid, task._half, rl.max_yaw_rate,
         ])  # fmt: skip
         grid = task.grid
-        self._grid = grid
-        self._near = (grid.nearest[0].astype(np.int64), grid.nearest[1].astype(np.int64))
         self._values = np.zeros((n, *grid.shape))
         self._next = np.zeros((n, *grid.shape), dtype=np.int32)
         self._reach = np.zeros((n, *grid.shape), dtype=bool)
@@ -277,7 +290,6 @@ class VineyardNavVectorEnv(VectorEnv):
         self._tail = np.zeros((n, 3))
         self._dist = np.zeros(n)
         self._goal_dist = np.zeros(n)
-        self.depth_source = depth_rows(cfg, self.scene, depth)
         #: each env's depth preset this episode (``rl.depth_model``, or randomisation's draw)
         cam = cfg.render.cameras[0]
         self._depth_models = [cam.depth_model] * n
@@ -286,6 +298,28 @@ class VineyardNavVectorEnv(VectorEnv):
         self._base_wind = cfg.wind
 
     # ------------------------------------------------------------------ helpers
+    def _batch(self, k: int) -> _SceneBatch:
+        """Scene variant ``k``'s worlds, depth source and grid (built on first use)."""
+        if k not in self._batches:
+            self._batches[k] = _SceneBatch(self.variants[k], self.num_envs, self._depth)
+        return self._batches[k]
+
+    def _groups(self, idx: np.ndarray) -> list[tuple[_SceneBatch, np.ndarray]]:
+        """Envs ``idx`` grouped by the scene variant they fly in: (its batch, their indices)."""
+        if len(self._batches) == 1:
+            return [(self._batches[0], idx)]
+        return [(self._batches[k], idx[self._variant[idx] == k]) for k in np.unique(self._variant[idx])]
+
+    @property
+    def states(self) -> np.ndarray:
+        """Every env's vehicle state (``(B, STATE_SIZE)``), from the worlds of its scene."""
+        if len(self._batches) == 1:
+            return self.worlds.states
+        out = np.empty_like(self.worlds.states)
+        for batch, idx in self._groups(np.arange(self.num_envs)):
+            out[idx] = batch.worlds.states[idx]
+        return out
+
     def _reset_envs(self, idx: np.ndarray, options: dict[str, Any] | None) -> None:
         """Sample (or take from ``options``) a task for each env of ``idx``, place its vehicle there and
         fill ``_obs`` rows and the reset part of the info arrays."""
@@ -294,15 +328,23 @@ class VineyardNavVectorEnv(VectorEnv):
         begun = []
         for i in idx:
             task = self.tasks[i]
+            if len(self.variants) > 1:
+                self._variant[i] = k = int(self._rngs[i].integers(len(self.variants)))
+                task.use_scene(self._batch(k).worlds.scene)
             if "start" in opts or "goal" in opts:
                 begun.append(task.given_task(opts))
             else:
                 begun.append(task.sample_task(self._rngs[i]))
         positions = np.array([(start[0], start[1], rl.altitude) for start, *_ in begun]).reshape(-1, 3)
-        self.worlds.place(idx, positions, np.array([yaw for _, yaw, *_ in begun]))
+        yaws = np.array([yaw for _, yaw, *_ in begun])
+        at = {int(i): j for j, i in enumerate(idx)}
+        for batch, sub in self._groups(idx):
+            rows = [at[int(i)] for i in sub]
+            batch.worlds.place(sub, positions[rows], yaws[rows])
         if self.config.randomize.enabled:
             draws = [self.config.randomize.draw(self._rngs[i], self._base_wind) for i in idx]
-            self.worlds.set_wind([d.wind for d in draws], idx)
+            for batch, sub in self._groups(idx):
+                batch.worlds.set_wind([draws[at[int(i)]].wind for i in sub], sub)
             for i, d in zip(idx, draws, strict=True):
                 self._depth_models[i] = d.depth_model
                 self._depth_scales[i] = d.depth_noise_scale, d.depth_dropout_scale
@@ -323,10 +365,10 @@ class VineyardNavVectorEnv(VectorEnv):
         self._reason[idx] = 0
         self._reward[idx] = 0.0
         self._commands[idx] = 0.0
-        self._strips(idx, self.worlds.states)
+        self._strips(idx, self.states)
 
     def _kinematics(self, i: int, t_ns: int) -> Kinematics:
-        row = self.worlds.states[i]
+        row = self._batches[int(self._variant[i])].worlds.states[i]
         return Kinematics(t_ns / NS, row[STATE.x].copy(), row[STATE.q].copy(), row[STATE.v].copy(),
                           row[STATE.w].copy(), "hold")  # fmt: skip
 
@@ -334,10 +376,11 @@ class VineyardNavVectorEnv(VectorEnv):
         """The depth strips of envs ``idx`` at the states ``rows[idx]`` into ``_obs``."""
         if len(idx) == 0:
             return
-        poses = transforms_from_poses(rows[idx, 0:3], rows[idx, 6:10])
-        models = [self._depth_models[i] for i in idx]
-        depth = self.depth_source.rows(poses, models, self._depth_scales[idx])
-        self._obs[idx, :STRIP_SAMPLES] = strips(depth, self.config.rl.depth_clip)
+        for batch, sub in self._groups(idx):
+            poses = transforms_from_poses(rows[sub, 0:3], rows[sub, 6:10])
+            models = [self._depth_models[i] for i in sub]
+            depth = batch.depth.rows(poses, models, self._depth_scales[sub])
+            self._obs[sub, :STRIP_SAMPLES] = strips(depth, self.config.rl.depth_clip)
 
     def _infos(self, rows: np.ndarray, t: np.ndarray, mask: np.ndarray) -> dict[str, Any]:
         """The single env's info keys as arrays (Gymnasium's vector form, every env present)."""
@@ -378,7 +421,7 @@ class VineyardNavVectorEnv(VectorEnv):
         self._reset_called = True
         self._reset_envs(np.arange(n), options)
         self._done[:] = False
-        infos = self._infos(self.worlds.states, np.zeros(n), np.ones(n, dtype=bool))
+        infos = self._infos(self.states, np.zeros(n), np.ones(n, dtype=bool))
         return self._obs.copy(), infos
 
     def step(
@@ -398,16 +441,23 @@ class VineyardNavVectorEnv(VectorEnv):
         a = np.clip(a, -1.0, 1.0)
         self._commands[:, 0] = k[6] + a[:, 0] * k[7]
         self._commands[:, 1] = a[:, 1] * k[8]
-        self.worlds.velocity(idx, self._commands[idx, 0], self._commands[idx, 1])
-        cam, hit = self.worlds.step_frame(run)
-        t = self.worlds.frame_t_ns() / NS
-        g = self._grid
-        _nav_rows(
-            run, cam, hit, self._values, self._next, self._reach, g.free, self._near[0], self._near[1],
-            g.origin, g.resolution, self._goal, self._d, self._steps, self._max_steps,
-            self.scene.bounds_min[:2], self.scene.bounds_max[:2], k, self._reward, self._reason, self._tail,
-            self._dist, self._goal_dist,
-        )  # fmt: skip
+        groups = self._groups(idx)
+        if len(groups) == 1:
+            batch = groups[0][0]
+            batch.worlds.velocity(idx, self._commands[idx, 0], self._commands[idx, 1])
+            cam, hit = batch.worlds.step_frame(run)
+            t = batch.worlds.frame_t_ns() / NS
+            self._nav(batch, run, cam, hit)
+        else:
+            cam, hit, t = self.states, np.zeros(n, dtype=bool), np.zeros(n)
+            for batch, sub in groups:
+                mine = np.zeros(n, dtype=bool)
+                mine[sub] = True
+                batch.worlds.velocity(sub, self._commands[sub, 0], self._commands[sub, 1])
+                c, h = batch.worlds.step_frame(mine)
+                cam[sub], hit[sub] = c[sub], h[sub]
+                t[sub] = batch.worlds.frame_t_ns()[sub] / NS
+                self._nav(batch, mine, cam, hit)
         self._obs[idx, STRIP_SAMPLES:] = self._tail[idx]
         self._strips(idx, cam)
         rewards = np.where(run, self._reward, 0.0)
@@ -427,7 +477,7 @@ class VineyardNavVectorEnv(VectorEnv):
         if resetting.any():
             ridx = np.flatnonzero(resetting)
             self._reset_envs(ridx, None)
-            fresh = self._infos(self.worlds.states, np.zeros(n), resetting)
+            fresh = self._infos(self.states, np.zeros(n), resetting)
             for key, value in fresh.items():
                 if not key.startswith("_"):
                     infos[key][ridx] = value[ridx]
@@ -437,8 +487,28 @@ class VineyardNavVectorEnv(VectorEnv):
         self._done = done if next_step else np.zeros(n, dtype=bool)
         return self._obs.copy(), rewards, terminated, truncated, infos
 
+    def _nav(self, batch: _SceneBatch, run: np.ndarray, cam: np.ndarray, hit: np.ndarray) -> None:
+        """The compiled task step (:func:`_nav_rows`) of envs ``run``, all flying in ``batch``'s scene."""
+        g, near, scene = batch.grid, batch.near, batch.worlds.scene
+        _nav_rows(
+            run, cam, hit, self._values, self._next, self._reach, g.free, near[0], near[1],
+            g.origin, g.resolution, self._goal, self._d, self._steps, self._max_steps,
+            scene.bounds_min[:2], scene.bounds_max[:2], self._k, self._reward, self._reason, self._tail,
+            self._dist, self._goal_dist,
+        )  # fmt: skip
+
     def close_extras(self, **kwargs: Any) -> None:
-        source = getattr(self, "depth_source", None)
-        if source is not None:
-            source.close()
-            self.depth_source = None  # type: ignore[assignment]
+        for batch in getattr(self, "_batches", {}).values():
+            batch.depth.close()
+        self._batches = {}
+
+
+class _SceneBatch:
+    """One scene variant of a vector env: a batch of worlds of that scene (a row for every env; the rows
+    of envs flying elsewhere stay idle), its depth source and its occupancy grid."""
+
+    def __init__(self, cfg: SimConfig, num_envs: int, depth: str) -> None:
+        self.worlds = BatchedWorlds(cfg, num_envs)
+        self.depth = depth_rows(cfg, self.worlds.scene, depth)
+        self.grid = occupancy_grid(self.worlds.scene, cfg.rl, cfg.vehicle.collision_radius)
+        self.near = (self.grid.nearest[0].astype(np.int64), self.grid.nearest[1].astype(np.int64))
