@@ -32,9 +32,20 @@ def _tracked_open(*args, **kwargs) -> zenoh.Session:
 zenoh.open = _tracked_open
 
 
+def pytest_collection_modifyitems(
+    session: pytest.Session, config: pytest.Config, items: list[pytest.Item]
+) -> None:
+    """The bundle's tests run last (the rest keep their order): the bundle's build, started in the
+    background when the tests are collected, then overlaps every other test instead of being waited for
+    by the second test file."""
+    items.sort(key=lambda item: "bundle" in getattr(item, "fixturenames", ()))
+
+
 def pytest_collection_finish(session: pytest.Session) -> None:
     """When the bundle's tests are among those to run, start building the bundle now, in the background
     (tests/test_bundle.py): PyInstaller's minutes then overlap the tests that come before them."""
+    if session.config.option.collectonly:
+        return
     if any("bundle" in getattr(item, "fixturenames", ()) for item in session.items):
         from test_bundle import start_build
 

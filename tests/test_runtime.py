@@ -731,5 +731,7 @@ def test_a_fresh_run_sends_px4_its_sensor_data_without_a_boot_stall():
         assert arrivals[0] - t_connect < 0.1, run.log.tail()
         assert gaps[0] < BOOT_GRACE_S + 0.05  # the boot grace, then free-running sensor data
         assert booted > 150  # about real time while PX4 boots (250 Hz)
-        assert gaps.max() < 0.5, (gaps.argmax(), gaps.max(), run.log.tail())  # PX4's limit: 1 s
+        # PX4's limit: simulator_mavlink logs a poll timeout after 1 s without data (a lockstep frame of the
+        # 640x480 rig on a loaded 2-core machine has taken 0.58 s)
+        assert gaps.max() < 0.9, (gaps.argmax(), gaps.max(), run.log.tail())
         assert any("renderer and bridge warm" in line for line in run.log.lines())

@@ -99,7 +99,7 @@ PEER_SCRIPT = textwrap.dedent(
         sub = session.declare_subscriber(args["key"], on_sample)
         peers, routers = wait_for_peer()
         out(ready=True, peers=peers, routers=routers)
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + args.get("wait", 10)
         while len(got) < args["count"] and time.monotonic() < deadline:
             time.sleep(0.01)
         gone = set()
@@ -554,12 +554,26 @@ def test_rmw_zenoh_node_reaches_a_router_on_the_default_endpoint(
                 "key": "0/**",
                 "type": "geometry_msgs/msg/Twist",
                 "count": 1,
+                "wait": 20,
             }
         )
         assert node.zid in router.expect("peers")
         assert wait_until(lambda: pub.matching)
-        pub.publish(twist_cdr(0.5, 0.0))
-        (sample,) = router.expect("samples")
+        # until the router reports a sample: one sent the moment the route matched can be lost under load
+        stop = threading.Event()
+
+        def send() -> None:
+            while not stop.is_set():
+                pub.publish(twist_cdr(0.5, 0.0))
+                stop.wait(0.1)
+
+        sender = threading.Thread(target=send)
+        sender.start()
+        try:
+            (sample,) = router.expect("samples")
+        finally:
+            stop.set()
+            sender.join()
         token = (
             f"@ros2_lv/0/{node.zid}/0/1/MP/%/%/droneulator/%droneulator%cmd_vel/{TWIST_DDS}/{TWIST_HASH}/::,10:,:,:,,"
         )
