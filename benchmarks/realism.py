@@ -15,6 +15,7 @@ whose layouts are not the evaluation's, ``RANDOMISED``); both flown on the same 
 held-out episodes (seeds 1,000,100 to 1,000,149, never trained on) in ideal conditions and in the field's
 (``FIELD``: a 5 m/s mean wind from a direction drawn per episode with Dryden turbulence and gusts of half
 that, and the RealSense D435 depth model). ``--rl-reuse`` keeps models already trained in ``--rl-out``.
+About two hours on 2 cores (each policy about an hour).
 
 Prints the tables, writes ``benchmarks/results/realism.json`` (``--part wind`` also the figure
 ``benchmarks/results/realism_wind.png``, copied to ``docs/img/wind_hover.png``).
@@ -230,7 +231,9 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=60.0, help="simulated seconds per hover")
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--shelter-speed", type=float, default=5.0)
-    ap.add_argument("--rl-steps", type=int, default=100_000, help="training steps of each RL policy")
+    ap.add_argument(
+        "--rl-steps", type=int, default=200_000, help="training steps of each RL policy (default 200,000)"
+    )
     ap.add_argument("--rl-envs", type=int, default=16, help="batched worlds SAC trains on")
     ap.add_argument("--rl-out", default="out/bench_realism_rl", help="the RL policies' run folders")
     ap.add_argument("--rl-reuse", action="store_true", help="keep RL models already trained in --rl-out")
