@@ -17,6 +17,11 @@ held-out episodes (seeds 1,000,100 to 1,000,149, never trained on) in ideal cond
 that, and the RealSense D435 depth model). ``--rl-reuse`` keeps models already trained in ``--rl-out``.
 About two hours on 2 cores (each policy about an hour).
 
+planning (``--part planning``): ``benchmarks/planning.py``'s five goals with the planner's depth camera a
+D435 and a 3 m/s wind (``PLANNING``), reached within 0.5 m; photogrammetry (``--part photogrammetry``):
+``benchmarks/photogrammetry.py --realism`` on the 36-view capture at 640x480 (about an hour). Each runs
+that benchmark as it is documented and keeps its JSON under its part's key here.
+
 Prints the tables, writes ``benchmarks/results/realism.json`` (``--part wind`` also the figure
 ``benchmarks/results/realism_wind.png``, copied to ``docs/img/wind_hover.png``).
 """
@@ -26,6 +31,8 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -224,9 +231,36 @@ def rl_part(args: argparse.Namespace) -> dict[str, Any]:
     }
 
 
+#: the planning benchmark in the field: D435 depth on the planner's camera, a 3 m/s wind along the course
+PLANNING = [
+    "--set", "wind.speed_m_s=3",
+    "--set", 'render.cameras=[{"name": "front", "depth_model": "d435"}]',
+    "--arrive", "0.5",
+]  # fmt: skip
+#: the photogrammetry benchmark's realism conditions (its CONDITIONS) on the 36-view capture
+PHOTOGRAMMETRY = ["--realism", "--views", "36", "--width", "640", "--height", "480"]
+
+
+def sibling_part(script: str, extra: list[str], out: Path) -> dict[str, Any]:
+    """Run ``benchmarks/<script>`` with ``extra`` arguments writing its JSON to ``out``; its result."""
+    here = Path(__file__).resolve().parent
+    flag = "--output" if script == "planning.py" else "--json"
+    cmd = [sys.executable, str(here / script), *extra, flag, str(out)]
+    print("running", " ".join(cmd), flush=True)
+    subprocess.run(cmd, check=True)
+    data = json.loads(out.read_text())
+    return {"command": " ".join(["python", f"benchmarks/{script}", *extra]), **data}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--part", nargs="+", choices=["wind", "rl"], default=["wind"], help="what to measure")
+    ap.add_argument(
+        "--part",
+        nargs="+",
+        choices=["wind", "rl", "planning", "photogrammetry"],
+        default=["wind"],
+        help="what to measure (default wind)",
+    )
     ap.add_argument("--speeds", type=float, nargs="+", default=[0.0, 1.0, 2.0, 3.0, 5.0, 7.0, 10.0])
     ap.add_argument("--seconds", type=float, default=60.0, help="simulated seconds per hover")
     ap.add_argument("--seeds", type=int, default=3)
@@ -248,6 +282,11 @@ def main() -> None:
         result.update({"wind": wind_part(args), "seconds": args.seconds, "seeds": args.seeds})
     if "rl" in args.part:
         result["rl"] = rl_part(args)
+    if "planning" in args.part:
+        result["planning"] = sibling_part("planning.py", PLANNING, RESULTS / "planning_realism.json")
+    if "photogrammetry" in args.part:
+        out = RESULTS / "photogrammetry_realism.json"
+        result["photogrammetry"] = sibling_part("photogrammetry.py", PHOTOGRAMMETRY, out)
     write("realism", result, args.out)
     if "wind" in args.part:
         fig = RESULTS / "realism_wind.png"
