@@ -258,6 +258,8 @@ class VineyardNavVectorEnv(VectorEnv):
         self._depth = depth
         if depth not in DEPTH_SOURCES:
             raise ValueError(f"depth must be one of {', '.join(DEPTH_SOURCES)}, got {depth!r}")
+        #: the first scene variant's worlds and scene (with one scene, every env's; with scene
+        #: randomisation an env's episode flies in the batch ``_variant`` names)
         self.worlds = self._batch(0).worlds
         self.scene = self.worlds.scene
         self.tasks = [NavTask(cfg, self.scene) for _ in range(n)]
