@@ -248,6 +248,52 @@ def test_tf_buffer_interpolates_the_dynamic_edge_and_chains_the_static_ones():
         tf.lookup("map", "base_link", 25_000_000, timeout=0.05)  # not received yet
 
 
+def test_a_view_takes_the_first_frame_whose_segmentation_and_depth_arrived_too():
+    """A consumer that fell behind a hovering vehicle's stream finds some frames' companions gone
+    (CI: a sweep job's segmentation image at the first frame after settling was already let go): the
+    view is the first complete frame, over a real Zenoh session, decoded by rosbags."""
+    import time
+
+    from droneulator.ros import messages
+    from droneulator.ros.topics import TYPES, topic_names, vehicle_topics
+    from droneulator.ros.zenoh_node import RosZenohNode, ZenohNodeConfig
+    from droneulator.runtime.launch import free_port
+    from droneulator.workflows.photogrammetry.record import TopicRecorder
+
+    names = {**vehicle_topics("droneulator"), **topic_names("droneulator", "front")}
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    with (
+        RosZenohNode(ZenohNodeConfig(listen=(endpoint,), connect=())) as sim,
+        RosZenohNode(ZenohNodeConfig(listen=(), connect=(endpoint,))) as consumer,
+    ):
+        recorder = TopicRecorder(
+            consumer, {k: names[k] for k in ("odom", "tf", "tf_static", "rgb", "seg", "depth", "info_rgb")}
+        )
+        pubs = {k: sim.publisher(names[k], TYPES[k]) for k in ("rgb", "seg", "depth")}
+        deadline = time.monotonic() + 10
+        while not all(p.matching for p in pubs.values()):
+            assert time.monotonic() < deadline, "the recorder's subscriptions never matched"
+            time.sleep(0.02)
+        second = 1_000_000_000
+        for i in range(1, 7):
+            t = i * second
+            depth = np.full((4, 6), float(i), dtype=np.float32)
+            pubs["depth"].publish(messages.serialize(messages.image(t, "front_optical_frame", depth)))
+            if i > 3:  # the segmentation of frames 1-3 was let go
+                seg = messages.compressed_image(t, "front_optical_frame", "png", bytes([i]))
+                pubs["seg"].publish(messages.serialize(seg))
+            rgb = messages.compressed_image(t, "front_optical_frame", "jpeg", bytes([100 + i]))
+            pubs["rgb"].publish(messages.serialize(rgb))
+        frame, aux = recorder.view_after(2 * second, timeout=10.0)
+        assert frame.stamp == 4 * second and frame.jpeg == bytes([104])
+        assert aux.segmentation_png == bytes([4])
+        np.testing.assert_array_equal(aux.depth, np.full((4, 6), 4.0, dtype=np.float32))
+        frame, _ = recorder.view_after(5 * second, timeout=10.0)
+        assert frame.stamp == 5 * second
+        with pytest.raises(TimeoutError, match="segmentation and depth after 7000000000 ns"):
+            recorder.view_after(7 * second, timeout=0.2)
+
+
 def test_the_tree_comes_from_scene_info_landmarks_and_sets_the_capture_camera():
     from droneulator.scenes import get_scene  # the reference: the scene itself (capture only sees the API)
 

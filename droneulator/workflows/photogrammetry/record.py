@@ -182,7 +182,7 @@ class TopicRecorder:
         self._cond = threading.Condition()
         self._odom: deque[OdomSample] = deque(maxlen=6000)
         self._infos: dict[int, Any] = {}
-        self._frames: deque[Frame] = deque(maxlen=8)
+        self._frames: deque[Frame] = deque(maxlen=16)
         self._seg: dict[int, bytes] = {}
         self._depth: dict[int, Any] = {}
         handlers: dict[str, Callable[[Any], None]] = {
@@ -225,16 +225,25 @@ class TopicRecorder:
     def _keep(self, store: dict[int, Any], stamp: int, value: Any) -> None:
         with self._cond:
             store[stamp] = value
-            if len(store) > 8:
-                for k in sorted(store)[:-8]:
+            if len(store) > 16:
+                for k in sorted(store)[:-16]:
                     del store[k]
             self._cond.notify_all()
 
-    def aux_frames(self, t_ns: int, timeout: float = 10.0) -> AuxFrames:
-        """The segmentation and depth images stamped ``t_ns`` (those of the colour frame at ``t_ns``)."""
-        png = self._wait(lambda: self._seg.get(t_ns), timeout, f"segmentation image at {t_ns} ns")
-        depth = self._wait(lambda: self._depth.get(t_ns), timeout, f"depth image at {t_ns} ns")
-        return AuxFrames(png, decode_depth(depth))
+    def view_after(self, t_ns: int, timeout: float) -> tuple[Frame, AuxFrames]:
+        """The first colour frame stamped at or after ``t_ns`` whose segmentation and depth images (same
+        stamp) have arrived too, with them. A frame whose companions were already let go (a consumer that
+        fell behind a hovering vehicle's stream) is passed over for the next complete one."""
+
+        def complete() -> tuple[Frame, bytes, Any] | None:
+            for f in self._frames:
+                if f.stamp >= t_ns and f.stamp in self._seg and f.stamp in self._depth:
+                    return f, self._seg[f.stamp], self._depth[f.stamp]
+            return None
+
+        what = f"camera frame with segmentation and depth after {t_ns} ns"
+        frame, png, depth = self._wait(complete, timeout, what)
+        return frame, AuxFrames(png, decode_depth(depth))
 
     def _on_rgb(self, msg: Any) -> None:
         with self._cond:
@@ -262,12 +271,6 @@ class TopicRecorder:
         """The odometry sample nearest ``t_ns`` once a later one has arrived."""
         samples = self._wait(lambda: self._odom[-1].stamp >= t_ns and list(self._odom), timeout, "odometry")
         return min(samples, key=lambda s: abs(s.stamp - t_ns))
-
-    def frame_after(self, t_ns: int, timeout: float) -> Frame:
-        """The first colour frame stamped at or after ``t_ns``."""
-        return self._wait(
-            lambda: next((f for f in self._frames if f.stamp >= t_ns), None), timeout, "camera frame"
-        )
 
     def camera_info(self, t_ns: int | None = None, timeout: float = 5.0) -> Any:
         """camera_info stamped ``t_ns`` (the latest one when None)."""
@@ -308,8 +311,7 @@ def record_view(
     """The first frame after ``vehicle`` settled at ``view``, with its camera_info and the TF poses at
     its stamp: the view's record (``leg``: the flight statistics that brought it there; ``vehicle``, the
     frame id and topic of the image), its JPEG and the segmentation and depth images of the same stamp."""
-    frame = topics.frame_after(settled_ns, timeout=30.0)
-    aux = topics.aux_frames(frame.stamp)
+    frame, aux = topics.view_after(settled_ns, timeout=30.0)
     info = camera_info_dict(topics.camera_info(frame.stamp))
     if info["K"] != cam["K"] or (info["width"], info["height"]) != (cam["width"], cam["height"]):
         raise RuntimeError(f"camera_info changed during the capture: {info} != {cam}")
