@@ -13,6 +13,7 @@ import os
 import sys
 import threading
 import time
+import uuid
 
 import pytest
 import zenoh
@@ -32,18 +33,30 @@ def _tracked_open(*args, **kwargs) -> zenoh.Session:
 zenoh.open = _tracked_open
 
 
+def _is_xdist_worker(config: pytest.Config) -> bool:
+    return hasattr(config, "workerinput")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Name this test run once (pytest-xdist's workers inherit the name): its bundle build is shared."""
+    if not _is_xdist_worker(config):
+        os.environ["DRONEULATOR_TEST_RUN"] = uuid.uuid4().hex
+
+
 def pytest_collection_modifyitems(
     session: pytest.Session, config: pytest.Config, items: list[pytest.Item]
 ) -> None:
-    """The bundle's tests run last (the rest keep their order): the bundle's build, started in the
-    background when the tests are collected, then overlaps every other test instead of being waited for
-    by the second test file."""
-    items.sort(key=lambda item: "bundle" in getattr(item, "fixturenames", ()))
+    """The bundle's test file runs last (the rest keep their order; with pytest-xdist, run with
+    ``--dist loadfile --no-loadscope-reorder`` as the README does, the files go out in this order): the
+    bundle's build, started in the background when the tests are collected, then overlaps every other
+    test instead of being waited for."""
+    items.sort(key=lambda item: item.path.name == "test_bundle.py")
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
     """When the bundle's tests are among those to run, start building the bundle now, in the background
-    (tests/test_bundle.py): PyInstaller's minutes then overlap the tests that come before them."""
+    (tests/test_bundle.py; once per run, whichever worker gets here first): PyInstaller's minutes then
+    overlap the tests that come before them."""
     if session.config.option.collectonly:
         return
     if any("bundle" in getattr(item, "fixturenames", ()) for item in session.items):
@@ -56,8 +69,10 @@ def pytest_collection_finish(session: pytest.Session) -> None:
 def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     global _exit_status
     _exit_status = int(exitstatus)
-    if "test_bundle" in sys.modules:
-        sys.modules["test_bundle"].stop_build()
+    if not _is_xdist_worker(session.config):
+        from test_bundle import stop_build  # the run's owner stops and removes its bundle build, if any
+
+        stop_build()
     left = [s for s in _sessions if not s.is_closed()]
     for s in left:
         s.close()

@@ -12,8 +12,11 @@ user's cache, fly the mission over WebSocket and save the frames it received ove
 
 from __future__ import annotations
 
+import contextlib
 import os
+import shlex
 import shutil
+import signal
 import subprocess
 import sys
 import tarfile
@@ -109,62 +112,86 @@ def test_frozen_numba_cache_falls_back_when_unusable(monkeypatch, tmp_path, caps
 class Build:
     """``bash scripts/package.sh`` into a temporary folder, started when the suite's tests are collected
     (:func:`start_build`, from conftest.py) so that PyInstaller's two to three minutes overlap the tests
-    before this module's, at a lower CPU priority (nice 10: it takes what they leave)."""
+    before this module's, at a lower CPU priority (nice 10: it takes what they leave).
 
-    def __init__(self) -> None:
-        self.root = Path(tempfile.mkdtemp(prefix="droneulator-bundle-"))
-        self.dist, self.work = self.root / "dist", self.root / "build"
-        self.log = (self.root / "package.log").open("w")
+    One build serves the whole test run: pytest-xdist's workers share it through its folder
+    (:func:`build_root`), which the first to get there creates; the build writes its exit code to
+    ``rc`` when done, which is what every worker waits for."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+        self.dist, self.work = root / "dist", root / "build"
+        self.log_path, self.rc_path = root / "package.log", root / "rc"
+
+    def start(self) -> None:
+        package = shlex.join(
+            ["bash", str(ROOT / "scripts" / "package.sh"), "--dist", str(self.dist), "--work", str(self.work)]
+        )
+        script = f"nice -n 10 {package} > package.log 2>&1; echo $? > rc.part && mv rc.part rc"
         self.proc = subprocess.Popen(
-            ["nice", "-n", "10", "bash", str(ROOT / "scripts" / "package.sh"), "--dist", str(self.dist),
-             "--work", str(self.work)],
+            ["bash", "-c", script],
+            cwd=self.root,
             env={**os.environ, "PYTHON": sys.executable},
-            stdout=self.log,
-            stderr=subprocess.STDOUT,
-        )  # fmt: skip
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,  # its own process group: stop_build ends all of it
+        )
+        (self.root / "pid").write_text(str(self.proc.pid))
 
     def wait(self, timeout: float) -> tuple[int, str]:
         """The build's exit code and output, once it is done."""
-        code = self.proc.wait(timeout)
-        self.log.close()
-        return code, (self.root / "package.log").read_text()
+        deadline = time.monotonic() + timeout
+        while not self.rc_path.exists():
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"the bundle build in {self.root} did not finish within {timeout:g} s")
+            time.sleep(0.5)
+        return int(self.rc_path.read_text()), self.log_path.read_text()
 
     def close(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait()
-        self.log.close()
+        """Stop the build if it still runs and remove its folder."""
+        pid = self.root / "pid"
+        if pid.exists() and not self.rc_path.exists():
+            with contextlib.suppress(ProcessLookupError, PermissionError, ValueError):
+                os.killpg(int(pid.read_text()), signal.SIGKILL)
         shutil.rmtree(self.root, ignore_errors=True)
 
 
-_build: Build | None = None
+_started: list[Build] = []
 
 
-def start_build() -> None:
-    """Start the bundle build in the background (once)."""
-    global _build
-    if _build is None:
-        _build = Build()
+def build_root() -> Path:
+    """This test run's bundle folder: named by ``DRONEULATOR_TEST_RUN``, which conftest.py sets once per
+    run (pytest-xdist's workers inherit it), else by this process."""
+    run = os.environ.get("DRONEULATOR_TEST_RUN", str(os.getpid()))
+    return Path(tempfile.gettempdir()) / f"droneulator-bundle-{run}"
+
+
+def start_build() -> Build:
+    """The run's bundle build, started in the background by the first process to ask."""
+    build = Build(build_root())
+    try:
+        build.root.mkdir()
+    except FileExistsError:
+        return build  # another worker started it
+    build.start()
+    _started.append(build)  # kept: the process that started it reaps it
+    return build
 
 
 def stop_build() -> None:
-    """Stop a build still running and remove its folder (the suite's end)."""
-    global _build
-    if _build is not None:
-        _build.close()
-        _build = None
+    """Stop the run's build if it still runs and remove its folder (the suite's end, in the process that
+    owns the run: pytest-xdist's controller, or pytest itself)."""
+    Build(build_root()).close()
 
 
 @pytest.fixture(scope="module")
 def bundle() -> Path:
     """The bundle built with this interpreter's environment (started in the background when the tests
     were collected, or now); the path of its ``droneulator`` program."""
-    start_build()
-    assert _build is not None
-    code, output = _build.wait(timeout=1500)
+    build = start_build()
+    code, output = build.wait(timeout=1500)
     assert code == 0, f"package.sh failed:\n{output[-6000:]}"
     print(output.strip().splitlines()[-1])  # sizes and build time, for the test log
-    dist = _build.dist
+    dist = build.dist
     tarballs = list(dist.glob("droneulator-*-linux-*.tar.gz"))
     assert len(tarballs) == 1, tarballs
     with tarfile.open(tarballs[0]) as tar:
@@ -194,8 +221,19 @@ def test_demo_runs_from_the_bundle_in_a_clean_environment(bundle, tmp_path):
     # a 320x240 camera without shadows: the same processes, kernels and streams, a quarter of llvmpipe's work
     small = ['render.cameras=[{"name": "front", "width": 320, "height": 240}]', "render.shadows=false"]
     proc = subprocess.Popen(
-        [str(bundle), "run", "--scene", "default", "--demo", "--out", str(out), "--set", small[0], "--set",
-         small[1]],
+        [
+            str(bundle),
+            "run",
+            "--scene",
+            "default",
+            "--demo",
+            "--out",
+            str(out),
+            "--set",
+            small[0],
+            "--set",
+            small[1],
+        ],
         env=clean_env(home),
         cwd=tmp_path,
         stdout=subprocess.PIPE,

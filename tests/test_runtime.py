@@ -730,7 +730,9 @@ def test_a_fresh_run_sends_px4_its_sensor_data_without_a_boot_stall():
         gaps = np.diff(arrivals)
         assert arrivals[0] - t_connect < 0.1, run.log.tail()
         assert gaps[0] < BOOT_GRACE_S + 0.05  # the boot grace, then free-running sensor data
-        assert booted > 150  # about real time while PX4 boots (250 Hz)
+        # free-running while PX4 boots: about real time (250 Hz, ~500 in 2 s) on a quiet machine, 134 seen
+        # beside another test worker; a link that waited for PX4's first actuator message sends one
+        assert booted > 60
         # PX4's limit: simulator_mavlink logs a poll timeout after 1 s without data (a lockstep frame of the
         # 640x480 rig on a loaded 2-core machine has taken 0.58 s)
         assert gaps.max() < 0.9, (gaps.argmax(), gaps.max(), run.log.tail())
