@@ -222,7 +222,9 @@ def test_position_commands_over_zenoh_fly_droneulator_run_and_the_camera_pose_is
                     return _stamp(got["odom"][-1])
 
             t0 = now_ns()
-            while (tau := (now_ns() - t0) / 1e9) < 3.5:  # 100 Hz on the sim clock (realtime: wall clock)
+            sent: list[int] = []  # the odometry stamp each setpoint was computed for
+            while (tau := ((t_send := now_ns()) - t0) / 1e9) < 3.5:  # 100 Hz on the sim clock (realtime)
+                sent.append(t_send)
                 x, v, a = straight(tau)
                 pub.put(bytes(M.serialize(M.position_command(
                     0, "world", start + [x, 0.0, 0.0], [v, 0.0, 0.0], [a, 0.0, 0.0], 0.0, 0.0))))
@@ -239,6 +241,17 @@ def test_position_commands_over_zenoh_fly_droneulator_run_and_the_camera_pose_is
             assert 0.5 <= ev["t"] - last_setpoint <= 0.65
             with lock:
                 odom = [m for m in got["odom"] if t0 + 0.5e9 <= _stamp(m) <= t_last]
+            # judge the tracking, not this test's sender: a sample counts only where the setpoints of the
+            # 0.2 s before it came without a gap over 50 ms (a sender stalled on a loaded machine leaves the
+            # vehicle on an old setpoint while the reference moves on: a full suite run saw 0.18 m)
+            sends = np.array(sent)
+            stalled = np.diff(sends) > 50_000_000
+            gap_start, gap_end = sends[:-1][stalled], sends[1:][stalled]
+            odom = [
+                m
+                for m in odom
+                if not np.any((gap_end > _stamp(m) - 200_000_000) & (gap_start < _stamp(m)))
+            ]
             errors = [
                 np.linalg.norm(
                     np.array([m.pose.pose.position.x, m.pose.pose.position.y, m.pose.pose.position.z])
@@ -246,7 +259,7 @@ def test_position_commands_over_zenoh_fly_droneulator_run_and_the_camera_pose_is
                 )
                 for m in odom
             ]
-            assert len(errors) > 200 and max(errors) < 0.06, max(errors)
+            assert len(errors) > 150 and max(errors) < 0.06, (len(errors), max(errors))
             assert client.state()["mode"] == "hold"
             assert np.linalg.norm(np.array(client.state()["position"]) - start - [1.5, 0, 0]) < 0.05
 
