@@ -47,9 +47,8 @@ def pytest_collection_modifyitems(
     session: pytest.Session, config: pytest.Config, items: list[pytest.Item]
 ) -> None:
     """The bundle's test file runs last (the rest keep their order; with pytest-xdist's ``--dist loadfile
-    --no-loadscope-reorder`` the files go out in this order): the
-    bundle's build, started in the background when the tests are collected, then overlaps every other
-    test instead of being waited for."""
+    --no-loadscope-reorder`` the files go out in this order): the bundle's build, started in the
+    background when the tests are collected, then overlaps every other test instead of being waited for."""
     items.sort(key=lambda item: item.path.name == "test_bundle.py")
 
 

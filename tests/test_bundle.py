@@ -173,7 +173,7 @@ def start_build() -> Build:
     except FileExistsError:
         return build  # another worker started it
     build.start()
-    _started.append(build)  # kept: the process that started it reaps it
+    _started.append(build)  # its Popen stays referenced while the build runs (a dropped one warns)
     return build
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -18,6 +19,10 @@ import pytest
 
 from droneulator import frames as F
 from droneulator.config import load_config
+from droneulator.ros import messages
+from droneulator.ros.topics import TYPES, topic_names, vehicle_topics
+from droneulator.ros.zenoh_node import RosZenohNode, ZenohNodeConfig
+from droneulator.runtime.launch import free_port
 from droneulator.sensors.camera import intrinsics
 from droneulator.workflows.photogrammetry.capture import aim_pitch, run_config, tree_landmarks
 from droneulator.workflows.photogrammetry.colmap_model import (
@@ -39,7 +44,7 @@ from droneulator.workflows.photogrammetry.plan import (
     ring_sizes,
     segment_errors,
 )
-from droneulator.workflows.photogrammetry.record import TfBuffer
+from droneulator.workflows.photogrammetry.record import TfBuffer, TopicRecorder
 
 W, H = 320, 240
 K = intrinsics(
@@ -252,14 +257,6 @@ def test_a_view_takes_the_first_frame_whose_segmentation_and_depth_arrived_too()
     """A consumer that fell behind a hovering vehicle's stream finds some frames' companions gone
     (CI: a sweep job's segmentation image at the first frame after settling was already let go): the
     view is the first complete frame, over a real Zenoh session, decoded by rosbags."""
-    import time
-
-    from droneulator.ros import messages
-    from droneulator.ros.topics import TYPES, topic_names, vehicle_topics
-    from droneulator.ros.zenoh_node import RosZenohNode, ZenohNodeConfig
-    from droneulator.runtime.launch import free_port
-    from droneulator.workflows.photogrammetry.record import TopicRecorder
-
     names = {**vehicle_topics("droneulator"), **topic_names("droneulator", "front")}
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with (

@@ -165,6 +165,10 @@ def vehicle_streams(
     return {**{k: topics[k] for k in keys}, **cameras[camera]}, prefix
 
 
+#: colour frames, and segmentation and depth images, a recorder keeps (1.6 s at capture's default 10 Hz)
+_FRAMES_KEPT = 16
+
+
 class TopicRecorder:
     """Subscriptions to one vehicle's odometry, TF, colour camera and camera_info, decoded by rosbags.
 
@@ -182,7 +186,7 @@ class TopicRecorder:
         self._cond = threading.Condition()
         self._odom: deque[OdomSample] = deque(maxlen=6000)
         self._infos: dict[int, Any] = {}
-        self._frames: deque[Frame] = deque(maxlen=16)
+        self._frames: deque[Frame] = deque(maxlen=_FRAMES_KEPT)
         self._seg: dict[int, bytes] = {}
         self._depth: dict[int, Any] = {}
         handlers: dict[str, Callable[[Any], None]] = {
@@ -225,8 +229,8 @@ class TopicRecorder:
     def _keep(self, store: dict[int, Any], stamp: int, value: Any) -> None:
         with self._cond:
             store[stamp] = value
-            if len(store) > 16:
-                for k in sorted(store)[:-16]:
+            if len(store) > _FRAMES_KEPT:
+                for k in sorted(store)[:-_FRAMES_KEPT]:
                     del store[k]
             self._cond.notify_all()
 
