@@ -27,7 +27,7 @@ from droneulator.render.renderer import Renderer  # noqa: E402
 from droneulator.scenes import get_scene  # noqa: E402
 from droneulator.scenes.base import CollisionModel, MeshPart, Scene, SemanticClass  # noqa: E402
 from droneulator.sensors.camera import Camera, intrinsics  # noqa: E402
-from droneulator.workflows.rl.env import depth_strip  # noqa: E402
+from droneulator.workflows.rl.env import depth_strip, strips  # noqa: E402
 
 RL_CAMERA = CameraConfig("rl_depth", 128, 9, 90.0, far=10.0)
 
@@ -172,6 +172,26 @@ def test_centre_row_and_threads_agree(compared: dict) -> None:
     np.testing.assert_array_equal(single.centre_row(poses), row)
 
 
+@pytest.mark.parametrize("sectors", [32, 7, 1, 128])
+def test_centre_row_minima_are_the_centre_rows_sector_minima(compared: dict, sectors: int) -> None:
+    """The nearest return of each sector, cast with the sector's rays bounding each other, equals the
+    full centre row's sector minima exactly (NaN only where the whole sector has no return), with one
+    thread and with two; and the RL strip from it equals the strip of the whole row."""
+    caster: DepthCaster = compared["caster"]
+    poses = np.repeat(compared["poses"], 4, axis=0)
+    row = caster.centre_row(poses)
+    edges = np.linspace(0, 128, sectors + 1).round().astype(int)
+    expected = np.fmin.reduceat(row, edges[:-1], axis=1)
+    got = caster.centre_row_minima(poses, sectors)
+    assert got.shape == (len(poses), sectors) and got.dtype == np.float32
+    np.testing.assert_array_equal(got, expected)
+    single = DepthCaster(caster.scene, [RL_CAMERA], threads=1)
+    np.testing.assert_array_equal(single.centre_row_minima(poses, sectors), expected)
+    if sectors == 32:
+        strip = np.array([depth_strip(np.tile(r, (9, 1)), RL_CAMERA.far) for r in row])
+        np.testing.assert_array_equal(strips(got, RL_CAMERA.far), strip)
+
+
 # --------------------------------------------------------------------------- exact geometry
 def quad(corners: list, cls: SemanticClass, texture: str = "white", alpha: bool = False) -> MeshPart:
     corners = np.asarray(corners, dtype=np.float32)
@@ -252,6 +272,11 @@ def test_empty_scene_and_bad_input() -> None:
     caster = DepthCaster(sc, RL_CAMERA)
     assert np.isnan(caster.depth(pose(0, 0, 1, 0)[None])).all()
     assert caster.centre_row(np.zeros((0, 4, 4))).shape == (0, 128)
+    assert caster.centre_row_minima(np.zeros((0, 4, 4)), 32).shape == (0, 32)
+    assert np.isnan(caster.centre_row_minima(pose(0, 0, 1, 0)[None], 32)).all()
+    for sectors in (0, 129):
+        with pytest.raises(ValueError, match="sectors must be between 1 and the image width 128"):
+            caster.centre_row_minima(pose(0, 0, 1, 0)[None], sectors)
     with pytest.raises(ValueError, match=r"\(B, 4, 4\)"):
         caster.depth(pose(0, 0, 1, 0))
     with pytest.raises(ValueError, match=r"\(B, 4, 4\)"):

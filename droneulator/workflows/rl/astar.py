@@ -253,6 +253,35 @@ class OccupancyGrid:
         return DistanceField(self, goal)
 
 
+@numba.njit(cache=True, nogil=True)
+def _fill(
+    cells: np.ndarray, free: np.ndarray, ni: np.ndarray, nj: np.ndarray, clearance: np.ndarray, res: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """A distance field's values and reachability from the search's costs in cells (``inf``: not
+    reached): metres on free nodes (unreached ones 10 m beyond the farthest reached), and on occupied
+    nodes the value of their nearest free node plus the straight distance to it."""
+    nx, ny = cells.shape
+    dist = np.empty((nx, ny))
+    reachable = np.empty((nx, ny), dtype=np.bool_)
+    far = -np.inf
+    for i in range(nx):
+        for j in range(ny):
+            d = cells[i, j] * res
+            dist[i, j] = d
+            reachable[i, j] = math.isfinite(d)
+            if reachable[i, j] and d > far:
+                far = d
+    for i in range(nx):
+        for j in range(ny):
+            if not reachable[i, j]:
+                dist[i, j] = far + 10.0
+    values = np.empty((nx, ny))
+    for i in range(nx):
+        for j in range(ny):
+            values[i, j] = dist[i, j] if free[i, j] else dist[ni[i, j], nj[i, j]] + clearance[i, j]
+    return values, reachable
+
+
 class DistanceField:
     """Shortest-path distance (m) from every point of the grid to ``goal``, by one Dijkstra search.
 
@@ -276,14 +305,11 @@ class DistanceField:
             i, j = grid.node(self.goal)
             raise ValueError(f"goal {self.goal.tolist()} is not in free space (node {i}, {j} is occupied)")
         dist, nxt = _dijkstra(grid.move_masks, ny, np.array(sources, dtype=np.int64), np.array(cost))
-        dist, self.next = dist.reshape(nx, ny), nxt.reshape(nx, ny)
-        dist *= grid.resolution
-        self.reachable = np.isfinite(dist)
-        unreachable = float(dist[self.reachable].max()) + 10.0
-        dist[~self.reachable] = unreachable
-        ni, nj = grid.nearest
-        filled = np.where(grid.free, dist, dist[ni, nj] + grid.clearance_to_free)
-        self.values = np.ascontiguousarray(filled)
+        self.next = nxt.reshape(nx, ny)
+        self.values, self.reachable = _fill(
+            dist.reshape(nx, ny), grid.free, grid.nearest[0], grid.nearest[1], grid.clearance_to_free,
+            grid.resolution,
+        )  # fmt: skip
 
     def distance(self, p: np.ndarray) -> float:
         """Bilinearly interpolated distance to the goal from world point ``p``; off the grid, the

@@ -154,6 +154,10 @@ class RenderedRows:
         depth = np.stack([self.renderer.render(T, rgb=False)[CAMERA_NAME].depth for T in poses])
         return centre_rows(apply_models(self.models, depth, models, scales))
 
+    def strips(self, poses: np.ndarray, models: Sequence[str], scales: np.ndarray, clip: float) -> np.ndarray:
+        """The observation's depth strips (:func:`~droneulator.workflows.rl.env.strips`) at ``poses``."""
+        return strips(self.rows(poses, models, scales), clip)
+
     def close(self) -> None:
         self.renderer.close()
 
@@ -184,6 +188,14 @@ class CastRows:
         depth = self.caster.depth(poses[noisy])
         out[noisy] = centre_rows(apply_models(self.models, depth, picked, scales[noisy]))
         return out
+
+    def strips(self, poses: np.ndarray, models: Sequence[str], scales: np.ndarray, clip: float) -> np.ndarray:
+        """The observation's depth strips (:func:`~droneulator.workflows.rl.env.strips`) at ``poses``: for
+        ideal depth only each sector's nearest return is cast
+        (:meth:`~droneulator.render.raycast.DepthCaster.centre_row_minima`, the same strips sooner)."""
+        if all(self.models[m] is None for m in models):
+            return strips(self.caster.centre_row_minima(poses, STRIP_SAMPLES), clip)
+        return strips(self.rows(poses, models, scales), clip)
 
     def close(self) -> None:
         """Nothing to release: the caster holds arrays only."""
@@ -381,8 +393,8 @@ class VineyardNavVectorEnv(VectorEnv):
         for batch, sub in self._groups(idx):
             poses = transforms_from_poses(rows[sub, 0:3], rows[sub, 6:10])
             models = [self._depth_models[i] for i in sub]
-            depth = batch.depth.rows(poses, models, self._depth_scales[sub])
-            self._obs[sub, :STRIP_SAMPLES] = strips(depth, self.config.rl.depth_clip)
+            clip = self.config.rl.depth_clip
+            self._obs[sub, :STRIP_SAMPLES] = batch.depth.strips(poses, models, self._depth_scales[sub], clip)
 
     def _infos(self, rows: np.ndarray, t: np.ndarray, mask: np.ndarray) -> dict[str, Any]:
         """The single env's info keys as arrays (Gymnasium's vector form, every env present)."""
