@@ -6,7 +6,9 @@
      --num-envs``, the same settings);
    * with Ray: ``droneulator train --ray`` (RLlib PPO, its current API stack) on a local multi-node
      cluster of 1, 2 and 3 nodes (``ray.cluster_utils.Cluster``, one CPU each, as separate raylets),
-     one env runner per node, the worlds split between them; the learner in this process.
+     one env runner per node, the worlds split between them; the learner in this process;
+   * with Ray, SB3: ``droneulator train --ray ... --ray-backend sb3`` on the same clusters, SB3's PPO
+     here with the worlds split over one Ray actor per node (one round trip to every actor per step).
    Reported: env steps/s over the run and training wall time, Ray's overhead as the ratio to the run
    without Ray, and the env's own speed (random actions, no learning) for scale.
 2. Sweeps: ``droneulator sweep capture`` of ``--jobs`` small captures (160x120, 3 views, seeds 0..)
@@ -33,6 +35,8 @@ import numpy as np
 from _common import write
 
 ROOT = Path(__file__).resolve().parents[1]
+#: training on Ray: RLlib's env runners and learner, or SB3 here with the worlds in Ray actors
+LABELS = {"rllib": "RLlib PPO", "sb3": "SB3 PPO, worlds in Ray actors"}
 
 
 def env_speed(worlds: int, steps: int) -> float:
@@ -60,11 +64,14 @@ def without_ray(worlds: int, steps: int, out: Path) -> dict[str, Any]:
     return {"steps": s["steps"], "wall_s": s["wall_s"], "steps_per_s": s["steps_per_s"]}
 
 
-def with_ray(nodes: int, worlds: int, steps: int, out: Path) -> dict[str, Any]:
+def with_ray(nodes: int, worlds: int, steps: int, out: Path, backend: str) -> dict[str, Any]:
+    """PPO on a fresh local cluster of ``nodes`` raylets (one CPU each): RLlib with one env runner per
+    node (``backend="rllib"``), or SB3 here with the worlds in one Ray actor per node (``"sb3"``)."""
     import ray
     from ray.cluster_utils import Cluster
 
     from droneulator.workflows.rl.rllib import train_on_ray
+    from droneulator.workflows.rl.train import train
 
     t0 = time.perf_counter()
     cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
@@ -74,16 +81,23 @@ def with_ray(nodes: int, worlds: int, steps: int, out: Path) -> dict[str, Any]:
     start_s = time.perf_counter() - t0
     try:
         t1 = time.perf_counter()
-        s = train_on_ray(
-            None, out, address=cluster.address, steps=steps, env_runners=nodes,
-            num_envs=worlds // nodes, progress=False,
-        )  # fmt: skip
+        if backend == "rllib":
+            s = train_on_ray(
+                None, out, address=cluster.address, steps=steps, env_runners=nodes,
+                num_envs=worlds // nodes, progress=False,
+            )  # fmt: skip
+        else:
+            s = train(
+                None, out, steps=steps, n_envs=worlds, algo="ppo", vec="ray", progress=False,
+                ray_address=cluster.address, actors=nodes,
+            )  # fmt: skip
         total_s = time.perf_counter() - t1
     finally:
         if ray.is_initialized():
             ray.shutdown()
         cluster.shutdown()
     return {
+        "backend": backend,
         "nodes": s["ray_nodes"],
         "env_runners": nodes,
         "worlds_per_runner": worlds // nodes,
@@ -115,6 +129,10 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=40_960, help="env steps per training run")
     ap.add_argument("--worlds", type=int, default=96, help="batched worlds in all (split over runners)")
     ap.add_argument("--nodes", type=int, nargs="+", default=[1, 2, 3])
+    ap.add_argument(
+        "--backends", nargs="+", choices=tuple(LABELS), default=list(LABELS), help="training on Ray: which"
+    )
+    ap.add_argument("--no-sweeps", action="store_true", help="training figures only")
     ap.add_argument("--jobs", type=int, default=4, help="capture jobs per sweep")
     ap.add_argument("--quick", action="store_true", help="smoke run: few steps, 2 jobs")
     ap.add_argument("--output", default=None)
@@ -129,17 +147,18 @@ def main() -> None:
         print(f"no Ray (SB3 PPO): {base['steps_per_s']:,.0f} steps/s, {base['wall_s']:.1f} s", flush=True)
         runs = []
         for n in args.nodes:
-            r = with_ray(n, args.worlds, args.steps, tmp / f"ray{n}")
-            r["ratio_to_no_ray"] = r["steps_per_s"] / base["steps_per_s"]
-            runs.append(r)
-            print(
-                f"Ray, {n} node(s) (RLlib PPO): {r['steps_per_s']:,.0f} steps/s, {r['wall_s']:.1f} s "
-                f"({r['ratio_to_no_ray']:.2f}x no Ray; cluster start {r['cluster_start_s']:.1f} s, build and "
-                f"held-out check {r['build_and_eval_s']:.1f} s)",
-                flush=True,
-            )
+            for backend in args.backends:
+                r = with_ray(n, args.worlds, args.steps, tmp / f"{backend}{n}", backend)
+                r["ratio_to_no_ray"] = r["steps_per_s"] / base["steps_per_s"]
+                runs.append(r)
+                print(
+                    f"Ray, {n} node(s) ({LABELS[backend]}): {r['steps_per_s']:,.0f} steps/s, "
+                    f"{r['wall_s']:.1f} s ({r['ratio_to_no_ray']:.2f}x no Ray; cluster start "
+                    f"{r['cluster_start_s']:.1f} s, build and held-out check {r['build_and_eval_s']:.1f} s)",
+                    flush=True,
+                )
         sweeps = []
-        for workers in (1, 2):
+        for workers in () if args.no_sweeps else (1, 2):
             s = sweep_rate(workers, args.jobs, tmp / f"sweep{workers}")
             sweeps.append(s)
             print(f"sweep, {workers} worker(s): {s['jobs']} jobs in {s['wall_s']:.0f} s, "
@@ -149,8 +168,8 @@ def main() -> None:
     print("\n| run | env steps/s | training wall (s) | x no Ray |\n|---|---|---|---|")
     print(f"| SB3 PPO, no Ray | {base['steps_per_s']:,.0f} | {base['wall_s']:.1f} | 1.00 |")
     for r in runs:
-        print(f"| RLlib PPO, {r['nodes']} node(s) | {r['steps_per_s']:,.0f} | {r['wall_s']:.1f} | "
-              f"{r['ratio_to_no_ray']:.2f} |")  # fmt: skip
+        print(f"| {LABELS[r['backend']]}, {r['nodes']} node(s) | {r['steps_per_s']:,.0f} | "
+              f"{r['wall_s']:.1f} | {r['ratio_to_no_ray']:.2f} |")  # fmt: skip
     write(
         "scale",
         {

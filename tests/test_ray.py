@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import ray
 from ray.cluster_utils import Cluster
@@ -21,8 +22,10 @@ from ray.cluster_utils import Cluster
 from droneulator.cli import main
 from droneulator.config import load_config
 from droneulator.runtime.cluster import ClusterError, check_address, connect
+from droneulator.workflows.rl.env import env_config
+from droneulator.workflows.rl.ray_vec import RayVecEnv
 from droneulator.workflows.rl.rllib import algorithm_config, train_on_ray
-from droneulator.workflows.rl.train import PPO_HYPERPARAMETERS, SAC_HYPERPARAMETERS
+from droneulator.workflows.rl.train import PPO_HYPERPARAMETERS, SAC_HYPERPARAMETERS, make_vec_env
 from droneulator.workflows.sweep import Job, make_jobs, parse_seeds
 
 ENV = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -144,6 +147,70 @@ def test_a_sweep_interrupted_and_run_again_does_not_redo_finished_jobs(cluster: 
     assert "tree_inspection-seed1-views3" in again.stdout  # the table
 
 
+@pytest.mark.slow
+def test_sb3_worlds_in_ray_actors_equal_the_in_process_env_and_survive_a_killed_actor(
+    cluster: Any, tmp_path: Path
+) -> None:
+    """``--ray-backend sb3``: 16 worlds in two Ray actors (one on each node) step exactly as the 16 worlds
+    of the in-process env with the same seed and actions, autoresets included; a SIGKILLed actor is started
+    again, its worlds' episodes end truncated at their last observation and new ones begin, the others
+    go on untouched; and a short PPO run through the command writes its model, logs and summary."""
+    cfg = env_config(load_config())
+    with connect(cluster.address):
+        remote = RayVecEnv(cfg, 16, 2)
+        local = make_vec_env(cfg, 16, "native").venv
+        try:
+            assert len({node for _, node in remote.where()}) == 2
+            remote.seed(3)
+            local.seed(3)
+            np.testing.assert_array_equal(remote.reset(), local.reset())
+            rng = np.random.default_rng(0)
+            ended = 0
+            for _ in range(250):
+                actions = rng.uniform(-1, 1, (16, 2)).astype(np.float32)
+                remote.step_async(actions)
+                local.step_async(actions)
+                got, want = remote.step_wait(), local.step_wait()
+                for a, b in zip(got[:3], want[:3], strict=True):
+                    np.testing.assert_array_equal(a, b)
+                for a, b in zip(got[3], want[3], strict=True):
+                    assert a.keys() == b.keys() and a["termination"] == b["termination"]
+                    if "terminal_observation" in b:
+                        np.testing.assert_array_equal(a["terminal_observation"], b["terminal_observation"])
+                ended += int(want[2].sum())
+            assert ended > 0  # autoresets happened on the way
+            before = got[0]
+            pid = remote.where()[1][0]
+            os.kill(pid, signal.SIGKILL)
+            actions = rng.uniform(-1, 1, (16, 2)).astype(np.float32)
+            remote.step_async(actions)
+            local.step_async(actions)
+            obs, rewards, dones, infos = remote.step_wait()
+            want = local.step_wait()
+            assert remote.restarts == 1 and remote.where()[1][0] != pid
+            assert dones[8:].all() and (rewards[8:] == 0).all()
+            for i in range(8, 16):
+                assert infos[i]["TimeLimit.truncated"] and infos[i]["termination"] == "env_restarted"
+                np.testing.assert_array_equal(infos[i]["terminal_observation"], before[i])
+            np.testing.assert_array_equal(obs[:8], want[0][:8])  # the other actor's worlds go on
+            assert not np.array_equal(obs[8:], before[8:])  # new episodes
+        finally:
+            remote.close()
+            local.close()
+
+    out = tmp_path / "sb3"
+    code = main([
+        "train", "--ray", cluster.address, "--ray-backend", "sb3", "--env-runners", "2", "--num-envs", "16",
+        "--algo", "ppo", "--steps", "1024", "--out", str(out), "--no-progress",
+    ])  # fmt: skip
+    assert code == 0
+    summary = json.loads((out / "train_summary.json").read_text())
+    assert summary["vec"] == "ray" and summary["ray_actors"] == 2 and summary["ray_nodes"] == 2
+    assert summary["steps"] >= 1024 and summary["actor_restarts"] == 0
+    assert (out / "model.zip").is_file() and list((out / "tb").rglob("events.out.tfevents.*"))
+    assert not ray.is_initialized()
+
+
 @pytest.mark.parametrize("algo", ["ppo", "sac"])
 def test_both_algorithms_pass_rllibs_own_validation_with_the_sb3_runs_settings(algo: str) -> None:
     """RLlib validates each config as it builds it (SAC's rollouts must hold its n-step return); the
@@ -193,6 +260,14 @@ def test_bad_ray_settings_are_one_line_errors(tmp_path: Path, capsys: pytest.Cap
         (["train", "--ray", "nowhere"], "HOST:PORT"),
         (["train", "--ray", "local", "--resume", "--out", str(tmp_path / "none")], "no checkpoint"),
         (["train", "--ray", "local", "--out", str(tmp_path / "run")], "holds a run already"),
+        (
+            ["train", "--ray", "local", "--ray-backend", "sb3", "--resume"],
+            "--resume: not with --ray-backend sb3",
+        ),
+        (
+            ["train", "--ray", "local", "--ray-backend", "sb3", "--num-envs", "4", "--env-runners", "5"],
+            "--env-runners must be between 1 and --num-envs (4)",
+        ),
         (["sweep", "plan", "--out", str(tmp_path / "s"), "--reconstruct"], "goes with sweep capture"),
         (["sweep", "capture", "--out", str(tmp_path / "s"), "--seeds", "9-2"], "ends before it starts"),
         (["sweep", "plan", "--out", str(tmp_path / "s"), "--set", "seed=1"], "no --config or --set"),

@@ -20,8 +20,9 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--num-envs B batched worlds in one process. Writes the final model, checkpoints, "
         "monitor.csv, progress.csv, TensorBoard logs (tb/), config.json and train_summary.json to --out. "
         "With --ray: PPO (or SAC) on Ray RLlib, --env-runners runners of --num-envs worlds each, placed "
-        "by Ray over the cluster; writes checkpoint/, progress.csv, tb/ and train_summary.json "
-        "(see docs/cluster.md).",
+        "by Ray over the cluster; writes checkpoint/, progress.csv, tb/ and train_summary.json; with "
+        "--ray-backend sb3, Stable-Baselines3 here with the --num-envs worlds split over --env-runners Ray "
+        "actors, writing what a run without --ray writes (see docs/cluster.md).",
     )
     p.add_argument(
         "--algo",
@@ -75,7 +76,16 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     ray = p.add_argument_group("on a Ray cluster (the ray extra)")
     add_ray_arg(ray, "train on Ray RLlib")
-    ray.add_argument("--env-runners", type=int, default=1, metavar="N", help="RLlib env runners (default 1)")
+    ray.add_argument(
+        "--ray-backend",
+        choices=("rllib", "sb3"),
+        default="rllib",
+        help="rllib (default): RLlib's env runners and learner; sb3: Stable-Baselines3 here, its "
+        "--num-envs worlds split over --env-runners Ray actors (faster on one machine: docs/cluster.md)",
+    )
+    ray.add_argument(
+        "--env-runners", type=int, default=1, metavar="N", help="RLlib env runners / SB3's actors (default 1)"
+    )
     ray.add_argument(
         "--learners",
         type=int,
@@ -141,6 +151,8 @@ def _train_on_ray(args: argparse.Namespace, cfg: SimConfig) -> int:
     from droneulator.workflows.rl.rllib import train_on_ray
 
     check_address(args.ray)
+    if args.ray_backend == "sb3":
+        return _train_sb3_on_ray(args, cfg)
     ignored = [
         name
         for name, given in (
@@ -175,5 +187,40 @@ def _train_on_ray(args: argparse.Namespace, cfg: SimConfig) -> int:
         f"{summary['num_envs_per_env_runner']} worlds on "
         f"{summary['ray_nodes']} Ray node(s)); {summary['held_out_successes']}/10 held-out episodes reached "
         f"the goal; checkpoint: {summary['checkpoint']}"
+    )
+    return 0
+
+
+def _train_sb3_on_ray(args: argparse.Namespace, cfg: SimConfig) -> int:
+    """``--ray-backend sb3``: Stable-Baselines3 here, the batched worlds in Ray actors."""
+    from droneulator.workflows.rl.train import train
+
+    ignored = [
+        name
+        for name, given in (("--resume", args.resume), ("--learners", bool(args.learners)),
+                            ("--envs", args.envs != 1), ("--vec", args.vec != "auto"))
+        if given
+    ]  # fmt: skip
+    if ignored:
+        raise ValueError(f"{', '.join(ignored)}: not with --ray-backend sb3 (see droneulator train --help)")
+    algo = args.algo or "ppo"
+    overrides = {} if args.learning_starts is None else {"learning_starts": args.learning_starts}
+    if overrides and algo != "sac":
+        raise ValueError("--learning-starts is a SAC setting, not PPO's")
+    worlds = args.num_envs or 64
+    if not 1 <= args.env_runners <= worlds:
+        raise ValueError(f"--env-runners must be between 1 and --num-envs ({worlds}), got {args.env_runners}")
+    summary = train(
+        cfg, Path(args.out), steps=args.steps, seed=args.seed, n_envs=worlds, algo=algo, vec="ray",
+        depth=args.depth, stop_at=args.stop_at,
+        check_every=args.check_every or (10_000 if algo == "sac" else 100_000),
+        checkpoint_every=args.checkpoint_every, threads=args.threads, progress=not args.no_progress,
+        overrides=overrides, ray_address=args.ray, actors=args.env_runners,
+    )  # fmt: skip
+    print(
+        f"trained {summary['steps']} steps in {summary['wall_s']:.0f} s "
+        f"({summary['steps_per_s']:.0f} steps/s, {worlds} worlds in {summary['ray_actors']} Ray actor(s) "
+        f"on {summary['ray_nodes']} node(s), {summary['actor_restarts']} restarted); "
+        f"model: {summary['model']}"
     )
     return 0

@@ -25,6 +25,7 @@ but needs about 60 times the transitions.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
@@ -41,7 +42,7 @@ from droneulator.workflows.rl import ENV_ID
 from droneulator.workflows.rl.env import env_config
 
 ALGORITHMS = ("sac", "ppo")
-VEC_KINDS = ("auto", "dummy", "subproc", "native")
+VEC_KINDS = ("auto", "dummy", "subproc", "native", "ray")
 
 #: SAC hyperparameters (Stable-Baselines3 names) for ~50k environment steps
 SAC_HYPERPARAMETERS: dict[str, Any] = {
@@ -92,15 +93,24 @@ def _make_env(config: dict[str, Any], single_thread: bool = False) -> Any:
 
 
 def make_vec_env(
-    cfg: SimConfig, n_envs: int = 1, vec: str = "auto", monitor: Path | None = None, depth: str = "raycast"
+    cfg: SimConfig,
+    n_envs: int = 1,
+    vec: str = "auto",
+    monitor: Path | None = None,
+    depth: str = "raycast",
+    actors: int = 1,
 ) -> Any:
-    """``n_envs`` environments in a DummyVecEnv (one, or ``vec="dummy"``), a SubprocVecEnv, or the batched
-    env (``vec="native"``, ``depth`` from ray casting or the renderer), wrapped in a VecMonitor writing
-    ``monitor`` (CSV) when given."""
+    """``n_envs`` environments in a DummyVecEnv (one, or ``vec="dummy"``), a SubprocVecEnv, the batched
+    env (``vec="native"``, ``depth`` from ray casting or the renderer), or batched envs in ``actors`` Ray
+    actors (``vec="ray"``, Ray connected), wrapped in a VecMonitor writing ``monitor`` (CSV) when given."""
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecMonitor
 
     kind = ("subproc" if n_envs > 1 else "dummy") if vec == "auto" else vec
-    if kind == "native":
+    if kind == "ray":
+        from droneulator.workflows.rl.ray_vec import RayVecEnv
+
+        venv = RayVecEnv(cfg, n_envs, actors, depth)
+    elif kind == "native":
         from gymnasium.vector import AutoresetMode
 
         from droneulator.workflows.rl.sb3 import SB3VectorEnv
@@ -227,8 +237,13 @@ def train(
     stop_at: float | None = None,
     check_every: int = 100_000,
     max_wall_s: float | None = None,
+    ray_address: str | None = None,
+    actors: int = 1,
 ) -> dict[str, Any]:
     """Train ``algo`` for ``steps`` environment steps; returns (and writes) the training summary.
+
+    ``vec="ray"``: the ``n_envs`` batched worlds are split over ``actors`` Ray actors on the cluster at
+    ``ray_address`` (:class:`~droneulator.workflows.rl.ray_vec.RayVecEnv`), the learner here.
 
     ``overrides`` replace entries of :data:`SAC_HYPERPARAMETERS` or :data:`PPO_HYPERPARAMETERS` (e.g.
     ``learning_starts`` for a short run). Environment ``i`` is first reset with seed ``seed + i``.
@@ -238,9 +253,6 @@ def train(
     ``max_wall_s`` (with ``stop_at``) ends it after that much training time in any case.
     """
     import torch
-    from stable_baselines3 import PPO, SAC
-    from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
-    from stable_baselines3.common.logger import Logger, make_output_format
 
     if algo not in ALGORITHMS:
         raise ValueError(f"unknown algorithm {algo!r}; available: {', '.join(ALGORITHMS)}")
@@ -250,6 +262,11 @@ def train(
         raise ValueError(f"stop_at must be a share in (0, 1], got {stop_at}")
     if vec not in VEC_KINDS:
         raise ValueError(f"vec must be one of {', '.join(VEC_KINDS)}, got {vec!r}")
+    on_ray = vec == "ray"
+    if on_ray != (ray_address is not None):
+        raise ValueError("vec='ray' and ray_address go together")
+    if on_ray and not 1 <= actors <= n_envs:
+        raise ValueError(f"need 1 to {n_envs} Ray actors (one world each at least), got {actors}")
     cfg = env_config(cfg)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -260,13 +277,35 @@ def train(
     if unknown:
         raise ValueError(f"unknown {algo} hyperparameters: {', '.join(sorted(unknown))}")
     hyper = {**defaults, **(overrides or {})}
-    if algo == "sac" and vec == "native" and "gradient_steps" not in (overrides or {}):
+    if algo == "sac" and vec in ("native", "ray") and "gradient_steps" not in (overrides or {}):
         hyper["gradient_steps"] = n_envs  # one update per transition, as one env with train_freq 1
     if algo == "ppo":  # a minibatch never exceeds the rollout: B x n_steps transitions
         hyper["batch_size"] = min(hyper["batch_size"], hyper["n_steps"] * n_envs)
     (out / "config.json").write_text(json.dumps(to_dict(cfg), indent=2))
 
-    venv = make_vec_env(cfg, n_envs, vec, monitor=out / "monitor.csv", depth=depth)
+    with contextlib.ExitStack() as stack:
+        if on_ray:
+            from droneulator.runtime.cluster import connect
+
+            stack.enter_context(connect(str(ray_address)))
+        return _learn(
+            cfg, out, steps, seed, n_envs, algo, vec, checkpoint_every, threads, progress, hyper, depth,
+            stop_at, check_every, max_wall_s, actors,
+        )  # fmt: skip
+
+
+def _learn(
+    cfg: SimConfig, out: Path, steps: int, seed: int, n_envs: int, algo: str, vec: str, checkpoint_every: int,
+    threads: int, progress: bool, hyper: dict[str, Any], depth: str, stop_at: float | None, check_every: int,
+    max_wall_s: float | None, actors: int,
+) -> dict[str, Any]:  # fmt: skip
+    """:func:`train`'s learning, once its settings are checked (and Ray connected for ``vec="ray"``)."""
+    from stable_baselines3 import PPO, SAC
+    from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
+    from stable_baselines3.common.logger import Logger, make_output_format
+
+    venv = make_vec_env(cfg, n_envs, vec, monitor=out / "monitor.csv", depth=depth, actors=actors)
+    restarts, nodes = 0, None
     try:
         cls = SAC if algo == "sac" else PPO
         model = cls("MlpPolicy", venv, seed=seed, device="cpu", verbose=0, **hyper)
@@ -289,6 +328,9 @@ def train(
         wall = time.perf_counter() - t0 - (check.check_s if check is not None else 0.0)
         model.save(out / "model.zip")
         model.logger.close()
+        if vec == "ray":
+            restarts = venv.venv.restarts
+            nodes = len({node for _, node in venv.venv.where()})
     finally:
         venv.close()
     summary = {
@@ -301,13 +343,15 @@ def train(
         "sim_s": model.num_timesteps / cfg.render.camera_hz,
         "n_envs": n_envs,
         "vec": ("subproc" if n_envs > 1 else "dummy") if vec == "auto" else vec,
-        "depth": depth if vec == "native" else "render",
+        "depth": depth if vec in ("native", "ray") else "render",
         "torch_threads": threads,
         "seed": seed,
         "train_seeds": [seed + i for i in range(n_envs)],
         "hyperparameters": hyper,
         "model": str(out / "model.zip"),
     }
+    if vec == "ray":
+        summary.update({"ray_actors": actors, "ray_nodes": nodes, "actor_restarts": restarts})
     if check is not None:
         summary["stop_at"] = stop_at
         summary["checks"] = check.history
