@@ -388,7 +388,10 @@ def test_run_record_keeps_every_message_of_a_10s_lockstep_run(tmp_path: Path) ->
     camera = [t for t, _r, _m in got[f"/{NS}/front/depth/image_raw"]]
     assert camera[0] <= round(1e9 / 30) and np.all(np.diff(camera) == round(1e9 / 30))
     for key in ("front/color/image_raw/compressed", "front/segmentation/image_raw/compressed"):
-        assert [t for t, _r, _m in got[f"/{NS}/{key}"]] == camera
+        # every frame's images, but the SIGINT may fall between the last frame's images
+        stamps = [t for t, _r, _m in got[f"/{NS}/{key}"]]
+        n = min(len(stamps), len(camera))
+        assert stamps[:n] == camera[:n] and abs(len(stamps) - len(camera)) <= 1
     assert state[-1] - state[0] >= 10e9
     with Reader(out) as rb:
         assert rb.message_count == sum(len(v) for v in got.values())

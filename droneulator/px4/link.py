@@ -391,6 +391,8 @@ class PX4Link:
         self._catching_up = False
         self._stale_since = 0.0
         self._lockstep = False
+        #: simulation time (ns) at which this connection's PX4 began lockstep (None: not yet)
+        self.lockstep_started_ns: int | None = None
         self._armed = False
         self._free_cmd: tuple[bool, np.ndarray | None] | None = None
         self._force_step = False
@@ -668,6 +670,7 @@ class PX4Link:
                 if not self._lockstep:
                     log.info("PX4 lockstep started at t=%.3f s: one step per actuator message", self.world.t)
                     self._lockstep = True
+                    self.lockstep_started_ns = self.world.t_ns
                     self._pace_wall, self._pace_sim = time.monotonic(), self.world.t_ns
                 # it answers the batch stamped time_usec (PX4's lockstep clock is the HIL_SENSOR time):
                 # one that answers an older batch than the latest sent is PX4 catching up on sensor data
