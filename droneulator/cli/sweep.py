@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 from pathlib import Path
 
@@ -75,6 +76,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     jobs = make_jobs(args.kind, scenes, parse_seeds(args.seeds), views)
     settings = SweepSettings(args.config, args.overrides, args.reconstruct, args.goals)
     out = Path(args.out)
+    # Ctrl-C (SIGINT) stops the sweep as described even when it was started in the background, where
+    # the shell leaves SIGINT ignored (the simulator's commands install their handlers the same way)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         rows = sweep(
             jobs,

@@ -288,11 +288,7 @@ def _on_ray(
         pending = {task.remote(job, settings, sweep_id): job for job in todo}
         try:
             while pending:
-                # short waits: a Ctrl-C is acted on between them, not only when a job ends (a wait that
-                # blocks in Ray's core until then has let a SIGINT go unanswered for a whole job)
-                ready, _ = ray.wait(list(pending), num_returns=1, timeout=0.25)
-                if not ready:
-                    continue
+                ready, _ = ray.wait(list(pending), num_returns=1)
                 job = pending.pop(ready[0])
                 try:
                     summary, files = ray.get(ready[0])
