@@ -35,6 +35,7 @@ from droneulator.runtime.ipc import (
     Publish,
     Published,
     hub_connect,
+    wait_for_start,
 )
 
 log = logging.getLogger("droneulator.bridge")
@@ -110,6 +111,7 @@ def main() -> None:
     signal.signal(signal.SIGINT, lambda *_: os._exit(0))
     cfg = from_dict(SimConfig, json.loads(os.environ[ENV_CONFIG]))
     try:
+        wait_for_start()
         conn, _ = hub_connect("bridge")
     except HubGoneError as e:
         log.error("%s; exiting", e)
