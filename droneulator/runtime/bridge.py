@@ -35,7 +35,6 @@ from droneulator.runtime.ipc import (
     Publish,
     Published,
     hub_connect,
-    wait_for_start,
 )
 
 log = logging.getLogger("droneulator.bridge")
@@ -111,7 +110,6 @@ def main() -> None:
     signal.signal(signal.SIGINT, lambda *_: os._exit(0))
     cfg = from_dict(SimConfig, json.loads(os.environ[ENV_CONFIG]))
     try:
-        wait_for_start()
         conn, _ = hub_connect("bridge")
     except HubGoneError as e:
         log.error("%s; exiting", e)

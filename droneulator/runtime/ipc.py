@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import os
 import secrets
-import time
 from dataclasses import dataclass, field
 from multiprocessing import resource_tracker
 from multiprocessing.connection import Client, Connection
@@ -38,11 +37,6 @@ ENV_AUTHKEY = "DRONEULATOR_HUB_AUTHKEY"
 ENV_RING = "DRONEULATOR_FRAME_RING"
 ENV_CONFIG = "DRONEULATOR_CONFIG_JSON"
 ENV_ZENOH = "DRONEULATOR_ZENOH_ENDPOINT"
-#: a file the supervisor creates once the hub listens and the run may begin: the render server and the
-#: bridge start beside the dynamics server and wait for it before they connect (see wait_for_start)
-ENV_GATE = "DRONEULATOR_START_GATE"
-#: how long a child waits for the gate before it gives up
-GATE_TIMEOUT_S = 120.0
 PROTOCOL_VERSION = 5
 
 
@@ -184,23 +178,6 @@ class FrameRing:
 
 class HubGoneError(ConnectionError):
     """The dynamics server's hub is not there (it stopped, or the run is shutting down)."""
-
-
-def wait_for_start(timeout: float = GATE_TIMEOUT_S) -> None:
-    """Wait until the supervisor opens the start gate (``ENV_GATE``; none set: return at once).
-
-    The render server and the bridge are started together with the dynamics server, so that their
-    imports and set-up overlap its start, but they connect to its hub only once the supervisor says so:
-    then, in lockstep, the clock cannot start before whatever the supervisor runs first (a recorder
-    subscribing) is ready."""
-    gate = os.environ.get(ENV_GATE)
-    if not gate:
-        return
-    deadline = time.monotonic() + timeout
-    while not os.path.exists(gate):
-        if time.monotonic() > deadline:
-            raise HubGoneError(f"the run did not start within {timeout:g} s (no start gate {gate})")
-        time.sleep(0.02)
 
 
 def hub_connect(

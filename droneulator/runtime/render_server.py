@@ -30,7 +30,6 @@ from droneulator.runtime.ipc import (
     Render,
     Rendered,
     hub_connect,
-    wait_for_start,
 )
 from droneulator.scenes import get_scene
 from droneulator.sensors.camera_models import CameraModel, fleet_camera_models
@@ -39,25 +38,16 @@ log = logging.getLogger("droneulator.render")
 
 
 def serve(cfg: SimConfig) -> None:
+    conn, welcome = hub_connect("renderer")
     rigs = cfg.camera_rigs()
+    ring = FrameRing(os.environ[ENV_RING], rigs, cfg.runtime.frame_slots)
 
     def make(scene: str, seed: int, vegetation: float) -> tuple[Renderer, dict[str, dict[str, CameraModel]]]:
         """The renderer and the cameras' realism models (reseeded with the scene, as the world's are)."""
         renderer = fleet_renderer(get_scene(scene, seed, vegetation), cfg)
         return renderer, fleet_camera_models(cfg, seed)
 
-    # the configured scene is drawn while the dynamics server starts; the hub names the scene it flies
-    renderer, models = make(cfg.scene, cfg.seed, cfg.vegetation)
-    try:
-        wait_for_start()
-        conn, welcome = hub_connect("renderer")
-    except BaseException:
-        renderer.close()
-        raise
-    ring = FrameRing(os.environ[ENV_RING], rigs, cfg.runtime.frame_slots)
-    if (welcome.scene, welcome.seed) != (cfg.scene, cfg.seed):  # a restart after a scene change
-        renderer.close()
-        renderer, models = make(welcome.scene, welcome.seed, cfg.vegetation)
+    renderer, models = make(welcome.scene, welcome.seed, cfg.vegetation)
     loaded = (welcome.scene, welcome.seed, cfg.vegetation)
     log.info(
         "render server ready: %s, %s",

@@ -1,6 +1,5 @@
 """``droneulator run``: start the dynamics server, the render server and the bridge as child
-processes and keep them running. The three start together; the render server and the bridge connect
-to the dynamics server once it listens (a start gate, :func:`~droneulator.runtime.ipc.wait_for_start`).
+processes and keep them running.
 
 Crash policy: the dynamics server owns the flight, so if it dies the run stops with its error.
 If the render server or the bridge dies, its last error lines are reported and it is restarted
@@ -29,15 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from droneulator.config import SimConfig, to_dict
-from droneulator.runtime.ipc import (
-    ENV_ADDRESS,
-    ENV_AUTHKEY,
-    ENV_CONFIG,
-    ENV_GATE,
-    ENV_RING,
-    ENV_ZENOH,
-    FrameRing,
-)
+from droneulator.runtime.ipc import ENV_ADDRESS, ENV_AUTHKEY, ENV_CONFIG, ENV_RING, ENV_ZENOH, FrameRing
 from droneulator.runtime.spawn import child_command
 
 log = logging.getLogger("droneulator.run")
@@ -74,8 +65,6 @@ class Supervisor:
         self.address = str(Path(self.tmp.name) / "hub.sock")
         #: the dynamics server's Zenoh session listens here for the bridge (private to this run)
         self.zenoh_endpoint = f"unixsock-stream/{Path(self.tmp.name) / 'zenoh.sock'}"
-        #: made once the hub listens and ``on_hub_ready`` ran: then the render server and the bridge connect
-        self.gate = Path(self.tmp.name) / "start.gate"
         self.authkey = secrets.token_hex(16)
         self.ring = FrameRing(FrameRing.new_name(), cfg.camera_rigs(), cfg.runtime.frame_slots, create=True)
         self.children = {n: Child(n, m) for n, m in CHILDREN.items()}
@@ -92,7 +81,6 @@ class Supervisor:
             ENV_AUTHKEY: self.authkey,
             ENV_RING: self.ring.shm.name,
             ENV_ZENOH: self.zenoh_endpoint,
-            ENV_GATE: str(self.gate),
             ENV_CONFIG: json.dumps(to_dict(self.cfg)),
             "PYTHONUNBUFFERED": "1",
         }
@@ -123,19 +111,15 @@ class Supervisor:
                     print(f"[{child.name}] {line}", flush=True)
 
     def start(self, on_hub_ready: Callable[[], None] | None = None) -> None:
-        """Start the dynamics server, the render server and the bridge; the latter two import and set up
-        beside the dynamics server and connect to it once it listens and the start gate opens.
+        """Start the dynamics server, then (once it listens) the render server and the bridge.
 
-        ``on_hub_ready`` runs before the gate opens, e.g. to subscribe a recorder: the dynamics server's
-        Zenoh session is up, and in lockstep its clock has not started (it waits for the render server and
-        the bridge). Raises RuntimeError with a one-line message if the dynamics server exits while
-        starting; its output so far (a traceback, say) goes to a log file the message names, not to the
-        terminal."""
+        ``on_hub_ready`` runs in between, e.g. to subscribe a recorder: the dynamics server's Zenoh session
+        is up, and in lockstep its clock has not started (it waits for the render server and the bridge).
+        Raises RuntimeError with a one-line message if the dynamics server exits while starting; its
+        output so far (a traceback, say) goes to a log file the message names, not to the terminal."""
         self._held = []
         dynamics = self.children["dynamics"]
         self._spawn(dynamics)
-        self._spawn(self.children["render"])
-        self._spawn(self.children["bridge"])
         deadline = time.monotonic() + 30
         while not os.path.exists(self.address):  # the hub socket exists once the server is listening
             proc = dynamics.proc
@@ -149,7 +133,8 @@ class Supervisor:
         self._release_held()
         if on_hub_ready is not None:
             on_hub_ready()
-        self.gate.touch()
+        self._spawn(self.children["render"])
+        self._spawn(self.children["bridge"])
 
     def _release_held(self) -> None:
         with self._echo_lock:
