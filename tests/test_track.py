@@ -232,7 +232,9 @@ def test_position_commands_over_zenoh_fly_droneulator_run_and_the_camera_pose_is
             t_last = now_ns()
             st = client.state()
             episode_offset_ns = st["stamp_ns"] - round(st["t"] * 1e9)  # ROS stamp of episode t = 0
-            last_setpoint = (t_last - episode_offset_ns) / 1e9
+            # the last setpoint was computed for the odometry stamp sent[-1] and reached the vehicle no sooner
+            # (t_last, read after the stream, may be a frame or two later)
+            last_setpoint = (sent[-1] - episode_offset_ns) / 1e9
             # the timeout after the stream ends (a stall of this test's sender on a loaded machine may
             # have raised one while it streamed: the vehicle held, then tracked the next setpoint)
             ev = client.wait_for_event("track_timeout", timeout=10)
