@@ -317,6 +317,44 @@ def test_replay_reproduces_stamps_in_order_at_the_recorded_rate(tmp_path: Path) 
     assert 0.99 * 0.5 <= wall < 5.0  # 0.99 s of sim time at 2x
 
 
+def test_replay_waits_for_a_subscribers_topics_declared_one_after_the_other(tmp_path: Path) -> None:
+    """A consumer that subscribes to its topics one after the other (here the depth 0.3 s after the
+    odometry) gets every topic from its first message: the replay starts once the matches settle."""
+    path = tmp_path / "r.mcap"
+    bag = BagWriter(path)
+    for i in range(100):
+        t = 5_000_000_000 + i * STATE_PERIOD
+        for topic, (typename, msg) in sample_messages(t).items():
+            if topic in (f"/{NS}/odom", f"/{NS}/front/depth/image_raw"):
+                bag.write(bag.channel(topic, typename), t, bytes(M.serialize(msg)))
+    bag.close()
+    ep = endpoint()
+    got: dict[str, list[int]] = defaultdict(list)
+    nodes: list[RosZenohNode] = []
+
+    def subscribe(topic: str, typename: str) -> None:
+        nodes[0].subscribe(topic, typename, lambda m: got[topic].append(stamp_of(m)))
+
+    def on_ready(_node: RosZenohNode) -> None:  # the replay's publishers exist: a consumer arrives
+        nodes.append(RosZenohNode(ZenohNodeConfig(mode="peer", listen=(), connect=(ep,))))
+        subscribe(f"/{NS}/odom", "nav_msgs/msg/Odometry")
+        threading.Timer(0.3, subscribe, (f"/{NS}/front/depth/image_raw", "sensor_msgs/msg/Image")).start()
+
+    try:
+        replay(path, ReplayConfig(listen=(ep,), rate=2.0, wait_subscriber_s=10.0), on_ready=on_ready)
+        deadline = time.monotonic() + 5
+        while min(len(got[f"/{NS}/odom"]), len(got[f"/{NS}/front/depth/image_raw"])) < 100:
+            if time.monotonic() > deadline:
+                break
+            time.sleep(0.05)
+    finally:
+        for node in nodes:
+            node.close()
+    expected = [5_000_000_000 + i * STATE_PERIOD for i in range(100)]
+    assert got[f"/{NS}/odom"] == expected
+    assert got[f"/{NS}/front/depth/image_raw"] == expected
+
+
 # --------------------------------------------------------------------------- droneulator run --record
 TOPICS = {
     "clock": TYPES["clock"],

@@ -101,13 +101,24 @@ def _qos(metadata: dict[str, str]) -> QosProfile | None:
     )
 
 
-def _wait_matching(publishers: list[RosPublisher], timeout: float) -> bool:
+def _wait_matching(publishers: list[RosPublisher], timeout: float, settle: float = 0.5) -> bool:
+    """Wait up to ``timeout`` s for a subscriber to match any publisher, then until no further publisher
+    has matched for ``settle`` s: a subscriber's topics match one after the other as its declarations
+    arrive, and replaying at the first would lose the others' first messages. False if none matched."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         if any(p.matching for p in publishers):
-            return True
+            break
         time.sleep(0.02)
-    return False
+    else:
+        return False
+    matched, quiet_since = sum(p.matching for p in publishers), time.monotonic()
+    while time.monotonic() - quiet_since < settle and time.monotonic() < deadline:
+        time.sleep(0.02)
+        now = sum(p.matching for p in publishers)
+        if now != matched:
+            matched, quiet_since = now, time.monotonic()
+    return True
 
 
 def replay(
