@@ -262,7 +262,11 @@ def test_position_commands_over_zenoh_fly_droneulator_run_and_the_camera_pose_is
                 for m in odom
             ]
             assert len(errors) > 150 and max(errors) < 0.06, (len(errors), max(errors))
-            assert client.state()["mode"] == "hold"
+            # holding (a setpoint delivered late on a loaded machine tracks again, then times out again)
+            deadline = time.monotonic() + 3
+            while client.state()["mode"] != "hold":
+                assert time.monotonic() < deadline, client.state()["mode"]
+                time.sleep(0.05)
             assert np.linalg.norm(np.array(client.state()["position"]) - start - [1.5, 0, 0]) < 0.05
 
             check_camera_pose(got, lock)
