@@ -15,6 +15,7 @@ their last observation), and training goes on. ``restarts`` counts them.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from typing import Any
 
@@ -57,8 +58,6 @@ class _Worlds:
 
     def where(self) -> tuple[int, str]:
         """(process id, Ray node id) of this actor."""
-        import os
-
         import ray
 
         return os.getpid(), ray.get_runtime_context().get_node_id()
