@@ -7,6 +7,7 @@ deserialiser; PX4 is played by ``tests/test_px4.Peer`` (pymavlink, booting like 
 
 from __future__ import annotations
 
+import math
 import socket
 import threading
 import time
@@ -111,6 +112,93 @@ def test_flight_ops_name_their_vehicle_and_the_flight_lock_is_per_vehicle() -> N
         assert np.linalg.norm(np.array(states["vehicles"]["uav1"]["position"]) - [*a[:2], 3.0]) < 0.1
         assert run("state", vehicle="uav1")["result"]["vehicle"] == "uav1"
         assert run("state")["result"]["vehicle"] == "uav0"
+
+
+# --------------------------------------------------------------------------- triggered cameras
+def test_triggered_cameras_shoot_once_when_asked_with_every_body_in_view() -> None:
+    """``render.camera_trigger=command``: no frame until ``trigger``; then one frame set at the end of the
+    next control period, of the asking vehicle's rig only, drawn as the camera rate draws it (the other
+    vehicle's body in view); at the camera rate, and for an unknown vehicle, ``trigger`` is refused."""
+    cfg = two_vehicle_config()
+    cfg.render.camera_trigger = "command"
+    with World(cfg) as world:
+        path = CommandPath(world)
+        st = world.vehicles["uav0"].state
+        yaw = st.yaw
+        ahead = st.position + 1.5 * np.array([math.cos(yaw), math.sin(yaw), 0.0])
+        world.reset(position=ahead, yaw=yaw, vehicle="uav1")  # in front of uav0's camera
+        assert world.step(30).frames == []
+        reply = path.execute(make_request("trigger", {"vehicle": "uav0"}))["result"]
+        assert reply["frame_stamp_ns"] == reply["stamp_ns"] + world.control_period_ns
+        res = world.step(3)
+        (shot,) = res.frames
+        assert shot.t_ns + (world.stamp_ns - world.t_ns) == reply["frame_stamp_ns"]
+        assert list(shot.cameras) == ["uav0"] and list(shot.cameras["uav0"]) == ["front"]
+        mine = shot.cameras["uav0"]["front"]
+        rate = world.render().cameras["uav0"]["front"]  # the same instant, every rig
+        assert np.array_equal(mine.depth, rate.depth, equal_nan=True) and np.array_equal(mine.rgb, rate.rgb)
+        alone = world.renderer.render_rigs({"uav0": world.vehicles["uav0"].state.T_world_body})
+        body = ~np.isclose(alone["uav0"]["front"].depth, mine.depth, equal_nan=True)
+        assert body.sum() > 20 and np.nanmax(mine.depth[body]) < 1.5  # uav1, 1.5 m ahead, drawn
+        path.execute(make_request("trigger", {"vehicle": "uav1"}))
+        world.reset()
+        assert world.step(5).frames == []  # a reset drops the shot asked for before it
+        unknown = path.execute(make_request("trigger", {"vehicle": "uav7"}))["error"]
+        assert unknown["code"] == "invalid_argument" and "uav0, uav1" in unknown["message"]
+    with World(two_vehicle_config(), render=False, external_cameras=True) as world:
+        refused = CommandPath(world).execute(make_request("trigger", {}))["error"]
+        assert refused["code"] == "unsupported" and "render.camera_trigger=command" in refused["message"]
+
+
+@pytest.mark.slow
+def test_a_triggered_run_publishes_one_frame_set_of_the_asking_vehicle_with_its_states() -> None:
+    """Through the runtime (dynamics server, render server, bridge): nothing is published on the camera
+    topics until ``trigger``; then the asking vehicle's images, camera_info and pose, stamped as the reply
+    said, with its odometry and TF of that stamp, and nothing of the other vehicle."""
+    cfg = two_vehicle_config()
+    cfg.render.camera_trigger = "command"
+    cfg.runtime.state_hz = 25.0  # the triggered instant brings its own states
+    run = launch_run(cfg)
+    got: dict[str, list[int]] = defaultdict(list)
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        leaf = key.split("/", 2)[2] if key.count("/") >= 2 else key
+        typename = _ros2dds_type(key)
+        msg = TS.deserialize_cdr(sample.payload.to_bytes(), typename)
+        if typename == "tf2_msgs/msg/TFMessage":
+            for tr in msg.transforms:
+                got[f"tf {tr.child_frame_id}"].append(tr.header.stamp.sec * 10**9 + tr.header.stamp.nanosec)
+            return
+        got[f"{key.split('/')[1]} {leaf}"].append(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)
+
+    session = zenoh.open(_client_of(run.zenoh_endpoint))
+    subs = [session.declare_subscriber(k, on_sample) for k in ("droneulator/*/**", "tf")]
+    try:
+        with run.client() as c:
+            assert c.scene_info()["camera_trigger"] == "command"
+            c.subscribe(["events"])
+            c.takeoff(1.5, vehicle="uav1")
+            c.wait_for_event("arrived", timeout=60, vehicle="uav1")
+            time.sleep(0.5)
+            images = [k for k in got if "front/" in k]
+            assert images == [] and len(got["uav1 odom"]) > 25  # flown, odometry at 25 Hz, no image
+            stamp = c.trigger(vehicle="uav1")["frame_stamp_ns"]
+            streams = ("color/image_raw/compressed", "depth/image_raw", "segmentation/image_raw/compressed",
+                       "color/camera_info", "pose")  # fmt: skip
+            _until(lambda: all(got[f"uav1 front/{s}"] for s in streams), 30)
+            time.sleep(0.5)
+            for s in streams:
+                assert got[f"uav1 front/{s}"] == [stamp]
+            assert not [k for k in got if k.startswith("uav0 front/")]
+            assert stamp in got["uav1 odom"] and stamp in got["uav0 odom"]  # every state of that instant
+            assert stamp in got["tf uav1/base_link"]
+            assert np.median(np.diff(got["uav1 odom"])) == 40_000_000  # else the 25 Hz schedule
+    finally:
+        for sub in subs:
+            sub.undeclare()
+        session.close()
+        run.stop()
 
 
 # --------------------------------------------------------------------------- ROS names

@@ -191,6 +191,11 @@ class DroneulatorClient:
     def scene_info(self) -> dict[str, Any]:
         return self.request("scene_info")
 
+    def trigger(self, vehicle: str | None = None) -> dict[str, Any]:
+        """One frame set of ``vehicle``'s cameras (``render.camera_trigger=command``); its stamp is in
+        ``frame_stamp_ns``."""
+        return self.request("trigger", vehicle=vehicle)
+
     def ping(self) -> dict[str, Any]:
         return self.request("ping")
 

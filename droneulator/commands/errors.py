@@ -25,7 +25,8 @@ ERROR_CODES: dict[str, str] = {
     "message_too_large": "the message is longer than the server's limit (64 KiB by default); it is "
     "discarded unread, so the reply's `id` is null",
     "unsupported": "`subscribe`/`unsubscribe` sent to a transport without streams (in-process use of "
-    "`handle_request`); the WebSocket server always supports them",
+    "`handle_request`; the WebSocket server always supports them), or `trigger` while the cameras shoot "
+    "at their rate (`render.camera_trigger=rate`, the default)",
     "internal_error": "an unexpected failure inside the server; the message says what, the server "
     "keeps running and the traceback is logged",
 }

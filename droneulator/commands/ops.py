@@ -183,6 +183,11 @@ def _state(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
     return _vehicle(sim, a).state.to_dict()
 
 
+def _trigger(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+    stamp = world_of(sim).trigger(a.get("vehicle"))
+    return {"frame_stamp_ns": stamp, **_when(sim)}
+
+
 def _ping(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
     return {"pong": True, "time": time.time()}
 
@@ -203,6 +208,7 @@ def _scene_info(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
         "vehicles": [v.describe() for v in sim.vehicles.values()],
         "light": dataclasses.asdict(sim.config.light),
         "vegetation": sim.config.vegetation,
+        "camera_trigger": sim.config.render.camera_trigger,
         "limits": {
             "max_speed": fl.max_speed,
             "max_yaw_rate": math.pi,
@@ -406,6 +412,17 @@ OPS: dict[str, Op] = {
             _set_wind,
         ),
         Op(
+            "trigger",
+            "Have the vehicle's cameras take one frame set (every camera of its rig: RGB, depth and "
+            "segmentation, with camera_info and pose) at the end of the next control period, as a survey "
+            "camera triggered at a waypoint. Only when the simulator runs with "
+            "`render.camera_trigger=command`, where nothing else is rendered (`droneulator capture` runs it "
+            "so); refused (`unsupported`) at the camera rate.",
+            "`frame_stamp_ns`: the stamp (ROS clock, integer ns) the frame set will carry; `t`: " + _T,
+            (_VEHICLE,),
+            _trigger,
+        ),
+        Op(
             "ping",
             "Liveness check; answered without waiting for the simulation.",
             "`pong`: true; `time`: server wall-clock time (Unix s)",
@@ -423,7 +440,8 @@ OPS: dict[str, Op] = {
             "(`internal` or `px4`), `cameras` (names), and where it is reached when a runtime serves it: "
             "`namespace` and `topics` (its ROS 2 topic names), `tf_prefix`, `px4_port` (PX4 vehicles); "
             "`light`: the light settings (the config's `light` section as it is now; see `reset`); "
-            "`vegetation`: the scene's vegetation density",
+            "`vegetation`: the scene's vegetation density; `camera_trigger`: `rate` (cameras shoot at "
+            "`render.camera_hz`) or `command` (only at `trigger`)",
             (),
             _scene_info,
         ),

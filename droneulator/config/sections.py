@@ -94,12 +94,27 @@ class CameraConfig:
         return r, p, y
 
 
+#: when a vehicle's cameras take a frame set (``render.camera_trigger``)
+CAMERA_TRIGGERS = ("rate", "command")
+
+
 @dataclass
 class RenderConfig:
     shadows: bool = True
     shadow_map_size: int = 2048
     camera_hz: float = 30.0
     cameras: list[CameraConfig] = field(default_factory=lambda: [CameraConfig()])
+    #: ``rate``: every camera shoots at ``camera_hz``; ``command``: a vehicle's cameras shoot one frame set
+    #: each time the API's ``trigger`` op asks (as a survey camera triggered at its waypoints), and nothing
+    #: is rendered in between, so a lockstep run flies as fast as its physics between the shots
+    camera_trigger: str = "rate"
+
+    def __post_init__(self) -> None:
+        if self.camera_trigger not in CAMERA_TRIGGERS:
+            raise ValueError(
+                f"render.camera_trigger must be one of {', '.join(CAMERA_TRIGGERS)}; "
+                f"got {self.camera_trigger!r}"
+            )
 
 
 #: RotorPy wind profiles ``VehicleConfig.wind`` can name (built by :func:`droneulator.wind.make_wind`); the

@@ -22,6 +22,7 @@ How it is built, and why (each choice measured on Mesa llvmpipe, see ``benchmark
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass
 
 import moderngl
@@ -597,16 +598,18 @@ class Renderer:
         return self.render_rigs({"": T_world_body}, rgb)[""]
 
     def render_rigs(
-        self, poses: dict[str, np.ndarray], rgb: bool = True
+        self, poses: dict[str, np.ndarray], rgb: bool = True, rigs: Collection[str] | None = None
     ) -> dict[str, dict[str, CameraFrame]]:
         """Render every camera of every rig in ``poses`` (vehicle -> body pose, 4x4, Z-up world) in one
-        call, each vehicle's body drawn in the other vehicles' cameras: vehicle -> camera -> frame. The
-        scene's buffers are shared by all; nothing is uploaded per frame but the poses."""
+        call, each vehicle's body drawn in the other vehicles' cameras: vehicle -> camera -> frame. With
+        ``rigs``, only those vehicles' cameras (every body in ``poses`` is still drawn). The scene's
+        buffers are shared by all; nothing is uploaded per frame but the poses."""
         if self.ctx is None:
             raise RuntimeError("renderer is closed")
+        shoot = [v for v in poses if rigs is None or v in rigs]
         models = {v: frames.gl_model_matrix(T) for v, T in poses.items() if v in self._bodies}
-        targets = [t for t in self.targets if t.vehicle in poses]
-        out: dict[str, dict[str, CameraFrame]] = {v: {} for v in poses}
+        targets = [t for t in self.targets if t.vehicle in shoot]
+        out: dict[str, dict[str, CameraFrame]] = {v: {} for v in shoot}
         with self.ctx:
             # Draw every camera before reading any back, so one camera's rasterisation overlaps the
             # next camera's vertex work (llvmpipe) or GPU execution (hardware drivers).

@@ -8,7 +8,8 @@ exactly as fast as the slowest consumer and no frame is skipped; the bridge publ
 Zenoh's ``BLOCK`` policy, so a slow subscriber slows the clock instead of losing images. Realtime:
 steps follow the wall clock (times ``runtime.speed``); a camera instant is sent to the render server
 only when it is free, so it draws the latest state at whatever rate it manages, and images are
-published with ``DROP``.
+published with ``DROP``. Triggered cameras (``render.camera_trigger=command``) send a camera instant
+only when the API's ``trigger`` asks for one, in either mode, and it is never dropped.
 
 Odometry, TF and ``/clock`` leave from here, right after the physics step that produced the state
 (no process hop), and so do the sensor topics (IMU, GPS fix, air pressure, magnetic field): a vehicle a
@@ -114,8 +115,9 @@ class DynamicsServer:
         self.peers: dict[str, Connection] = {}
         self._new_peers: queue.Queue[tuple[str, Connection]] = queue.Queue()
         self.seq = 0
-        #: seq -> (stage "render" | "publish", every vehicle's state): frames requested and not yet published
-        self.in_flight: dict[int, tuple[str, dict[str, VehicleState]]] = {}
+        #: seq -> (stage "render" | "publish", every vehicle's state, the vehicles whose cameras shoot, None
+        #: for all): frames requested and not yet published
+        self.in_flight: dict[int, tuple[str, dict[str, VehicleState], tuple[str, ...] | None]] = {}
         self.window = rt.frame_slots - 1
         self.state_period_ns = round(NS / rt.state_hz)
         self._next_state_ns = 0
@@ -183,9 +185,9 @@ class DynamicsServer:
             ):
                 self._send(role, LoadScene(w.scene, w.seed, w.light, w.vegetation))
             stage = "render" if role == "renderer" else "publish"
-            for seq, (st, states) in sorted(self.in_flight.items()):
+            for seq, (st, states, rigs) in sorted(self.in_flight.items()):
                 if st == stage:  # work the previous instance never finished
-                    self._send(role, Render(seq, states) if role == "renderer" else Publish(seq, states))
+                    self._send(role, self._request(role, seq, states, rigs))
 
     def _send(self, role: str, msg: HubMessage) -> None:
         conn = self.peers.get(role)
@@ -217,13 +219,22 @@ class DynamicsServer:
                 continue
             self._handle(role, msg)
 
+    @staticmethod
+    def _request(
+        role: str, seq: int, states: dict[str, VehicleState], rigs: tuple[str, ...] | None
+    ) -> Render | Publish:
+        """What ``role`` is sent of frame ``seq``: every state to draw, the shooting vehicles' to publish."""
+        if role == "renderer":
+            return Render(seq, states, rigs)
+        return Publish(seq, states if rigs is None else {name: states[name] for name in rigs})
+
     def _handle(self, role: str, msg: HubMessage) -> None:
         match msg:
             case Rendered(seq):
                 item = self.in_flight.get(seq)
                 if item is not None:
-                    self.in_flight[seq] = ("publish", item[1])
-                    self._send("bridge", Publish(seq, item[1]))
+                    self.in_flight[seq] = ("publish", item[1], item[2])
+                    self._send("bridge", self._request("bridge", seq, item[1], item[2]))
             case Published(seq):
                 self.in_flight.pop(seq, None)
                 self.frames_published += 1
@@ -243,18 +254,22 @@ class DynamicsServer:
 
     def _after_step(self, res: StepResult, realtime: bool, stepped_wall_ns: int) -> None:
         """Publish the states (ROS first: lowest latency), send camera instants to the render server,
-        events and states to the API. ``stepped_wall_ns``: when the step that produced them ended."""
+        events and states to the API. ``stepped_wall_ns``: when the step that produced them ended.
+
+        The states are published at ``runtime.state_hz``, and at every triggered camera instant (which
+        ends a control period: these states), so each triggered frame has odometry and TF of its stamp."""
         with self.lock:  # a command may reset the simulation between the step and here
             states = self.world.states_now()
             w = self.world.config
             scene = (w.scene, w.seed, w.light, w.vegetation)
-            truths = self._sensor_truths(states)
-        st = next(iter(states.values()))
-        if st.t_ns < self._last_t_ns:  # reset through the API: re-send the static TF at once
-            self._last_static = -float("inf")
-            self._next_state_ns = 0
+            st = next(iter(states.values()))
+            if st.t_ns < self._last_t_ns:  # reset through the API: re-send the static TF at once
+                self._last_static = -float("inf")
+                self._next_state_ns = 0
+            due = st.stamp_ns >= self._next_state_ns or any(r is not None for r in res.camera_rigs)
+            truths = self._sensor_truths(states) if due else {}
         self._last_t_ns = st.t_ns
-        if st.stamp_ns >= self._next_state_ns:
+        if due:
             self._next_state_ns = st.stamp_ns + self.state_period_ns
             if self._latency is not None:
                 self._latency.write(f"odom {st.stamp_ns} {stepped_wall_ns}\n")
@@ -271,23 +286,23 @@ class DynamicsServer:
             self.in_flight.clear()
             for role in ROLES:
                 self._send(role, LoadScene(*scene))
-        for cam_state in res.camera_states:
+        for cam_state, rigs in zip(res.camera_states, res.camera_rigs, strict=True):
             ready = "renderer" in self.peers and len(self.in_flight) < self.window
-            if realtime and (not ready or any(v[0] == "render" for v in self.in_flight.values())):
+            busy = not ready or any(v[0] == "render" for v in self.in_flight.values())
+            if realtime and rigs is None and busy:  # a triggered frame set is never dropped
                 self.dropped_frames += 1
                 continue
             self.seq += 1
-            self.in_flight[self.seq] = ("render", cam_state)
-            self._send("renderer", Render(self.seq, cam_state))
+            self.in_flight[self.seq] = ("render", cam_state, rigs)
+            self._send("renderer", Render(self.seq, cam_state, rigs))
         for e in res.events:
             self.api.publish_event(e.to_dict())
 
     def _sensor_truths(self, states: dict[str, VehicleState]) -> dict[str, Truth]:
-        """(Under the lock, with the ``states`` just taken) the truth each sensing vehicle's sensors are
-        sampled from, when the states are about to be published (as :meth:`_after_step` decides), for the
-        vehicles no connected PX4 flies: a PX4's link has sampled its vehicle's sensors this step already."""
-        st = next(iter(states.values()))
-        if not self._sensing or not (st.t_ns < self._last_t_ns or st.stamp_ns >= self._next_state_ns):
+        """(Under the lock, with the ``states`` just taken, which are about to be published) the truth each
+        sensing vehicle's sensors are sampled from, for the vehicles no connected PX4 flies: a PX4's link
+        has sampled its vehicle's sensors this step already."""
+        if not self._sensing:
             return {}
         fed = {link.vehicle.name for link in self.px4.links if link.connected} if self.px4 is not None else ()
         return {n: Truth.from_sim(self.world.vehicles[n]) for n in self._sensing if n not in fed}
@@ -304,7 +319,8 @@ class DynamicsServer:
         """Renderer and bridge connected and a first frame through both (shaders compiled, scene
         uploaded, encoders and publishers made), or no camera: PX4's sensor data will not wait."""
         peers = all(r in self.peers for r in ROLES)
-        return peers and (self.frames_published > 0 or not self.world.camera_schedule)
+        first = self.frames_published > 0 or not self.world.camera_schedule or self.world.triggered
+        return peers and first
 
     def _px4_turn(self) -> bool:
         """While a PX4 is connected its actuator messages drive the clock (lockstep with every PX4 and

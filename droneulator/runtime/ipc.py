@@ -37,7 +37,7 @@ ENV_AUTHKEY = "DRONEULATOR_HUB_AUTHKEY"
 ENV_RING = "DRONEULATOR_FRAME_RING"
 ENV_CONFIG = "DRONEULATOR_CONFIG_JSON"
 ENV_ZENOH = "DRONEULATOR_ZENOH_ENDPOINT"
-PROTOCOL_VERSION = 5
+PROTOCOL_VERSION = 6
 
 
 # --------------------------------------------------------------------------- typed messages
@@ -68,10 +68,12 @@ class Refused:
 
 @dataclass(frozen=True)
 class Render:
-    """Hub -> render server: draw every vehicle's cameras at ``states`` (by name) into frame slot ``seq``."""
+    """Hub -> render server: draw every vehicle's cameras at ``states`` (by name) into frame slot ``seq``;
+    only the cameras of ``rigs`` when given (triggered cameras), with every vehicle's body drawn."""
 
     seq: int
     states: dict[str, VehicleState]
+    rigs: tuple[str, ...] | None = None
 
 
 @dataclass(frozen=True)

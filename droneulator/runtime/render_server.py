@@ -64,12 +64,12 @@ def serve(cfg: SimConfig) -> None:
             except (EOFError, OSError):
                 return  # the dynamics server went away: the run is over
             match msg:
-                case Render(seq, states):
+                case Render(seq, states, rigs):
                     poses = {
                         name: transform_from_pose(st.position, st.quaternion) for name, st in states.items()
                     }
                     slot = ring.slot(seq)
-                    for vehicle, frames in renderer.render_rigs(poses).items():
+                    for vehicle, frames in renderer.render_rigs(poses, rigs=rigs).items():
                         st = states[vehicle]
                         for name, f in frames.items():
                             model = models.get(vehicle, {}).get(name)

@@ -13,7 +13,9 @@ Simulation time is an integer count of nanoseconds. :meth:`World.step` advances 
    frame is rendered from the exact state at ``k / camera_hz``, with the scene's collisions per row;
 5. vehicles whose bodies overlap collide (:mod:`droneulator.world.contact`): one ``collision`` event
    names both, and both stop where they were at the start of the period;
-6. each vehicle's IMU means and hard touchdowns.
+6. each vehicle's IMU means and hard touchdowns;
+7. with triggered cameras (``render.camera_trigger=command``), the frame sets :meth:`World.trigger` asked
+   for, at the end of the period, instead of the camera rate's.
 
 One vehicle is the default (:class:`~droneulator.config.SimConfig` with no ``vehicles``) and flies
 exactly as the single-vehicle simulator did; :class:`~droneulator.sim.simulator.Simulator` is the
@@ -25,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -74,6 +77,9 @@ class StepResult:
     #: every vehicle's state at each camera instant, when an external renderer draws them
     #: (``external_cameras=True``)
     camera_states: list[dict[str, VehicleState]] = field(default_factory=list)
+    #: for each of :attr:`camera_states`, the vehicles whose cameras shoot at it: None for all (the camera
+    #: rate), the triggered ones with ``render.camera_trigger = "command"`` (every body is still drawn)
+    camera_rigs: list[tuple[str, ...] | None] = field(default_factory=list)
 
 
 class World:
@@ -138,6 +144,10 @@ class World:
         self._substep = 1.0 / (cfg.vehicle.control_hz * cfg.vehicle.substeps)
         self.render_enabled = render
         self.camera_schedule = render or external_cameras
+        #: cameras shoot only when :meth:`trigger` asks (``render.camera_trigger = "command"``)
+        self.triggered = cfg.render.camera_trigger == "command"
+        #: vehicles whose cameras shoot at the end of the next control period
+        self._shots: set[str] = set()
         self.renderer = None
         self.camera_models: dict[str, dict[str, Any]] = {}
         self.scene: Scene
@@ -236,6 +246,7 @@ class World:
         self.t_ns = 0
         self._next_frame_ns = self.camera_period_ns
         self.frame_count = 0
+        self._shots.clear()  # a reset ends the episode a trigger was for
         for v in self.vehicles.values():
             pos, heading = starts[v.name]
             v.place(pos, float(heading), airborne if v is target else None)
@@ -296,6 +307,7 @@ class World:
         vs = self.vehicle_list
         rows, cmds, flats = self._rows, self._cmds, self._flats
         parallel = len(vs) >= PARALLEL_ROWS
+        rate = self.camera_schedule and not self.triggered
         for _ in range(n):
             t = self.t
             for i in sorted(self._busy):
@@ -331,7 +343,7 @@ class World:
             t_end = self.t_ns + self.control_period_ns
             col = self.scene.collision
             while self.t_ns < t_end:
-                t_next = min(t_end, self._next_frame_ns) if self.camera_schedule else t_end
+                t_next = min(t_end, self._next_frame_ns) if rate else t_end
                 h = (t_next - self.t_ns) / NS
                 self._hit[:] = False
                 n_sub = substeps(h, self._substep)
@@ -343,17 +355,41 @@ class World:
                     out.events.append(vs[i].on_collision())
                     self._active[i] = False
                 self.t_ns = t_next
-                if self.camera_schedule and self.t_ns == self._next_frame_ns:
-                    if self.renderer is not None:
-                        out.frames.append(self.render())
-                    else:
-                        out.camera_states.append(self.states_now())
-                    self.frame_count += 1
+                if rate and self.t_ns == self._next_frame_ns:
+                    self._shoot(out, None)
                     self._next_frame_ns += self.camera_period_ns
             if len(vs) > 1:
                 self._vehicle_contacts(vs, out.events)
             self._finish_period(vs, dt, t_start, out.events)
+            if self._shots:
+                self._shoot(out, tuple(name for name in self.vehicles if name in self._shots))
+                self._shots.clear()
         return out
+
+    def _shoot(self, out: StepResult, rigs: tuple[str, ...] | None) -> None:
+        """A camera instant now: the frames (own renderer) or the states for a render server."""
+        if self.renderer is not None:
+            out.frames.append(self.render(rigs))
+        else:
+            out.camera_states.append(self.states_now())
+            out.camera_rigs.append(rigs)
+        self.frame_count += 1
+
+    def trigger(self, name: str | None = None) -> int:
+        """Have vehicle ``name``'s cameras (the first vehicle's for None) shoot one frame set at the end of
+        the next control period (``render.camera_trigger = "command"``); returns the stamp (ns) it will
+        carry. Triggers of several vehicles in one period share one camera instant."""
+        vehicle = self.vehicle(name)
+        if not self.camera_schedule:
+            raise CommandError("unsupported", "this world renders no cameras")
+        if not self.triggered:
+            raise CommandError(
+                "unsupported",
+                f"the cameras shoot at render.camera_hz ({self.config.render.camera_hz:g} Hz); start the "
+                "simulator with render.camera_trigger=command to trigger them",
+            )
+        self._shots.add(vehicle.name)
+        return self.stamp_ns + self.control_period_ns
 
     def _finish_period(self, vs: list[Vehicle], dt: float, t_start: float, events: list[Event]) -> None:
         """Every vehicle's IMU means over the period just stepped, and ``impact`` events for hard
@@ -401,14 +437,15 @@ class World:
         return False
 
     # ------------------------------------------------------------------ rendering
-    def render(self) -> FrameSet:
-        """Render every camera of every vehicle from the current states in one call (also usable outside
-        the camera schedule). The images are copies the caller owns, as each camera delivers them
-        (:mod:`droneulator.sensors.camera_models`: noise, distortion, exposure; untouched when ideal)."""
+    def render(self, rigs: Collection[str] | None = None) -> FrameSet:
+        """Render every camera of every vehicle (of ``rigs`` only, when given; every body is drawn) from the
+        current states in one call (also usable outside the camera schedule). The images are copies the
+        caller owns, as each camera delivers them (:mod:`droneulator.sensors.camera_models`: noise,
+        distortion, exposure; untouched when ideal)."""
         if self.renderer is None:
             raise RuntimeError("this World was created with render=False")
         states = self.states_now()
-        drawn = self.renderer.render_rigs({name: st.T_world_body for name, st in states.items()})
+        drawn = self.renderer.render_rigs({name: st.T_world_body for name, st in states.items()}, rigs=rigs)
         cams = {
             name: {
                 cam: dataclasses.replace(
@@ -419,6 +456,8 @@ class World:
             for name, frames_ in drawn.items()
         }
         for name, models in self.camera_models.items():
+            if name not in cams:
+                continue
             st = states[name]
             for cam, model in models.items():
                 cams[name][cam] = model.apply(cams[name][cam], st.velocity, st.angular_velocity)
