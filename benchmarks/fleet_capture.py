@@ -1,16 +1,19 @@
-"""A capture flown by one vehicle and by two: wall time and reconstruction figures, same views.
+"""A capture flown by one vehicle and by two, camera triggered or continuous: wall time and
+reconstruction figures, same views.
 
 ``droneulator capture`` of the photogrammetry benchmark's tree (tree_inspection, seed 0, 1024x768, 36
 views on two rings) is flown with ``capture.vehicles`` 1 and 2 into fresh datasets, one after the
-other; then ``droneulator reconstruct`` (defaults: SIFT masked to the tree, triangulation and BA with
-pose priors, CPU dense stereo, scoring against the true tree) runs on each. Prints capture wall and sim
-time, the camera frames the simulator rendered meanwhile (every vehicle's camera at ``capture.camera_hz``
-of sim time: in lockstep on a CPU renderer they set the wall time), the load average around each
-capture, how far the two datasets' camera poses are apart, and the reconstruction figures as
-``benchmarks/photogrammetry.py`` reports them; writes ``benchmarks/results/fleet_capture.json``.
+other, with the camera triggered at each view (the default: nothing rendered between views) and, with
+``--modes`` naming it, continuous (``--continuous``: every vehicle's camera at ``capture.camera_hz`` of
+sim time, which in lockstep on a CPU renderer sets the wall time); then ``droneulator reconstruct``
+(defaults: SIFT masked to the tree, triangulation and BA with pose priors, CPU dense stereo, scoring
+against the true tree) runs on each dataset of ``--reconstruct-modes``. Prints capture wall and sim
+time, the camera frames rendered, the load average around each capture, how far each dataset's camera
+poses are from the first one's, and the reconstruction figures as ``benchmarks/photogrammetry.py``
+reports them; writes ``benchmarks/results/fleet_capture.json``.
 
-    .venv/bin/python benchmarks/fleet_capture.py                  # 36 views, 1 and 2 vehicles
-    .venv/bin/python benchmarks/fleet_capture.py --views 18 --no-reconstruct
+    .venv/bin/python benchmarks/fleet_capture.py                  # 36 views, 1 and 2 vehicles, both modes
+    .venv/bin/python benchmarks/fleet_capture.py --modes triggered --views 18 --no-reconstruct
     .venv/bin/python benchmarks/fleet_capture.py --reuse          # reconstruct the datasets again
 """
 
@@ -36,15 +39,28 @@ from droneulator.workflows.photogrammetry.capture import capture  # noqa: E402
 from droneulator.workflows.photogrammetry.reconstruct import ReconstructOptions, reconstruct  # noqa: E402
 
 
-def capture_row(meta: dict[str, Any], camera_hz: float, vehicles: int) -> dict[str, Any]:
-    """Capture figures of a dataset's metadata (its last run that captured anything)."""
+def capture_row(
+    out: Path, meta: dict[str, Any], camera_hz: float, vehicles: int, triggered: bool
+) -> dict[str, Any]:
+    """Capture figures of a dataset's metadata (its last run that captured anything). Frames rendered:
+    triggered, one per view and one per vehicle for its camera_info; continuous, every vehicle's camera
+    at ``camera_hz`` of sim time. ``legs_sim_s``: the sim time of the legs that brought each vehicle to
+    its views (flight and settling; the busiest vehicle's), what a real vehicle would fly; the run's
+    ``sim_s`` also counts the hovering while the capture records a view, which a lockstep simulator
+    free of rendering spends at tens of times real time."""
     run = [r for r in meta["runs"] if r["captured"]][-1]
     t = run.get("timings", {})
+    frames = run["captured"] + vehicles if triggered else round(run["sim_s"] * camera_hz) * vehicles
+    legs: dict[str, float] = {}
+    for v in json.loads((out / "poses.json").read_text())["views"]:
+        name = v.get("vehicle", "uav0")
+        legs[name] = legs.get(name, 0.0) + v["leg"]["flight_sim_s"] + v["leg"]["settle_sim_s"]
     return {
         "captured": run["captured"],
         "wall_s": run["wall_s"],
         "sim_s": run["sim_s"],
-        "frames_rendered": round(run["sim_s"] * camera_hz) * vehicles,
+        "legs_sim_s": round(max(legs.values()), 2),
+        "frames_rendered": frames,
         "startup_s": t.get("startup_s"),
         "flight_s": t.get("flight_s"),
         "views_per_vehicle": run.get("vehicles"),
@@ -98,6 +114,16 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", type=int, default=36)
     ap.add_argument("--vehicles", type=int, nargs="+", default=[1, 2])
+    ap.add_argument(
+        "--modes", nargs="+", choices=("triggered", "continuous"), default=["triggered", "continuous"]
+    )
+    ap.add_argument(
+        "--reconstruct-modes",
+        nargs="+",
+        choices=("triggered", "continuous"),
+        default=["triggered"],
+        help="the modes whose datasets are reconstructed (default: triggered)",
+    )
     ap.add_argument("--out", default="out/bench_fleet_capture", help="datasets go to OUT/vehicles_N")
     ap.add_argument("--reuse", action="store_true", help="keep complete datasets instead of capturing again")
     ap.add_argument("--no-reconstruct", action="store_true", help="captures only")
@@ -105,12 +131,13 @@ def main() -> None:
     ap.add_argument("--json", default=None, help="output JSON (default: benchmarks/results/)")
     args = ap.parse_args()
 
-    outs = {n: Path(args.out) / f"vehicles_{n}" for n in args.vehicles}
-    rows: dict[int, dict[str, Any]] = {}
-    for n, out in outs.items():  # the captures first, one after the other, under the same load
+    outs = {(mode, n): Path(args.out) / f"{mode}_vehicles_{n}" for mode in args.modes for n in args.vehicles}
+    rows: dict[tuple[str, int], dict[str, Any]] = {}
+    for (mode, n), out in outs.items():  # the captures first, one after the other, under the same load
         cfg = load_config(None, args.overrides, scene="tree_inspection")
         cfg.capture.views = args.views
         cfg.capture.vehicles = n
+        cfg.capture.trigger = mode == "triggered"
         meta_path = out / "metadata.json"
         load = [os.getloadavg()[0]]
         if args.reuse and meta_path.exists() and json.loads(meta_path.read_text())["complete"]:
@@ -119,16 +146,18 @@ def main() -> None:
             shutil.rmtree(out, ignore_errors=True)
             meta = capture(cfg, out, progress=False)
         load.append(os.getloadavg()[0])
-        rows[n] = {
+        rows[mode, n] = {
+            "mode": mode,
             "vehicles": n,
-            "capture": capture_row(meta, cfg.capture.camera_hz, n),
+            "capture": capture_row(out, meta, cfg.capture.camera_hz, n, cfg.capture.trigger),
             "load_avg_1min": load,
         }
-    base = min(outs)
-    for n, out in outs.items():
-        rows[n]["poses_vs_one_vehicle"] = pose_differences(outs[base], out)
-        if not args.no_reconstruct:
-            rows[n]["reconstruction"] = reconstruction_row(reconstruct(out, ReconstructOptions()))
+        print(f"{mode}, {n} vehicle(s): {rows[mode, n]['capture']}", flush=True)
+    base = next(iter(outs.values()))
+    for key, out in outs.items():
+        rows[key]["poses_vs_first"] = pose_differences(base, out)
+        if not args.no_reconstruct and key[0] in args.reconstruct_modes:
+            rows[key]["reconstruction"] = reconstruction_row(reconstruct(out, ReconstructOptions()))
 
     c = load_config(None, args.overrides, scene="tree_inspection").capture
     print(
@@ -136,15 +165,17 @@ def main() -> None:
         f"speed {c.speed} m/s; captures one after the other, then the reconstructions"
     )
     head = (
-        f"{'vehicles':>8} | {'wall s':>7} | {'sim s':>6} | {'startup s':>9} | {'flight s':>8} | "
+        f"{'mode':>10} | {'vehicles':>8} | {'wall s':>7} | {'sim s':>6} | {'legs sim s':>10} | "
+        f"{'startup s':>9} | "
+        f"{'flight s':>8} | "
         f"{'frames':>6} | {'load':>9} | "
         f"{'pose diff cm / deg':>18} | {'sparse (tree)':>15} | {'dense on tree':>13} | "
         f"{'acc med / p90 cm':>16} | {'compl. all / seen':>17}"
     )
     print(head)
     print("-" * len(head))
-    for n, r in rows.items():
-        cap, d, rec = r["capture"], r["poses_vs_one_vehicle"], r.get("reconstruction") or {}
+    for (mode, n), r in rows.items():
+        cap, d, rec = r["capture"], r["poses_vs_first"], r.get("reconstruction") or {}
         acc = (
             f"{rec['accuracy_median_m'] * 100:.2f} / {rec['accuracy_p90_m'] * 100:.2f}"
             if rec.get("accuracy_median_m") is not None
@@ -158,11 +189,28 @@ def main() -> None:
         sparse = f"{rec['sparse_points']} ({rec['sparse_tree_points']})" if rec else "-"
         diff = f"{d['max_position_m'] * 100:.2f} / {d['max_angle_deg']:.3f}"
         print(
-            f"{n:>8} | {cap['wall_s']:>7.1f} | {cap['sim_s']:>6.1f} | {cap['startup_s'] or 0:>9.1f} | "
+            f"{mode:>10} | {n:>8} | {cap['wall_s']:>7.1f} | {cap['sim_s']:>6.1f} | "
+            f"{cap['legs_sim_s']:>10.1f} | "
+            f"{cap['startup_s'] or 0:>9.1f} | "
             f"{cap['flight_s'] or 0:>8.1f} | {cap['frames_rendered']:>6} | "
             f"{r['load_avg_1min'][0]:>4.1f} {r['load_avg_1min'][1]:>4.1f} | {diff:>18} | {sparse:>15} | "
             f"{rec.get('dense_tree_points') or '-':>13} | {acc:>16} | {comp:>17}"
         )
+    ratios = {}
+    for (mode, n), r in rows.items():
+        one = rows.get((mode, min(args.vehicles)))
+        cont = rows.get(("continuous", n))
+        if one is not None and one is not r:
+            ratios[f"{mode} {n} vs 1 vehicle"] = round(r["capture"]["wall_s"] / one["capture"]["wall_s"], 3)
+            ratios[f"{mode} {n} vs 1 vehicle, flight"] = round(
+                (r["capture"]["flight_s"] or 0) / (one["capture"]["flight_s"] or 1), 3
+            )
+        if mode == "triggered" and cont is not None:
+            ratios[f"triggered vs continuous, {n} vehicle(s)"] = round(
+                r["capture"]["wall_s"] / cont["capture"]["wall_s"], 3
+            )
+    for k, v in ratios.items():
+        print(f"wall time, {k}: {v:.2f}x")
     write(
         "fleet_capture",
         {
@@ -174,8 +222,10 @@ def main() -> None:
                 "radius": c.radius,
                 "speed": c.speed,
                 "camera_hz": c.camera_hz,
+                "state_hz_triggered": c.state_hz,
             },
             "rows": list(rows.values()),
+            "wall_ratios": ratios,
         },
         args.json,
     )

@@ -304,7 +304,13 @@ def test_the_tree_comes_from_scene_info_landmarks_and_sets_the_capture_camera():
     # the optical axis from the mean altitude (5 m) at the mount (0.12 m ahead) meets the crown centre
     assert math.tan(math.radians(pitch)) == pytest.approx((5.0 - look_at_z) / (6.0 - 0.12))
     run = run_config(cfg, pitch)
-    assert run.runtime.mode == "lockstep" and run.render.camera_hz == cfg.capture.camera_hz
+    assert run.runtime.mode == "lockstep" and run.render.camera_trigger == "command"
+    assert run.runtime.state_hz == cfg.capture.state_hz == 25.0 and run.vehicle.sensors == []
+    cfg.capture.trigger = False  # --continuous: the camera at its rate, the states at the run's
+    continuous = run_config(cfg, pitch)
+    assert continuous.render.camera_trigger == "rate" and continuous.render.camera_hz == cfg.capture.camera_hz
+    assert continuous.runtime.state_hz == cfg.runtime.state_hz == 100.0
+    cfg.capture.trigger = True
     (cam,) = run.render.cameras
     assert (cam.width, cam.height, cam.rpy_deg) == (1024, 768, (0.0, pitch, 0.0))
     assert cfg.render.cameras[0].width == 640  # the caller's config is left as it was

@@ -20,6 +20,7 @@ _CAPTURE_FIELDS = (
     "hfov_deg",
     "speed",
     "camera_hz",
+    "trigger",
     "jpeg_quality",
     "settle_position_m",
     "settle_speed_mps",
@@ -57,7 +58,20 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--height", type=int, default=None, help="image height (px)")
     p.add_argument("--hfov", dest="hfov_deg", type=float, default=None, help="horizontal field of view (deg)")
     p.add_argument("--speed", type=float, default=None, help="peak speed of each leg (m/s)")
-    p.add_argument("--camera-hz", type=float, default=None, help="camera rate while capturing (sim Hz)")
+    p.add_argument(
+        "--continuous",
+        dest="trigger",
+        action="store_false",
+        default=None,
+        help="render the camera at --camera-hz throughout the flight, as a video camera, instead of "
+        "triggering it once at each view (the default: nothing is rendered between views)",
+    )
+    p.add_argument(
+        "--camera-hz",
+        type=float,
+        default=None,
+        help="with --continuous: camera rate while capturing (sim Hz)",
+    )
     p.add_argument("--jpeg-quality", type=int, default=None, help="JPEG quality of the published images")
     p.add_argument("--settle-position", dest="settle_position_m", type=float, default=None, help="m")
     p.add_argument("--settle-speed", dest="settle_speed_mps", type=float, default=None, help="m/s")

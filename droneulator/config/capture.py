@@ -29,7 +29,16 @@ class CaptureConfig:
     width: int = 1024
     height: int = 768
     hfov_deg: float = 70.0
-    #: camera rate while capturing (sim time): frames are only needed once the vehicle has settled
+    #: the simulator a capture starts triggers its camera at each view (``render.camera_trigger=command``):
+    #: nothing is rendered between views, so the flight runs as fast as the physics; False: the camera
+    #: shoots at ``camera_hz`` throughout (a video camera), and every frame is rendered and published
+    trigger: bool = True
+    #: with ``trigger``: the odometry and TF rate of the simulator a capture starts (sim Hz; each triggered
+    #: frame also brings the states of its stamp). Enough to see the vehicle settle, and at this rate
+    #: publishing the states leaves most of the CPU to the flight; None: ``runtime.state_hz``
+    state_hz: float | None = 25.0
+    #: camera rate while capturing (sim time) when not triggered: frames are only used once the vehicle
+    #: has settled
     camera_hz: float = 10.0
     jpeg_quality: int = 95
     #: peak speed of each leg's min-snap goto, m/s
@@ -68,6 +77,11 @@ class CaptureConfig:
             raise ValueError("capture.views must be at least the number of rings (capture.altitudes)")
         if not self.radius > 0 or not self.speed > 0 or not self.camera_hz > 0:
             raise ValueError("capture.radius, capture.speed and capture.camera_hz must be positive")
+        if self.state_hz is not None and not self.state_hz >= 5:
+            raise ValueError(
+                f"capture.state_hz must be at least 5 Hz (the settle check needs odometry), "
+                f"got {self.state_hz}"
+            )
         if not 0 < self.arc_deg <= 360:
             raise ValueError("capture.arc_deg must lie in (0, 360]")
         if not 0 < self.max_leg_deg <= 180:

@@ -6,14 +6,16 @@ WebSocket API, and everything recorded comes back from the ROS 2 topics over Zen
 
 1. :mod:`.plan`: the viewpoints and the arcs between them (pure geometry);
 2. :mod:`.fly`: min-snap ``goto`` legs over the API, settled when the odometry says so;
-3. :mod:`.record`: the next RGB frame after settling, the segmentation and depth of its stamp, its
+3. :mod:`.record`: the next RGB frame after settling (the simulator's camera is triggered there, when
+   its ``scene_info`` says ``camera_trigger: command``), the segmentation and depth of its stamp, its
    camera_info and the camera pose from TF;
 4. :mod:`.dataset`: the dataset folder, written view by view; running the same command again
    captures only the views that are missing. The true tree and ground (:mod:`.truth`) go to
    ``truth/mesh.npz`` for ``droneulator score``.
 
 Without ``--url`` the capture starts its own ``droneulator run`` (:func:`~droneulator.runtime.launch.
-launch_run`) with the capture camera, logging to ``simulator.log`` in the dataset folder. When the
+launch_run`) with the capture camera, triggered at the views unless ``capture.trigger`` is off (then it
+shoots at ``capture.camera_hz``), logging to ``simulator.log`` in the dataset folder. When the
 camera pitch is to be aimed at the crown, a short first run answers ``scene_info`` before the
 capture camera's mount can be chosen.
 
@@ -114,7 +116,8 @@ def aim_pitch(cap: CaptureConfig, info: dict[str, Any]) -> float:
 
 def run_config(cfg: SimConfig, pitch_deg: float) -> SimConfig:
     """The config of the simulator a capture starts: lockstep, the capture camera alone (keeping the
-    sensor noise and exposure of the config's camera of its name); with ``capture.vehicles`` above one,
+    sensor noise and exposure of the config's camera of its name), triggered at the views with the states
+    at ``capture.state_hz`` (``capture.trigger``), no sensor topics; with ``capture.vehicles`` above one,
     that many vehicles (the config's own ``vehicles`` if it names them, else ``uav0`` ..), each with the
     capture camera."""
     cap = cfg.capture
@@ -123,10 +126,16 @@ def run_config(cfg: SimConfig, pitch_deg: float) -> SimConfig:
     like = next((c for c in cfg.render.cameras if c.name == cap.camera), None)
     run_cfg.render.cameras = [camera_for(cap, pitch_deg, like)]
     run_cfg.render.camera_hz = cap.camera_hz
+    run_cfg.render.camera_trigger = "command" if cap.trigger else "rate"
+    if cap.trigger and cap.state_hz is not None:
+        run_cfg.runtime.state_hz = cap.state_hz
     run_cfg.bridge.jpeg_quality = cap.jpeg_quality
+    # no IMU, GPS or other sensor topics: the capture reads odometry, TF and images, and with a triggered
+    # camera publishing the states is most of what the run does between views
+    run_cfg.vehicle.sensors = []
     if cap.vehicles > 1:
         specs = run_cfg.vehicles if len(run_cfg.vehicles) >= cap.vehicles else fleet(cap.vehicles)
-        run_cfg.vehicles = [dataclasses.replace(v, cameras=None) for v in specs]
+        run_cfg.vehicles = [dataclasses.replace(v, cameras=None, sensors=[]) for v in specs]
     return run_cfg
 
 
@@ -200,6 +209,10 @@ def capture(
         node = stack.enter_context(RosZenohNode.from_config(cfg.bridge, listen=(), connect=(zenoh_endpoint,)))
         pilots = _pilots(cfg, info, node, client, api_url, stack)
         topics = pilots[0].topics
+        if info.get("camera_trigger") == "command":  # one frame set each for the camera's calibration
+            for p in pilots:
+                p.triggered = True
+                p.client.trigger(vehicle=p.name)
         cam = camera_info_dict(topics.camera_info(timeout=60.0))
         for p in pilots[1:]:
             other = camera_info_dict(p.topics.camera_info(timeout=60.0))
@@ -254,6 +267,8 @@ class _Pilot:
     client: DroneulatorClient
     topics: TopicRecorder
     route: list[Viewpoint] = dataclasses.field(default_factory=list)
+    #: the simulator's cameras shoot only when triggered (``scene_info.camera_trigger``): one at each view
+    triggered: bool = False
 
 
 def _pilots(
@@ -425,6 +440,8 @@ def _fly_route(
             stats, settled = flyer.transit(view, cap.radius, arc_first=arc_first)
         if settled is None:
             raise RuntimeError(f"no leg was flown to reach view {view.name}")
+        if p.triggered:
+            client.trigger(vehicle=vehicle)
         record, jpeg, aux = record_view(topics, view, cam, settled, stats.to_dict(), vehicle)
         err = f"path_err={stats.max_path_error_m:.3f}m, alt_err={stats.max_altitude_error_m:.3f}m"
         store(p, record, jpeg, aux, settled, err)

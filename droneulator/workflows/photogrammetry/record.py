@@ -39,11 +39,16 @@ from droneulator.ros.topics import (
 from droneulator.ros.zenoh_node import RosZenohNode
 from droneulator.workflows.photogrammetry.plan import Viewpoint
 
+#: odometry samples and TF transforms per frame a recorder keeps: 20 min of sim time at a triggered
+#: capture's 25 Hz, which its lockstep simulator, rendering nothing between views, runs through at tens of
+#: times real time while the capture records a view
+HISTORY = 30_000
+
 
 class TfBuffer:
     """A small tf2-like buffer: static edges, and timed dynamic edges interpolated at a stamp."""
 
-    def __init__(self, history: int = 4000) -> None:
+    def __init__(self, history: int = HISTORY) -> None:
         self._lock = threading.Condition()
         self._static: dict[str, tuple[str, np.ndarray]] = {}
         self._dynamic: dict[str, tuple[str, deque[tuple[int, np.ndarray, np.ndarray]]]] = {}
@@ -184,7 +189,7 @@ class TopicRecorder:
         self.base_frame = frame_prefix + BASE_FRAME
         self.tf = tf if tf is not None else TfBuffer()
         self._cond = threading.Condition()
-        self._odom: deque[OdomSample] = deque(maxlen=6000)
+        self._odom: deque[OdomSample] = deque(maxlen=HISTORY)
         self._infos: dict[int, Any] = {}
         self._frames: deque[Frame] = deque(maxlen=_FRAMES_KEPT)
         self._seg: dict[int, bytes] = {}
@@ -266,7 +271,16 @@ class TopicRecorder:
 
     def odom_after(self, t_ns: int, timeout: float) -> list[OdomSample]:
         """Odometry samples stamped after ``t_ns``, waiting up to ``timeout`` s for at least one."""
-        return self._wait(lambda: [s for s in self._odom if s.stamp > t_ns], timeout, "odometry")
+
+        def newer() -> list[OdomSample]:  # from the newest back: the check runs at every sample
+            out = []
+            for s in reversed(self._odom):
+                if s.stamp <= t_ns:
+                    break
+                out.append(s)
+            return out[::-1]
+
+        return self._wait(newer, timeout, "odometry")
 
     def latest_odom(self, timeout: float = 30.0) -> OdomSample:
         return self._wait(lambda: self._odom[-1] if self._odom else None, timeout, "odometry")
