@@ -50,11 +50,18 @@ def test_toml_file(tmp_path):
         'render.cameras=[{"width": -5}]',
         "ui.nice=20",
         "ui.image_hz=0",
+        "render.camera_trigger=sometimes",
+        "runtime.max_speed=0",
+        "capture.state_hz=1",
     ],
 )
 def test_bad_overrides_raise(override):
     with pytest.raises(ValueError):
         load_config(None, [override])
+    key = override.split("=")[0]
+    if key.count(".") == 1 and not key.startswith("render.cameras"):
+        with pytest.raises(ValueError, match=key.rsplit(".", 1)[-1]):  # the message names the field
+            load_config(None, [override])
 
 
 def test_cli_config_prints_effective_json_and_reports_errors(capsys):

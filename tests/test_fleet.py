@@ -154,10 +154,12 @@ def test_triggered_cameras_shoot_once_when_asked_with_every_body_in_view() -> No
 def test_a_triggered_run_publishes_one_frame_set_of_the_asking_vehicle_with_its_states() -> None:
     """Through the runtime (dynamics server, render server, bridge): nothing is published on the camera
     topics until ``trigger``; then the asking vehicle's images, camera_info and pose, stamped as the reply
-    said, with its odometry and TF of that stamp, and nothing of the other vehicle."""
+    said, with its odometry and TF of that stamp, and nothing of the other vehicle. With nothing to render,
+    lockstep runs no faster than ``runtime.max_speed``."""
     cfg = two_vehicle_config()
     cfg.render.camera_trigger = "command"
     cfg.runtime.state_hz = 25.0  # the triggered instant brings its own states
+    cfg.runtime.max_speed = 8.0
     run = launch_run(cfg)
     got: dict[str, list[int]] = defaultdict(list)
 
@@ -194,6 +196,10 @@ def test_a_triggered_run_publishes_one_frame_set_of_the_asking_vehicle_with_its_
             assert stamp in got["uav1 odom"] and stamp in got["uav0 odom"]  # every state of that instant
             assert stamp in got["tf uav1/base_link"]
             assert np.median(np.diff(got["uav1 odom"])) == 40_000_000  # else the 25 Hz schedule
+            wall0, t0 = time.monotonic(), c.state()["t"]
+            time.sleep(1.0)
+            t1, wall1 = c.state()["t"], time.monotonic()
+            assert 0 < t1 - t0 <= 8.0 * (wall1 - wall0 + 0.01) + 0.01  # a period of catching up at most
     finally:
         for sub in subs:
             sub.undeclare()

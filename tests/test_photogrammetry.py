@@ -466,6 +466,8 @@ def test_capture_resume_with_two_vehicles_and_reconstruct_end_to_end(tmp_path: P
     cfg = load_config(None, overrides, scene="tree_inspection")
     meta = capture(cfg, out, progress=False)
     assert meta["complete"] and meta["views_captured"] == 8
+    run = meta["runs"][-1]  # the legs' sim time, without the hover while a view is recorded
+    assert 8 * cfg.capture.settle_time_s < run["legs_sim_s"] <= run["sim_s"]
     assert meta["tracking"]["max_path_error_m"] < 0.1 and meta["tracking"]["max_altitude_error_m"] < 0.05
 
     # resume with two vehicles: four views lost (images deleted) are captured again, two by each vehicle

@@ -216,6 +216,10 @@ class RuntimeConfig:
     mode: str = "lockstep"
     #: realtime mode only: simulated seconds per wall second
     speed: float = 1.0
+    #: lockstep mode only: at most this many simulated seconds per wall second (None: as fast as the
+    #: consumers allow). A lockstep run with little to render otherwise spends a whole core on the physics
+    #: while its clients think (a triggered capture between views)
+    max_speed: float | None = None
     api_host: str = "127.0.0.1"
     api_port: int = 8765
     api_max_message_bytes: int = 65536
@@ -231,6 +235,8 @@ class RuntimeConfig:
             raise ValueError(f"runtime.mode must be 'lockstep' or 'realtime', got {self.mode!r}")
         if not self.speed > 0:
             raise ValueError("runtime.speed must be positive")
+        if self.max_speed is not None and not self.max_speed > 0:
+            raise ValueError(f"runtime.max_speed must be positive (or null: no limit), got {self.max_speed}")
         if self.frame_slots < 2:
             raise ValueError("runtime.frame_slots must be at least 2")
 

@@ -393,6 +393,7 @@ class DynamicsServer:
             self.api.port,
         )
         realtime = self.cfg.runtime.mode == "realtime"
+        limit = self.cfg.runtime.max_speed
         dt = self.world.control_period_ns / NS
         wall0, sim0 = time.monotonic(), self.world.t
         report = time.monotonic() + 5.0
@@ -418,9 +419,16 @@ class DynamicsServer:
                 self._poll(0 if lag >= 0 else min(-lag / self.cfg.runtime.speed, dt))
             else:
                 ready = all(r in self.peers for r in ROLES) and len(self.in_flight) < self.window
+                wait = 0.0 if ready else 0.05
+                if ready and limit is not None:  # runtime.max_speed
+                    now = time.monotonic()
+                    ahead = (self.world.t - sim0) / limit - (now - wall0)  # of the limit, wall s
+                    if self.world.t < sim0 or ahead < -dt:  # a reset, or held up by a consumer: no catch-up
+                        wall0, sim0, ahead = now, self.world.t, 0.0
+                    ready, wait = ahead <= 0, min(max(ahead, 0.0), dt)
                 if ready:
                     self._step(realtime=False)
-                self._poll(0 if ready else 0.05)
+                self._poll(wait)
             if time.monotonic() > report:
                 report = time.monotonic() + 5.0
                 log.info(

@@ -252,7 +252,9 @@ def capture(
         tr = meta["tracking"]
         log(
             f"captured {run_record['captured']} view(s) in {run_record['wall_s']:.1f} s wall "
-            f"({run_record.get('sim_s', 0.0):.1f} s sim); {len(dataset.views)}/{len(plan)} in {out}; "
+            f"({run_record.get('sim_s', 0.0):.1f} s sim, the legs "
+            f"{run_record.get('legs_sim_s', 0.0):.1f} s); "
+            f"{len(dataset.views)}/{len(plan)} in {out}; "
             f"max tracking error over {tr['capture_legs']} capture legs: "
             f"path {_fmt_m(tr['max_path_error_m'])}, altitude {_fmt_m(tr['max_altitude_error_m'])}"
         )
@@ -327,6 +329,7 @@ def _fly_and_record(
         run["vehicles"] = {p.name: len(p.route) for p in pilots}
     todo = sum(len(p.route) for p in pilots)
     lock = threading.Lock()
+    legs = dict.fromkeys((p.name for p in pilots), 0.0)
     bar = tqdm(total=len(plan), initial=len(plan) - todo, unit="view", desc="capture", disable=not progress)
 
     def store(p: _Pilot, record: dict[str, Any], jpeg: bytes, aux: Any, settled: int, err: str) -> None:
@@ -334,6 +337,8 @@ def _fly_and_record(
             run["captured"] += 1
             run["wall_s"] = time.monotonic() - wall0
             run["sim_s"] = max(run.get("sim_s", 0.0), ns_to_seconds(settled - t_sim0))
+            legs[p.name] += record["leg"]["flight_sim_s"] + record["leg"]["settle_sim_s"]
+            run["legs_sim_s"] = round(max(legs.values()), 3)
             dataset.add(record, jpeg, run, aux)
             bar.set_postfix_str(err if len(pilots) == 1 else f"{p.name} {err}")
             bar.update(1)
