@@ -365,7 +365,7 @@ def test_capture_sparse_dense_and_score_end_to_end(tmp_path: Path):
     cfg = load_config(
         None,
         ["capture.views=8", "capture.width=320", "capture.height=240", "capture.arc_deg=60",
-         "capture.altitudes=[4.0]", "render.shadow_map_size=1024", "capture.camera_hz=4"],
+         "capture.altitudes=[4.0]", "render.shadow_map_size=1024"],
         scene="tree_inspection",
     )  # fmt: skip
     # the camera's aim at the crown from the scene's own landmarks, so no probe run is started to ask the

@@ -217,6 +217,15 @@ def test_a_bad_number_of_capture_vehicles_is_a_one_line_error(tmp_path: Path, ca
     assert not (tmp_path / "ds").exists()
 
 
+def test_a_camera_rate_without_continuous_is_a_one_line_error(tmp_path: Path, capsys):
+    from droneulator.cli import main
+
+    assert main(["capture", "--out", str(tmp_path / "ds"), "--camera-hz", "5"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "add --continuous" in err
+    assert not (tmp_path / "ds").exists()
+
+
 def _tf(parent: str, child: str, t_ns: int, p, q) -> SimpleNamespace:
     return SimpleNamespace(
         header=SimpleNamespace(
@@ -460,7 +469,6 @@ def test_capture_resume_with_two_vehicles_and_reconstruct_end_to_end(tmp_path: P
         f"capture.height={H}",
         "capture.hfov_deg=90",
         "capture.arc_deg=90",
-        "capture.camera_hz=4",  # the views need a frame once settled, no more
         "render.shadow_map_size=1024",
     ]
     cfg = load_config(None, overrides, scene="tree_inspection")

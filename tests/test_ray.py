@@ -111,7 +111,7 @@ def test_a_sweep_interrupted_and_run_again_does_not_redo_finished_jobs(cluster: 
         "--set", "capture.width=160", "--set", "capture.height=120", "--set", "capture.arc_deg=20",
         "--set", "capture.speed=2", "--set", "capture.pitch_deg=10", "--set", "render.shadow_map_size=512",
         "--set", "randomize.enabled=true", "--set", "randomize.wind_speed_m_s=[0, 2]",
-        "--set", "capture.accept_after_s=0.5", "--set", "capture.camera_hz=4",
+        "--set", "capture.accept_after_s=0.5",
     ]  # fmt: skip
     first = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=ENV)
     deadline = time.monotonic() + 240

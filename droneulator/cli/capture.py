@@ -100,6 +100,11 @@ def cmd_capture(args: argparse.Namespace) -> int:
 
     from droneulator.workflows.photogrammetry.capture import capture
 
+    if args.camera_hz is not None and args.trigger is None:
+        raise ValueError(
+            "--camera-hz is the rate of a continuous camera: add --continuous (by default the camera is "
+            "triggered once at each view)"
+        )
     cfg = config_from_args(args)
     cap = cfg.capture
     for name in _CAPTURE_FIELDS:
