@@ -22,6 +22,8 @@ from rosbags.typesys import Stores, get_typestore
 from test_px4 import Peer, by_type
 
 from droneulator.api.client import ApiError
+from droneulator.cli import build_parser
+from droneulator.cli.plan import resolve_vehicle
 from droneulator.commands import CommandPath, make_request
 from droneulator.config import CameraConfig, VehicleSpec, fleet, load_config
 from droneulator.frames import enu_to_geodetic, ned_to_enu, quat_to_matrix
@@ -32,10 +34,13 @@ from droneulator.ros.publishers import FramePublisher, StatePublisher
 from droneulator.ros.topics import vehicle_names
 from droneulator.ros.zenoh_node import RosZenohNode, ZenohNodeConfig
 from droneulator.runtime.launch import free_port, launch_run
+from droneulator.runtime.preflight import StartupError
 from droneulator.sensors import Truth
 from droneulator.sensors.baro import isa_pressure_pa
 from droneulator.sensors.mag import earth_field_ned
 from droneulator.sensors.suite import Schedule
+from droneulator.workflows.rl.env import env_config
+from droneulator.workflows.rl.remote import RemoteBackend
 from droneulator.world import World
 
 TS = get_typestore(Stores.ROS2_JAZZY)
@@ -200,6 +205,11 @@ def test_a_triggered_run_publishes_one_frame_set_of_the_asking_vehicle_with_its_
             time.sleep(1.0)
             t1, wall1 = c.state()["t"], time.monotonic()
             assert 0 < t1 - t0 <= 8.0 * (wall1 - wall0 + 0.01) + 0.01  # a period of catching up at most
+        # the consumers that need the camera rate refuse such a run in one line
+        with pytest.raises(StartupError, match="the planner needs depth at the camera rate"):
+            resolve_vehicle(build_parser().parse_args(["plan", "--url", run.url]))
+        with pytest.raises(ValueError, match="steps one depth frame per step"):
+            RemoteBackend(env_config(), run.url, run.zenoh_endpoint)
     finally:
         for sub in subs:
             sub.undeclare()

@@ -104,6 +104,8 @@ def test_plan_takes_the_vehicle_and_its_px4_instance_from_the_config_or_the_run(
         _px4_instance(args, resolve_vehicle(args)[0])
     with pytest.raises(StartupError, match="no vehicle 'uav9' in the configuration"):
         resolve_vehicle(parse(["plan", "--config", str(path), "--vehicle", "uav9"]))
+    with pytest.raises(StartupError, match="the planner needs depth at the camera rate"):
+        resolve_vehicle(parse(["plan", "--config", str(path), "--set", "render.camera_trigger=command"]))
 
     nobody = f"ws://127.0.0.1:{free_port()}"  # no run answers: the single vehicle, unless one was named
     vehicle, run_cfg = resolve_vehicle(parse(["plan", "--url", nobody]))

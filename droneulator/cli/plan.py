@@ -137,12 +137,21 @@ def resolve_vehicle(args: argparse.Namespace) -> tuple[PlannedVehicle, SimConfig
 
     if args.vehicle is None and args.namespace is not None and args.config is None and not args.overrides:
         return fleet.single_vehicle(args.namespace), None
+    triggered = StartupError(
+        "the run triggers its cameras (render.camera_trigger=command): the planner needs depth at the "
+        "camera rate; start the run without that setting",
+        preflight.USAGE,
+    )
     try:
         if args.config is not None or args.overrides:
             cfg = preflight.load(args.config, args.overrides)
+            if cfg.render.camera_trigger == "command":
+                raise triggered
             return fleet.from_config(cfg, args.vehicle), cfg
         info = _scene_info(args.url)
         if info is not None:
+            if info.get("camera_trigger") == "command":
+                raise triggered
             return fleet.from_scene_info(info, args.vehicle), None
     except ValueError as exc:
         raise StartupError(f"--vehicle: {exc}", preflight.USAGE) from None

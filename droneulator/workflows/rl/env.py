@@ -76,8 +76,9 @@ def depth_camera_models(cfg: SimConfig) -> dict[str, CameraModel | None]:
 
 
 def env_config(config: SimConfig | None = None, **rl_overrides: Any) -> SimConfig:
-    """A copy of ``config`` set up for the environment: vineyard scene, the RL camera only, no shadows
-    (depth is unaffected), ``rl`` fields replaced by ``rl_overrides``. The scene's seed and vegetation
+    """A copy of ``config`` set up for the environment: vineyard scene, the RL camera only, at its rate
+    (one frame a step, never triggered), no shadows (depth is unaffected), ``rl`` fields replaced by
+    ``rl_overrides``. The scene's seed and vegetation
     stay the config's (applying this twice changes nothing): with domain randomisation of the scene the
     environment flies in :func:`scene_variants` of it."""
     cfg = copy.deepcopy(config) if config is not None else load_config()
@@ -86,6 +87,7 @@ def env_config(config: SimConfig | None = None, **rl_overrides: Any) -> SimConfi
         cfg.rl = dataclasses.replace(cfg.rl, **rl_overrides)
     cfg.render.cameras = [rl_camera(cfg.rl)]
     cfg.render.shadows = False
+    cfg.render.camera_trigger = "rate"
     return cfg
 
 
@@ -113,7 +115,7 @@ def runtime_overrides(cfg: SimConfig) -> list[str]:
         f'[{{"name": "{cam.name}", "width": {cam.width}, "height": {cam.height}, '
         f'"hfov_deg": {cam.hfov_deg}, "far": {cam.far}{model}}}]'
     )
-    return [f"render.cameras={spec}", "render.shadows=false"]
+    return [f"render.cameras={spec}", "render.shadows=false", "render.camera_trigger=rate"]
 
 
 def depth_strip(depth: np.ndarray, clip: float, samples: int = STRIP_SAMPLES) -> np.ndarray:

@@ -45,6 +45,11 @@ class RemoteBackend:
         self.client = DroneulatorClient(url, timeout=timeout)
         try:
             info = self.client.scene_info()
+            if info.get("camera_trigger") == "command":
+                raise ValueError(
+                    f"the run at {url} triggers its cameras (render.camera_trigger=command): the environment "
+                    "steps one depth frame per step; start the run without that setting"
+                )
             if info["name"] != SCENE:
                 self.client.reset(scene=SCENE, seed=cfg.seed)
                 info = self.client.scene_info()
