@@ -8,7 +8,8 @@ other, with the camera triggered at each view (the default: nothing rendered bet
 sim time, which in lockstep on a CPU renderer sets the wall time); then ``droneulator reconstruct``
 (defaults: SIFT masked to the tree, triangulation and BA with pose priors, CPU dense stereo, scoring
 against the true tree) runs on each dataset of ``--reconstruct-modes``. Prints capture wall and sim
-time, the camera frames rendered, the load average around each capture, how far each dataset's camera
+time, the camera frames rendered, the CPU time of each capture (client and simulator: whether the
+cores were the limit) and the load average around it, how far each dataset's camera
 poses are from the first one's, and the reconstruction figures as ``benchmarks/photogrammetry.py``
 reports them; writes ``benchmarks/results/fleet_capture.json``.
 
@@ -23,6 +24,7 @@ import argparse
 import json
 import math
 import os
+import resource
 import shutil
 import sys
 from pathlib import Path
@@ -67,6 +69,13 @@ def capture_row(
         "max_path_error_m": meta["tracking"]["max_path_error_m"],
         "max_altitude_error_m": meta["tracking"]["max_altitude_error_m"],
     }
+
+
+def cpu_seconds() -> float:
+    """CPU time (user and system) of this process and of its children that have ended: a capture's
+    client and the simulator it started (its processes end with it)."""
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
 
 
 def reconstruction_row(report: dict[str, Any]) -> dict[str, Any]:
@@ -140,6 +149,7 @@ def main() -> None:
         cfg.capture.trigger = mode == "triggered"
         meta_path = out / "metadata.json"
         load = [os.getloadavg()[0]]
+        cpu0 = cpu_seconds()
         if args.reuse and meta_path.exists() and json.loads(meta_path.read_text())["complete"]:
             meta = json.loads(meta_path.read_text())
         else:
@@ -151,6 +161,7 @@ def main() -> None:
             "vehicles": n,
             "capture": capture_row(out, meta, cfg.capture.camera_hz, n, cfg.capture.trigger),
             "load_avg_1min": load,
+            "cpu_s": round(cpu_seconds() - cpu0, 2),
         }
         print(f"{mode}, {n} vehicle(s): {rows[mode, n]['capture']}", flush=True)
     base = next(iter(outs.values()))
@@ -168,7 +179,7 @@ def main() -> None:
         f"{'mode':>10} | {'vehicles':>8} | {'wall s':>7} | {'sim s':>6} | {'legs sim s':>10} | "
         f"{'startup s':>9} | "
         f"{'flight s':>8} | "
-        f"{'frames':>6} | {'load':>9} | "
+        f"{'frames':>6} | {'CPU s':>5} | {'load':>9} | "
         f"{'pose diff cm / deg':>18} | {'sparse (tree)':>15} | {'dense on tree':>13} | "
         f"{'acc med / p90 cm':>16} | {'compl. all / seen':>17}"
     )
@@ -192,7 +203,7 @@ def main() -> None:
             f"{mode:>10} | {n:>8} | {cap['wall_s']:>7.1f} | {cap['sim_s']:>6.1f} | "
             f"{cap['legs_sim_s']:>10.1f} | "
             f"{cap['startup_s'] or 0:>9.1f} | "
-            f"{cap['flight_s'] or 0:>8.1f} | {cap['frames_rendered']:>6} | "
+            f"{cap['flight_s'] or 0:>8.1f} | {cap['frames_rendered']:>6} | {r['cpu_s']:>5.1f} | "
             f"{r['load_avg_1min'][0]:>4.1f} {r['load_avg_1min'][1]:>4.1f} | {diff:>18} | {sparse:>15} | "
             f"{rec.get('dense_tree_points') or '-':>13} | {acc:>16} | {comp:>17}"
         )

@@ -33,6 +33,7 @@ from droneulator.recording.replay import ReplayConfig, replay
 from droneulator.ros.publishers import FramePublisher, StatePublisher
 from droneulator.ros.topics import vehicle_names
 from droneulator.ros.zenoh_node import RosZenohNode, ZenohNodeConfig
+from droneulator.runtime.dynamics_server import lockstep_may_step
 from droneulator.runtime.launch import free_port, launch_run
 from droneulator.runtime.preflight import StartupError
 from droneulator.sensors import Truth
@@ -155,18 +156,30 @@ def test_triggered_cameras_shoot_once_when_asked_with_every_body_in_view() -> No
         assert refused["code"] == "unsupported" and "render.camera_trigger=command" in refused["message"]
 
 
+def test_a_triggered_frame_in_flight_holds_the_lockstep_clock() -> None:
+    """Lockstep steps while fewer than the window of frames are in flight, and never while a triggered one
+    is (in either stage)."""
+    rate = ("render", {}, None)
+    assert lockstep_may_step({}, 2) and lockstep_may_step({1: rate}, 2)
+    assert not lockstep_may_step({1: rate, 2: ("publish", {}, None)}, 2)
+    for stage in ("render", "publish"):
+        assert not lockstep_may_step({1: (stage, {}, ("uav1",))}, 2)
+
+
 @pytest.mark.slow
 def test_a_triggered_run_publishes_one_frame_set_of_the_asking_vehicle_with_its_states() -> None:
     """Through the runtime (dynamics server, render server, bridge): nothing is published on the camera
     topics until ``trigger``; then the asking vehicle's images, camera_info and pose, stamped as the reply
-    said, with its odometry and TF of that stamp, and nothing of the other vehicle. With nothing to render,
-    lockstep runs no faster than ``runtime.max_speed``."""
+    said, with its odometry and TF of that stamp, and nothing of the other vehicle; the frame holds the
+    clock until it is published. With nothing to render, lockstep runs no faster than
+    ``runtime.max_speed``."""
     cfg = two_vehicle_config()
     cfg.render.camera_trigger = "command"
     cfg.runtime.state_hz = 25.0  # the triggered instant brings its own states
     cfg.runtime.max_speed = 8.0
     run = launch_run(cfg)
     got: dict[str, list[int]] = defaultdict(list)
+    arrivals: list[tuple[str, int]] = []  # every sample as it came
 
     def on_sample(sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
@@ -177,7 +190,9 @@ def test_a_triggered_run_publishes_one_frame_set_of_the_asking_vehicle_with_its_
             for tr in msg.transforms:
                 got[f"tf {tr.child_frame_id}"].append(tr.header.stamp.sec * 10**9 + tr.header.stamp.nanosec)
             return
-        got[f"{key.split('/')[1]} {leaf}"].append(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)
+        name, t = f"{key.split('/')[1]} {leaf}", msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+        got[name].append(t)
+        arrivals.append((name, t))
 
     session = zenoh.open(_client_of(run.zenoh_endpoint))
     subs = [session.declare_subscriber(k, on_sample) for k in ("droneulator/*/**", "tf")]
@@ -201,6 +216,11 @@ def test_a_triggered_run_publishes_one_frame_set_of_the_asking_vehicle_with_its_
             assert stamp in got["uav1 odom"] and stamp in got["uav0 odom"]  # every state of that instant
             assert stamp in got["tf uav1/base_link"]
             assert np.median(np.diff(got["uav1 odom"])) == 40_000_000  # else the 25 Hz schedule
+            # the clock held while the frame was rendered: at 8x, a render of tens of ms would otherwise
+            # bring several states of later instants before the image (streams of two processes: one may
+            # overtake the image on its way here; without the hold: 21 to 109)
+            image = arrivals.index((f"uav1 front/{streams[0]}", stamp))
+            assert sum(n == "uav1 odom" and t > stamp for n, t in arrivals[:image]) <= 3
             wall0, t0 = time.monotonic(), c.state()["t"]
             time.sleep(1.0)
             t1, wall1 = c.state()["t"], time.monotonic()

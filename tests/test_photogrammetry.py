@@ -16,6 +16,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from tqdm import tqdm
 
 from droneulator import frames as F
 from droneulator.config import load_config
@@ -24,7 +25,7 @@ from droneulator.ros.topics import TYPES, topic_names, vehicle_topics
 from droneulator.ros.zenoh_node import RosZenohNode, ZenohNodeConfig
 from droneulator.runtime.launch import free_port
 from droneulator.sensors.camera import intrinsics
-from droneulator.workflows.photogrammetry.capture import aim_pitch, run_config, tree_landmarks
+from droneulator.workflows.photogrammetry.capture import _Writer, aim_pitch, run_config, tree_landmarks
 from droneulator.workflows.photogrammetry.colmap_model import (
     COLMAP_PIXEL_OFFSET,
     K_from_colmap_pinhole,
@@ -386,6 +387,35 @@ def test_resume_captures_only_the_missing_views_and_keeps_the_others(tmp_path: P
     wider = dict(cam, K=(K * [[1.01], [1.01], [1]]).tolist())
     with pytest.raises(DatasetMismatchError):
         CaptureDataset.open(tmp_path, settings).set_camera(wider)
+
+
+def test_the_writer_stores_views_in_order_and_a_failed_write_stops_the_capture_keeping_the_rest(
+    tmp_path: Path,
+):
+    """The capture's writer thread stores every queued view before it stops; a write that fails (here a
+    folder stands where an image goes) is raised at the next view and returned by close, and the views stored
+    before it stay listed, so a second run resumes after them."""
+    cfg = load_config(None, ["capture.views=6"], scene="tree_inspection")
+    cam = {"frame_id": "front_optical_frame", "width": W, "height": H, "K": K.tolist(), "hfov_deg": 80.0}
+    settings = plan_settings(cfg, 10.0, cam)
+    ds = CaptureDataset.open(tmp_path, settings)
+    ds.set_camera(cam)
+    writer = _Writer(ds, tqdm(disable=True))
+    for i in range(3):
+        writer.put(_fake_view(i), f"jpeg {i}".encode(), None, {"captured": i + 1}, "")
+    assert writer.close() is None and writer.stored == 3
+    assert [v["index"] for v in json.loads((tmp_path / "poses.json").read_text())["views"]] == [0, 1, 2]
+
+    (tmp_path / "images" / "0003.jpg").mkdir()  # the image cannot be written
+    writer = _Writer(ds, tqdm(disable=True))
+    writer.put(_fake_view(3), b"jpeg 3", None, {"captured": 4}, "")
+    deadline = time.monotonic() + 10.0
+    while writer.error is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    with pytest.raises(RuntimeError, match="storing the views failed"):
+        writer.put(_fake_view(4), b"jpeg 4", None, {"captured": 5}, "")
+    assert isinstance(writer.close(), OSError) and writer.stored == 0
+    assert sorted(CaptureDataset.open(tmp_path, settings).views) == [0, 1, 2]
 
 
 # --------------------------------------------------------------------------- sparse point filter

@@ -9,7 +9,8 @@ Zenoh's ``BLOCK`` policy, so a slow subscriber slows the clock instead of losing
 steps follow the wall clock (times ``runtime.speed``); a camera instant is sent to the render server
 only when it is free, so it draws the latest state at whatever rate it manages, and images are
 published with ``DROP``. Triggered cameras (``render.camera_trigger=command``) send a camera instant
-only when the API's ``trigger`` asks for one, in either mode, and it is never dropped.
+only when the API's ``trigger`` asks for one, in either mode, and it is never dropped; in lockstep a
+triggered frame holds the clock until it is published (:func:`lockstep_may_step`).
 
 Odometry, TF and ``/clock`` leave from here, right after the physics step that produced the state
 (no process hop), and so do the sensor topics (IMU, GPS fix, air pressure, magnetic field): a vehicle a
@@ -66,6 +67,16 @@ from droneulator.world.world import StepResult
 log = logging.getLogger("droneulator.dynamics")
 ROLES = ("renderer", "bridge")
 STATIC_TF_PERIOD_S = 1.0
+
+
+def lockstep_may_step(in_flight: dict[int, tuple[str, Any, tuple[str, ...] | None]], window: int) -> bool:
+    """Whether lockstep may take a control step with ``in_flight`` frames (seq -> (stage, states, rigs)):
+    fewer than ``window`` in flight and none of them triggered. A triggered frame holds the clock until
+    the bridge has published it: nothing else is rendered meanwhile, so stepping on would only hover the
+    fleet at full speed on the cores the renderer needs (a capture's views take half the wall time on 2
+    cores with the hold: docs/photogrammetry.md), and the frame reaches its consumer before the world
+    moves on."""
+    return len(in_flight) < window and all(rigs is None for _, _, rigs in in_flight.values())
 
 
 def open_zenoh_hub(cfg: SimConfig, private_endpoint: str | None) -> RosZenohNode:
@@ -332,7 +343,7 @@ class DynamicsServer:
         hand-over) are published as API events, naming their vehicle."""
         assert self.px4 is not None
         connected = self.px4.connected
-        ready = all(r in self.peers for r in ROLES) and len(self.in_flight) < self.window
+        ready = all(r in self.peers for r in ROLES) and lockstep_may_step(self.in_flight, self.window)
         res = (
             self.px4.serve_once(0.002 if ready and connected else 0.0, self.lock)
             if ready or not connected
@@ -418,7 +429,7 @@ class DynamicsServer:
                     self._step(realtime=True)
                 self._poll(0 if lag >= 0 else min(-lag / self.cfg.runtime.speed, dt))
             else:
-                ready = all(r in self.peers for r in ROLES) and len(self.in_flight) < self.window
+                ready = all(r in self.peers for r in ROLES) and lockstep_may_step(self.in_flight, self.window)
                 wait = 0.0 if ready else 0.05
                 if ready and limit is not None:  # runtime.max_speed
                     now = time.monotonic()

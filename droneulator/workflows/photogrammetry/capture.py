@@ -9,7 +9,8 @@ WebSocket API, and everything recorded comes back from the ROS 2 topics over Zen
 3. :mod:`.record`: the next RGB frame after settling (the simulator's camera is triggered there, when
    its ``scene_info`` says ``camera_trigger: command``), the segmentation and depth of its stamp, its
    camera_info and the camera pose from TF;
-4. :mod:`.dataset`: the dataset folder, written view by view; running the same command again
+4. :mod:`.dataset`: the dataset folder, written view by view (on a thread of its own, while the
+   vehicles fly on); running the same command again
    captures only the views that are missing. The true tree and ground (:mod:`.truth`) go to
    ``truth/mesh.npz`` for ``droneulator score``.
 
@@ -31,6 +32,7 @@ import contextlib
 import copy
 import dataclasses
 import math
+import queue
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -331,6 +333,7 @@ def _fly_and_record(
     lock = threading.Lock()
     legs = dict.fromkeys((p.name for p in pilots), 0.0)
     bar = tqdm(total=len(plan), initial=len(plan) - todo, unit="view", desc="capture", disable=not progress)
+    writer = _Writer(dataset, bar)
 
     def store(p: _Pilot, record: dict[str, Any], jpeg: bytes, aux: Any, settled: int, err: str) -> None:
         with lock:
@@ -339,15 +342,15 @@ def _fly_and_record(
             run["sim_s"] = max(run.get("sim_s", 0.0), ns_to_seconds(settled - t_sim0))
             legs[p.name] += record["leg"]["flight_sim_s"] + record["leg"]["settle_sim_s"]
             run["legs_sim_s"] = round(max(legs.values()), 3)
-            dataset.add(record, jpeg, run, aux)
-            bar.set_postfix_str(err if len(pilots) == 1 else f"{p.name} {err}")
-            bar.update(1)
+            writer.put(record, jpeg, aux, dict(run), err if len(pilots) == 1 else f"{p.name} {err}")
 
     t_fly = time.monotonic()
     try:
         _fly_all(pilots, plan, cam, cap, center, timings, store)
     finally:
+        failed = writer.close()
         bar.close()
+        run["captured"] = writer.stored
         timings["flight_s"] = time.monotonic() - t_fly
         run["wall_s"] = time.monotonic() - wall0
         with contextlib.suppress(TimeoutError):
@@ -356,7 +359,57 @@ def _fly_and_record(
         run["complete"] = len(dataset.views) == len(plan)
         if dataset.camera is not None:
             dataset.finish_run(run)
+        if failed is not None:
+            raise RuntimeError(f"storing the views failed: {failed}") from failed
     return run
+
+
+class _Writer:
+    """Stores the views on a thread of its own, in the order they come, so that the vehicles fly on while
+    a view's files are compressed and written; the files that list the views are written once for every
+    batch of views that waited meanwhile. A failed write stops the capture at its next view."""
+
+    def __init__(self, dataset: CaptureDataset, bar: tqdm) -> None:
+        self.dataset, self.bar = dataset, bar
+        self.queue: queue.Queue[tuple[dict[str, Any], bytes, Any, dict[str, Any], str] | None] = queue.Queue()
+        self.error: BaseException | None = None
+        #: views stored (their files and their entries in the lists)
+        self.stored = 0
+        self.thread = threading.Thread(target=self._main, name="capture-writer", daemon=True)
+        self.thread.start()
+
+    def put(self, record: dict[str, Any], jpeg: bytes, aux: Any, run: dict[str, Any], postfix: str) -> None:
+        """Queue one view (``run``: the run's record as of this view, for the metadata)."""
+        if self.error is not None:
+            raise RuntimeError(f"storing the views failed: {self.error}") from self.error
+        self.queue.put((record, jpeg, aux, run, postfix))
+
+    def _main(self) -> None:
+        done = False
+        while not done:
+            batch = [self.queue.get()]
+            while not self.queue.empty():
+                batch.append(self.queue.get_nowait())
+            done = batch[-1] is None
+            views = [b for b in batch if b is not None]
+            if not views or self.error is not None:
+                continue
+            try:
+                for record, jpeg, aux, _, _ in views:
+                    self.dataset.store(record, jpeg, aux)
+                self.dataset.write(views[-1][3])
+            except Exception as e:  # raised to the flight by put(), returned by close()
+                self.error = e
+                continue
+            self.stored += len(views)
+            self.bar.set_postfix_str(views[-1][4])
+            self.bar.update(len(views))
+
+    def close(self) -> BaseException | None:
+        """Store what is queued, then stop; the write error that stopped the storing, if one did."""
+        self.queue.put(None)
+        self.thread.join()
+        return self.error
 
 
 def _fly_all(

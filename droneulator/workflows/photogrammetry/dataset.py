@@ -116,6 +116,12 @@ class CaptureDataset:
     ) -> None:
         """Store one captured view: its segmentation and depth and its image first, then the files that
         list it."""
+        self.store(view, jpeg, aux)
+        self.write(run)
+
+    def store(self, view: dict[str, Any], jpeg: bytes, aux: AuxFrames | None = None) -> None:
+        """A view's files (segmentation, depth, image) and its entry; the lists that name it come with the
+        next :meth:`write` (a view whose image is there and whose entry is not is captured again)."""
         if aux is not None:
             stem = Path(view["name"]).stem
             atomic_write(self.root / "segmentation" / f"{stem}.png", aux.segmentation_png)
@@ -124,7 +130,6 @@ class CaptureDataset:
             atomic_write(self.root / "truth" / "depth" / f"{stem}.npz", buf.getvalue())
         atomic_write(self.images_dir / view["name"], jpeg)
         self.views[int(view["index"])] = view
-        self.write(run)
 
     def write(self, run: dict[str, Any] | None = None) -> None:
         views = [self.views[i] for i in sorted(self.views)]
