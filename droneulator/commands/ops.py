@@ -417,7 +417,8 @@ OPS: dict[str, Op] = {
             "segmentation, with camera_info and pose) at the end of the next control period, as a survey "
             "camera triggered at a waypoint. Only when the simulator runs with "
             "`render.camera_trigger=command`, where nothing else is rendered (`droneulator capture` runs it "
-            "so); refused (`unsupported`) at the camera rate.",
+            "so); in lockstep the clock holds until the frame set is published. Refused (`unsupported`) at "
+            "the camera rate.",
             "`frame_stamp_ns`: the stamp (ROS clock, integer ns) the frame set will carry; `t`: " + _T,
             (_VEHICLE,),
             _trigger,

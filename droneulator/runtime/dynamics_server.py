@@ -73,9 +73,9 @@ def lockstep_may_step(in_flight: dict[int, tuple[str, Any, tuple[str, ...] | Non
     """Whether lockstep may take a control step with ``in_flight`` frames (seq -> (stage, states, rigs)):
     fewer than ``window`` in flight and none of them triggered. A triggered frame holds the clock until
     the bridge has published it: nothing else is rendered meanwhile, so stepping on would only hover the
-    fleet at full speed on the cores the renderer needs (a capture's views take half the wall time on 2
-    cores with the hold: docs/photogrammetry.md), and the frame reaches its consumer before the world
-    moves on."""
+    fleet at full speed on the cores the renderer needs (with the hold a capture's frames came in 0.10 s
+    instead of 0.28 s on 2 cores: docs/photogrammetry.md), and the frame reaches its consumer before the
+    world moves on."""
     return len(in_flight) < window and all(rigs is None for _, _, rigs in in_flight.values())
 
 
