@@ -16,8 +16,8 @@ in parallel subprocesses, each single-threaded.
 (:class:`~droneulator.workflows.rl.vector.VineyardNavVectorEnv` through
 :class:`~droneulator.workflows.rl.sb3.SB3VectorEnv`): B worlds in this process, depth by ray casting.
 SAC stays the default there: in the runs measured (``benchmarks/rl.py``, docs/rl.md) it reached 9/10
-held-out successes about as soon as PPO (254 and 308 s against 322 s; one SAC seed not within 360 s)
-and its policies held up better on 50 further held-out episodes (39 to 50 against 36); it takes one
+held-out successes sooner than PPO (119 to 161 s over three seeds against 258 s) and its policies held
+up better on 50 further held-out episodes (40 to 50 against 36); it takes one
 gradient step per transition (``gradient_steps = B`` per vector step) unless told otherwise. PPO
 (:data:`PPO_HYPERPARAMETERS`: on-policy batches of B x ``n_steps`` transitions) uses the env's speed
 but needs about 60 times the transitions.
