@@ -10,9 +10,8 @@ WebSocket API, and everything recorded comes back from the ROS 2 topics over Zen
    its ``scene_info`` says ``camera_trigger: command``), the segmentation and depth of its stamp, its
    camera_info and the camera pose from TF;
 4. :mod:`.dataset`: the dataset folder, written view by view (on a thread of its own, while the
-   vehicles fly on); running the same command again
-   captures only the views that are missing. The true tree and ground (:mod:`.truth`) go to
-   ``truth/mesh.npz`` for ``droneulator score``.
+   vehicles fly on); running the same command again captures only the views that are missing. The true
+   tree and ground (:mod:`.truth`) go to ``truth/mesh.npz`` for ``droneulator score``.
 
 Without ``--url`` the capture starts its own ``droneulator run`` (:func:`~droneulator.runtime.launch.
 launch_run`) with the capture camera, triggered at the views unless ``capture.trigger`` is off (then it
