@@ -48,12 +48,21 @@ def test_training_on_two_nodes_survives_a_killed_env_runner_and_resumes(cluster:
     checkpoint, progress and TensorBoard logs are written, and a resumed run goes on from the checkpoint."""
     out = tmp_path / "run"
     seen: list[dict[str, Any]] = []
+    threads: list[tuple[int, int]] = []
+
+    def _threads(_runner: Any) -> tuple[int, int]:
+        """(numba threads, torch threads) of an env runner's process (nested: pickled by value)."""
+        import numba
+        import torch
+
+        return numba.get_num_threads(), torch.get_num_threads()
 
     def on_iteration(algorithm: Any, result: dict[str, Any]) -> None:
         where = algorithm.env_runner_group.foreach_env_runner(
             lambda _runner: (os.getpid(), ray.get_runtime_context().get_node_id()), local_env_runner=False
         )
         seen.append({"iteration": result["training_iteration"], "runners": where})
+        threads.extend(algorithm.env_runner_group.foreach_env_runner(_threads, local_env_runner=False))
         if result["training_iteration"] == 2:
             os.kill(where[0][0], signal.SIGKILL)
         group = algorithm.env_runner_group
@@ -77,6 +86,8 @@ def test_training_on_two_nodes_survives_a_killed_env_runner_and_resumes(cluster:
         on_iteration=on_iteration,
     )
     assert len({node for _pid, node in seen[0]["runners"]}) == 2  # one env runner on each node
+    # each runner, restarted ones too, on its one CPU: one numba and one torch thread (not every core's)
+    assert len(threads) == sum(len(s["runners"]) for s in seen) and set(threads) == {(1, 1)}
     assert summary["ray_nodes"] == 2 and summary["steps"] >= steps
     assert summary["env_runner_restarts"] == 1 and summary["healthy_env_runners"] == 2
     killed = seen[1]["runners"][0][0]

@@ -4,6 +4,7 @@ single env over long random rollouts with autoresets, Gymnasium's VectorEnv cont
 from __future__ import annotations
 
 import gymnasium as gym
+import numba
 import numpy as np
 import pytest
 from gymnasium.vector import AutoresetMode
@@ -170,6 +171,34 @@ def test_bad_input_is_a_clear_error_and_the_env_keeps_working(venv):
         venv.reset(seed=[1, 2])
     obs, *_ = venv.step(np.zeros((3, 2)))
     assert venv.observation_space.contains(obs)
+
+
+def test_threads_bound_the_compiled_steps_give_the_same_results_and_leave_the_callers_setting():
+    """``threads=1`` (what a Ray actor of one CPU passes): the compiled steps run on one thread, the
+    rollout equals the one on every core, and the calling thread's numba setting is as it was."""
+    for bad in (0, numba.config.NUMBA_NUM_THREADS + 1):
+        with pytest.raises(ValueError, match="threads must be 1 to"):
+            VineyardNavVectorEnv(1, threads=bad)
+    caller = numba.get_num_threads()
+    one, every = VineyardNavVectorEnv(3, threads=1), VineyardNavVectorEnv(3)
+    seen: list[int] = []
+    step_frame = one.worlds.step_frame
+
+    def spy(*args, **kwargs):
+        seen.append(numba.get_num_threads())
+        return step_frame(*args, **kwargs)
+
+    one.worlds.step_frame = spy
+    try:
+        actions = np.random.default_rng(3).uniform(-1, 1, (80, 3, 2))
+        a, b = rollout_vector(one, 7, actions), rollout_vector(every, 7, actions)
+    finally:
+        one.close()
+        every.close()
+    assert seen and set(seen) == {1}
+    assert numba.get_num_threads() == caller
+    for key in ("obs", "reward", "terminated", "truncated"):
+        np.testing.assert_array_equal(np.array(a[key]), np.array(b[key]))
 
 
 # --------------------------------------------------------------------------- batched training

@@ -63,11 +63,14 @@ def _probe(address: str, timeout: float = 3.0) -> None:
 
 
 @contextlib.contextmanager
-def connect(address: str, num_cpus: int | None = None) -> Iterator[Any]:
+def connect(
+    address: str, num_cpus: int | None = None, worker_env: dict[str, str] | None = None
+) -> Iterator[Any]:
     """Connect this process to Ray (see the module docstring) for the ``with`` block; yields ``ray``.
 
-    ``num_cpus`` limits a ``local`` Ray (default: every core). A process already connected (a test's
-    cluster, a notebook) is used as it is and left connected.
+    ``num_cpus`` limits a ``local`` Ray (default: every core). ``worker_env``: environment variables of
+    every worker this process's job starts (Ray's ``runtime_env``), on whichever node. A process already
+    connected (a test's cluster, a notebook) is used as it is and left connected.
     """
     ray = import_ray()
     address = check_address(address)
@@ -78,6 +81,7 @@ def connect(address: str, num_cpus: int | None = None) -> Iterator[Any]:
         "include_dashboard": False,
         "log_to_driver": False,
         "logging_level": logging.WARNING,
+        "runtime_env": {"env_vars": dict(worker_env)} if worker_env else None,
     }
     if address == "local":
         kwargs["num_cpus"] = num_cpus

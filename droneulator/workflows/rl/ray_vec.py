@@ -30,9 +30,11 @@ RESTART_SEED_STRIDE = 1_000_003
 
 
 class _Worlds:
-    """A Ray actor's batch of worlds (the class Ray wraps with ``ray.remote``)."""
+    """A Ray actor's batch of worlds (the class Ray wraps with ``ray.remote``), stepped on ``threads``
+    threads (its CPU allotment; at most the node's cores)."""
 
-    def __init__(self, config: dict[str, Any], num_envs: int, depth: str) -> None:
+    def __init__(self, config: dict[str, Any], num_envs: int, depth: str, threads: int) -> None:
+        import numba
         from gymnasium.vector import AutoresetMode
 
         import droneulator.workflows.rl  # noqa: F401  (registers the env id in a fresh worker)
@@ -40,7 +42,8 @@ class _Worlds:
         from droneulator.workflows.rl.vector import VineyardNavVectorEnv
 
         cfg = from_dict(SimConfig, config)
-        self.env = SB3VectorEnv(VineyardNavVectorEnv(num_envs, cfg, depth, AutoresetMode.SAME_STEP))
+        threads = min(threads, numba.config.NUMBA_NUM_THREADS)
+        self.env = SB3VectorEnv(VineyardNavVectorEnv(num_envs, cfg, depth, AutoresetMode.SAME_STEP, threads))
 
     def spaces(self) -> tuple[Any, Any]:
         """One world's observation and action spaces."""
@@ -81,6 +84,7 @@ class RayVecEnv(VecEnv):
         self._remote = ray.remote(num_cpus=cpus, max_restarts=0)(_Worlds)
         self._config = to_dict(cfg)
         self._depth = depth
+        self._threads = max(1, round(cpus))
         edges = np.linspace(0, num_envs, actors + 1).round().astype(int)
         self.slices = [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
         self.actors = [self._spawn(s) for s in self.slices]
@@ -95,7 +99,7 @@ class RayVecEnv(VecEnv):
         super().__init__(num_envs, observation_space, action_space)
 
     def _spawn(self, part: slice) -> Any:
-        return self._remote.remote(self._config, part.stop - part.start, self._depth)
+        return self._remote.remote(self._config, part.stop - part.start, self._depth, self._threads)
 
     def seed(self, seed: int | None = None) -> Sequence[None | int]:
         """Seed the next reset: world ``i`` with ``seed + i`` (as SB3's VecEnv.seed)."""

@@ -43,6 +43,13 @@ from droneulator.workflows.rl.train import (
 
 ALGORITHMS = ("ppo", "sac")
 
+#: the environment of every Ray worker of a training run: each env runner has one CPU, so its numba
+#: pool gets one thread. Numba's OpenMP pool sets the process's OpenMP thread count when it starts, and
+#: the policy's torch shares that OpenMP runtime: with every core there, N runners on N cores ran N x
+#: cores threads, and 2, 4 or 8 runners on 16 cores sampled 2,550 env steps/s together against 6,160
+#: for one (benchmarks/scale.py --curve; with one thread each, 8 runners sample 7.96x one)
+WORKER_ENV = {"NUMBA_NUM_THREADS": "1"}
+
 
 def ppo_settings() -> dict[str, Any]:
     """RLlib's names for the SB3 PPO run's settings (:data:`~.train.PPO_HYPERPARAMETERS`, one source):
@@ -223,7 +230,7 @@ def train_on_ray(
     config = algorithm_config(cfg, algo, env_runners, num_envs, seed, depth, learners, restart_delay_s)
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(to_dict(cfg), indent=2))
-    with connect(address, num_cpus=num_cpus) as ray:
+    with connect(address, num_cpus=num_cpus, worker_env=WORKER_ENV) as ray:
         from torch.utils.tensorboard import SummaryWriter
 
         nodes = sum(1 for n in ray.nodes() if n.get("Alive"))

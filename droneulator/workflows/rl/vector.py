@@ -28,8 +28,9 @@ Stable-Baselines3 expects). ``info`` holds every single-env key as an array with
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -235,8 +236,10 @@ class VineyardNavVectorEnv(VectorEnv):
 
     ``num_envs``: B; ``config``: a :class:`SimConfig` (its ``rl`` section and vehicle settings, as the
     single env); ``depth``: ``"raycast"`` or ``"render"``; ``autoreset_mode``: an
-    :class:`~gymnasium.vector.AutoresetMode` (or its value); further keyword arguments replace fields of
-    ``config.rl``.
+    :class:`~gymnasium.vector.AutoresetMode` (or its value); ``threads``: the compiled steps' threads
+    (default: numba's, every core; the SB3 backend's Ray actors pass their CPU allotment, so that N
+    actors on N cores run N threads, not N times the cores); further keyword arguments replace fields
+    of ``config.rl``.
 
     Memory: each env holds its goal's distance field (float64), next-node chain (int32) and reachability
     over the occupancy grid, about 2 MB on the vineyard at the default 0.1 m grid.
@@ -250,10 +253,14 @@ class VineyardNavVectorEnv(VectorEnv):
         config: SimConfig | None = None,
         depth: str = "raycast",
         autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+        threads: int | None = None,
         **rl_overrides: Any,
     ) -> None:
         if isinstance(num_envs, bool) or not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        if threads is not None and not 1 <= threads <= numba.config.NUMBA_NUM_THREADS:
+            raise ValueError(f"threads must be 1 to {numba.config.NUMBA_NUM_THREADS}, got {threads!r}")
+        self._threads = threads
         mode = AutoresetMode(autoreset_mode)
         if mode == AutoresetMode.DISABLED:
             raise ValueError("autoreset_mode must be NEXT_STEP or SAME_STEP")
@@ -416,9 +423,35 @@ class VineyardNavVectorEnv(VectorEnv):
             out[key], out[f"_{key}"] = value, mask.copy()
         return out
 
+    @contextlib.contextmanager
+    def _own_threads(self) -> Iterator[None]:
+        """The compiled calls inside on ``threads`` threads; the caller's thread keeps its own setting
+        (numba's thread count belongs to the calling thread)."""
+        if self._threads is None:
+            yield
+            return
+        before = numba.get_num_threads()
+        numba.set_num_threads(self._threads)
+        try:
+            yield
+        finally:
+            numba.set_num_threads(before)
+
     # ------------------------------------------------------------------ gymnasium API
     def reset(
         self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        with self._own_threads():
+            return self._reset(seed, options)
+
+    def step(
+        self, actions: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        with self._own_threads():
+            return self._step(actions)
+
+    def _reset(
+        self, seed: int | list[int | None] | None, options: dict[str, Any] | None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         n = self.num_envs
         if seed is None:
@@ -438,7 +471,7 @@ class VineyardNavVectorEnv(VectorEnv):
         infos = self._infos(self.states, np.zeros(n), np.ones(n, dtype=bool))
         return self._obs.copy(), infos
 
-    def step(
+    def _step(
         self, actions: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         if not self._reset_called:
