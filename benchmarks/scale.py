@@ -15,9 +15,18 @@
    on a local Ray with 2 CPUs: 1 worker (2 CPUs per job) against 2 workers (1 CPU per job); jobs/hour.
 
 On this project's 2-core machine nodes beyond 2 share cores: the 3-node figure shows the cost of
-oversubscription, not of Ray. The 16-core curve (1-16 env runners) needs a bigger machine.
+oversubscription, not of Ray.
 
-Reproduce: ``python benchmarks/scale.py`` (about 10 min on 2 cores; ``--quick`` for a smoke run).
+3. ``--curve 1 2 4 8 16`` (instead of 1 and 2): the scaling curve on one bigger machine. A local Ray
+   with every core; for each count N, RLlib PPO with N env runners of ``--worlds-per-runner`` worlds
+   each (one CPU, one thread each): env steps/s of the runners sampling together (no learning) and of
+   training (sampling and the learner in this process, one after the other, as RLlib's PPO runs).
+   Against, in the same run: the env alone on one thread (``--worlds-per-runner`` worlds; N times it is
+   perfect scaling) and on every core in one process (N x ``--worlds-per-runner`` worlds). Writes
+   ``scale_curve.json`` and a plot beside it.
+
+Reproduce: ``python benchmarks/scale.py`` (about 10 min on 2 cores; ``--quick`` for a smoke run);
+``python benchmarks/scale.py --curve 1 2 4 8 16`` on a 16-core machine (about 4 min).
 """
 
 from __future__ import annotations
@@ -39,11 +48,12 @@ ROOT = Path(__file__).resolve().parents[1]
 LABELS = {"rllib": "RLlib PPO", "sb3": "SB3 PPO, worlds in Ray actors"}
 
 
-def env_speed(worlds: int, steps: int) -> float:
-    """Env steps/s of the batched env alone: random actions, autoresets, no learning."""
+def env_speed(worlds: int, steps: int, threads: int | None = None) -> float:
+    """Env steps/s of the batched env alone: random actions, autoresets, no learning; on ``threads``
+    threads (default: every core)."""
     from droneulator.workflows.rl.vector import VineyardNavVectorEnv
 
-    env = VineyardNavVectorEnv(worlds)
+    env = VineyardNavVectorEnv(worlds, threads=threads)
     env.reset(seed=0)
     rng = np.random.default_rng(0)
     for _ in range(20):  # compile and warm up
@@ -109,6 +119,101 @@ def with_ray(nodes: int, worlds: int, steps: int, out: Path, backend: str) -> di
     }
 
 
+def _sample(runner: Any) -> int:
+    """One env runner's rollout (its worlds x the fragment length), as env steps."""
+    return sum(len(episode) for episode in runner.sample())
+
+
+def runner_curve(counts: list[int], per_runner: int, rounds: int, iterations: int) -> list[dict[str, Any]]:
+    """Env steps/s of 1..N RLlib env runners on a local Ray with every core (section 3 of the docstring)."""
+    import os
+
+    from tqdm import tqdm
+
+    from droneulator.runtime.cluster import connect
+    from droneulator.workflows.rl.env import env_config
+    from droneulator.workflows.rl.rllib import WORKER_ENV, _sampled, algorithm_config
+
+    cfg = env_config(None)
+    rows = []
+    with connect("local", num_cpus=os.cpu_count(), worker_env=WORKER_ENV):
+        for n in tqdm(counts, desc="env runners", unit="point"):
+            t0 = time.perf_counter()
+            algorithm = algorithm_config(cfg, "ppo", n, per_runner, seed=0).build_algo()
+            build_s = time.perf_counter() - t0
+            try:
+                group = algorithm.env_runner_group
+                group.foreach_env_runner(_sample, local_env_runner=False)  # warm-up
+                t0 = time.perf_counter()
+                sampled = sum(
+                    sum(group.foreach_env_runner(_sample, local_env_runner=False)) for _ in range(rounds)
+                )
+                sample_rate = sampled / (time.perf_counter() - t0)
+                before = _sampled(algorithm.train())  # the learner's first step builds its optimiser
+                t0 = time.perf_counter()
+                for _ in range(iterations):
+                    after = _sampled(algorithm.train())
+                train_rate = (after - before) / (time.perf_counter() - t0)
+            finally:
+                algorithm.stop()
+            rows.append({
+                "env_runners": n, "worlds": n * per_runner, "sampling_steps_per_s": sample_rate,
+                "training_steps_per_s": train_rate, "build_s": build_s,
+            })  # fmt: skip
+            tqdm.write(f"{n} env runner(s): sampling {sample_rate:,.0f} steps/s, training {train_rate:,.0f}")
+    return rows
+
+
+def curve_main(args: argparse.Namespace) -> None:
+    """``--curve``: the env-runner scaling curve (section 3 of the docstring), its table, JSON and plot."""
+    counts, w = sorted(args.curve), args.worlds_per_runner
+    one = env_speed(w, 20_000, threads=1)
+    print(f"env alone, {w} worlds, one thread: {one:,.0f} steps/s", flush=True)
+    alls = {n: env_speed(n * w, 20_000) for n in counts}
+    for n, rate in alls.items():
+        print(f"env alone, {n * w} worlds, every core in one process: {rate:,.0f} steps/s", flush=True)
+    rows = runner_curve(counts, w, args.rounds, args.iterations)
+    for r in rows:
+        r["one_thread_steps_per_s"] = one
+        r["one_process_steps_per_s"] = alls[r["env_runners"]]
+        r["sampling_efficiency"] = r["sampling_steps_per_s"] / (r["env_runners"] * one)
+        r["sampling_x_first"] = r["sampling_steps_per_s"] / rows[0]["sampling_steps_per_s"]
+    print(f"\n| env runners | worlds | sampling steps/s | x {counts[0]} runner(s) | x one thread "
+          "| efficiency | training steps/s | one process, every core |")
+    print("|---|---|---|---|---|---|---|---|")  # fmt: skip
+    for r in rows:
+        print(f"| {r['env_runners']} | {r['worlds']} | {r['sampling_steps_per_s']:,.0f} | "
+              f"{r['sampling_x_first']:.2f} | "
+              f"{r['sampling_steps_per_s'] / one:.1f} | {r['sampling_efficiency']:.0%} | "
+              f"{r['training_steps_per_s']:,.0f} | {r['one_process_steps_per_s']:,.0f} |")  # fmt: skip
+    out = write(
+        "scale_curve",
+        {
+            "settings": {"worlds_per_runner": w, "rounds": args.rounds, "iterations": args.iterations},
+            "rows": rows,
+        },
+        args.output,
+    )
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = [r["env_runners"] for r in rows]
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.plot(n, [k * one for k in n], "k:", label="perfect (N x one thread)")
+    ax.plot(n, [r["sampling_steps_per_s"] for r in rows], "o-", label="RLlib env runners, sampling")
+    ax.plot(n, [r["training_steps_per_s"] for r in rows], "s-", label="RLlib PPO, training")
+    ax.plot(n, [r["one_process_steps_per_s"] for r in rows], "^--", label="one process, every core")
+    ax.set(xscale="log", yscale="log", xlabel=f"env runners (N x {w} worlds)", ylabel="env steps/s")
+    ax.set_xticks(n, [str(k) for k in n])
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(out.with_suffix(".png"), dpi=120)
+    print(f"wrote {out.with_suffix('.png')}")
+
+
 def sweep_rate(workers: int, jobs: int, out: Path) -> dict[str, Any]:
     cmd = [
         sys.executable, "-m", "droneulator.cli", "sweep", "capture", "--out", str(out),
@@ -135,8 +240,20 @@ def main() -> None:
     ap.add_argument("--no-sweeps", action="store_true", help="training figures only")
     ap.add_argument("--jobs", type=int, default=4, help="capture jobs per sweep")
     ap.add_argument("--quick", action="store_true", help="smoke run: few steps, 2 jobs")
+    ap.add_argument(
+        "--curve", type=int, nargs="+", default=None, metavar="N",
+        help="instead: the scaling curve for these env-runner counts (e.g. 1 2 4 8 16)",
+    )  # fmt: skip
+    ap.add_argument("--worlds-per-runner", type=int, default=64, help="--curve: worlds per env runner")
+    ap.add_argument("--rounds", type=int, default=10, help="--curve: timed sampling rounds per point")
+    ap.add_argument("--iterations", type=int, default=3, help="--curve: timed training iterations per point")
     ap.add_argument("--output", default=None)
     args = ap.parse_args()
+    if args.curve:
+        if min(args.curve) < 1 or args.worlds_per_runner < 1:
+            ap.error("--curve counts and --worlds-per-runner must be at least 1")
+        curve_main(args)
+        return
     if args.quick:
         args.steps, args.jobs, args.nodes = 6_144, 2, [1, 2]
     tmp = Path(tempfile.mkdtemp(prefix="droneulator-scale-"))
