@@ -17,7 +17,7 @@
 On this project's 2-core machine nodes beyond 2 share cores: the 3-node figure shows the cost of
 oversubscription, not of Ray.
 
-3. ``--curve 1 2 4 8 16`` (instead of 1 and 2): the scaling curve on one bigger machine. A local Ray
+3. ``--curve 1 2 4 8 16`` (instead of 1 and 2 above): the scaling curve on one bigger machine. A local Ray
    with every core; for each count N, RLlib PPO with N env runners of ``--worlds-per-runner`` worlds
    each (one CPU, one thread each): env steps/s of the runners sampling together (no learning) and of
    training (sampling and the learner in this process, one after the other, as RLlib's PPO runs).
@@ -250,8 +250,8 @@ def main() -> None:
     ap.add_argument("--output", default=None)
     args = ap.parse_args()
     if args.curve:
-        if min(args.curve) < 1 or args.worlds_per_runner < 1:
-            ap.error("--curve counts and --worlds-per-runner must be at least 1")
+        if min(args.curve + [args.worlds_per_runner, args.rounds, args.iterations]) < 1:
+            ap.error("--curve counts, --worlds-per-runner, --rounds and --iterations must be at least 1")
         curve_main(args)
         return
     if args.quick:
