@@ -8,6 +8,7 @@ through ``droneulator run`` (subprocess, WebSocket, Zenoh), reconstructs it and 
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import math
 import time
@@ -38,7 +39,9 @@ from droneulator.workflows.photogrammetry.colmap_model import (
 from droneulator.workflows.photogrammetry.dataset import CaptureDataset, DatasetMismatchError, plan_settings
 from droneulator.workflows.photogrammetry.plan import (
     arc_waypoints,
+    axis_clearance,
     fleet_routes,
+    mirrored_halves,
     pending_views,
     plan_viewpoints,
     ring_neighbours,
@@ -180,30 +183,81 @@ def test_arcs_are_split_and_tracking_errors_measure_the_commanded_segment():
     np.testing.assert_allclose(alt, [0.1, 0.0, 0.0], atol=1e-12)
 
 
-def test_two_vehicles_fly_opposite_halves_of_every_ring_and_keep_apart_in_step():
+SIDE_BY_SIDE = [(8.5 * math.cos(1.0), 8.5 * math.sin(1.0)), (10.2 * math.cos(1.1), 10.2 * math.sin(1.1))]
+
+
+def _turns(route: list) -> set[int]:
+    """The signs of the turns from view to view along a route (+1 counter-clockwise)."""
+    return {int(np.sign(F.wrap_angle(b.azimuth - a.azimuth))) for a, b in itertools.pairwise(route)}
+
+
+def test_two_vehicles_fly_mirrored_halves_of_every_ring_from_where_they_stand():
+    plan = plan_viewpoints([0.0, 0.0], 6.0, [3.5, 5.5, 7.5], 54)
+    assert mirrored_halves(2, 360.0) and not mirrored_halves(2, 90.0) and not mirrored_halves(3, 360.0)
+    routes = fleet_routes(plan, [0.0, 0.0], SIDE_BY_SIDE, 360.0)
+    assert sorted(v.index for r in routes for v in r) == list(range(54))  # every view once
+    mean = 1.05  # where they stand
+    for k, route in enumerate(routes):
+        assert [v.ring for v in route] == [0] * 9 + [1] * 9 + [2] * 9
+        rings = (route[:9], route[9:18], route[18:])
+        for r, ring in enumerate(rings):  # one contiguous half of each ring, flown view to view
+            assert all(ring_neighbours(plan, a, b) for a, b in itertools.pairwise(ring))
+            # the first vehicle (clockwise of the second) on the clockwise side of where they stand, the
+            # second on the other; outwards on the first ring, back on the second, out on the third
+            side = {int(np.sign(F.wrap_angle(v.azimuth - mean))) for v in ring}
+            assert side == ({-1} if k == 0 else {1})
+            outwards = -1 if k == 0 else 1
+            assert _turns(ring) == {outwards if r % 2 == 0 else -outwards}
+        # each starts next to where they stand and changes ring with a short climb
+        assert abs(math.degrees(F.wrap_angle(route[0].azimuth - mean))) < 20.0
+        for end, start in ((rings[0][-1], rings[1][0]), (rings[1][-1], rings[2][0])):
+            assert abs(math.degrees(F.wrap_angle(start.azimuth - end.azimuth))) == pytest.approx(10.0)
+    # in step, never closer than neighbouring views, at the split and across the tree
+    gaps = [abs(math.degrees(F.wrap_angle(a.azimuth - b.azimuth))) for a, b in zip(*routes, strict=True)]
+    assert (
+        min(gaps) == pytest.approx(20.0) and gaps[0] == pytest.approx(20.0) and gaps[8] == pytest.approx(20.0)
+    )
+
+
+def test_more_vehicles_fly_arcs_of_every_ring_in_step_and_one_vehicle_every_ring_from_where_it_stands():
     plan = plan_viewpoints([0.0, 0.0], 6.0, [3.5, 5.5], 36)
-    side = [(8.5 * math.cos(1.0), 8.5 * math.sin(1.0)), (10.2 * math.cos(1.1), 10.2 * math.sin(1.1))]
-    routes = fleet_routes(plan, [0.0, 0.0], side, 360.0)
+    three = [*SIDE_BY_SIDE, (9.0 * math.cos(1.2), 9.0 * math.sin(1.2))]
+    routes = fleet_routes(plan, [0.0, 0.0], three, 360.0)
     assert sorted(v.index for r in routes for v in r) == list(range(36))  # every view once
     for route in routes:
-        assert [v.ring for v in route] == [0] * 9 + [1] * 9
-        for ring in (route[:9], route[9:]):  # one contiguous arc of each ring, flown view to view
-            assert all(ring_neighbours(plan, a, b) for a, b in zip(ring, ring[1:], strict=False))
-    # each vehicle starts a quarter turn to its side of where both stand (the first, clockwise of the
-    # second, to the clockwise side) and, the arcs flown the same way round, stays half a turn away
-    mean = 1.05
-    assert math.degrees(F.wrap_angle(routes[0][0].azimuth - mean)) == pytest.approx(-90.0, abs=10.0)
-    assert math.degrees(F.wrap_angle(routes[1][0].azimuth - mean)) == pytest.approx(90.0, abs=10.0)
-    for a, b in zip(*routes, strict=True):
-        assert a.ring == b.ring and abs(F.wrap_angle(a.azimuth - b.azimuth)) == pytest.approx(math.pi)
-    # one vehicle: the plan as it is; a partial arc: its views shared out in order
-    assert fleet_routes(plan, [0.0, 0.0], side[:1], 360.0) == [plan]
+        assert [v.ring for v in route] == [0] * 6 + [1] * 6
+        for ring in (route[:6], route[6:]):  # one contiguous arc of each ring, flown view to view
+            assert all(ring_neighbours(plan, a, b) for a, b in itertools.pairwise(ring))
+    # the arcs start half an arc to either side of where they stand and, flown the same way round, stay
+    # an arc (120 degrees) apart
+    mean = 1.1
+    starts = sorted(math.degrees(F.wrap_angle(r[0].azimuth - mean)) for r in routes)
+    assert starts == pytest.approx([-120.0, 0.0, 120.0], abs=10.0)
+    for views in zip(*routes, strict=True):
+        for a, b in itertools.combinations(views, 2):
+            assert abs(math.degrees(F.wrap_angle(a.azimuth - b.azimuth))) == pytest.approx(120.0)
+    # one vehicle: every ring, the first counter-clockwise from the first view past where it stands, the
+    # next from its view nearest where the first ended, back
+    (one,) = fleet_routes(plan, [0.0, 0.0], SIDE_BY_SIDE[:1], 360.0)
+    assert [v.ring for v in one] == [0] * 18 + [1] * 18
+    assert _turns(one[:18]) == {1} and _turns(one[18:]) == {-1}
+    assert 0.0 <= math.degrees(F.wrap_angle(one[0].azimuth - 1.0)) < 20.0
+    assert abs(math.degrees(F.wrap_angle(one[18].azimuth - one[17].azimuth))) == pytest.approx(10.0)
+    # a partial arc: one vehicle the plan as it is; two, its views shared out in order
     arc = plan_viewpoints([0.0, 0.0], 6.0, [4.5], 8, arc_deg=90.0)
-    assert [[v.index for v in r] for r in fleet_routes(arc, [0.0, 0.0], side[::-1], 90.0)] == [
+    assert fleet_routes(arc, [0.0, 0.0], SIDE_BY_SIDE[:1], 90.0) == [arc]
+    assert [[v.index for v in r] for r in fleet_routes(arc, [0.0, 0.0], SIDE_BY_SIDE[::-1], 90.0)] == [
         [4, 5, 6, 7],
         [0, 1, 2, 3],
     ]
     assert not ring_neighbours(arc, arc[0], arc[2]) and ring_neighbours(arc, arc[3], arc[2])
+
+
+def test_axis_clearance_is_the_least_horizontal_distance_of_a_segment_from_the_axis():
+    assert axis_clearance([1.0, 1.0], [4.0, -9.0, 2.0], [4.0, 9.0, 5.0]) == pytest.approx(3.0)  # passes by
+    assert axis_clearance([0.0, 0.0], [8.5, 0.0, 3.0], [6.0, 1.0, 3.5]) == pytest.approx(math.hypot(6.0, 1.0))
+    assert axis_clearance([0.0, 0.0], [-3.0, 0.0], [3.0, 0.0]) == pytest.approx(0.0)  # through the axis
+    assert axis_clearance([0.0, 0.0], [2.0, 0.0], [2.0, 0.0]) == pytest.approx(2.0)  # a point
 
 
 @pytest.mark.parametrize(
@@ -561,3 +615,39 @@ def test_capture_resume_with_two_vehicles_and_reconstruct_end_to_end(tmp_path: P
     assert sparse.num_points3D() == report["sparse_points"]
     assert (out / "reconstruction.png").stat().st_size > 10_000
     assert "sparse points" in (out / "report.md").read_text()
+
+
+@pytest.mark.slow
+def test_two_vehicles_capture_mirrored_halves_at_once_from_straight_transits(tmp_path: Path):
+    """Two rings, two vehicles: each flies its half of both rings, both at once, outwards from where they
+    stand and back, every transit (from the spawn, between the rings) one straight goto clear of the crown."""
+    from droneulator.workflows.photogrammetry.capture import capture
+
+    overrides = [
+        "capture.views=8", "capture.altitudes=[3.5, 5.5]", "capture.width=160", "capture.height=120",
+        "capture.hfov_deg=90", "capture.pitch_deg=7", "capture.speed=2", "capture.max_leg_deg=90",
+        "capture.vehicles=2", "render.shadow_map_size=512",
+    ]  # fmt: skip
+    cfg = load_config(None, overrides, scene="tree_inspection")
+    meta = capture(cfg, tmp_path / "ds", progress=False)
+    assert meta["complete"] and meta["runs"][-1]["vehicles"] == {"uav0": 4, "uav1": 4}
+    views = json.loads((tmp_path / "ds" / "poses.json").read_text())["views"]
+    plan = plan_viewpoints([0.0, 0.0], 6.0, [3.5, 5.5], 8)
+    by = {
+        n: sorted((v for v in views if v["vehicle"] == n), key=lambda v: v["stamp_ns"])
+        for n in ("uav0", "uav1")
+    }
+    turns = []
+    for mine in by.values():
+        assert [v["ring"] for v in mine] == [0, 0, 1, 1]
+        assert [v["leg"]["kind"] for v in mine] == ["transit", "capture", "transit", "capture"]
+        assert all(v["leg"]["gotos"] == 1 for v in mine)  # straight transits
+        assert all(v["position_error_m"] < 0.05 and v["speed_mps"] < 0.05 for v in mine)
+        a, b, c, d = (plan[v["index"]] for v in mine)
+        assert ring_neighbours(plan, a, b) and ring_neighbours(plan, c, d)
+        turns.append([np.sign(F.wrap_angle(y.azimuth - x.azimuth)) for x, y in ((a, b), (c, d))])
+    assert turns in ([[1, -1], [-1, 1]], [[-1, 1], [1, -1]])  # outwards opposite ways, then back
+    # at once: each vehicle recorded a view before the other's last one
+    first, last = ({n: m[i]["stamp_ns"] for n, m in by.items()} for i in (0, -1))
+    assert first["uav0"] < last["uav1"] and first["uav1"] < last["uav0"]
+    assert meta["tracking"]["max_altitude_error_m"] < 0.05

@@ -82,8 +82,8 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         type=int,
         default=None,
         metavar="N",
-        help="fly N vehicles at once, each a contiguous arc of every ring (2: opposite halves); the same "
-        "views and dataset as one vehicle (default 1)",
+        help="fly N vehicles at once, each a contiguous arc of every ring (2: opposite halves, from where "
+        "they stand outwards); the same views and dataset as one vehicle (default 1)",
     )
     p.add_argument(
         "--url", default=None, help="use the simulator at this WebSocket URL instead of starting one"

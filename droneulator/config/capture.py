@@ -60,7 +60,8 @@ class CaptureConfig:
     #: wall-clock limit for one leg (flight and settling), seconds
     leg_timeout_s: float = 120.0
     #: vehicles flying the capture at once (``--vehicles``), each its own contiguous arc of every ring
-    #: (two: opposite halves); the dataset is the same views whatever the number
+    #: (two: opposite halves, from where they stand outwards); the dataset is the same views whatever the
+    #: number
     vehicles: int = 1
 
     def __post_init__(self) -> None:

@@ -20,9 +20,9 @@ camera pitch is to be aimed at the crown, a short first run answers ``scene_info
 capture camera's mount can be chosen.
 
 ``capture.vehicles`` (``--vehicles N``) flies N vehicles at once, each on its own contiguous arc of
-every ring (:func:`~.plan.fleet_routes`; two: opposite halves), each with its own WebSocket client,
-topics and thread; every image comes from the topics of the vehicle that flew to its view. The views,
-their names and the dataset are those of one vehicle.
+every ring (:func:`~.plan.fleet_routes`; two: mirrored halves, from where they stand outwards), each with
+its own WebSocket client, topics and thread; every image comes from the topics of the vehicle that flew to
+its view. The views, their names and the dataset are those of one vehicle.
 """
 
 from __future__ import annotations
@@ -55,6 +55,7 @@ from droneulator.workflows.photogrammetry.plan import (
     aim_pitch_deg,
     arc_waypoints,
     fleet_routes,
+    mirrored_halves,
     pending_views,
     plan_viewpoints,
     ring_neighbours,
@@ -423,9 +424,13 @@ def _fly_all(
     """Fly the pilots' routes: one in this thread; several in a thread each, which wait for each other
     at their first views (so that they fly their arcs in step) and all stop when one fails."""
     active = [p for p in pilots if p.route]
+    fleet = len(pilots) > 1
+    # vehicles flying arcs the same way round start a quarter turn or more from where they stand, and first
+    # move apart along the circle; mirrored halves start next to them
+    arc_first = fleet and not mirrored_halves(len(pilots), cap.arc_deg)
     if len(active) <= 1:
         for p in active:
-            _fly_route(p, plan, cam, cap, center, timings, store, None, None, arc_first=len(pilots) > 1)
+            _fly_route(p, plan, cam, cap, center, timings, store, None, None, fleet, arc_first)
         return
     stop = threading.Event()
     barrier = threading.Barrier(len(active))
@@ -433,7 +438,7 @@ def _fly_all(
 
     def main(p: _Pilot) -> None:
         try:
-            _fly_route(p, plan, cam, cap, center, timings, store, stop, barrier, arc_first=True)
+            _fly_route(p, plan, cam, cap, center, timings, store, stop, barrier, fleet, arc_first)
         except BaseException as e:  # every failure stops the other vehicles, and is raised below
             errors.append(e)
             stop.set()
@@ -467,10 +472,12 @@ def _fly_route(
     store: Callable[..., None],
     stop: threading.Event | None,
     barrier: threading.Barrier | None,
+    fleet: bool,
     arc_first: bool,
 ) -> None:
     """Take ``p``'s vehicle off if it is on the ground and fly it to each view of its route, recording
-    each; consecutive views next to each other on a ring are joined by a capture leg along the arc."""
+    each; consecutive views next to each other on a ring are joined by a capture leg along the arc, other
+    views by a transit (``arc_first``: :meth:`.fly.Flyer.transit`'s)."""
     client, topics, vehicle = p.client, p.topics, p.name
     flyer = Flyer(client, topics, cap, center, vehicle=vehicle, stop=stop)
     state = client.state(vehicle=vehicle)
@@ -478,7 +485,7 @@ def _fly_route(
         t = time.monotonic()
         client.takeoff(altitude=float(p.route[0].position[2]), vehicle=vehicle)
         client.wait_for_event("arrived", timeout=cap.leg_timeout_s, vehicle=vehicle)
-        timings[f"takeoff_s_{vehicle}" if arc_first else "takeoff_s"] = time.monotonic() - t
+        timings[f"takeoff_s_{vehicle}" if fleet else "takeoff_s"] = time.monotonic() - t
     previous: Viewpoint | None = None
     for view in p.route:
         adjacent = (

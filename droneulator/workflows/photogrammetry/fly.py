@@ -26,6 +26,7 @@ from droneulator.ros.topics import ns_to_seconds, seconds_to_ns
 from droneulator.workflows.photogrammetry.plan import (
     Viewpoint,
     arc_waypoints,
+    axis_clearance,
     facing_yaw,
     ring_point,
     segment_errors,
@@ -168,8 +169,10 @@ class Flyer:
         return total, stamp
 
     def transit(self, view: Viewpoint, radius: float, arc_first: bool = False) -> tuple[LegStats, int | None]:
-        """Reach ``view`` from anywhere outside the crown: out (or in) to the ring at the current azimuth
-        and altitude, up or down to the ring, then along the circle, so the path never crosses the tree.
+        """Reach ``view`` from anywhere outside the crown: straight there when the straight line keeps as far
+        from the tree's axis as a capture leg's chord does (:func:`~.plan.axis_clearance`, at least
+        ``radius cos(max_leg_deg / 2)``), else out (or in) to the ring at the current azimuth and altitude,
+        up or down to the ring, then along the circle, so the path never crosses the tree.
 
         ``arc_first`` (a fleet): along the circle at the current radius (the ring's if inside it) and
         altitude first, then in to the ring and up or down, so that vehicles standing side by side move
@@ -187,6 +190,10 @@ class Flyer:
             pts += arc_waypoints(self.center, r, cur[2], az, view.azimuth, step)
             if r - radius > tol:
                 pts.append(ring_point(self.center, radius, view.azimuth, cur[2]))
+        elif axis_clearance(self.center, cur, view.position) >= radius * math.cos(
+            math.radians(self.cap.max_leg_deg) / 2
+        ):
+            pts.append(np.array(view.position))
         else:
             if abs(math.hypot(*(cur[:2] - self.center[:2])) - radius) > tol:
                 pts.append(ring_point(self.center, radius, az, cur[2]))

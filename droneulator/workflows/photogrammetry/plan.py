@@ -111,6 +111,16 @@ def segment_errors(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np
     return np.linalg.norm(points - closest, axis=1), np.abs(points[:, 2] - closest[:, 2])
 
 
+def axis_clearance(center: Sequence[float], a: Sequence[float], b: Sequence[float]) -> float:
+    """Least horizontal distance from the vertical axis through ``center`` (x, y) to the segment a-b."""
+    c = np.asarray(center[:2], dtype=float)
+    p, q = np.asarray(a[:2], dtype=float) - c, np.asarray(b[:2], dtype=float) - c
+    d = q - p
+    denom = float(d @ d)
+    s = 0.0 if denom < 1e-12 else float(np.clip(-(p @ d) / denom, 0.0, 1.0))
+    return float(np.linalg.norm(p + s * d))
+
+
 def pending_views(plan: Sequence[Viewpoint], done: set[int] | dict[int, Any]) -> list[Viewpoint]:
     """The viewpoints still to capture, in flight order."""
     return [v for v in plan if v.index not in done]
@@ -130,30 +140,85 @@ def ring_neighbours(plan: Sequence[Viewpoint], a: Viewpoint, b: Viewpoint) -> bo
     return True
 
 
+def mirrored_halves(vehicles: int, arc_deg: float) -> bool:
+    """Whether ``vehicles`` vehicles fly mirrored halves of every ring (:func:`fleet_routes`): two, on full
+    circles."""
+    return vehicles == 2 and arc_deg >= 360.0
+
+
+def _nearest(views: Sequence[Viewpoint], azimuth: float) -> int:
+    """Index in ``views`` of the view nearest ``azimuth`` (ties: the earlier one)."""
+    return min(range(len(views)), key=lambda j: (round(abs(wrap_angle(views[j].azimuth - azimuth)), 9), j))
+
+
+def _turned(views: Sequence[Viewpoint], azimuth: float, ccw: bool) -> list[Viewpoint]:
+    """A ring's ``views`` (counter-clockwise) in the order met turning from ``azimuth`` counter-clockwise
+    (``ccw``) or clockwise, the first at or past it."""
+
+    def ahead(j: int) -> float:
+        d = wrap_angle(views[j].azimuth - azimuth)
+        return round((d if ccw else -d) % (2.0 * math.pi), 9) % round(2.0 * math.pi, 9)
+
+    j = min(range(len(views)), key=lambda j: (ahead(j), j))
+    return list(views[j:]) + list(views[:j]) if ccw else [views[j], *views[:j][::-1], *views[j + 1 :][::-1]]
+
+
 def fleet_routes(
     plan: Sequence[Viewpoint], center: Sequence[float], positions: Sequence[Sequence[float]], arc_deg: float
 ) -> list[list[Viewpoint]]:
-    """The views each of several vehicles (at ``positions``, x, y, ...) flies, in flight order.
+    """The views each of one or several vehicles (at ``positions``, x, y, ...) flies, in flight order.
 
-    Every ring is split into ``len(positions)`` contiguous arcs of (nearly) equal size, and vehicle k
-    (in counter-clockwise order of the vehicles around the tree) takes arc k of every ring. On a full
-    circle the arcs are turned so that they start half an arc to either side of the vehicles' mean
-    azimuth, nearest to where the vehicles stand: two vehicles go to the two sides and fly opposite
-    halves. Every vehicle flies its arcs the same way round (counter-clockwise on even rings, back on odd
-    ones), so vehicles that keep pace stay an arc apart and never meet. One vehicle: the plan's order.
+    Full circles (``arc_deg`` 360):
+
+    * One vehicle flies ring after ring: the first counter-clockwise from the first view past where it
+      stands, each later one from its view nearest where the one before ended, the other way round. It
+      never flies round the tree to a start, and each ring change is a short climb.
+    * Two vehicles (:func:`mirrored_halves`) split every ring at their mean azimuth: the one standing
+      clockwise of the other takes the clockwise half, the other the counter-clockwise half (the first
+      the larger one when a ring's views are odd). Each flies its half of the first ring outwards from the
+      split, of the next ring back, and so on, so they part at once, fly opposite halves of the orbit at
+      one altitude (neither in the other's downwash), never enter each other's half and come no closer
+      than neighbouring views, at the split and across the tree.
+    * More vehicles: every ring is split into ``n`` contiguous arcs of (nearly) equal size, and vehicle k
+      (in counter-clockwise order of the vehicles around the tree) takes arc k of every ring, the arcs
+      turned so that they start half an arc to either side of the vehicles' mean azimuth. Every vehicle
+      flies its arcs the same way round (counter-clockwise on even rings, back on odd ones), so vehicles
+      that keep pace stay an arc apart and never meet.
+
+    A partial arc: its views shared out in order, in arcs as above (one vehicle: the plan's order).
     """
     n = len(positions)
     if n < 1:
         raise ValueError("need at least one vehicle")
-    if n == 1:
-        return [list(plan)]
+    full = arc_deg >= 360.0
     azimuths = [math.atan2(p[1] - center[1], p[0] - center[0]) for p in positions]
     mean = math.atan2(sum(math.sin(a) for a in azimuths), sum(math.cos(a) for a in azimuths))
     order = sorted(range(n), key=lambda k: (wrap_angle(azimuths[k] - mean), k))
+    rings = [
+        sorted((v for v in plan if v.ring == r), key=lambda v: v.index)
+        for r in sorted({v.ring for v in plan})
+    ]
+    if full and n == 1:
+        route: list[Viewpoint] = []
+        at, ccw = azimuths[0], True
+        for views in rings:
+            views = _turned(views, views[_nearest(views, at)].azimuth if route else at, ccw)
+            route += views
+            at, ccw = views[-1].azimuth, not ccw
+        return [route]
+    if n == 1:
+        return [list(plan)]
     routes: list[list[Viewpoint]] = [[] for _ in range(n)]
-    for r, ring in enumerate(sorted({v.ring for v in plan})):
-        views = sorted((v for v in plan if v.ring == ring), key=lambda v: v.index)
-        if arc_deg >= 360.0:
+    if mirrored_halves(n, arc_deg):
+        for r, views in enumerate(rings):
+            cw = _turned(views, mean, ccw=False)
+            size = ring_sizes(len(views), 2)[0]
+            halves = (cw[:size], cw[size:][::-1])
+            for k, half in zip(order, halves, strict=True):
+                routes[k] += half if r % 2 == 0 else half[::-1]
+        return routes
+    for r, views in enumerate(rings):
+        if full:
             first = mean - math.pi + math.pi / n
             turn = min(range(len(views)), key=lambda j: abs(wrap_angle(views[j].azimuth - first)))
             views = views[turn:] + views[:turn]
