@@ -16,6 +16,8 @@ reports them; writes ``benchmarks/results/fleet_capture.json``.
     .venv/bin/python benchmarks/fleet_capture.py                  # 36 views, 1 and 2 vehicles, both modes
     .venv/bin/python benchmarks/fleet_capture.py --modes triggered --views 18 --no-reconstruct
     .venv/bin/python benchmarks/fleet_capture.py --reuse          # reconstruct the datasets again
+    # at real time, as a crew in the field would wait (lockstep capped at 1 sim s per wall s)
+    .venv/bin/python benchmarks/fleet_capture.py --modes triggered --no-reconstruct --set runtime.max_speed=1
 """
 
 from __future__ import annotations
@@ -120,9 +122,11 @@ def pose_differences(a: Path, b: Path) -> dict[str, Any]:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--views", type=int, default=36)
-    ap.add_argument("--vehicles", type=int, nargs="+", default=[1, 2])
+    ap = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
+    ap.add_argument("--views", type=int, default=36, help="views of each capture (default 36: two rings)")
+    ap.add_argument(
+        "--vehicles", type=int, nargs="+", default=[1, 2], help="vehicle counts to capture with (default 1 2)"
+    )
     ap.add_argument(
         "--modes", nargs="+", choices=("triggered", "continuous"), default=["triggered", "continuous"]
     )
@@ -136,7 +140,14 @@ def main() -> None:
     ap.add_argument("--out", default="out/bench_fleet_capture", help="datasets go to OUT/vehicles_N")
     ap.add_argument("--reuse", action="store_true", help="keep complete datasets instead of capturing again")
     ap.add_argument("--no-reconstruct", action="store_true", help="captures only")
-    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    ap.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="config override for every capture (e.g. runtime.max_speed=1: at real time)",
+    )
     ap.add_argument("--json", default=None, help="output JSON (default: benchmarks/results/)")
     args = ap.parse_args()
 
@@ -207,7 +218,7 @@ def main() -> None:
             f"{r['load_avg_1min'][0]:>4.1f} {r['load_avg_1min'][1]:>4.1f} | {diff:>18} | {sparse:>15} | "
             f"{rec.get('dense_tree_points') or '-':>13} | {acc:>16} | {comp:>17}"
         )
-    ratios = {}
+    ratios, sim_ratios = {}, {}
     for (mode, n), r in rows.items():
         one = rows.get((mode, min(args.vehicles)))
         cont = rows.get(("continuous", n))
@@ -216,12 +227,18 @@ def main() -> None:
             ratios[f"{mode} {n} vs 1 vehicle, flight"] = round(
                 (r["capture"]["flight_s"] or 0) / (one["capture"]["flight_s"] or 1), 3
             )
+            for key in ("sim_s", "legs_sim_s"):
+                sim_ratios[f"{mode} {n} vs 1 vehicle, {key}"] = round(
+                    r["capture"][key] / one["capture"][key], 3
+                )
         if mode == "triggered" and cont is not None:
             ratios[f"triggered vs continuous, {n} vehicle(s)"] = round(
                 r["capture"]["wall_s"] / cont["capture"]["wall_s"], 3
             )
     for k, v in ratios.items():
         print(f"wall time, {k}: {v:.2f}x")
+    for k, v in sim_ratios.items():
+        print(f"sim time, {k}: {v:.2f}x")
     write(
         "fleet_capture",
         {
@@ -235,8 +252,10 @@ def main() -> None:
                 "camera_hz": c.camera_hz,
                 "state_hz_triggered": c.state_hz,
             },
+            "overrides": args.overrides,
             "rows": list(rows.values()),
             "wall_ratios": ratios,
+            "sim_ratios": sim_ratios,
         },
         args.json,
     )
