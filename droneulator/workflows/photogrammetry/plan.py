@@ -155,9 +155,10 @@ def _turned(views: Sequence[Viewpoint], azimuth: float, ccw: bool) -> list[Viewp
     """A ring's ``views`` (counter-clockwise) in the order met turning from ``azimuth`` counter-clockwise
     (``ccw``) or clockwise, the first at or past it."""
 
-    def ahead(j: int) -> float:
+    def ahead(j: int) -> float:  # the turn to view j, in [0, 2 pi); a view a hair behind counts as at it
         d = wrap_angle(views[j].azimuth - azimuth)
-        return round((d if ccw else -d) % (2.0 * math.pi), 9) % round(2.0 * math.pi, 9)
+        turn = (d if ccw else -d) % (2.0 * math.pi)
+        return 0.0 if turn > 2.0 * math.pi - 1e-9 else round(turn, 9)
 
     j = min(range(len(views)), key=lambda j: (ahead(j), j))
     return list(views[j:]) + list(views[:j]) if ccw else [views[j], *views[:j][::-1], *views[j + 1 :][::-1]]
