@@ -216,9 +216,11 @@ class RuntimeConfig:
     mode: str = "lockstep"
     #: realtime mode only: simulated seconds per wall second
     speed: float = 1.0
-    #: lockstep mode only: at most this many simulated seconds per wall second (None: as fast as the
-    #: consumers allow). A lockstep run with little to render otherwise spends a whole core on the physics
-    #: while its clients think (a triggered capture between views)
+    #: lockstep mode only: at most this many simulated seconds per wall second on average (None: as fast
+    #: as the consumers allow); a wait for them of up to a second (a triggered frame holding the clock) is
+    #: made up at full speed, so a run capped at 1 keeps real time. A lockstep run with little to render
+    #: otherwise spends a whole core on the physics while its clients think (a triggered capture between
+    #: views)
     max_speed: float | None = None
     api_host: str = "127.0.0.1"
     api_port: int = 8765

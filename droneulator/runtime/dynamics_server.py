@@ -8,9 +8,10 @@ exactly as fast as the slowest consumer and no frame is skipped; the bridge publ
 Zenoh's ``BLOCK`` policy, so a slow subscriber slows the clock instead of losing images. Realtime:
 steps follow the wall clock (times ``runtime.speed``); a camera instant is sent to the render server
 only when it is free, so it draws the latest state at whatever rate it manages, and images are
-published with ``DROP``. Triggered cameras (``render.camera_trigger=command``) send a camera instant
-only when the API's ``trigger`` asks for one, in either mode, and it is never dropped; in lockstep a
-triggered frame holds the clock until it is published (:func:`lockstep_may_step`).
+published with ``DROP``. ``runtime.max_speed`` caps lockstep's clock on average (:mod:`.pacing`).
+Triggered cameras (``render.camera_trigger=command``) send a camera instant only when the API's
+``trigger`` asks for one, in either mode, and it is never dropped; in lockstep a triggered frame holds
+the clock until it is published (:func:`lockstep_may_step`).
 
 Odometry, TF and ``/clock`` leave from here, right after the physics step that produced the state
 (no process hop), and so do the sensor topics (IMU, GPS fix, air pressure, magnetic field): a vehicle a
@@ -58,6 +59,7 @@ from droneulator.runtime.ipc import (
     Rendered,
     Welcome,
 )
+from droneulator.runtime.pacing import Pacer
 from droneulator.sensors import Truth
 from droneulator.sensors.suite import Schedule
 from droneulator.vehicles.vehicle import NS, VehicleState
@@ -67,6 +69,8 @@ from droneulator.world.world import StepResult
 log = logging.getLogger("droneulator.dynamics")
 ROLES = ("renderer", "bridge")
 STATIC_TF_PERIOD_S = 1.0
+#: lockstep under ``runtime.max_speed`` makes up a wait (a frame holding the clock) of up to this long, wall s
+MAX_SPEED_CATCH_UP_S = 1.0
 
 
 def lockstep_may_step(in_flight: dict[int, tuple[str, Any, tuple[str, ...] | None]], window: int) -> bool:
@@ -406,7 +410,10 @@ class DynamicsServer:
         realtime = self.cfg.runtime.mode == "realtime"
         limit = self.cfg.runtime.max_speed
         dt = self.world.control_period_ns / NS
-        wall0, sim0 = time.monotonic(), self.world.t
+        if realtime:
+            pacer: Pacer | None = Pacer(self.cfg.runtime.speed)
+        else:  # runtime.max_speed: on average, making up the waits for frames (up to MAX_SPEED_CATCH_UP_S)
+            pacer = Pacer(limit, MAX_SPEED_CATCH_UP_S) if limit is not None else None
         report = time.monotonic() + 5.0
         while not self.stopping.is_set():
             self._take_new_peers()
@@ -420,25 +427,18 @@ class DynamicsServer:
                     self.world.t,
                 )
             if self.px4 is not None and self.px4.listening and self._px4_turn():
-                wall0, sim0 = time.monotonic(), self.world.t  # realtime pacing restarts here when PX4 leaves
-            elif realtime:
-                lag = (time.monotonic() - wall0) * self.cfg.runtime.speed - (self.world.t - sim0)
-                if self.world.t < sim0:  # reset through the API
-                    wall0, sim0 = time.monotonic(), self.world.t
-                if lag >= 0:
-                    self._step(realtime=True)
-                self._poll(0 if lag >= 0 else min(-lag / self.cfg.runtime.speed, dt))
+                if pacer is not None:  # pacing restarts here when PX4 leaves
+                    pacer.restart(self.world.t, time.monotonic())
             else:
-                ready = all(r in self.peers for r in ROLES) and lockstep_may_step(self.in_flight, self.window)
+                ready = realtime or (
+                    all(r in self.peers for r in ROLES) and lockstep_may_step(self.in_flight, self.window)
+                )
                 wait = 0.0 if ready else 0.05
-                if ready and limit is not None:  # runtime.max_speed
-                    now = time.monotonic()
-                    ahead = (self.world.t - sim0) / limit - (now - wall0)  # of the limit, wall s
-                    if self.world.t < sim0 or ahead < -dt:  # a reset, or held up by a consumer: no catch-up
-                        wall0, sim0, ahead = now, self.world.t, 0.0
+                if ready and pacer is not None:
+                    ahead = pacer.ahead(self.world.t, time.monotonic())
                     ready, wait = ahead <= 0, min(max(ahead, 0.0), dt)
                 if ready:
-                    self._step(realtime=False)
+                    self._step(realtime=realtime)
                 self._poll(wait)
             if time.monotonic() > report:
                 report = time.monotonic() + 5.0
