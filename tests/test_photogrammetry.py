@@ -567,7 +567,7 @@ def test_capture_resume_with_two_vehicles_and_reconstruct_end_to_end(tmp_path: P
     first = {v["name"]: v for v in json.loads((out / "poses.json").read_text())["views"]}
     assert {v["vehicle"] for v in first.values()} == {"uav0"}
     digests = {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in (out / "images").iterdir()}
-    lost = {"0002.jpg": "uav0", "0003.jpg": "uav0", "0006.jpg": "uav1", "0007.jpg": "uav1"}
+    lost = {"0002.jpg": "uav1", "0003.jpg": "uav1", "0006.jpg": "uav0", "0007.jpg": "uav0"}  # uav1 stands cw
     for name in lost:
         (out / "images" / name).unlink()
     cfg.capture.vehicles = 2

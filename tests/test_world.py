@@ -249,6 +249,23 @@ def test_contacts_are_every_overlapping_pair(spread: float) -> None:
     assert brute and contacts(pos, radius, active) == brute
 
 
+def test_a_fleet_on_tree_inspection_stands_in_a_row_across_the_line_to_the_tree() -> None:
+    """Either side of the spawn in turn, 2 m apart: each vehicle about as far from the tree as the first (an
+    orbit's halves start level), on free ground."""
+    w = world("tree_inspection", n=5)
+    pts = np.array([v.s[STATE.x] for v in w.vehicles.values()])
+    tree = np.asarray(w.scene.landmarks["tree"])[:2]
+    to_tree = (tree - pts[0, :2]) / np.linalg.norm(tree - pts[0, :2])
+    rel = pts[:, :2] - pts[0, :2]
+    along, across = rel @ to_tree, rel @ [-to_tree[1], to_tree[0]]
+    np.testing.assert_allclose(along, 0.0, atol=1e-9)
+    np.testing.assert_allclose(across, [0.0, 2.0, -2.0, 4.0, -4.0], atol=1e-9)
+    dist = np.linalg.norm(pts[:, :2] - tree, axis=1)
+    assert np.all(dist[1:3] - dist[0] < 0.3)  # the neighbours: 8.7 m against 8.5 m at seed 0
+    col = w.scene.collision
+    assert sdf_lookup_many(col.sdf, col.origin, col.resolution, pts + [0, 0, 1.0]).min() >= 1.5
+
+
 def test_fleets_spawn_on_free_points_and_bad_names_are_refused() -> None:
     w = world("orchard", n=6)
     pts = np.array([v.s[STATE.x] for v in w.vehicles.values()])

@@ -17,6 +17,8 @@ from droneulator.scenes.geometry import PartBuilder, blob, ground_with_skirt, so
 from droneulator.scenes.trees import build_tree, shade_tree_params
 
 HALF_BOUNDS = 20.0
+#: the spacing of a fleet's row at the spawn, m (``Scene.spawn_points``'s)
+FLEET_SPACING_M = 2.0
 
 
 @register(
@@ -90,7 +92,7 @@ def build_tree_inspection(seed: int, vegetation: float = 1.0) -> Scene:
         rocks.add(blob(c, radii, rng, subdivisions=2), SemanticClass.ROCK)
         prims.append(Ellipsoid(c, radii * 1.15))
 
-    return assemble_scene(
+    scene = assemble_scene(
         "tree_inspection",
         seed,
         [ground.build(), soil.build(), bark.build(), foliage.build(), fruit.build(), rocks.build()],
@@ -107,6 +109,11 @@ def build_tree_inspection(seed: int, vegetation: float = 1.0) -> Scene:
             "trunks": hero.base[None, :],
         },
     )
+    # a fleet stands in a row across the line to the tree, either side of the spawn in turn, so that its
+    # vehicles start about as far from the tree as the first (and an orbit's halves about as far away)
+    across = np.array([-math.sin(yaw_to_tree), math.cos(yaw_to_tree), 0.0])
+    scene.spawn_candidates = [spawn + k * FLEET_SPACING_M * across for j in range(1, 5) for k in (j, -j)]
+    return scene
 
 
 def _outside_bounds(angle: float, radius: float, min_extent: float) -> float:

@@ -270,6 +270,9 @@ class _Pilot:
     name: str
     client: DroneulatorClient
     topics: TopicRecorder
+    #: the simulator's takeoff altitude (``scene_info.limits``): a vehicle on the ground climbs to this (or to
+    #: its first view, if lower) and flies up and across to its first view at once
+    takeoff_altitude: float
     route: list[Viewpoint] = dataclasses.field(default_factory=list)
     #: the simulator's cameras shoot only when triggered (``scene_info.camera_trigger``): one at each view
     triggered: bool = False
@@ -306,7 +309,7 @@ def _pilots(
             c = DroneulatorClient(url, timeout=30.0)
             stack.callback(_close_quietly, c)
         c.subscribe(["events"])
-        pilots.append(_Pilot(v["name"], c, topics))
+        pilots.append(_Pilot(v["name"], c, topics, float(info["limits"]["takeoff_altitude"])))
     return pilots
 
 
@@ -475,15 +478,16 @@ def _fly_route(
     fleet: bool,
     arc_first: bool,
 ) -> None:
-    """Take ``p``'s vehicle off if it is on the ground and fly it to each view of its route, recording
-    each; consecutive views next to each other on a ring are joined by a capture leg along the arc, other
-    views by a transit (``arc_first``: :meth:`.fly.Flyer.transit`'s)."""
+    """Take ``p``'s vehicle off if it is on the ground (to the simulator's takeoff altitude, or its first
+    view's if lower: the first transit climbs the rest of the way) and fly it to each view of its route,
+    recording each; consecutive views next to each other on a ring are joined by a capture leg along the
+    arc, other views by a transit (``arc_first``: :meth:`.fly.Flyer.transit`'s)."""
     client, topics, vehicle = p.client, p.topics, p.name
     flyer = Flyer(client, topics, cap, center, vehicle=vehicle, stop=stop)
     state = client.state(vehicle=vehicle)
     if state["mode"] in ("idle", "collided") or state["position"][2] < 0.3:
         t = time.monotonic()
-        client.takeoff(altitude=float(p.route[0].position[2]), vehicle=vehicle)
+        client.takeoff(altitude=min(p.takeoff_altitude, float(p.route[0].position[2])), vehicle=vehicle)
         client.wait_for_event("arrived", timeout=cap.leg_timeout_s, vehicle=vehicle)
         timings[f"takeoff_s_{vehicle}" if fleet else "takeoff_s"] = time.monotonic() - t
     previous: Viewpoint | None = None
