@@ -281,10 +281,10 @@ def test_distorted_images_undistort_to_the_render_with_the_published_camera_info
         time.sleep(0.5)  # declarations reach the subscriber
         with World(cfg) as world:
             world.reset(position=world.scene.spawn_position + [0.0, 0.0, 2.5])
-            assert set(world.camera_models["uav0"]) == {"front"}  # the ideal camera gets no model
+            assert set(world.cameras.models["uav0"]) == {"front"}  # the ideal camera gets no model
             shot = world.render()
             poses = {name: st.T_world_body for name, st in shot.states.items()}
-            drawn = world.renderer.render_rigs(poses)["uav0"]
+            drawn = world.cameras.renderer.render_rigs(poses)["uav0"]
             ideal = {c: (f.rgb.copy(), f.depth.copy(), f.seg.copy()) for c, f in drawn.items()}
             frames.publish(shot.states, shot.cameras)
         keys = ["front/color/camera_info", "front/color/image_raw/compressed", "plain/depth/camera_info"]

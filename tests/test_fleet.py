@@ -143,7 +143,7 @@ def test_triggered_cameras_shoot_once_when_asked_with_every_body_in_view() -> No
         mine = shot.cameras["uav0"]["front"]
         rate = world.render().cameras["uav0"]["front"]  # the same instant, every rig
         assert np.array_equal(mine.depth, rate.depth, equal_nan=True) and np.array_equal(mine.rgb, rate.rgb)
-        alone = world.renderer.render_rigs({"uav0": world.vehicles["uav0"].state.T_world_body})
+        alone = world.cameras.renderer.render_rigs({"uav0": world.vehicles["uav0"].state.T_world_body})
         body = ~np.isclose(alone["uav0"]["front"].depth, mine.depth, equal_nan=True)
         assert body.sum() > 20 and np.nanmax(mine.depth[body]) < 1.5  # uav1, 1.5 m ahead, drawn
         path.execute(make_request("trigger", {"vehicle": "uav1"}))

@@ -332,13 +332,13 @@ def test_world_reset_relights_the_rendered_world() -> None:
         scene_obj = world.scene
         reply = execute(world, make_request("reset", {"light": {"visibility_m": 30.0}}, 1))
         assert reply["ok"], reply
-        assert world.scene is scene_obj and world.renderer.lighting.fog
+        assert world.scene is scene_obj and world.cameras.renderer.lighting.fog
         after = world.render().cameras["uav0"]["front"]
         np.testing.assert_array_equal(after.depth, before[1])
         np.testing.assert_array_equal(after.seg, before[2])
         # beyond 20 m (and the sky) everything is the haze's colour, which it was not before
         far = ~(before[1] < 20.0)
-        fog = np.array(world.renderer.lighting.fog_color) * 255
+        fog = np.array(world.cameras.renderer.lighting.fog_color) * 255
         assert np.abs(after.rgb[far] - fog).max() < 4.0
         assert (np.abs(before[0][far] - fog).max(axis=-1) > 10.0).mean() > 0.9
     finally:

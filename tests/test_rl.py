@@ -111,7 +111,7 @@ def test_flying_into_a_vine_row_ends_the_episode_with_minus_30(env):
             break
     assert terminated and not truncated and info["termination"] == "collision"
     assert -31.0 < reward < -29.0
-    assert env.unwrapped.backend.sim.mode == "collided"
+    assert env.unwrapped.backend.vehicle.mode == "collided"
     assert 1.0 < info["position"][1] < 1.3  # stopped against the hedge face (y = 1.3) minus the radius
 
 

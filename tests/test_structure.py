@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import functools
 import os
 import subprocess
 import sys
@@ -253,3 +254,44 @@ def test_no_raw_state_slices_outside_vehicles() -> None:
         if raw.search(line)
     ]
     assert offenders == []
+
+
+def _calls(module_file: Path) -> set[str]:
+    """The names a module calls: ``f(...)`` gives ``f``, ``x.f(...)`` gives ``.f``."""
+    out: set[str] = set()
+    for node in ast.walk(ast.parse(module_file.read_text())):
+        if isinstance(node, ast.Call):
+            if isinstance(node.func, ast.Name):
+                out.add(node.func.id)
+            elif isinstance(node.func, ast.Attribute):
+                out.add("." + node.func.attr)
+    return out
+
+
+@functools.cache
+def _package_calls() -> dict[str, frozenset[str]]:
+    """Package module (path under droneulator/) -> the names it calls."""
+    return {str(f.relative_to(PACKAGE)): frozenset(_calls(f)) for f in PACKAGE.rglob("*.py")}
+
+
+def _callers(names: set[str]) -> dict[str, set[str]]:
+    """Package module (path under droneulator/) -> which of ``names`` it calls."""
+    return {m: set(calls & names) for m, calls in _package_calls().items() if calls & names}
+
+
+def test_only_the_camera_pipeline_draws_cameras() -> None:
+    """One camera pipeline (render/pipeline.py): nothing else builds a camera renderer or ray caster or
+    draws a camera; the UI's scene map (a top-down view, no camera) builds a bare renderer."""
+    draws = _callers({".render_rigs", "fleet_renderer", "DepthCaster", "Renderer"})
+    assert draws.pop("render/pipeline.py") >= {".render_rigs", "fleet_renderer", "DepthCaster"}
+    assert draws.pop("render/renderer.py") == {".render_rigs", "Renderer"}  # render() and fleet_renderer
+    assert draws.pop("ui/scenes.py") == {"Renderer"}
+    assert ".render_top_down" in _calls(PACKAGE / "ui/scenes.py")
+    assert not draws, draws
+
+
+def test_only_the_world_calls_the_physics_kernel() -> None:
+    """The compiled physics step (vehicles/dynamics.py) is called by the world package alone."""
+    kernel = {"integrate", "integrate_rows", "state_derivative"}
+    callers = {m for m in _callers(kernel) if m != "vehicles/dynamics.py"}
+    assert callers and all(m.startswith("world/") for m in callers), callers

@@ -1,7 +1,7 @@
 """The render server: draws every vehicle's camera rig for each set of states the dynamics server sends
-(each vehicle's body in the others' cameras), through each camera's realism models
-(:mod:`droneulator.sensors.camera_models`, as the in-process world applies them), into the shared-memory
-frame ring, and acknowledges each frame set.
+through the camera pipeline the in-process world uses (:mod:`droneulator.render.pipeline`: each vehicle's
+body in the others' cameras, each camera's realism models) into the shared-memory frame ring, and
+acknowledges each frame set.
 
 States arrive in the Z-up world (RotorPy); the renderer converts them to its Y-up OpenGL world
 through :mod:`droneulator.frames` (``gl_view_matrix``), nowhere else.
@@ -19,8 +19,7 @@ import numpy as np
 
 from droneulator.config import SimConfig, from_dict
 from droneulator.frames import transform_from_pose
-from droneulator.render import Renderer, fleet_renderer
-from droneulator.render.renderer import config_lighting
+from droneulator.render.pipeline import CameraPipeline
 from droneulator.runtime.ipc import (
     ENV_CONFIG,
     ENV_RING,
@@ -32,7 +31,6 @@ from droneulator.runtime.ipc import (
     hub_connect,
 )
 from droneulator.scenes import get_scene
-from droneulator.sensors.camera_models import CameraModel, fleet_camera_models
 
 log = logging.getLogger("droneulator.render")
 
@@ -42,12 +40,7 @@ def serve(cfg: SimConfig) -> None:
     rigs = cfg.camera_rigs()
     ring = FrameRing(os.environ[ENV_RING], rigs, cfg.runtime.frame_slots)
 
-    def make(scene: str, seed: int, vegetation: float) -> tuple[Renderer, dict[str, dict[str, CameraModel]]]:
-        """The renderer and the cameras' realism models (reseeded with the scene, as the world's are)."""
-        renderer = fleet_renderer(get_scene(scene, seed, vegetation), cfg)
-        return renderer, fleet_camera_models(cfg, seed)
-
-    renderer, models = make(welcome.scene, welcome.seed, cfg.vegetation)
+    cameras = CameraPipeline(get_scene(welcome.scene, welcome.seed, cfg.vegetation), cfg, welcome.seed)
     loaded = (welcome.scene, welcome.seed, cfg.vegetation)
     log.info(
         "render server ready: %s, %s",
@@ -68,13 +61,10 @@ def serve(cfg: SimConfig) -> None:
                     poses = {
                         name: transform_from_pose(st.position, st.quaternion) for name, st in states.items()
                     }
+                    motion = {name: (st.velocity, st.angular_velocity) for name, st in states.items()}
                     slot = ring.slot(seq)
-                    for vehicle, frames in renderer.render_rigs(poses, rigs=rigs).items():
-                        st = states[vehicle]
+                    for vehicle, frames in cameras.frames(poses, rigs, motion, copy=False).items():
                         for name, f in frames.items():
-                            model = models.get(vehicle, {}).get(name)
-                            if model is not None:
-                                f = model.apply(f, st.velocity, st.angular_velocity)
                             out = slot[vehicle][name]
                             np.copyto(out.rgb, f.rgb)
                             np.copyto(out.depth, f.depth)
@@ -86,15 +76,14 @@ def serve(cfg: SimConfig) -> None:
                 case LoadScene(scene, seed, light, vegetation):
                     cfg.light = light
                     if (scene, seed, vegetation) == loaded:  # the light alone: the scene stays uploaded
-                        renderer.set_light(config_lighting(renderer.scene, cfg))
+                        cameras.set_light(light)
                         log.info("light changed: %s", light)
                         continue
-                    renderer.close()
-                    renderer, models = make(scene, seed, vegetation)
+                    cameras.load(get_scene(scene, seed, vegetation), seed)
                     loaded = (scene, seed, vegetation)
                     log.info("scene changed to %s (seed %d, vegetation %g)", scene, seed, vegetation)
     finally:
-        renderer.close()
+        cameras.close()
         ring.close()
         conn.close()
 

@@ -56,8 +56,9 @@ def map_extent(bounds_min: np.ndarray, bounds_max: np.ndarray) -> tuple[float, f
 
 def render_preview(name: str, seed: int) -> bytes:
     """JPEG of scene ``name`` seen from above its spawn point, looking along the spawn heading."""
+    from droneulator.config import SimConfig
     from droneulator.frames import make_transform, quat_from_yaw, quat_to_matrix
-    from droneulator.render.renderer import Renderer
+    from droneulator.render.pipeline import CameraPipeline
     from droneulator.scenes import get_scene
 
     scene = get_scene(name, seed)
@@ -65,8 +66,11 @@ def render_preview(name: str, seed: int) -> bytes:
         quat_to_matrix(quat_from_yaw(scene.spawn_yaw)),
         scene.spawn_position + np.array([0.0, 0.0, PREVIEW_ALTITUDE_M]),
     )
-    with Renderer(scene, [PREVIEW_CAMERA], shadow_map_size=SHADOW_MAP_SIZE) as r:
-        rgb = r.render(pose)["preview"].rgb.copy()
+    cfg = SimConfig(scene=name, seed=seed)
+    cfg.render.cameras = [PREVIEW_CAMERA]
+    cfg.render.shadow_map_size = SHADOW_MAP_SIZE
+    with CameraPipeline(scene, cfg) as cameras:
+        rgb = cameras.frames({cameras.vehicle: pose})[cameras.vehicle][PREVIEW_CAMERA.name].rgb
     buf = io.BytesIO()
     Image.fromarray(rgb).save(buf, format="JPEG", quality=85)
     return buf.getvalue()

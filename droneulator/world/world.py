@@ -24,12 +24,11 @@ single-vehicle face of a world.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import logging
 from collections.abc import Collection
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -53,6 +52,9 @@ from droneulator.vehicles.vehicle import Vehicle, VehicleState
 from droneulator.wind.field import WindField
 from droneulator.world.contact import contacts
 from droneulator.world.downwash import WakeModel, downwash
+
+if TYPE_CHECKING:
+    from droneulator.render.pipeline import CameraPipeline
 
 NS = 1_000_000_000
 
@@ -148,8 +150,8 @@ class World:
         self.triggered = cfg.render.camera_trigger == "command"
         #: vehicles whose cameras shoot at the end of the next control period
         self._shots: set[str] = set()
-        self.renderer = None
-        self.camera_models: dict[str, dict[str, Any]] = {}
+        #: the camera pipeline (:mod:`droneulator.render.pipeline`) when the world renders its own frames
+        self.cameras: CameraPipeline | None = None
         self.scene: Scene
         self.t_ns = 0
         #: the wind field every vehicle flies in (:mod:`droneulator.wind.field`), seeded by the world's seed
@@ -164,16 +166,13 @@ class World:
         scene.spawn_points(sum(spec.spawn is None for spec in self.specs))
         self.scene = scene
         self.wind.collision = scene.collision
-        if self.renderer is not None:
-            self.renderer.close()
-            self.renderer = None
         if self.render_enabled:
-            from droneulator.render import fleet_renderer
-            from droneulator.sensors.camera_models import fleet_camera_models
+            from droneulator.render.pipeline import CameraPipeline
 
-            self.renderer = fleet_renderer(self.scene, self.config)
-            #: the realism models of the cameras that are not ideal, reseeded with the scene
-            self.camera_models = fleet_camera_models(self.config, seed)
+            if self.cameras is None:
+                self.cameras = CameraPipeline(scene, self.config, seed)
+            else:
+                self.cameras.load(scene, seed)
 
     @property
     def vehicle_list(self) -> list[Vehicle]:
@@ -259,11 +258,8 @@ class World:
     def set_light(self, light: LightConfig) -> None:
         """Light the scene with ``light`` from the next frame on (the renderer's shadow map is drawn again,
         nothing else changes). ValueError for a scene whose own light settings are bad."""
-        if self.renderer is not None:
-            from droneulator.render.renderer import config_lighting
-
-            lighting = config_lighting(self.scene, dataclasses.replace(self.config, light=light))
-            self.renderer.set_light(lighting)
+        if self.cameras is not None:
+            self.cameras.set_light(light)
         self.config.light = light
 
     def _update_still_air(self) -> None:
@@ -368,7 +364,7 @@ class World:
 
     def _shoot(self, out: StepResult, rigs: tuple[str, ...] | None) -> None:
         """A camera instant now: the frames (own renderer) or the states for a render server."""
-        if self.renderer is not None:
+        if self.cameras is not None:
             out.frames.append(self.render(rigs))
         else:
             out.camera_states.append(self.states_now())
@@ -442,31 +438,17 @@ class World:
         current states in one call (also usable outside the camera schedule). The images are copies the
         caller owns, as each camera delivers them (:mod:`droneulator.sensors.camera_models`: noise,
         distortion, exposure; untouched when ideal)."""
-        if self.renderer is None:
+        if self.cameras is None:
             raise RuntimeError("this World was created with render=False")
         states = self.states_now()
-        drawn = self.renderer.render_rigs({name: st.T_world_body for name, st in states.items()}, rigs=rigs)
-        cams = {
-            name: {
-                cam: dataclasses.replace(
-                    f, rgb=None if f.rgb is None else f.rgb.copy(), depth=f.depth.copy(), seg=f.seg.copy()
-                )
-                for cam, f in frames_.items()
-            }
-            for name, frames_ in drawn.items()
-        }
-        for name, models in self.camera_models.items():
-            if name not in cams:
-                continue
-            st = states[name]
-            for cam, model in models.items():
-                cams[name][cam] = model.apply(cams[name][cam], st.velocity, st.angular_velocity)
-        return FrameSet(self.t_ns, states, cams)
+        poses = {name: st.T_world_body for name, st in states.items()}
+        motion = {name: (st.velocity, st.angular_velocity) for name, st in states.items()}
+        return FrameSet(self.t_ns, states, self.cameras.frames(poses, rigs, motion))
 
     def close(self) -> None:
-        if self.renderer is not None:
-            self.renderer.close()
-            self.renderer = None
+        if self.cameras is not None:
+            self.cameras.close()
+            self.cameras = None
 
     def __enter__(self) -> World:
         return self

@@ -42,15 +42,13 @@ import numpy as np
 from droneulator.config import CameraConfig, RLConfig, SimConfig, load_config
 from droneulator.config.randomize import Draw
 from droneulator.frames import wrap_angle
+from droneulator.render.pipeline import DEPTH_SOURCES
 from droneulator.scenes.base import Scene
-from droneulator.sensors.camera_models import CameraModel, camera_rng
 from droneulator.workflows.rl.astar import DistanceField, OccupancyGrid, occupancy_from_scene
 from droneulator.workflows.rl.backend import CAMERA_NAME, SCENE, Backend, Kinematics
+from droneulator.workflows.rl.task import REASONS, TaskRows, state_row
 
 STRIP_SAMPLES = 32
-#: where depth comes from: the OpenGL renderer, or ray casting (:mod:`droneulator.render.raycast`, a
-#: numba BVH), equal to the renderer's to a millimetre but for isolated alpha-edge and silhouette pixels
-DEPTH_SOURCES = ("render", "raycast")
 OBS_SIZE = STRIP_SAMPLES + 3
 
 _GRIDS: dict[tuple[Any, ...], OccupancyGrid] = {}
@@ -61,18 +59,6 @@ def rl_camera(rl: RLConfig) -> CameraConfig:
     errors."""
     size = (rl.camera_width, rl.camera_height)
     return CameraConfig(CAMERA_NAME, *size, rl.hfov_deg, far=rl.depth_clip, depth_model=rl.depth_model)
-
-
-def depth_camera_models(cfg: SimConfig) -> dict[str, CameraModel | None]:
-    """The depth errors of every preset an episode may fly with, by name (None: ideal): the camera's own
-    (``rl.depth_model``), and with domain randomisation (``randomize``) each of ``randomize.depth_models``."""
-    cam = cfg.render.cameras[0]
-    names = [cam.depth_model, *(cfg.randomize.depth_models if cfg.randomize.enabled else [])]
-    models: dict[str, CameraModel | None] = {}
-    for name in dict.fromkeys(names):
-        preset = dataclasses.replace(cam, depth_model=name)
-        models[name] = None if name == "ideal" else CameraModel(preset, camera_rng(cfg.seed))
-    return models
 
 
 def env_config(config: SimConfig | None = None, **rl_overrides: Any) -> SimConfig:
@@ -135,69 +121,65 @@ def strips(rows: np.ndarray, clip: float, samples: int = STRIP_SAMPLES) -> np.nd
 
 
 class LocalBackend:
-    """An in-process simulator (physics only, camera instants scheduled) plus a depth-only renderer, or
-    the ray caster that gives the same depth (``depth="raycast"``)."""
+    """An in-process world (physics only, camera instants scheduled) and the camera pipeline's depth, drawn
+    by the renderer or by ray casting (``depth="raycast"``)."""
 
     def __init__(self, cfg: SimConfig, depth: str = "render") -> None:
-        from droneulator.sim.simulator import Simulator
+        from droneulator.render.pipeline import CameraPipeline
+        from droneulator.world import World
 
         if depth not in DEPTH_SOURCES:
             raise ValueError(f"depth must be one of {', '.join(DEPTH_SOURCES)}, got {depth!r}")
-        self.sim = Simulator(config=cfg, render=False, external_cameras=True)
-        self.scene = self.sim.scene
-        self.renderer: Any = None
-        self.caster: Any = None
-        if depth == "render":
-            from droneulator.render.renderer import Renderer
-
-            self.renderer = Renderer(self.scene, cfg.render.cameras, shadows=False)
-        else:
-            from droneulator.render.raycast import DepthCaster
-
-            self.caster = DepthCaster(self.scene, cfg.render.cameras[0])
-        self.camera_models = depth_camera_models(cfg)
+        self.world = World(cfg, render=False, external_cameras=True)
+        self.vehicle = self.world.vehicle()
+        self.scene = self.world.scene
+        self.cameras = CameraPipeline(self.scene, cfg, source=depth)
         #: the depth preset of the episode and its noise and dropout factors (``rl.depth_model``'s camera,
         #: or randomisation's draw)
         cam = cfg.render.cameras[0]
         self.depth_model = cam.depth_model
-        self.depth_scales = (cam.depth_noise_scale, cam.depth_dropout_scale)
+        self.depth_scales = np.array([[cam.depth_noise_scale, cam.depth_dropout_scale]])
 
     def randomize(self, draw: Draw) -> None:
         """Fly the next episode in the conditions of ``draw``: its wind and depth camera."""
-        self.sim.world.set_wind(draw.wind)
+        self.world.set_wind(draw.wind)
         self.depth_model = draw.depth_model
-        self.depth_scales = (draw.depth_noise_scale, draw.depth_dropout_scale)
+        self.depth_scales = np.array([[draw.depth_noise_scale, draw.depth_dropout_scale]])
 
     def _depth(self, T_world_body: np.ndarray) -> np.ndarray:
-        if self.caster is not None:
-            depth = self.caster.depth(T_world_body[None])[0]
-        else:
-            depth = self.renderer.render(T_world_body, rgb=False)[CAMERA_NAME].depth.copy()
-        model = self.camera_models[self.depth_model]
-        return depth if model is None else model.apply_depth(depth, *self.depth_scales)
+        return self.cameras.depth(T_world_body[None], [self.depth_model], self.depth_scales)[0]
 
     @staticmethod
     def _kinematics(st: Any) -> Kinematics:
         return Kinematics(st.t, st.position, st.quaternion, st.velocity, st.angular_velocity, st.mode)
 
     def reset(self, position: np.ndarray, yaw: float) -> tuple[np.ndarray, Kinematics]:
-        st = self.sim.reset(position=np.asarray(position, dtype=float), yaw=float(yaw), airborne=True)
+        st = self.world.reset(position=np.asarray(position, dtype=float), yaw=float(yaw), airborne=True)
         return self._depth(st.T_world_body), self._kinematics(st)
 
     def step(self, forward: float, yaw_rate: float) -> tuple[np.ndarray, Kinematics, bool]:
-        self.sim.velocity(forward, yaw_rate)
+        self.vehicle.velocity(forward, yaw_rate)
+        name = self.vehicle.name
         collided = False
         while True:
-            res = self.sim.step()
+            res = self.world.step()
             collided = collided or any(e.type == "collision" for e in res.events)
             if res.camera_states:
-                st = res.camera_states[-1]
+                st = res.camera_states[-1][name]
                 return self._depth(st.T_world_body), self._kinematics(st), collided
 
     def close(self) -> None:
-        if self.renderer is not None:
-            self.renderer.close()
-        self.sim.close()
+        self.cameras.close()
+        self.world.close()
+
+
+#: the run mask of a batch of one
+_ONE = np.ones(1, dtype=bool)
+
+
+def _row(kin: Kinematics) -> np.ndarray:
+    """``kin`` as a batch of one state row."""
+    return state_row(kin.position, kin.quaternion, kin.velocity, kin.angular_velocity)[None]
 
 
 class NavTask:
@@ -222,9 +204,9 @@ class NavTask:
         self.field: DistanceField | None = None
         self.goal = np.zeros(2)
         self.start = np.zeros(3)
-        self._d = 0.0
-        self._steps = 0
         self.max_steps = 0
+        #: the episode's row of the task kernel (:mod:`.task`): this env is a batch of one
+        self.rows = TaskRows(config, self.grid, 1)
         #: the vehicle state of the latest observation
         self.kinematics: Kinematics | None = None
         self.initial_distance = 0.0
@@ -270,13 +252,10 @@ class NavTask:
         return np.concatenate([depth_strip(depth, self.rl.depth_clip), self.tail(kin)])
 
     def tail(self, kin: Kinematics) -> np.ndarray:
-        """The observation after the strip: heading error, forward speed and yaw rate, normalised."""
-        tgt = self.target(kin.position)
-        bearing = math.atan2(tgt[1] - kin.position[1], tgt[0] - kin.position[0])
-        heading = wrap_angle(bearing - kin.yaw) / math.pi
-        speed = (kin.forward_speed - self._mid) / self._half
-        rate = kin.yaw_rate / self.rl.max_yaw_rate
-        return np.clip([heading, speed, rate], -1.0, 1.0).astype(np.float32)
+        """The observation after the strip: heading error, forward speed and yaw rate, normalised (the task
+        kernel's, :mod:`.task`)."""
+        self.rows.step(_ONE, _row(kin), ~_ONE, self.grid, self.scene, advance=False)
+        return self.rows.tail[0].astype(np.float32)
 
     # ------------------------------------------------------------------ tasks
     def _lane_point(self, rng: np.random.Generator, lane: int) -> np.ndarray:
@@ -344,44 +323,37 @@ class NavTask:
 
     # ------------------------------------------------------------------ episodes
     def begin(
-        self, start: np.ndarray, yaw: float, goal: np.ndarray, field: DistanceField, kin: Kinematics
+        self,
+        start: np.ndarray,
+        yaw: float,
+        goal: np.ndarray,
+        field: DistanceField,
+        kin: Kinematics,
+        rows: TaskRows | None = None,
+        i: int = 0,
     ) -> None:
-        """Start an episode on a task, the vehicle placed at the start with state ``kin``."""
+        """Start an episode on a task, the vehicle placed at the start with state ``kin``; its row is row
+        ``i`` of ``rows`` (a batched env's) or this task's own."""
         self.field, self.goal = field, goal.copy()
         self.start = np.array([start[0], start[1], yaw])
         self.kinematics = kin
-        self._d = self.initial_distance = field.distance(kin.position)
-        self._steps = 0
+        self.initial_distance = field.distance(kin.position)
         limit_s = self.rl.time_limit_base_s + self.initial_distance / self.rl.min_average_speed
         self.max_steps = math.ceil(limit_s / self.frame_dt)
+        (self.rows if rows is None else rows).begin(
+            i, field, self.goal, kin.position, self.initial_distance, self.max_steps
+        )
 
     def advance(self, kin: Kinematics, collided: bool) -> tuple[float, bool, bool, str | None]:
         """One step's ``(reward, terminated, truncated, reason)`` for the vehicle now in state ``kin``,
-        ``collided`` if it hit something meanwhile."""
+        ``collided`` if it hit something meanwhile (the task kernel's, :mod:`.task`)."""
         assert self.field is not None
         self.kinematics = kin
-        self._steps += 1
-        d = self.field.distance(kin.position)
-        reward = self.rl.progress_scale * (self._d - d) - self.rl.step_penalty
-        self._d = d
-        reason = None
-        if collided or kin.mode == "collided":
-            reason = "collision"
-        elif np.any(kin.position[:2] < self.scene.bounds_min[:2]) or np.any(
-            kin.position[:2] > self.scene.bounds_max[:2]
-        ):
-            reason = "out_of_bounds"
-        elif math.hypot(*(kin.position[:2] - self.goal)) <= self.rl.goal_radius:
-            reason = "goal"
-        if reason == "goal":
-            reward += self.rl.goal_reward
-        elif reason is not None:
-            reward -= self.rl.collision_penalty
-        terminated = reason is not None
-        truncated = not terminated and self._steps >= self.max_steps
-        if truncated:
-            reason = "time_limit"
-        return float(reward), terminated, truncated, reason
+        hit = np.array([collided or kin.mode == "collided"])
+        self.rows.step(_ONE, _row(kin), hit, self.grid, self.scene, advance=True)
+        reason = REASONS[int(self.rows.reason[0])]
+        truncated = reason == "time_limit"
+        return float(self.rows.reward[0]), reason is not None and not truncated, truncated, reason
 
     def step_info(self, kin: Kinematics, reason: str | None, command: tuple[float, float]) -> dict[str, Any]:
         """The info dict of a step (of a reset: ``reason`` None, ``command`` zero)."""
@@ -390,7 +362,7 @@ class NavTask:
             "position": kin.position.copy(),
             "yaw": kin.yaw,
             "command": command,
-            "distance": self._d,
+            "distance": float(self.rows.d[0]),
             "goal_distance": float(math.hypot(*(kin.position[:2] - self.goal))),
             "termination": reason,
             "is_success": reason == "goal",

@@ -33,9 +33,8 @@ from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
 from droneulator.config import SimConfig, fleet
-from droneulator.scenes.base import MeshPart, Scene
+from droneulator.scenes.base import Scene
 from droneulator.scenes.collision import sdf_lookup_many
-from droneulator.sensors.camera_models import fleet_camera_models
 from droneulator.vehicles.vehicle import VehicleState
 from droneulator.workflows.rl.backend import CAMERA_NAME, Kinematics
 from droneulator.workflows.rl.env import NavTask, env_config
@@ -82,8 +81,7 @@ class VineyardNavParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
         min_spacing: float = 3.0,
         **rl_overrides: Any,
     ) -> None:
-        from droneulator.render.renderer import Renderer
-        from droneulator.vehicles.mesh import vehicle_mesh
+        from droneulator.render.pipeline import CameraPipeline
         from droneulator.world import World
 
         cfg = env_config(config, **rl_overrides)
@@ -101,16 +99,9 @@ class VineyardNavParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
         self.tasks = {name: NavTask(cfg, self.scene) for name in self.possible_agents}
         self.observation_spaces = {name: t.observation_space for name, t in self.tasks.items()}
         self.action_spaces = {name: t.action_space for name, t in self.tasks.items()}
-        meshes: dict[str | None, MeshPart] = {}  # one per airframe
-        bodies: dict[str, MeshPart] = {}  # alone, a vehicle has no one to see
-        for v in vehicles.values() if len(vehicles) > 1 else ():
-            if v.spec.params not in meshes:
-                meshes[v.spec.params] = vehicle_mesh(v.quad_params)
-            bodies[v.name] = meshes[v.spec.params]
-        rigs = {v.name: v.cameras for v in vehicles.values()}
-        self.renderer = Renderer(self.scene, rigs=rigs, bodies=bodies, shadows=False)
-        #: each vehicle's depth errors (rl.depth_model; none when ideal), seeded per vehicle
-        self.camera_models = {name: models[CAMERA_NAME] for name, models in fleet_camera_models(cfg).items()}
+        #: every live agent's depth camera, each seeing the other vehicles' bodies (one mesh per airframe),
+        #: through its depth errors (rl.depth_model; seeded per vehicle)
+        self.cameras = CameraPipeline(self.scene, cfg)
         spots = parking_spots(self.scene, num_agents, cfg.vehicle.collision_radius)
         #: where each agent's vehicle waits, motors off, once its episode has ended
         self.parking = dict(zip(self.possible_agents, spots, strict=True))
@@ -208,17 +199,14 @@ class VineyardNavParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
     def _depth(self, states: dict[str, VehicleState]) -> dict[str, np.ndarray]:
         """The depth image of each vehicle in ``states``, drawn in one call, each seeing the others'
         bodies (only theirs: done agents' vehicles are out of the picture)."""
-        frames = self.renderer.render_rigs({name: st.T_world_body for name, st in states.items()}, rgb=False)
-        depth = {name: frames[name][CAMERA_NAME].depth for name in states}
-        for name in states:
-            if name in self.camera_models:
-                depth[name] = self.camera_models[name].apply_depth(depth[name])
-        return depth
+        poses = {name: st.T_world_body for name, st in states.items()}
+        frames = self.cameras.frames(poses, rgb=False, copy=False)
+        return {name: frames[name][CAMERA_NAME].depth for name in states}
 
     def close(self) -> None:
-        if getattr(self, "renderer", None) is not None:
-            self.renderer.close()
-            self.renderer = None  # type: ignore[assignment]
+        if getattr(self, "cameras", None) is not None:
+            self.cameras.close()
+            self.cameras = None  # type: ignore[assignment]
         if getattr(self, "world", None) is not None:
             self.world.close()
             self.world = None  # type: ignore[assignment]

@@ -29,7 +29,6 @@ Stable-Baselines3 expects). ``info`` holds every single-env key as an array with
 from __future__ import annotations
 
 import contextlib
-import math
 from collections.abc import Iterator, Sequence
 from typing import Any
 
@@ -41,194 +40,32 @@ from gymnasium.vector.utils import batch_space
 
 from droneulator.config import SimConfig
 from droneulator.frames import transforms_from_poses
+from droneulator.render.pipeline import CameraPipeline
 from droneulator.state import STATE
-from droneulator.workflows.rl.astar import bilinear, carrot
-from droneulator.workflows.rl.backend import CAMERA_NAME, Kinematics
+from droneulator.workflows.rl.backend import Kinematics
 from droneulator.workflows.rl.env import (
     DEPTH_SOURCES,
     STRIP_SAMPLES,
     NavTask,
-    depth_camera_models,
     env_config,
     occupancy_grid,
     scene_variants,
     strips,
 )
+from droneulator.workflows.rl.task import REASONS, TaskRows
 from droneulator.world.batched import BatchedWorlds
 from droneulator.world.world import NS
 
-#: why an episode ended, as :meth:`NavTask.advance` names it (index 0: it goes on)
-REASONS = (None, "collision", "out_of_bounds", "goal", "time_limit")
 
-
-@numba.njit(cache=True)
-def _node(fx: float, fy: float, nx: int, ny: int) -> tuple[int, int]:
-    return min(max(int(np.rint(fx)), 0), nx - 1), min(max(int(np.rint(fy)), 0), ny - 1)
-
-
-@numba.njit(cache=True, parallel=True)
-def _nav_rows(
-    run, rows, hit, values, nxt, reach, free, near_i, near_j, origin, res, goal, d_prev, steps, max_steps,
-    bmin, bmax, k, reward, reason, tail, dist, goal_dist,
-):  # fmt: skip
-    """:meth:`NavTask.advance` and :meth:`NavTask.tail` for every env where ``run``: the reward and end
-    of its step and its observation tail, from its state at the camera instant (``rows``) and its goal's
-    distance field (``values``, ``nxt``, ``reach``). ``k``: progress scale, step penalty, goal reward,
-    collision penalty, goal radius, lookahead (m; 0: steer at the goal), forward mid, forward half-range,
-    max yaw rate."""
-    nx, ny = free.shape
-    for b in numba.prange(run.shape[0]):
-        if not run[b]:
-            continue
-        s = rows[b]
-        px, py = s[0], s[1]
-        # distance along the shortest path (DistanceField.distance)
-        fx, fy = (px - origin[0]) / res, (py - origin[1]) / res
-        cx, cy = min(max(fx, 0.0), nx - 1.0), min(max(fy, 0.0), ny - 1.0)
-        d = bilinear(values[b], cx, cy) + math.hypot(fx - cx, fy - cy) * res
-        steps[b] += 1
-        r = k[0] * (d_prev[b] - d) - k[1]
-        d_prev[b] = d
-        dist[b] = d
-        gd = math.hypot(px - goal[b, 0], py - goal[b, 1])
-        goal_dist[b] = gd
-        why = 0
-        if hit[b]:
-            why = 1
-        elif px < bmin[0] or py < bmin[1] or px > bmax[0] or py > bmax[1]:
-            why = 2
-        elif gd <= k[4]:
-            why = 3
-        if why == 3:
-            r += k[2]
-        elif why != 0:
-            r -= k[3]
-        if why == 0 and steps[b] >= max_steps[b]:
-            why = 4
-        reward[b] = r
-        reason[b] = why
-        # the steering target (NavTask.target: DistanceField.lookahead, or the goal)
-        tx, ty = goal[b, 0], goal[b, 1]
-        if k[5] > 0.0:
-            i, j = _node(fx, fy, nx, ny)
-            if not free[i, j]:
-                i, j = near_i[i, j], near_j[i, j]
-            if reach[b, i, j]:
-                ax, ay = fx, fy
-                if not free[_node(fx, fy, nx, ny)]:
-                    ax, ay = float(i), float(j)
-                a, c, reached = carrot(free, nxt[b], i, j, ax, ay, k[5] / res)
-                if not reached:
-                    tx, ty = origin[0] + a * res, origin[1] + c * res
-        # the observation tail (NavTask.tail)
-        qn = math.sqrt(s[6] * s[6] + s[7] * s[7] + s[8] * s[8] + s[9] * s[9])
-        x, y, z, w = s[6] / qn, s[7] / qn, s[8] / qn, s[9] / qn
-        yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-        heading = ((math.atan2(ty - py, tx - px) - yaw + math.pi) % (2 * math.pi) - math.pi) / math.pi
-        forward = (1 - 2 * (y * y + z * z)) * s[3] + 2 * (x * y + w * z) * s[4] + 2 * (x * z - w * y) * s[5]
-        yaw_rate = 2 * (x * z - w * y) * s[10] + 2 * (y * z + w * x) * s[11]
-        yaw_rate += (1 - 2 * (x * x + y * y)) * s[12]
-        tail[b, 0] = min(max(heading, -1.0), 1.0)
-        tail[b, 1] = min(max((forward - k[6]) / k[7], -1.0), 1.0)
-        tail[b, 2] = min(max(yaw_rate / k[8], -1.0), 1.0)
-
-
-class RenderedRows:
-    """The OpenGL renderer's depth centre rows for many poses, drawn one pose after the other; through the
-    camera's depth model (``rl.depth_model``) on the whole images when it is not ideal."""
-
-    def __init__(self, cfg: SimConfig, scene: Any) -> None:
-        from droneulator.render.renderer import Renderer
-
-        self.renderer = Renderer(scene, cfg.render.cameras, shadows=False)
-        self.models = depth_camera_models(cfg)
-
-    def rows(self, poses: np.ndarray, models: Sequence[str], scales: np.ndarray) -> np.ndarray:
-        """Centre rows at ``poses``, each through the depth preset ``models`` names for it, with its noise
-        and dropout factors (``scales``, ``(B, 2)``)."""
-        if all(self.models[m] is None for m in models):
-            out = []
-            for T in poses:
-                depth = self.renderer.render(T, rgb=False)[CAMERA_NAME].depth
-                out.append(depth[depth.shape[0] // 2].copy())
-            return np.array(out).reshape(len(poses), -1)
-        depth = np.stack([self.renderer.render(T, rgb=False)[CAMERA_NAME].depth for T in poses])
-        return centre_rows(apply_models(self.models, depth, models, scales))
-
-    def strips(self, poses: np.ndarray, models: Sequence[str], scales: np.ndarray, clip: float) -> np.ndarray:
-        """The observation's depth strips (:func:`~droneulator.workflows.rl.env.strips`) at ``poses``."""
-        return strips(self.rows(poses, models, scales), clip)
-
-    def close(self) -> None:
-        self.renderer.close()
-
-
-class CastRows:
-    """Depth centre rows for many poses by ray casting (:mod:`droneulator.render.raycast`); through the
-    camera's depth model (``rl.depth_model``), applied to the whole ``(B, H, W)`` batch at once, when it is
-    not ideal (its edges and thin structures need the rows around the centre)."""
-
-    def __init__(self, cfg: SimConfig, scene: Any) -> None:
-        from droneulator.render.raycast import DepthCaster
-
-        self.caster = DepthCaster(scene, cfg.render.cameras[0])
-        self.models = depth_camera_models(cfg)
-
-    def rows(self, poses: np.ndarray, models: Sequence[str], scales: np.ndarray) -> np.ndarray:
-        """Centre rows at ``poses``, each through the depth preset ``models`` names for it with its noise and
-        dropout factors (``scales``, ``(B, 2)``): whole images are cast only for the poses whose preset is
-        not ideal."""
-        noisy = np.array([self.models[m] is not None for m in models], dtype=bool)
-        if not noisy.any():
-            return self.caster.centre_row(poses)
-        if noisy.all():
-            return centre_rows(apply_models(self.models, self.caster.depth(poses), models, scales))
-        out = np.empty((len(poses), next(iter(self.caster.cameras.values())).width), dtype=np.float32)
-        out[~noisy] = self.caster.centre_row(poses[~noisy])
-        picked = [m for m, n in zip(models, noisy, strict=True) if n]
-        depth = self.caster.depth(poses[noisy])
-        out[noisy] = centre_rows(apply_models(self.models, depth, picked, scales[noisy]))
-        return out
-
-    def strips(self, poses: np.ndarray, models: Sequence[str], scales: np.ndarray, clip: float) -> np.ndarray:
-        """The observation's depth strips (:func:`~droneulator.workflows.rl.env.strips`) at ``poses``: for
-        ideal depth only each sector's nearest return is cast
-        (:meth:`~droneulator.render.raycast.DepthCaster.centre_row_minima`, the same strips sooner)."""
-        if all(self.models[m] is None for m in models):
-            return strips(self.caster.centre_row_minima(poses, STRIP_SAMPLES), clip)
-        return strips(self.rows(poses, models, scales), clip)
-
-    def close(self) -> None:
-        """Nothing to release: the caster holds arrays only."""
-
-
-def apply_models(
-    models: dict[str, Any], depth: np.ndarray, names: Sequence[str], scales: np.ndarray
+def depth_strips(
+    cameras: CameraPipeline, poses: np.ndarray, presets: Sequence[str], scales: np.ndarray, clip: float
 ) -> np.ndarray:
-    """``depth`` (B, H, W) with image ``b`` through the depth model ``names[b]`` with noise and dropout
-    factors ``scales[b]`` (each model on its images in one batch)."""
-    out = depth.copy()
-    which = np.asarray(names)
-    for name in dict.fromkeys(names):
-        model = models[name]
-        if model is not None:
-            sel = which == name
-            out[sel] = model.apply_depth(depth[sel], scales[sel, 0], scales[sel, 1])
-    return out
-
-
-def centre_rows(depth: np.ndarray) -> np.ndarray:
-    """The centre rows (row ``h // 2``) of a ``(B, H, W)`` batch of depth images."""
-    return np.ascontiguousarray(depth[:, depth.shape[1] // 2])
-
-
-def depth_rows(cfg: SimConfig, scene: Any, source: str) -> RenderedRows | CastRows:
-    """The depth source named ``source`` (:data:`DEPTH_SOURCES`)."""
-    if source == "render":
-        return RenderedRows(cfg, scene)
-    if source == "raycast":
-        return CastRows(cfg, scene)
-    raise ValueError(f"depth must be one of {', '.join(DEPTH_SOURCES)}, got {source!r}")
+    """The observation's depth strips (:func:`~droneulator.workflows.rl.env.strips`) at ``poses``, each
+    through its episode's depth preset and factors; for exact depth cast, only each sector's nearest return
+    is cast (the same strips sooner)."""
+    if cameras.source == "raycast" and cameras.ideal(presets):
+        return strips(cameras.sector_minima(poses, STRIP_SAMPLES), clip)
+    return strips(cameras.centre_rows(poses, presets, scales), clip)
 
 
 class VineyardNavVectorEnv(VectorEnv):
@@ -287,30 +124,13 @@ class VineyardNavVectorEnv(VectorEnv):
         self.single_action_space = task.action_space
         self.observation_space = batch_space(self.single_observation_space, n)
         self.action_space = batch_space(self.single_action_space, n)
-        rl = cfg.rl
-        self._k = np.array([
-            rl.progress_scale, rl.step_penalty, rl.goal_reward, rl.collision_penalty, rl.goal_radius,
-            rl.lookahead if rl.heading == "path" else 0.0, task._mid, task._half, rl.max_yaw_rate,
-        ])  # fmt: skip
-        grid = task.grid
-        self._values = np.zeros((n, *grid.shape))
-        self._next = np.zeros((n, *grid.shape), dtype=np.int32)
-        self._reach = np.zeros((n, *grid.shape), dtype=bool)
-        self._goal = np.zeros((n, 2))
-        self._d = np.zeros(n)
-        self._steps = np.zeros(n, dtype=np.int64)
-        self._max_steps = np.zeros(n, dtype=np.int64)
+        #: every env's episode in the task kernel (:mod:`.task`)
+        self.rows = TaskRows(cfg, task.grid, n)
         self._rngs = [np.random.default_rng() for _ in range(n)]
         self._obs = np.zeros((n, self.single_observation_space.shape[0]), dtype=np.float32)
         self._done = np.zeros(n, dtype=bool)
         self._commands = np.zeros((n, 2))
         self._reset_called = False
-        # per-step outputs of the compiled task step, reused
-        self._reward = np.zeros(n)
-        self._reason = np.zeros(n, dtype=np.int64)
-        self._tail = np.zeros((n, 3))
-        self._dist = np.zeros(n)
-        self._goal_dist = np.zeros(n)
         #: each env's depth preset this episode (``rl.depth_model``, or randomisation's draw)
         cam = cfg.render.cameras[0]
         self._depth_models = [cam.depth_model] * n
@@ -372,19 +192,14 @@ class VineyardNavVectorEnv(VectorEnv):
         for i, (start, yaw, goal, field) in zip(idx, begun, strict=True):
             kin = self._kinematics(int(i), 0)
             task = self.tasks[i]
-            task.begin(start, yaw, goal, field, kin)
-            self._values[i] = field.values
-            self._next[i] = field.next
-            self._reach[i] = field.reachable
-            self._goal[i] = task.goal
-            self._d[i] = self._dist[i] = task.initial_distance
-            self._goal_dist[i] = math.hypot(*(kin.position[:2] - task.goal))
-            self._steps[i] = 0
-            self._max_steps[i] = task.max_steps
-            self._obs[i, STRIP_SAMPLES:] = task.tail(kin)
+            task.begin(start, yaw, goal, field, kin, self.rows, int(i))
             task.field = None  # its arrays live in this env's rows now
-        self._reason[idx] = 0
-        self._reward[idx] = 0.0
+        rows, none = self.states, np.zeros(self.num_envs, dtype=bool)
+        for batch, sub in self._groups(idx):
+            mine = none.copy()
+            mine[sub] = True
+            self.rows.step(mine, rows, none, batch.grid, batch.worlds.scene, advance=False)
+        self._obs[idx, STRIP_SAMPLES:] = self.rows.tail[idx]
         self._commands[idx] = 0.0
         self._strips(idx, self.states)
 
@@ -400,23 +215,24 @@ class VineyardNavVectorEnv(VectorEnv):
         for batch, sub in self._groups(idx):
             poses = transforms_from_poses(rows[sub, 0:3], rows[sub, 6:10])
             models = [self._depth_models[i] for i in sub]
-            clip = self.config.rl.depth_clip
-            self._obs[sub, :STRIP_SAMPLES] = batch.depth.strips(poses, models, self._depth_scales[sub], clip)
+            scales, clip = self._depth_scales[sub], self.config.rl.depth_clip
+            self._obs[sub, :STRIP_SAMPLES] = depth_strips(batch.cameras, poses, models, scales, clip)
 
     def _infos(self, rows: np.ndarray, t: np.ndarray, mask: np.ndarray) -> dict[str, Any]:
         """The single env's info keys as arrays (Gymnasium's vector form, every env present)."""
         q = rows[:, 6:10]
         yaw = np.arctan2(2 * (q[:, 3] * q[:, 2] + q[:, 0] * q[:, 1]), 1 - 2 * (q[:, 1] ** 2 + q[:, 2] ** 2))
-        termination = np.array([REASONS[r] for r in self._reason], dtype=object)
+        task = self.rows
+        termination = np.array([REASONS[r] for r in task.reason], dtype=object)
         info = {
             "t": t.astype(float),
             "position": rows[:, 0:3].copy(),
             "yaw": yaw,
             "command": self._commands.copy(),
-            "distance": self._dist.copy(),
-            "goal_distance": self._goal_dist.copy(),
+            "distance": task.dist.copy(),
+            "goal_distance": task.goal_dist.copy(),
             "termination": termination,
-            "is_success": self._reason == REASONS.index("goal"),
+            "is_success": task.reason == REASONS.index("goal"),
         }
         out: dict[str, Any] = {}
         for key, value in info.items():
@@ -484,7 +300,7 @@ class VineyardNavVectorEnv(VectorEnv):
         resetting = self._done.copy() if next_step else np.zeros(n, dtype=bool)
         run = ~resetting
         idx = np.flatnonzero(run)
-        k = self._k
+        k = self.rows.k
         a = np.clip(a, -1.0, 1.0)
         self._commands[:, 0] = k[6] + a[:, 0] * k[7]
         self._commands[:, 1] = a[:, 1] * k[8]
@@ -505,10 +321,10 @@ class VineyardNavVectorEnv(VectorEnv):
                 cam[sub], hit[sub] = c[sub], h[sub]
                 t[sub] = batch.worlds.frame_t_ns()[sub] / NS
                 self._nav(batch, mine, cam, hit)
-        self._obs[idx, STRIP_SAMPLES:] = self._tail[idx]
+        self._obs[idx, STRIP_SAMPLES:] = self.rows.tail[idx]
         self._strips(idx, cam)
-        rewards = np.where(run, self._reward, 0.0)
-        reason = np.where(run, self._reason, 0)
+        rewards = np.where(run, self.rows.reward, 0.0)
+        reason = np.where(run, self.rows.reason, 0)
         truncated = reason == REASONS.index("time_limit")
         terminated = (reason != 0) & ~truncated
         done = terminated | truncated
@@ -535,27 +351,20 @@ class VineyardNavVectorEnv(VectorEnv):
         return self._obs.copy(), rewards, terminated, truncated, infos
 
     def _nav(self, batch: _SceneBatch, run: np.ndarray, cam: np.ndarray, hit: np.ndarray) -> None:
-        """The compiled task step (:func:`_nav_rows`) of envs ``run``, all flying in ``batch``'s scene."""
-        g, near, scene = batch.grid, batch.near, batch.worlds.scene
-        _nav_rows(
-            run, cam, hit, self._values, self._next, self._reach, g.free, near[0], near[1],
-            g.origin, g.resolution, self._goal, self._d, self._steps, self._max_steps,
-            scene.bounds_min[:2], scene.bounds_max[:2], self._k, self._reward, self._reason, self._tail,
-            self._dist, self._goal_dist,
-        )  # fmt: skip
+        """The task step (:mod:`.task`) of envs ``run``, all flying in ``batch``'s scene."""
+        self.rows.step(run, cam, hit, batch.grid, batch.worlds.scene, advance=True)
 
     def close_extras(self, **kwargs: Any) -> None:
         for batch in getattr(self, "_batches", {}).values():
-            batch.depth.close()
+            batch.cameras.close()
         self._batches = {}
 
 
 class _SceneBatch:
     """One scene variant of a vector env: a batch of worlds of that scene (a row for every env; the rows
-    of envs flying elsewhere stay idle), its depth source and its occupancy grid."""
+    of envs flying elsewhere stay idle), its camera pipeline (depth from ``depth``) and occupancy grid."""
 
     def __init__(self, cfg: SimConfig, num_envs: int, depth: str) -> None:
         self.worlds = BatchedWorlds(cfg, num_envs)
-        self.depth = depth_rows(cfg, self.worlds.scene, depth)
+        self.cameras = CameraPipeline(self.worlds.scene, cfg, source=depth)
         self.grid = occupancy_grid(self.worlds.scene, cfg.rl, cfg.vehicle.collision_radius)
-        self.near = (self.grid.nearest[0].astype(np.int64), self.grid.nearest[1].astype(np.int64))
