@@ -6,8 +6,8 @@ batched sub-scenes; RotorPy's ``BatchedMultirotor`` N-axis state). Every copy st
 :class:`~droneulator.world.World` with one vehicle does (same control period, camera instants, SE(3)
 controller, RK4 sub-steps and scene collisions, using the same compiled functions), so a copy's flight
 equals the single world's to float rounding; only the flight modes learning uses are batched: hold and
-velocity mode (:class:`~droneulator.controllers.velocity.VelocityReference`, the paper's unicycle
-command path, here as a compiled twin).
+velocity mode (the paper's unicycle command path: :func:`~droneulator.controllers.velocity.velocity_flat`,
+the compiled reference every :class:`~droneulator.controllers.velocity.VelocityReference` runs).
 
 The copies share the scene, so its layout is the config's scene and seed. Each copy flies in its own
 realisation of the wind field (:mod:`droneulator.wind.field`, ``config.wind``; settable per copy with
@@ -26,6 +26,7 @@ import numpy as np
 
 from droneulator.config import SimConfig
 from droneulator.controllers.se3 import se3_into
+from droneulator.controllers.velocity import VCMD, VREF_SIZE, start_reference, velocity_flat, velocity_limits
 from droneulator.frames import quat_from_yaw, yaw_of
 from droneulator.frames_numba import set_quat_from_yaw
 from droneulator.frames_numba import yaw_of as yaw_of_nb
@@ -36,44 +37,10 @@ from droneulator.vehicles.vehicle import Vehicle
 from droneulator.wind.field import WindField
 from droneulator.world.world import NS
 
-#: the velocity reference of each copy: position (3), held altitude, yaw, command (forward, yaw rate),
-#: slewed (2) and filtered (2) command
-_VP, _VALT, _VYAW, _VCMD, _VSLEW, _VFILT = 0, 3, 4, 5, 7, 9
-VREF_SIZE = 11
 #: where the attitude quaternion starts in the packed state (a plain int for the compiled kernels)
 _Q = STATE.q.start
 #: flight modes of a copy (a collided copy stays where it stopped until placed again)
 HOLD, VELOCITY, COLLIDED = 0, 1, 2
-
-
-@numba.njit(cache=True)
-def _velocity_flat(v: np.ndarray, dt: float, veh: np.ndarray, lim: np.ndarray, flat: np.ndarray) -> None:
-    """:meth:`VelocityReference.update` on a packed reference ``v``: advance by ``dt`` toward the command,
-    the vehicle at ``veh``; ``lim`` = (max forward accel, max yaw accel, filter tau, leash)."""
-    alpha = dt / (lim[2] + dt)
-    prev_speed = v[_VFILT]
-    for i in range(2):
-        step = lim[i] * dt
-        v[_VSLEW + i] += min(max(v[_VCMD + i] - v[_VSLEW + i], -step), step)
-        v[_VFILT + i] += alpha * (v[_VSLEW + i] - v[_VFILT + i])
-    speed, rate = v[_VFILT], v[_VFILT + 1]
-    v[_VYAW] += rate * dt
-    c, s = math.cos(v[_VYAW]), math.sin(v[_VYAW])
-    v[_VP] += speed * c * dt
-    v[_VP + 1] += speed * s * dt
-    v[_VP + 2] = v[_VALT]
-    ox, oy = v[_VP] - veh[0], v[_VP + 1] - veh[1]
-    dist = math.hypot(ox, oy)
-    if dist > lim[3]:
-        v[_VP] = veh[0] + ox * (lim[3] / dist)
-        v[_VP + 1] = veh[1] + oy * (lim[3] / dist)
-    accel = (speed - prev_speed) / dt
-    for j in range(FLAT_SIZE):
-        flat[j] = 0.0
-    flat[0], flat[1], flat[2] = v[_VP], v[_VP + 1], v[_VP + 2]
-    flat[3], flat[4] = speed * c, speed * s
-    flat[6], flat[7] = accel * c - speed * rate * s, accel * s + speed * rate * c
-    flat[9], flat[10] = v[_VYAW], rate
 
 
 @numba.njit(cache=True)
@@ -91,7 +58,7 @@ def _step_copy(
     hit[b] = False
     while True:
         if mode[b] == VELOCITY:
-            _velocity_flat(vref[b], dt, s, lim, flat[b])
+            velocity_flat(vref[b], dt, s, lim, flat[b])
         else:
             for j in range(FLAT_SIZE):
                 flat[b, j] = hold[b, j]
@@ -174,7 +141,7 @@ class BatchedWorlds:
         self.radius = vehicle.collision_radius
         fc = vehicle.flight_config
         self.max_speed = fc.max_speed
-        self._lim = np.array([fc.max_forward_accel, fc.max_yaw_accel, fc.filter_tau, fc.leash])
+        self._lim = velocity_limits(fc)
         self.period_ns = round(NS / config.vehicle.control_hz)
         self.camera_ns = round(NS / config.render.camera_hz)
         self._substep = 1.0 / (config.vehicle.control_hz * config.vehicle.substeps)
@@ -236,16 +203,13 @@ class BatchedWorlds:
             raise ValueError("a collided copy takes no command until it is placed again")
         entering = rows[self.mode[rows] != VELOCITY]
         for b in entering:
-            v, hold = self._vref[b], self._hold[b]
+            hold = self._hold[b]
             yaw = float(hold[9])
             speed0 = float(self.states[b, 3:5] @ (math.cos(yaw), math.sin(yaw)))
-            v[_VP : _VP + 3] = hold[0:3]
-            v[_VALT], v[_VYAW] = hold[2], yaw
-            v[_VSLEW : _VSLEW + 2] = (speed0, 0.0)
-            v[_VFILT : _VFILT + 2] = (speed0, 0.0)
+            start_reference(self._vref[b], hold[0:3], yaw, speed0, 0.0)
         self.mode[entering] = VELOCITY
-        self._vref[rows, _VCMD] = f
-        self._vref[rows, _VCMD + 1] = r
+        self._vref[rows, VCMD] = f
+        self._vref[rows, VCMD + 1] = r
 
     def frame_t_ns(self) -> np.ndarray:
         """Each copy's latest camera instant (ns since its :meth:`place`)."""
