@@ -2,8 +2,8 @@
 
 Both loops track the same 4-waypoint minimum-snap trajectory for 10 s with the same parameters:
 RotorPy's ``Multirotor.step`` (solve_ivp RK45) + ``SE3Control.update`` + ``MinSnap.update``,
-versus Droneulator's compiled RK4 + SE(3) + trajectory evaluation, and the full in-process
-``Simulator`` (flight modes, collision queries every sub-step) without the renderer.
+versus Droneulator's compiled RK4 + SE(3) + trajectory evaluation, and a full in-process one-vehicle
+``World`` (flight modes, collision queries every sub-step) without the renderer.
 Prints real-time factors measured in the same run and the largest position difference.
 """
 
@@ -19,10 +19,10 @@ from rotorpy.trajectories.minsnap import MinSnap
 from rotorpy.vehicles.multirotor import Multirotor
 
 from droneulator.controllers.se3 import FastSE3Control
-from droneulator.sim.simulator import Simulator
 from droneulator.trajectories.minsnap import PolyTrajectory
 from droneulator.vehicles.dynamics import STATE, FastMultirotor, pack_state
 from droneulator.vehicles.params import get_params
+from droneulator.world import World
 
 WAYPOINTS = np.array([[0, 0, 1.0], [3, 2, 2.5], [5, -1, 1.5], [1, 1, 1.0]])
 YAWS = np.array([0, 1.0, -0.5, 0.3])
@@ -67,12 +67,13 @@ def droneulator_loop(
 
 
 def simulator_loop(seconds: float) -> float:
-    sim = Simulator(scene="default", render=False)
-    sim.reset(position=sim.scene.spawn_position + [0, 0, 2.0])
-    sim.goto(sim.scene.spawn_position + [0.5, 0.5, 2.5])
-    sim.run(0.1)
+    world = World(scene="default", render=False)
+    uav = world.vehicle()
+    world.reset(position=world.scene.spawn_position + [0, 0, 2.0])
+    uav.goto(world.scene.spawn_position + [0.5, 0.5, 2.5])
+    world.run(0.1)
     t0 = time.perf_counter()
-    sim.run(seconds)
+    world.run(seconds)
     return time.perf_counter() - t0
 
 

@@ -1,6 +1,6 @@
 """Lockstep real-time factor with the full sensor rig.
 
-The in-process Simulator flies a velocity-mode pattern on a scene with the default 640x480
+An in-process one-vehicle World flies a velocity-mode pattern on a scene with the default 640x480
 camera (RGB + depth + segmentation with readback) at 30 Hz simulation time, physics and SE(3)
 control at 100 Hz. Real-time factor = simulated seconds / wall seconds; 1.0 or more means the
 rig keeps up with real time while never skipping a frame.
@@ -14,7 +14,7 @@ import time
 from _common import write
 
 from droneulator.config import load_config
-from droneulator.sim.simulator import Simulator
+from droneulator.world import World
 
 
 def main() -> None:
@@ -33,20 +33,21 @@ def main() -> None:
     args = ap.parse_args()
 
     cfg = load_config(None, args.overrides, scene=args.scene)
-    with Simulator(config=cfg) as sim:
-        sim.reset(position=sim.scene.spawn_position + [0.0, 0.0, 2.0])
-        sim.velocity(0.5, 0.3)
-        sim.run(0.5)  # warm up (shader compilation, numba)
-        frames0 = sim.frame_count
-        t_sim0 = sim.t
+    with World(config=cfg) as world:
+        uav = world.vehicle()
+        world.reset(position=world.scene.spawn_position + [0.0, 0.0, 2.0])
+        uav.velocity(0.5, 0.3)
+        world.run(0.5)  # warm up (shader compilation, numba)
+        frames0 = world.frame_count
+        t_sim0 = world.t
         t0 = time.perf_counter()
-        sim.run(args.seconds)
+        world.run(args.seconds)
         wall = time.perf_counter() - t0
-        frames = sim.frame_count - frames0
-        sim_s = sim.t - t_sim0
+        frames = world.frame_count - frames0
+        sim_s = world.t - t_sim0
         res = {
             "scene": args.scene,
-            "triangles": sim.scene.triangle_count,
+            "triangles": world.scene.triangle_count,
             "sim_seconds": sim_s,
             "wall_seconds": wall,
             "real_time_factor": sim_s / wall,

@@ -1,7 +1,7 @@
 """The IMU, GPS and magnetometer statistics PX4's estimator checks, re-measured without PX4.
 
 1. Accelerometer peak at touchdown: the vehicle descends onto the default scene's ground at a
-   steady 0.2..2 m/s on PX4's path (rotor speeds set directly, ``Simulator.set_rotor_speeds``) and
+   steady 0.2..2 m/s on PX4's path (rotor speeds set directly, ``Vehicle.set_rotor_speeds``) and
    the IMU is read the way ``PX4Link`` reads it (``Truth.from_sim`` -> ``SensorSuite.imu``); PX4's
    simulator interface holds +-16 g, so a peak beyond that is a corrupted sample.
 2. GPS drift at rest: EKF2's at-rest checks replayed on the fixes (``Ekf2DriftCheck``: the 10 s
@@ -31,7 +31,7 @@ from droneulator.config import PX4Config, load_config
 from droneulator.sensors import SensorSuite, Truth
 from droneulator.sensors.gps import Ekf2DriftCheck
 from droneulator.sensors.mag import field_elements, wmm_field_ned_gauss
-from droneulator.sim.simulator import Simulator
+from droneulator.world import World
 
 G0 = 9.80665
 #: PX4's simulator interface accelerometer range (m/s^2)
@@ -44,19 +44,20 @@ OLD_FIELD_NED = (0.19, -0.005, 0.45)
 def touchdowns(speeds: list[float], drop_m: float, seed: int) -> list[dict[str, Any]]:
     """Descend from ``drop_m`` with constant thrust so the vehicle meets the ground at each speed."""
     cfg = load_config(overrides=["vehicle.control_hz=250", "vehicle.params=px4_quadx"])
-    sim = Simulator(scene="default", render=False, config=cfg)
+    world = World(scene="default", render=False, config=cfg)
+    uav = world.vehicle()
     suite = SensorSuite(cfg.px4, seed)
-    ground = float(sim.scene.spawn_position[2])
+    ground = float(world.scene.spawn_position[2])
     out = []
     for v in speeds:
-        sim.reset(position=sim.scene.spawn_position + np.array([0.0, 0.0, drop_m]), airborne=True)
+        world.reset(position=world.scene.spawn_position + np.array([0.0, 0.0, drop_m]), airborne=True)
         # thrust (1 - a/g) of hover accelerates the descent at a = v^2 / (2 h)
         accel_down = v * v / (2.0 * drop_m)
-        sim.set_rotor_speeds([sim.vehicle.hover_speed * math.sqrt(1.0 - accel_down / 9.81)] * 4)
+        uav.set_rotor_speeds([uav.hover_speed * math.sqrt(1.0 - accel_down / 9.81)] * 4)
         accel, vz, z = [], [], []
         for _ in range(round((2.0 * drop_m / v + 1.0) * 250)):  # the descent and 1 s on the ground
-            sim.step()
-            truth = Truth.from_sim(sim)
+            world.step()
+            truth = Truth.from_sim(uav)
             accel.append(suite.imu(truth)[0])
             vz.append(truth.velocity[2])
             z.append(truth.position[2])
@@ -74,7 +75,7 @@ def touchdowns(speeds: list[float], drop_m: float, seed: int) -> list[dict[str, 
                 "bounce_m": round(max(z[k:]) - ground, 3),
             }
         )
-    sim.close()
+    world.close()
     return out
 
 

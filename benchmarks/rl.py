@@ -1,7 +1,7 @@
 """Workflow 3 (RL in the vineyard): batched environment throughput, wall time to a good policy, memory.
 
 1. Environment steps per second with random actions (autoresets included) of today's single env
-   (``VineyardNavEnv``, one ``Simulator`` and one OpenGL renderer) and of the native vector env
+   (``VineyardNavEnv``, one in-process ``World`` and one OpenGL renderer) and of the native vector env
    (``gym.make_vec("droneulator/VineyardNav-v0", num_envs=B)``, B batched worlds, depth by ray casting)
    for B = 1, 16, 64, 256, 1024, each in its own process, with the memory each env adds (the process's
    resident memory before and after making and resetting it, over B, once a one-env copy has loaded

@@ -7,7 +7,7 @@
    simulator's own integration (10 RK4 sub-steps a period) and with one RK4 step a period (what
    RotorPy's batched model does). In the same run: RotorPy's ``BatchedMultirotor`` (torch, ``rk4``,
    one step a period) with its ``BatchedSE3Control`` on the CPU, the reference the issue names, and
-   the single-vehicle ``Simulator``'s real-time factor.
+   a one-vehicle ``World``'s real-time factor (what ``Simulator`` measured before it was retired).
 2. In-process lockstep with every vehicle's camera rig (the default 640x480 front camera, RGB, depth
    and segmentation at 30 Hz) for N = 1, 2, 4, 8 vehicles flying circles at 3 m: real-time factor,
    camera frames per second, and where the wall time goes (rendering and readback, the rest).
@@ -29,7 +29,6 @@ import numpy as np
 from _common import write
 
 from droneulator.config import VehicleSpec, load_config
-from droneulator.sim.simulator import Simulator
 from droneulator.state import STATE
 from droneulator.world import World
 
@@ -107,14 +106,14 @@ def time_rotorpy(n: int, seconds: float) -> dict[str, Any] | None:
     return {"n": n, "steps": steps, "wall_s": wall, "vehicle_steps_per_s": n * steps / wall}
 
 
-def time_simulator(seconds: float) -> dict[str, Any]:
-    """The single-vehicle face, hovering, no renderer: its real-time factor (control at 100 Hz)."""
-    sim = Simulator(config=load_config(scene="default"), render=False)
-    sim.reset(position=[0.0, 0.0, HOVER_Z])
-    sim.step(5)
+def time_single_vehicle(seconds: float) -> dict[str, Any]:
+    """A one-vehicle world, hovering, no renderer: its real-time factor (control at 100 Hz)."""
+    world = World(load_config(scene="default"), render=False)
+    world.reset(position=[0.0, 0.0, HOVER_Z])
+    world.step(5)
     steps, t0 = 0, time.perf_counter()
     while (wall := time.perf_counter() - t0) < seconds:
-        sim.step(10)
+        world.step(10)
         steps += 10
     return {"steps": steps, "wall_s": wall, "real_time_factor": steps * 0.01 / wall}
 
@@ -225,7 +224,7 @@ def main() -> None:
         rp = row["rotorpy"]["vehicle_steps_per_s"] if row["rotorpy"] else math.nan
         print(f"  {n:5d}  {row['world_10']['vehicle_steps_per_s']:24,.0f}  "
               f"{row['world_1']['vehicle_steps_per_s']:18,.0f}  {rp:20,.0f}", flush=True)  # fmt: skip
-    single = time_simulator(args.seconds)
+    single = time_single_vehicle(args.seconds)
     print(f"single-vehicle Simulator (no renderer): {single['real_time_factor']:.0f}x real time")
 
     rendering = []

@@ -1,6 +1,6 @@
 """Ground contact, the accelerometer's specific force, IMU saturation and impact events.
 
-Real Simulators on real scenes (no rendering); the accelerometer is read the way the PX4 link reads
+Real one-vehicle Worlds on real scenes (no rendering); the accelerometer is read the way the PX4 link reads
 it, through :class:`~droneulator.sensors.truth.Truth` and the registered IMU model.
 """
 
@@ -15,17 +15,22 @@ from droneulator.frames import quat_from_euler, quat_multiply, quat_to_matrix
 from droneulator.sensors.imu import G0, Imu
 from droneulator.sensors.suite import SensorSuite
 from droneulator.sensors.truth import Truth
-from droneulator.sim.simulator import Simulator
 from droneulator.vehicles.dynamics import STATE, GroundContact
+from droneulator.vehicles.vehicle import Vehicle
+from droneulator.world import World
 
 G = 9.81
 IMU_RANGE = 16 * G0  # the +-16 g PX4 stores accelerometer samples in
 
 
-def make_sim(params: str = "px4_quadx", hz: float = 250.0, scene: str = "default", **vehicle) -> Simulator:
+def make_world(
+    params: str = "px4_quadx", hz: float = 250.0, scene: str = "default", **vehicle
+) -> tuple[World, Vehicle]:
+    """A one-vehicle world and its vehicle."""
     sets = [f"vehicle.control_hz={hz}", f"vehicle.params={params}"]
     sets += [f"vehicle.{k}={v}" for k, v in vehicle.items()]
-    return Simulator(scene=scene, render=False, config=load_config(overrides=sets))
+    world = World(scene=scene, render=False, config=load_config(overrides=sets))
+    return world, world.vehicle()
 
 
 def tilt_deg(q: np.ndarray) -> float:
@@ -33,25 +38,25 @@ def tilt_deg(q: np.ndarray) -> float:
     return math.degrees(math.acos(min(1.0, quat_to_matrix(q)[2, 2])))
 
 
-def drop_height(sim: Simulator, speed: float) -> float:
+def drop_height(uav: Vehicle, speed: float) -> float:
     """Height to release the vehicle from (motors off) so its feet touch down at about ``speed``."""
-    return sim.vehicle.contact.foot_depth + speed**2 / (2 * G)
+    return uav.contact.foot_depth + speed**2 / (2 * G)
 
 
-def descend(sim: Simulator, speed: float) -> dict:
+def descend(world: World, uav: Vehicle, speed: float) -> dict:
     """A PX4-style landing: track a reference that accelerates at 2 m/s^2 to ``speed`` and keeps
     descending through the ground; hold the rotors on it for 1 s after touchdown, then cut them.
     IMU samples are taken the way the PX4 link takes them."""
     accel, ramp = 2.0, speed / 2.0
-    start = sim.scene.spawn_position + [0.0, 0.0, 1.0 + 1.5 * speed + 0.5 * accel * ramp**2]
-    sim.reset(position=start)
+    start = world.scene.spawn_position + [0.0, 0.0, 1.0 + 1.5 * speed + 0.5 * accel * ramp**2]
+    world.reset(position=start)
     imu = SensorSuite(PX4Config(), seed=1)
     flat = np.zeros(11)
-    flat[0:2], flat[9] = start[:2], sim.state.yaw
-    foot = sim.vehicle.contact.foot_depth
+    flat[0:2], flat[9] = start[:2], uav.state.yaw
+    foot = uav.contact.foot_depth
     out = {"events": [], "peak": 0.0, "clean_peak": 0.0, "top": -1.0, "touchdown": None}
-    while sim.t < 30.0:
-        t = sim.t
+    while world.t < 30.0:
+        t = world.t
         fall = 0.5 * accel * min(t, ramp) ** 2 + speed * max(0.0, t - ramp)
         flat[2] = start[2] - fall
         flat[5] = -min(accel * t, speed)
@@ -60,19 +65,19 @@ def descend(sim: Simulator, speed: float) -> dict:
             flat[2], flat[5], flat[8] = -0.3, 0.0, 0.0
         td = out["touchdown"]
         off = td is not None and t > td[0] + 1.0
-        sim.set_rotor_speeds(np.zeros(4) if off else sim.flight.se3.motor_speeds(sim.s, flat))
-        before = sim.state.velocity[2]
-        out["events"] += sim.step().events
-        if td is None and sim.state.position[2] < foot:
-            out["touchdown"] = (sim.t, -before)
+        uav.set_rotor_speeds(np.zeros(4) if off else uav.flight.se3.motor_speeds(uav.s, flat))
+        before = uav.state.velocity[2]
+        out["events"] += world.step().events
+        if td is None and uav.state.position[2] < foot:
+            out["touchdown"] = (world.t, -before)
         if out["touchdown"] is not None:
-            a, _ = imu.imu(Truth.from_sim(sim))
+            a, _ = imu.imu(Truth.from_sim(uav))
             out["peak"] = max(out["peak"], float(np.max(np.abs(a))))
-            out["clean_peak"] = max(out["clean_peak"], float(np.max(np.abs(sim.specific_force))))
-            out["top"] = max(out["top"], sim.state.position[2] - foot)  # feet above the ground
-        if off and sim.t > out["touchdown"][0] + 3.0:
+            out["clean_peak"] = max(out["clean_peak"], float(np.max(np.abs(uav.specific_force))))
+            out["top"] = max(out["top"], uav.state.position[2] - foot)  # feet above the ground
+        if off and world.t > out["touchdown"][0] + 3.0:
             break
-    out["state"] = sim.state
+    out["state"] = uav.state
     return out
 
 
@@ -81,8 +86,8 @@ def descend(sim: Simulator, speed: float) -> dict:
 def test_controlled_touchdown_stays_in_imu_range_and_settles(speed):
     """0.2-2 m/s touchdowns at PX4's 250 Hz with thrust near hover: the accelerometer stays well
     inside +-16 g, the vehicle does not bounce more than a few cm, then rests at z = 0."""
-    sim = make_sim()
-    r = descend(sim, speed)
+    world, uav = make_world()
+    r = descend(world, uav, speed)
     assert r["touchdown"][1] == pytest.approx(speed, rel=0.15)
     assert r["clean_peak"] < 10 * G  # the legs stop it over several cm, not in one step
     assert r["peak"] < IMU_RANGE * 0.999  # never at the rail: nothing for PX4 to wrap or clip
@@ -90,147 +95,147 @@ def test_controlled_touchdown_stays_in_imu_range_and_settles(speed):
     st = r["state"]
     assert abs(st.position[2]) < 1e-3 and np.linalg.norm(st.velocity) < 1e-3
     assert tilt_deg(st.quaternion) < 0.1
-    np.testing.assert_allclose(st.position[:2], sim.scene.spawn_position[:2], atol=0.01)
+    np.testing.assert_allclose(st.position[:2], world.scene.spawn_position[:2], atol=0.01)
     impacts = [e for e in r["events"] if e.type == "impact"]
     assert len(impacts) == (1 if speed > 1.5 else 0)
 
 
 @pytest.mark.parametrize("speed", [0.2, 0.7, 1.2, 2.0])
 def test_motors_off_drop_stops_within_a_few_cm_without_bounce(speed):
-    sim = make_sim(hz=100.0, params="hummingbird")
-    sim.reset(position=sim.scene.spawn_position + [0.0, 0.0, drop_height(sim, speed)], airborne=False)
+    world, uav = make_world(hz=100.0, params="hummingbird")
+    world.reset(position=world.scene.spawn_position + [0.0, 0.0, drop_height(uav, speed)], airborne=False)
     zs, peak = [], 0.0
-    while sim.t < 3.0:
-        sim.step()
-        zs.append(sim.state.position[2])
-        peak = max(peak, float(np.linalg.norm(sim.specific_force)))
+    while world.t < 3.0:
+        world.step()
+        zs.append(uav.state.position[2])
+        peak = max(peak, float(np.linalg.norm(uav.specific_force)))
     low = int(np.argmin(zs))
     assert zs[low] > -0.05  # the legs compress at most a few cm
     assert max(zs[low:]) < 1e-3  # and came back to rest without leaving the ground
     assert peak < 12 * G
-    assert abs(zs[-1]) < 1e-3 and np.linalg.norm(sim.state.velocity) < 1e-3
+    assert abs(zs[-1]) < 1e-3 and np.linalg.norm(uav.state.velocity) < 1e-3
 
 
 @pytest.mark.parametrize("params", ["hummingbird", "crazyflie", "px4_quadx"])
 def test_tilted_sliding_touchdown_neither_launches_nor_slides_away(params):
     """Motors off, 20 degrees of bank, 1.5 m/s sideways and 1.5 m/s down: friction stops the slide
     within a few tens of cm, the legs level the vehicle, and it stays where it stopped."""
-    sim = make_sim(params=params, hz=100.0)
-    start = sim.scene.spawn_position + [0.0, 0.0, drop_height(sim, 1.5)]
-    sim.reset(position=start, airborne=False)
-    sim.s[STATE.q] = quat_from_euler(math.radians(20), math.radians(-8), 0.7)
-    sim.s[STATE.v] = [1.5, 0.5, -0.0]
+    world, uav = make_world(params=params, hz=100.0)
+    start = world.scene.spawn_position + [0.0, 0.0, drop_height(uav, 1.5)]
+    world.reset(position=start, airborne=False)
+    uav.s[STATE.q] = quat_from_euler(math.radians(20), math.radians(-8), 0.7)
+    uav.s[STATE.v] = [1.5, 0.5, -0.0]
     zs = []
-    while sim.t < 6.0:
-        sim.step()
-        zs.append(sim.state.position[2])
+    while world.t < 6.0:
+        world.step()
+        zs.append(uav.state.position[2])
     low = int(np.argmin(zs))
     assert max(zs[low:]) < 0.02  # no launch
-    st = sim.state
+    st = uav.state
     slide = np.linalg.norm(st.position[:2] - start[:2])
     assert slide < 1.2  # the ballistic part is ~0.5 m, friction stops the rest within ~0.3 m
     assert tilt_deg(st.quaternion) < 1.0 and abs(st.position[2]) < 2e-3
     assert np.linalg.norm(st.velocity) < 2e-3 and np.linalg.norm(st.angular_velocity) < 0.01
     rest = st.position.copy()
-    sim.run(2.0)
-    np.testing.assert_allclose(sim.state.position[:2], rest[:2], atol=2e-4)  # a resting vehicle stays
+    world.run(2.0)
+    np.testing.assert_allclose(uav.state.position[:2], rest[:2], atol=2e-4)  # a resting vehicle stays
 
 
 def test_upside_down_vehicle_rests_on_its_hubs_instead_of_falling_through():
-    sim = make_sim(params="hummingbird", hz=100.0)
-    sim.reset(position=sim.scene.spawn_position + [0.0, 0.0, 0.5], airborne=False)
-    sim.s[STATE.q] = quat_multiply(sim.s[STATE.q], quat_from_euler(math.pi, 0.0, 0.0))
-    sim.run(4.0)
-    st = sim.state
+    world, uav = make_world(params="hummingbird", hz=100.0)
+    world.reset(position=world.scene.spawn_position + [0.0, 0.0, 0.5], airborne=False)
+    uav.s[STATE.q] = quat_multiply(uav.s[STATE.q], quat_from_euler(math.pi, 0.0, 0.0))
+    world.run(4.0)
+    st = uav.state
     assert tilt_deg(st.quaternion) > 179.0
     # the hubs' legs compress as the feet do, so the origin (in the hub plane) rests that deep
-    assert st.position[2] == pytest.approx(-sim.vehicle.contact.foot_depth, abs=1e-3)
-    np.testing.assert_allclose(sim.specific_force, [0.0, 0.0, -G], atol=0.01)  # the ground pushes "down"
+    assert st.position[2] == pytest.approx(-uav.contact.foot_depth, abs=1e-3)
+    np.testing.assert_allclose(uav.specific_force, [0.0, 0.0, -G], atol=0.01)  # the ground pushes "down"
 
 
 def test_resting_vehicle_with_motors_off_is_exactly_still():
     """Spawned on the ground, the legs carry exactly the weight: nothing moves, and the
     accelerometer reads the contact force, +9.81 up (PX4 FRD: -9.81 on z)."""
-    sim = make_sim(params="px4_quadx")
-    sim.reset(yaw=0.8)
-    before = sim.s.copy()
-    sim.run(5.0)
-    np.testing.assert_array_equal(sim.s, before)
-    np.testing.assert_allclose(sim.specific_force, [0.0, 0.0, G], atol=1e-9)
-    np.testing.assert_allclose(Truth.from_sim(sim).specific_force_frd, [0.0, 0.0, -G], atol=1e-9)
-    np.testing.assert_allclose(sim.acceleration, 0.0, atol=1e-12)
+    world, uav = make_world(params="px4_quadx")
+    world.reset(yaw=0.8)
+    before = uav.s.copy()
+    world.run(5.0)
+    np.testing.assert_array_equal(uav.s, before)
+    np.testing.assert_allclose(uav.specific_force, [0.0, 0.0, G], atol=1e-9)
+    np.testing.assert_allclose(Truth.from_sim(uav).specific_force_frd, [0.0, 0.0, -G], atol=1e-9)
+    np.testing.assert_allclose(uav.acceleration, 0.0, atol=1e-12)
 
 
 # --------------------------------------------------------------------------- specific force
 def test_specific_force_in_hover_and_in_free_fall():
-    sim = make_sim(params="hummingbird", hz=100.0)
-    sim.reset(position=sim.scene.spawn_position + [0.0, 0.0, 15.0])
-    sim.run(2.0)
-    np.testing.assert_allclose(sim.specific_force, [0.0, 0.0, G], atol=0.02)  # thrust carries the weight
-    np.testing.assert_allclose(Truth.from_sim(sim).specific_force_frd, [0.0, 0.0, -G], atol=0.02)
-    np.testing.assert_allclose(sim.acceleration, 0.0, atol=0.02)
-    sim.motors_off()
-    sim.run(0.3)  # the rotors spin down within a few motor time constants (5 ms)
+    world, uav = make_world(params="hummingbird", hz=100.0)
+    world.reset(position=world.scene.spawn_position + [0.0, 0.0, 15.0])
+    world.run(2.0)
+    np.testing.assert_allclose(uav.specific_force, [0.0, 0.0, G], atol=0.02)  # thrust carries the weight
+    np.testing.assert_allclose(Truth.from_sim(uav).specific_force_frd, [0.0, 0.0, -G], atol=0.02)
+    np.testing.assert_allclose(uav.acceleration, 0.0, atol=0.02)
+    uav.motors_off()
+    world.run(0.3)  # the rotors spin down within a few motor time constants (5 ms)
     for _ in range(50):
-        sim.step()
-        st = sim.state
+        world.step()
+        st = uav.state
         # only the body drag acts: c_Dz v|v| / m along body z against the fall, nothing sideways
-        drag = sim.quad_params["c_Dz"] * st.velocity[2] ** 2 / sim.quad_params["mass"]
-        assert sim.specific_force[2] == pytest.approx(drag, rel=0.05, abs=1e-3)
-        np.testing.assert_allclose(sim.specific_force[:2], 0.0, atol=1e-9)
-        assert sim.acceleration[2] == pytest.approx(-G + drag, abs=0.02)
+        drag = uav.quad_params["c_Dz"] * st.velocity[2] ** 2 / uav.quad_params["mass"]
+        assert uav.specific_force[2] == pytest.approx(drag, rel=0.05, abs=1e-3)
+        np.testing.assert_allclose(uav.specific_force[:2], 0.0, atol=1e-9)
+        assert uav.acceleration[2] == pytest.approx(-G + drag, abs=0.02)
     assert 0.3 < drag < 3.0  # the fall is fast enough for the drag to show
 
 
 def test_specific_force_mean_matches_the_velocity_change_over_each_period():
     """Through a touchdown the period-mean specific force is the velocity change over the period plus
     gravity: the contact force, averaged as an IMU's output filter would, not a one-step spike."""
-    sim = make_sim(params="hummingbird", hz=100.0)
-    sim.reset(position=sim.scene.spawn_position + [0.0, 0.0, drop_height(sim, 1.0)], airborne=False)
-    dt = sim.control_period_ns / 1e9
+    world, uav = make_world(params="hummingbird", hz=100.0)
+    world.reset(position=world.scene.spawn_position + [0.0, 0.0, drop_height(uav, 1.0)], airborne=False)
+    dt = world.control_period_ns / 1e9
     for _ in range(200):
-        v0 = sim.state.velocity
-        sim.step()
-        st = sim.state
+        v0 = uav.state.velocity
+        world.step()
+        st = uav.state
         # level throughout: body z is world z, so f_z = dv_z/dt + g over the period
-        assert sim.specific_force[2] == pytest.approx((st.velocity[2] - v0[2]) / dt + G, abs=1e-6)
+        assert uav.specific_force[2] == pytest.approx((st.velocity[2] - v0[2]) / dt + G, abs=1e-6)
 
 
 # --------------------------------------------------------------------------- impact events
 def test_impact_event_above_the_threshold_and_none_below():
-    sim = make_sim(params="hummingbird", hz=100.0)
-    spawn = sim.scene.spawn_position
+    world, uav = make_world(params="hummingbird", hz=100.0)
+    spawn = world.scene.spawn_position
     events = []
-    sim.reset(position=spawn + [0.0, 0.0, drop_height(sim, 1.3)], airborne=False)
-    sim.run_until(lambda s: False, 1.5, events)
+    world.reset(position=spawn + [0.0, 0.0, drop_height(uav, 1.3)], airborne=False)
+    world.run_until(lambda w: False, 1.5, events)
     assert events == []
-    sim.reset(position=spawn + [0.0, 0.0, drop_height(sim, 1.8)], airborne=False)
-    sim.run_until(lambda s: False, 1.5, events)
+    world.reset(position=spawn + [0.0, 0.0, drop_height(uav, 1.8)], airborne=False)
+    world.run_until(lambda w: False, 1.5, events)
     assert [e.type for e in events] == ["impact"]
     e = events[0].to_dict()
     assert e["speed"] == pytest.approx(1.8, abs=0.03)
     assert e["t"] == pytest.approx(1.8 / G, abs=0.015)  # the fall time
-    np.testing.assert_allclose(e["position"], spawn + [0, 0, sim.vehicle.contact.foot_depth], atol=0.02)
-    raised = make_sim(params="hummingbird", hz=100.0, impact_speed=2.0)
-    raised.reset(position=spawn + [0.0, 0.0, drop_height(raised, 1.8)], airborne=False)
-    assert not raised.run_until(lambda s: False, 1.5, events) and len(events) == 1
+    np.testing.assert_allclose(e["position"], spawn + [0, 0, uav.contact.foot_depth], atol=0.02)
+    raised, raised_uav = make_world(params="hummingbird", hz=100.0, impact_speed=2.0)
+    raised.reset(position=spawn + [0.0, 0.0, drop_height(raised_uav, 1.8)], airborne=False)
+    assert not raised.run_until(lambda w: False, 1.5, events) and len(events) == 1
 
 
 def test_impact_event_under_external_rotor_commands():
     """Any mode: an autopilot cutting the motors in flight (the PX4 restart case) raises it too."""
-    sim = make_sim(params="px4_quadx")
-    sim.reset(position=sim.scene.spawn_position + [0.0, 0.0, 4.0])
-    sim.set_rotor_speeds([0.0] * 4)
+    world, uav = make_world(params="px4_quadx")
+    world.reset(position=world.scene.spawn_position + [0.0, 0.0, 4.0])
+    uav.set_rotor_speeds([0.0] * 4)
     events = []
-    sim.run_until(lambda s: False, 2.0, events)
+    world.run_until(lambda w: False, 2.0, events)
     assert [e.type for e in events] == ["impact"] and events[0].data["speed"] > 8.0
 
 
 def test_landing_on_a_rock_gives_one_collision_and_no_launch():
     """tree_inspection's clearing has rocks in the collision model (SDF): landing onto one stops
     the vehicle against it once; it stays there, held, not thrown up."""
-    sim = make_sim(params="hummingbird", hz=100.0, scene="tree_inspection")
-    col = sim.scene.collision
+    world, uav = make_world(params="hummingbird", hz=100.0, scene="tree_inspection")
+    col = world.scene.collision
     ring = [
         np.array([r * math.cos(a), r * math.sin(a), 0.05])
         for r in np.arange(8.4, 11.9, 0.1)
@@ -238,19 +243,19 @@ def test_landing_on_a_rock_gives_one_collision_and_no_launch():
     ]
     rock = min(ring, key=col.distance)
     assert col.distance(rock) < -0.05  # inside a rock
-    sim.reset(position=[rock[0], rock[1], 2.0])
-    sim.run(1.0)
+    world.reset(position=[rock[0], rock[1], 2.0])
+    world.run(1.0)
     events = []
-    sim.land()
-    assert sim.run_until(lambda s: s.mode.value == "collided", 15, events)
-    sim.run_until(lambda s: False, 3.0, events)
+    uav.land()
+    assert world.run_until(lambda w: uav.mode.value == "collided", 15, events)
+    world.run_until(lambda w: False, 3.0, events)
     assert [e.type for e in events] == ["collision"]
-    st = sim.state
-    assert st.position[2] > 0.2 and col.distance(st.position) >= sim.config.vehicle.collision_radius
+    st = uav.state
+    assert st.position[2] > 0.2 and col.distance(st.position) >= world.config.vehicle.collision_radius
     stopped = st.position.copy()
-    sim.run(2.0)
-    np.testing.assert_array_equal(sim.state.position, stopped)
-    np.testing.assert_allclose(sim.specific_force, [0.0, 0.0, G], atol=1e-9)  # held by the rock
+    world.run(2.0)
+    np.testing.assert_array_equal(uav.state.position, stopped)
+    np.testing.assert_allclose(uav.specific_force, [0.0, 0.0, G], atol=1e-9)  # held by the rock
 
 
 # --------------------------------------------------------------------------- IMU saturation
@@ -294,9 +299,9 @@ def test_imu_ranges_are_configurable_and_checked():
 
 # --------------------------------------------------------------------------- configuration
 def test_contact_parameters_come_from_the_config_and_bad_values_are_refused():
-    sim = make_sim(params="hummingbird", hz=100.0, contact_frequency_hz=5.0, ground_friction=0.8)
-    assert sim.vehicle.contact == dataclasses.replace(GroundContact(), frequency_hz=5.0, friction=0.8)
-    assert sim.vehicle.contact.foot_depth == pytest.approx(G / (2 * math.pi * 5.0) ** 2)
+    _, uav = make_world(params="hummingbird", hz=100.0, contact_frequency_hz=5.0, ground_friction=0.8)
+    assert uav.contact == dataclasses.replace(GroundContact(), frequency_hz=5.0, friction=0.8)
+    assert uav.contact.foot_depth == pytest.approx(G / (2 * math.pi * 5.0) ** 2)
     for key, value in [
         ("contact_frequency_hz", 0),
         ("contact_damping_ratio", -1),

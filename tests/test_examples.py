@@ -87,10 +87,10 @@ def test_rviz_config_matches_the_published_topics():
 
 
 @pytest.mark.slow
-def test_simulator_in_process(tmp_path):
+def test_world_in_process(tmp_path):
     out = tmp_path / "out"
     args = ("--out", str(out), "--width", "160", "--height", "120")
-    run_example("simulator_in_process.py", *args, timeout=400)
+    run_example("world_in_process.py", *args, timeout=400)
     s = json.loads((out / "summary.json").read_text())
     assert s["goto_error_m"] < 0.1
     assert s["frames_in_2s"] == 60  # 30 Hz camera in lockstep, none skipped

@@ -20,7 +20,8 @@ from droneulator.frames import quat_slerp, quat_to_matrix, transform_from_pose
 from droneulator.ros import messages as M
 from droneulator.ros.topics import TYPES, topic_names, vehicle_topics
 from droneulator.runtime.launch import launch_run
-from droneulator.sim.simulator import Simulator
+from droneulator.vehicles.vehicle import Vehicle
+from droneulator.world import World
 
 # The upstream definition, typed out here from ZJU-FAST-Lab/ego-planner-swarm
 # src/uav_simulator/Utils/quadrotor_msgs/msg/PositionCommand.msg, so the decoder below is independent
@@ -113,44 +114,49 @@ def test_position_command_type_hash_is_computed_the_ros2_way():
 
 # --------------------------------------------------------------------------- track mode, in process
 @pytest.fixture()
-def sim():
-    s = Simulator(scene="default", render=False)
-    s.reset(position=[0.0, 0.0, 2.0], yaw=0.0)
-    yield s
-    s.close()
+def world():
+    w = World(scene="default", render=False)
+    w.reset(position=[0.0, 0.0, 2.0], yaw=0.0)
+    yield w
+    w.close()
 
 
-def test_track_follows_position_velocity_and_acceleration_then_holds_after_half_a_second(sim):
-    t0, errors = sim.t, []
+@pytest.fixture()
+def uav(world: World) -> Vehicle:
+    return world.vehicle()
+
+
+def test_track_follows_position_velocity_and_acceleration_then_holds_after_half_a_second(world, uav):
+    t0, errors = world.t, []
     for i in range(350):  # a 100 Hz setpoint stream of a 3 s straight move, then 0.5 s at the end
         x, v, a = straight(i * 0.01)
-        sim.track([x, 0.0, 2.0], [v, 0.0, 0.0], [a, 0.0, 0.0], 0.0, 0.0)
-        sim.run(0.01)
-        errors.append(np.linalg.norm(sim.state.position - [straight(sim.t - t0)[0], 0.0, 2.0]))
-    assert sim.mode.value == "track"
+        uav.track([x, 0.0, 2.0], [v, 0.0, 0.0], [a, 0.0, 0.0], 0.0, 0.0)
+        world.run(0.01)
+        errors.append(np.linalg.norm(uav.state.position - [straight(world.t - t0)[0], 0.0, 2.0]))
+    assert uav.mode.value == "track"
     assert max(errors) < 0.05, max(errors)
     assert errors[-1] < 0.03
-    last = sim.t
+    last = world.t
 
     events = []
-    assert sim.run_until(lambda s: s.mode.value == "hold", 1.0, events)
+    assert world.run_until(lambda w: uav.mode.value == "hold", 1.0, events)
     (timeout,) = [e for e in events if e.type == "track_timeout"]
     assert 0.5 <= timeout.t - last + 0.01 <= 0.52  # the last setpoint was taken 0.01 s before `last`
-    sim.run(1.0)
-    assert np.linalg.norm(sim.state.position - [1.5, 0.0, 2.0]) < 0.05  # held where it was
+    world.run(1.0)
+    assert np.linalg.norm(uav.state.position - [1.5, 0.0, 2.0]) < 0.05  # held where it was
 
 
-def test_track_propagates_the_setpoint_and_turns_with_yaw_and_yaw_rate(sim):
+def test_track_propagates_the_setpoint_and_turns_with_yaw_and_yaw_rate(world, uav):
     # one setpoint, sent every 0.2 s: the reference moves on with its velocity in between
     for k in range(10):
         t = k * 0.2
-        sim.track([0.5 * t, 0.0, 2.0], [0.5, 0.0, 0.0], None, 0.3 * t, 0.3)
-        sim.run(0.2)
-    assert abs(sim.state.position[0] - 0.5 * sim.t) < 0.1
-    assert abs(math.remainder(sim.state.yaw - 0.3 * sim.t, 2 * math.pi)) < 0.05
+        uav.track([0.5 * t, 0.0, 2.0], [0.5, 0.0, 0.0], None, 0.3 * t, 0.3)
+        world.run(0.2)
+    assert abs(uav.state.position[0] - 0.5 * world.t) < 0.1
+    assert abs(math.remainder(uav.state.yaw - 0.3 * world.t, 2 * math.pi)) < 0.05
 
 
-def test_track_input_is_validated(sim):
+def test_track_input_is_validated(uav):
     cases = [
         ({"position": [0, 0, math.nan]}, "invalid_argument"),
         ({"position": [0, 0]}, "invalid_argument"),
@@ -164,12 +170,12 @@ def test_track_input_is_validated(sim):
     ]
     for args, code in cases:
         with pytest.raises(CommandError) as err:
-            sim.track(**args)
+            uav.track(**args)
         assert err.value.code == code, args
-    assert sim.mode.value == "hold"
-    sim.motors_off()
+    assert uav.mode.value == "hold"
+    uav.motors_off()
     with pytest.raises(CommandError) as err:
-        sim.track([0, 0, 2])
+        uav.track([0, 0, 2])
     assert err.value.code == "not_airborne"
 
 

@@ -17,7 +17,6 @@ from droneulator.config import CameraConfig, VehicleSpec, fleet, load_config
 from droneulator.scenes import get_scene
 from droneulator.scenes.base import SemanticClass
 from droneulator.scenes.collision import sdf_lookup_many
-from droneulator.sim.simulator import Simulator
 from droneulator.state import STATE
 from droneulator.vehicles.mesh import vehicle_mesh
 from droneulator.world import World
@@ -35,7 +34,7 @@ GROUPS = {"x": slice(1, 4), "v": slice(4, 7), "q": slice(7, 11), "w": slice(11, 
 @pytest.mark.parametrize("name", list(golden.SCENARIOS))
 def test_one_vehicle_world_flies_the_single_vehicle_simulators_flights(name: str) -> None:
     """Each recorded flight of the simulator before World (tests/golden.py), step by step, through
-    today's Simulator (a one-vehicle World). The same equations, evaluated without BLAS in one compiled
+    today's one-vehicle World. The same equations, evaluated without BLAS in one compiled
     step: the recording's BLAS fused multiply-adds differ in the last bit, so states agree to rounding,
     not bit for bit. The one exception is a single step of the hummingbird mission where a rotor is
     commanded near zero thrust and the speed's square root magnifies a 4e-13 difference to 3e-6 rad/s;
@@ -167,23 +166,24 @@ def test_mixed_airframes_fly_their_own_dynamics_equal_to_a_single_vehicle_run(pa
                     for i, p in enumerate(["hummingbird", "crazyflie", "px4_quadx"])]  # fmt: skip
     w = World(cfg, render=False)
     alone = load_config(scene="default", overrides=[f"vehicle.params={params}"])
-    single = Simulator(config=alone, render=False)
+    single = World(alone, render=False)
+    lone = single.vehicle()
     i = ["hummingbird", "crazyflie", "px4_quadx"].index(params)
     mine = w.vehicle(f"v{i}")
     single.reset(position=[10.0 * i, 0.0, 0.0], yaw=0.3)
     for v in w.vehicles.values():
         v.takeoff(1.5 + 0.1 * (v is mine))
-    single.takeoff(1.6)
+    lone.takeoff(1.6)
     track_w, track_s = [], []
     for k in range(700):
         if k == 350:
             for v in w.vehicles.values():
                 v.goto(v.s[STATE.x] + [1.0, 0.5, 0.3], yaw=1.0)
-            single.goto(single.s[STATE.x] + [1.0, 0.5, 0.3], yaw=1.0)
+            lone.goto(lone.s[STATE.x] + [1.0, 0.5, 0.3], yaw=1.0)
         w.step()
         single.step()
         track_w.append(mine.s.copy())
-        track_s.append(single.s.copy())
+        track_s.append(lone.s.copy())
     np.testing.assert_allclose(np.array(track_w), np.array(track_s), rtol=0, atol=1e-9)
     assert np.linalg.norm(mine.s[STATE.x] - [10.0 * i + 1.0, 0.5, 1.9]) < 0.05
 
@@ -195,14 +195,14 @@ def test_an_old_single_vehicle_config_file_loads(tmp_path: Path) -> None:
         "[flight]\ntakeoff_altitude = 3.0\n"
         '[[render.cameras]]\nname = "down"\nwidth = 64\nheight = 48\nrpy_deg = [0.0, 90.0, 0.0]\n'
     )
-    sim = Simulator(config=load_config(path), render=False)
-    (v,) = sim.world.vehicles.values()
+    w = World(load_config(path), render=False)
+    (v,) = w.vehicles.values()
     assert v.name == "uav0" and v.quad_params["mass"] == pytest.approx(0.03)
     assert v.collision_radius == 0.1 and [c.name for c in v.cameras] == ["down"]
-    np.testing.assert_array_equal(sim.state.position, get_scene("orchard", 0).spawn_position)
-    sim.takeoff()
-    assert sim.run_until(lambda s: s.mode.value == "hold", 20.0)
-    assert sim.state.position[2] == pytest.approx(3.0, abs=0.05)
+    np.testing.assert_array_equal(v.state.position, get_scene("orchard", 0).spawn_position)
+    v.takeoff()
+    assert w.run_until(lambda _: v.mode.value == "hold", 20.0)
+    assert v.state.position[2] == pytest.approx(3.0, abs=0.05)
 
 
 def _wake_speed(thrust: float, area: float, z: float, r: float) -> float:

@@ -32,7 +32,7 @@ from droneulator.commands.ops import (
 )
 
 if TYPE_CHECKING:
-    from droneulator.sim.simulator import Simulator
+    from droneulator.world import World
 
 #: what a client catches for an ``ok: false`` reply: the command path's error, by the name clients know
 ApiError = CommandError
@@ -93,7 +93,7 @@ def parse_request(raw: str | bytes, extra_ops: Collection[str] = ()) -> Request:
 
 
 def handle_request(
-    sim: Simulator | None,
+    sim: World | None,
     raw: str | bytes,
     extra_ops: Mapping[str, ExtraOp] | None = None,
     flight_locked: str | None = None,

@@ -45,7 +45,7 @@ if TYPE_CHECKING:
     from droneulator.config import CameraConfig, SimConfig
     from droneulator.ros.zenoh_node import RosZenohNode
     from droneulator.sensors.suite import Reading
-    from droneulator.sim.simulator import VehicleState
+    from droneulator.vehicles.vehicle import VehicleState
 
 _IDENTITY_Q = np.array([0.0, 0.0, 0.0, 1.0])
 _IMAGES = ("rgb", "depth", "seg")

@@ -5,7 +5,7 @@
   with a handshake (:class:`Hello`, answered by :class:`Welcome` or :class:`Refused`). After that
   only the typed messages below flow, each a small frozen dataclass: :class:`Render` ->
   :class:`Rendered` (render server), :class:`Publish` -> :class:`Published` (bridge), and
-  :class:`LoadScene` to both. States travel as :class:`~droneulator.sim.simulator.VehicleState`, every
+  :class:`LoadScene` to both. States travel as :class:`~droneulator.vehicles.vehicle.VehicleState`, every
   vehicle's at one camera instant together (by name).
   Odometry, TF, ``/clock`` and ROS commands do not pass through here: the dynamics server, which
   owns the state, publishes and receives them on Zenoh itself.
@@ -30,7 +30,7 @@ import numpy as np
 from droneulator.config import CameraConfig, LightConfig
 
 if TYPE_CHECKING:
-    from droneulator.sim.simulator import VehicleState
+    from droneulator.vehicles.vehicle import VehicleState
 
 ENV_ADDRESS = "DRONEULATOR_HUB_ADDRESS"
 ENV_AUTHKEY = "DRONEULATOR_HUB_AUTHKEY"

@@ -33,7 +33,8 @@ class Truth:
 
     @classmethod
     def from_sim(cls, sim: Any) -> Truth:
-        """Read a :class:`~droneulator.sim.simulator.Simulator` through its public accessors."""
+        """Read a :class:`~droneulator.vehicles.vehicle.Vehicle` (``world.vehicle()``) through its public
+        accessors: its ``state``, ``acceleration``, ``wind_velocity`` and ``specific_force``."""
         st = sim.state
         return cls(
             st.t_ns,

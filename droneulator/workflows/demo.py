@@ -21,8 +21,8 @@ from droneulator.config import SimConfig
 from droneulator.controllers.flight import Event
 from droneulator.frames import quat_from_yaw, quat_to_matrix
 from droneulator.scenes.base import Scene
-from droneulator.sim.simulator import Simulator
 from droneulator.workflows.snapshot import save_frames
+from droneulator.world import World
 
 TURN_RATE = 0.8
 
@@ -80,36 +80,37 @@ def run_demo(
     out.mkdir(parents=True, exist_ok=True)
     events: list[Event] = []
     saved, next_save, next_log = 0, 0.0, 0.0
-    with Simulator(config=config) as sim:
-        plan = plan_mission(sim.scene, config)
+    with World(config=config) as world:
+        uav = world.vehicle()
+        plan = plan_mission(world.scene, config)
         wall0 = time.perf_counter()
         for leg in tqdm(plan, desc="demo mission", unit="leg", leave=False, disable=None):
-            getattr(sim, leg.op)(**leg.args)
-            log(f"[{sim.t:6.2f}s] {leg.label}")
-            end = sim.t + (leg.until if isinstance(leg.until, float) else 60.0)
-            while sim.t < end and sim.mode.value != leg.until and sim.mode.value != "collided":
-                res = sim.step()
+            getattr(uav, leg.op)(**leg.args)
+            log(f"[{world.t:6.2f}s] {leg.label}")
+            end = world.t + (leg.until if isinstance(leg.until, float) else 60.0)
+            while world.t < end and uav.mode.value != leg.until and uav.mode.value != "collided":
+                res = world.step()
                 events.extend(res.events)
                 for e in res.events:
                     log(f"[{e.t:6.2f}s] event {e.type}")
-                if res.frames and sim.t >= next_save:
-                    save_frames(res.frames[-1], out, prefix=f"{saved:04d}_")
+                if res.frames and world.t >= next_save:
+                    save_frames(res.frames[-1], out, prefix=f"{saved:04d}_", vehicle=uav.name)
                     saved, next_save = saved + 1, next_save + save_every
-                if sim.t >= next_log:
-                    log(telemetry_line(sim.state.to_dict()))
+                if world.t >= next_log:
+                    log(telemetry_line(uav.state.to_dict()))
                     next_log += 1.0
         wall = time.perf_counter() - wall0
         summary = {
-            "sim_seconds": sim.t,
+            "sim_seconds": world.t,
             "wall_seconds": wall,
-            "real_time_factor": sim.t / wall,
-            "frames_rendered": sim.frame_count,
+            "real_time_factor": world.t / wall,
+            "frames_rendered": world.frame_count,
             "frames_saved": saved,
             "events": [e.to_dict() for e in events],
             "out": str(out),
         }
     log(
-        f"demo finished: {sim.t:.1f} s simulated in {wall:.1f} s wall (real-time factor "
+        f"demo finished: {world.t:.1f} s simulated in {wall:.1f} s wall (real-time factor "
         f"{summary['real_time_factor']:.2f}), {summary['frames_rendered']} frames rendered, "
         f"{saved} saved to {out}"
     )

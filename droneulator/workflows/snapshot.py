@@ -12,7 +12,7 @@ from PIL import Image
 from droneulator.config import SimConfig
 from droneulator.frames import pose_from_transform
 from droneulator.imaging import depth_to_rgb, segmentation_to_rgb
-from droneulator.sim.simulator import FrameSet, Simulator
+from droneulator.world import FrameSet, World
 
 
 def camera_info(frame: Any, t_ns: int) -> dict[str, Any]:
@@ -36,11 +36,13 @@ def camera_info(frame: Any, t_ns: int) -> dict[str, Any]:
     }
 
 
-def save_frames(frames: FrameSet, out: Path, prefix: str = "") -> dict[str, Path]:
-    """Write RGB, depth (.npy and viewable PNG), segmentation (palette and ids) and camera info."""
+def save_frames(frames: FrameSet, out: Path, prefix: str = "", vehicle: str | None = None) -> dict[str, Path]:
+    """Write RGB, depth (.npy and viewable PNG), segmentation (palette and ids) and camera info of every
+    camera of ``vehicle`` (the first vehicle's for None)."""
     out.mkdir(parents=True, exist_ok=True)
     written: dict[str, Path] = {}
-    for name, f in frames.cameras.items():
+    cameras = frames.cameras[vehicle] if vehicle is not None else next(iter(frames.cameras.values()))
+    for name, f in cameras.items():
         stem = f"{prefix}{name}"
         paths = {
             "rgb": out / f"{stem}_rgb.png",
@@ -65,17 +67,16 @@ def snapshot(config: SimConfig, out: Path, altitude: float = 1.5) -> dict[str, P
 
     With several vehicles (config ``vehicles``), each hovers ``altitude`` above its own start and its
     images go to ``out/<vehicle>/``: every vehicle is drawn in the others' cameras."""
-    with Simulator(config=config) as sim:
-        world = sim.world
+    with World(config=config) as world:
         if len(world.vehicles) == 1:
-            sim.reset(position=sim.scene.spawn_position + np.array([0.0, 0.0, altitude]))
-            return save_frames(sim.render(), out)
+            world.reset(position=world.scene.spawn_position + np.array([0.0, 0.0, altitude]))
+            return save_frames(world.render(), out)
         lift = np.array([0.0, 0.0, altitude])
         for v, (pos, yaw) in zip(world.vehicle_list, world.spawns(), strict=True):
             v.place(pos + lift, yaw)
         frames = world.render()
         written: dict[str, Path] = {}
-        for name, cams in frames.cameras.items():
-            one = FrameSet(frames.t_ns, frames.states[name], cams)
-            written.update({f"{name}/{k}": p for k, p in save_frames(one, out / name).items()})
+        for name in frames.cameras:
+            saved = save_frames(frames, out / name, vehicle=name)
+            written.update({f"{name}/{k}": p for k, p in saved.items()})
         return written

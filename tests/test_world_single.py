@@ -1,4 +1,4 @@
-"""The in-process Simulator with the real renderer on real scenes: lockstep timing, metric
+"""A one-vehicle in-process World with the real renderer on real scenes: lockstep timing, metric
 depth and classes on known geometry, determinism, and the snapshot command."""
 
 import json
@@ -12,7 +12,8 @@ from droneulator.config import CameraConfig, load_config
 from droneulator.frames import invert_transform, transform_points
 from droneulator.scenes.base import SemanticClass
 from droneulator.sensors.camera import project
-from droneulator.sim.simulator import NS, Simulator
+from droneulator.world import World
+from droneulator.world.world import NS
 
 
 def small_config(scene: str, **cam) -> object:
@@ -23,27 +24,29 @@ def small_config(scene: str, **cam) -> object:
 
 
 def test_frames_arrive_at_the_camera_rate_in_sim_time_without_skips():
-    with Simulator(config=small_config("default")) as sim:
-        sim.reset(position=sim.scene.spawn_position + [0, 0, 2.0])
-        sim.velocity(1.0, 0.5)
-        frames = sim.run(2.0).frames
+    with World(config=small_config("default")) as world:
+        uav = world.vehicle()
+        world.reset(position=world.scene.spawn_position + [0, 0, 2.0])
+        uav.velocity(1.0, 0.5)
+        frames = world.run(2.0).frames
         assert len(frames) == 60
         period = round(NS / 30)
         assert [f.t_ns for f in frames] == [k * period for k in range(1, 61)]
         for f in frames:  # each frame was rendered from the state at exactly its stamp
-            assert f.state.t_ns == f.t_ns
+            state = f.states[uav.name]
+            assert state.t_ns == f.t_ns
             np.testing.assert_allclose(
-                f.cameras["front"].T_world_optical[:3, 3],
-                f.state.T_world_body[:3, 3] + f.state.T_world_body[:3, :3] @ [0.12, 0, 0],
+                f.cameras[uav.name]["front"].T_world_optical[:3, 3],
+                state.T_world_body[:3, 3] + state.T_world_body[:3, :3] @ [0.12, 0, 0],
             )
 
 
 def test_trunk_is_classed_trunk_at_metric_depth_where_k_projects_it():
-    with Simulator(config=small_config("tree_inspection")) as sim:
-        tree = sim.scene.landmarks["tree"]
+    with World(config=small_config("tree_inspection")) as world:
+        tree = world.scene.landmarks["tree"]
         cam_pos = np.array([tree[0] - 5.0, tree[1], 1.0])
-        sim.reset(position=cam_pos - [0.12, 0, 0], yaw=0.0)  # camera looks along +x at the trunk
-        frame = sim.render().cameras["front"]
+        world.reset(position=cam_pos - [0.12, 0, 0], yaw=0.0)  # camera looks along +x at the trunk
+        frame = world.render().cameras[world.vehicle().name]["front"]
         point = np.array([tree[0], tree[1], 1.0])  # trunk axis at camera height
         p_opt = transform_points(invert_transform(frame.T_world_optical), point)
         u, v = np.round(project(frame.K, p_opt)).astype(int)
@@ -63,10 +66,11 @@ def test_trunk_is_classed_trunk_at_metric_depth_where_k_projects_it():
 def test_same_seed_gives_identical_images():
     images = []
     for _ in range(2):
-        with Simulator(config=small_config("orchard")) as sim:
-            sim.reset(position=sim.scene.spawn_position + [0, 0, 1.5])
-            sim.velocity(0.8, 0.2)
-            f = sim.run(0.5).frames[-1].cameras["front"]
+        with World(config=small_config("orchard")) as world:
+            uav = world.vehicle()
+            world.reset(position=world.scene.spawn_position + [0, 0, 1.5])
+            uav.velocity(0.8, 0.2)
+            f = world.run(0.5).frames[-1].cameras[uav.name]["front"]
             images.append((f.rgb.copy(), f.depth.copy(), f.seg.copy()))
     for a, b in zip(images[0], images[1], strict=True):
         np.testing.assert_array_equal(a, b)

@@ -1,11 +1,12 @@
 """The whole simulator in one Python process: no servers, no sockets, stepped in lockstep.
 
-``droneulator.sim.Simulator`` composes the scene, the RotorPy vehicle, the flight controller and the
-headless renderer; every call below is what the dynamics server does for a WebSocket command, and
-:meth:`Simulator.run` returns the camera frames rendered in sim time (30 Hz by default). Use it for
+``droneulator.world.World`` composes the scene, the RotorPy vehicles (one by default), their flight
+controllers and the headless renderer; ``world.vehicle()`` is its first vehicle, which takes the
+commands. Every call below is what the dynamics server does for a WebSocket command, and
+:meth:`World.run` returns the camera frames rendered in sim time (30 Hz by default). Use it for
 scripted data collection, tests and learning loops where processes would only add latency.
 
-    python examples/simulator_in_process.py --scene orchard --out out/in_process
+    python examples/world_in_process.py --scene orchard --out out/in_process
 
 It takes off, flies to a point beside the spawn, turns in velocity mode, lands, and saves the last
 frame's colour image, depth (metres, .npy) and segmentation class ids; it prints the class
@@ -24,7 +25,7 @@ from PIL import Image
 
 from droneulator.config import CameraConfig, load_config
 from droneulator.scenes.base import SemanticClass
-from droneulator.sim.simulator import Simulator
+from droneulator.world import World
 
 
 def fly(scene: str, seed: int, out: Path, width: int, height: int) -> dict:
@@ -33,23 +34,24 @@ def fly(scene: str, seed: int, out: Path, width: int, height: int) -> dict:
     cfg.render.cameras = [CameraConfig(name="front", width=width, height=height)]
     out.mkdir(parents=True, exist_ok=True)
     events: list[dict] = []
-    with Simulator(config=cfg) as sim:
-        spawn = sim.scene.spawn_position
-        sim.takeoff(2.0)
-        sim.run_until(lambda s: s.mode == "hold", timeout=20)
+    with World(config=cfg) as world:
+        uav = world.vehicle()
+        spawn = world.scene.spawn_position
+        uav.takeoff(2.0)
+        world.run_until(lambda w: uav.mode == "hold", timeout=20)
         target = [float(spawn[0]) + 1.5, float(spawn[1]), 2.5]
-        sim.goto(target, yaw=0.5, speed=1.5)  # minimum-snap, SE(3) tracking
-        reached = sim.run_until(lambda s: s.mode == "hold", timeout=20)
-        error = float(np.linalg.norm(sim.state.position - target))
-        print(f"t={sim.t:5.2f} s goto {target}: reached={reached}, off by {error:.3f} m")
+        uav.goto(target, yaw=0.5, speed=1.5)  # minimum-snap, SE(3) tracking
+        reached = world.run_until(lambda w: uav.mode == "hold", timeout=20)
+        error = float(np.linalg.norm(uav.state.position - target))
+        print(f"t={world.t:5.2f} s goto {target}: reached={reached}, off by {error:.3f} m")
 
-        sim.velocity(0.0, 0.8)  # turn on the spot, altitude held
-        result = sim.run(2.0)  # lockstep: every camera instant is rendered
+        uav.velocity(0.0, 0.8)  # turn on the spot, altitude held
+        result = world.run(2.0)  # lockstep: every camera instant is rendered
         events += [e.to_dict() for e in result.events]
-        frame = result.frames[-1].cameras["front"]
+        frame = result.frames[-1].cameras[uav.name]["front"]
         print(
-            f"t={sim.t:5.2f} s velocity mode: {len(result.frames)} frame sets in 2 s of sim time, "
-            f"yaw now {sim.state.yaw:.2f} rad"
+            f"t={world.t:5.2f} s velocity mode: {len(result.frames)} frame sets in 2 s of sim time, "
+            f"yaw now {uav.state.yaw:.2f} rad"
         )
 
         Image.fromarray(frame.rgb).save(out / "front_rgb.png")
@@ -62,9 +64,9 @@ def fly(scene: str, seed: int, out: Path, width: int, height: int) -> dict:
             f"depth {np.nanmin(frame.depth):.2f}..{np.nanmax(frame.depth):.2f} m, classes {classes}"
         )
 
-        sim.land()
-        landed = sim.run_until(lambda s: s.mode == "idle", timeout=20)
-        print(f"t={sim.t:5.2f} s landed={landed} at {np.round(sim.state.position, 2).tolist()}")
+        uav.land()
+        landed = world.run_until(lambda w: uav.mode == "idle", timeout=20)
+        print(f"t={world.t:5.2f} s landed={landed} at {np.round(uav.state.position, 2).tolist()}")
         return {
             "scene": scene,
             "goto_target": target,
@@ -72,9 +74,9 @@ def fly(scene: str, seed: int, out: Path, width: int, height: int) -> dict:
             "frames_in_2s": len(result.frames),
             "classes": classes,
             "landed": landed,
-            "final_state": sim.state.to_dict(),
+            "final_state": uav.state.to_dict(),
             "events": events,
-            "rendered": sim.frame_count,
+            "rendered": world.frame_count,
         }
 
 
