@@ -131,7 +131,7 @@ def test_the_single_env_flies_each_episode_in_its_drawn_conditions():
         for seed in (1, 2, 3, 4):
             env.reset(seed=seed)
             drawn = env.conditions
-            world = env.backend.sim.world
+            world = env.backend.world
             assert world.wind.configs[0] == drawn.wind and env.backend.depth_model == drawn.depth_model
             for _ in range(10):
                 env.step(np.array([1.0, 0.0], dtype=np.float32))
@@ -164,8 +164,8 @@ def test_the_batched_env_draws_per_env_and_applies_each_envs_depth_model():
         poses[:, :3, 3] = env.worlds.states[0, STATE.x]
         scales = env._depth_scales.copy()
         assert scales[:, 0].min() >= 0.5 and scales[:, 0].max() <= 2.0 and scales[:, 0].std() > 0.1
-        ideal = env._batch(0).depth.rows(poses, ["ideal"] * 16, scales)
-        mixed = env._batch(0).depth.rows(poses, models, scales)
+        ideal = env._batch(0).cameras.centre_rows(poses, ["ideal"] * 16, scales)
+        mixed = env._batch(0).cameras.centre_rows(poses, models, scales)
         for b, m in enumerate(models):
             same = np.array_equal(mixed[b], ideal[b], equal_nan=True)
             assert same == (m == "ideal"), (b, m)

@@ -17,9 +17,8 @@ Simulation time is an integer count of nanoseconds. :meth:`World.step` advances 
 7. with triggered cameras (``render.camera_trigger=command``), the frame sets :meth:`World.trigger` asked
    for, at the end of the period, instead of the camera rate's.
 
-One vehicle is the default (:class:`~droneulator.config.SimConfig` with no ``vehicles``) and flies
-exactly as the single-vehicle simulator did; :class:`~droneulator.sim.simulator.Simulator` is the
-single-vehicle face of a world.
+One vehicle is the default (:class:`~droneulator.config.SimConfig` with no ``vehicles``);
+``world.vehicle()`` is its handle.
 """
 
 from __future__ import annotations
