@@ -127,7 +127,7 @@ def time_rendering(n: int, sim_seconds: float) -> dict[str, Any]:
         v.place(v.s[STATE.x] + [0.0, 0.0, 3.0], 0.3 * len(v.name))
         v.velocity(1.0, 0.3)
     render_s = 0.0
-    draw = w.renderer.render_rigs
+    draw = w.cameras.renderer.render_rigs
 
     def timed(*a: Any, **k: Any) -> Any:
         nonlocal render_s
@@ -137,7 +137,7 @@ def time_rendering(n: int, sim_seconds: float) -> dict[str, Any]:
         finally:
             render_s += time.perf_counter() - t
 
-    w.renderer.render_rigs = timed  # type: ignore[method-assign]
+    w.cameras.renderer.render_rigs = timed  # type: ignore[method-assign]
     w.run(0.5)  # shaders, caches
     render_s = 0.0
     frames = 0

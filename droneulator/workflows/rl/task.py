@@ -26,6 +26,7 @@ import numba
 import numpy as np
 
 from droneulator.config import SimConfig
+from droneulator.frames_numba import quat_to_matrix_into
 from droneulator.scenes.base import Scene
 from droneulator.state import STATE, STATE_SIZE
 from droneulator.workflows.rl.astar import DistanceField, OccupancyGrid, bilinear, carrot
@@ -93,13 +94,13 @@ def _task_rows(
                 a, c, reached = carrot(free, nxt[b], i, j, ax, ay, k[5] / res)
                 if not reached:
                     tx, ty = origin[0] + a * res, origin[1] + c * res
-        qn = math.sqrt(s[6] * s[6] + s[7] * s[7] + s[8] * s[8] + s[9] * s[9])
-        x, y, z, w = s[6] / qn, s[7] / qn, s[8] / qn, s[9] / qn
-        yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+        # heading, forward speed (body x) and yaw rate (world z) from the attitude (frames_numba)
+        R = np.empty((3, 3))
+        quat_to_matrix_into(s[6:10], R)
+        yaw = math.atan2(R[1, 0], R[0, 0])
         heading = ((math.atan2(ty - py, tx - px) - yaw + math.pi) % (2 * math.pi) - math.pi) / math.pi
-        forward = (1 - 2 * (y * y + z * z)) * s[3] + 2 * (x * y + w * z) * s[4] + 2 * (x * z - w * y) * s[5]
-        yaw_rate = 2 * (x * z - w * y) * s[10] + 2 * (y * z + w * x) * s[11]
-        yaw_rate += (1 - 2 * (x * x + y * y)) * s[12]
+        forward = R[0, 0] * s[3] + R[1, 0] * s[4] + R[2, 0] * s[5]
+        yaw_rate = R[2, 0] * s[10] + R[2, 1] * s[11] + R[2, 2] * s[12]
         tail[b, 0] = min(max(heading, -1.0), 1.0)
         tail[b, 1] = min(max((forward - k[6]) / k[7], -1.0), 1.0)
         tail[b, 2] = min(max(yaw_rate / k[8], -1.0), 1.0)
