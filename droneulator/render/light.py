@@ -263,7 +263,7 @@ def resolve_lighting(
         site = site or SiteConfig()
         lat = site.latitude_deg if light.latitude_deg is None else light.latitude_deg
         lon = site.longitude_deg if light.longitude_deg is None else light.longitude_deg
-        clock = dataclasses.replace(site, longitude_deg=lon)  # a light's own place keeps its own solar time
+        clock = dataclasses.replace(site, longitude_deg=lon)  # without an offset: solar time where the sun is
         elevation, azimuth = solar_position(local_time(light, clock), lat, lon)
         sun_el = max(elevation, MIN_SHADOW_ELEVATION_DEG)
         sun = sun_vector(sun_el, azimuth)
