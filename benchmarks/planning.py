@@ -231,7 +231,7 @@ def fly_one(run, client, goal_pub, goal: np.ndarray, start: np.ndarray, bounds: 
             time.sleep(0.2)
     px4 = None
     if args.px4:
-        home = (run.config.px4.home_lat_deg, run.config.px4.home_lon_deg, run.config.px4.home_alt_m)
+        home = run.config.site.geodetic
         px4 = PX4(args.px4, run.config.px4.base_port, home, workdir / f"px4_{index}")
         px4.wait_ready()
         px4.takeoff()

@@ -27,7 +27,7 @@ import numpy as np
 from _common import write
 
 from droneulator import frames as F
-from droneulator.config import PX4Config, load_config
+from droneulator.config import PX4Config, SiteConfig, load_config
 from droneulator.sensors import SensorSuite, Truth
 from droneulator.sensors.gps import Ekf2DriftCheck
 from droneulator.sensors.mag import field_elements, wmm_field_ned_gauss
@@ -112,7 +112,7 @@ def drift_at_rest(cfg: PX4Config, seeds: range, minutes: float) -> dict[str, Any
 def accuracy(cfg: PX4Config, seeds: range, minutes: float) -> dict[str, Any]:
     """Reported eph/epv against the RMS of the actual position error, and its autocorrelation."""
     z3, level = np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0])
-    home = (cfg.home_lat_deg, cfg.home_lon_deg, cfg.home_alt_m)
+    home = SiteConfig().geodetic  # the suites' default site
     errors, rho = [], []
     tau = cfg.gps_error().correlation_time_s
     tau_lag = max(1, round(tau * 10))
@@ -148,7 +148,7 @@ def magnetometer(cfg: PX4Config) -> dict[str, Any]:
     suite = SensorSuite(cfg, 0)
     mean = np.mean([suite.mag(Truth(k * 10_000_000, z3, z3, north, z3, z3, z3)) for k in range(2000)], axis=0)
     measured = field_elements(mean)
-    home = (cfg.home_lat_deg, cfg.home_lon_deg, cfg.home_alt_m)
+    home = SiteConfig().geodetic  # the suites' default site
     wmm = field_elements(wmm_field_ned_gauss(*home, cfg.mag_wmm_year))
     old = field_elements(OLD_FIELD_NED)
 
@@ -160,7 +160,7 @@ def magnetometer(cfg: PX4Config) -> dict[str, Any]:
         }
 
     return {
-        "home": [cfg.home_lat_deg, cfg.home_lon_deg, cfg.home_alt_m],
+        "home": list(SiteConfig().geodetic),
         "wmm_year": cfg.mag_wmm_year,
         "measured": row(measured),
         "wmm2025": row(wmm),

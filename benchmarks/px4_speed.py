@@ -105,7 +105,7 @@ def measure(speed_factor: float, seconds: float, scene: str) -> dict[str, Any]:
                     if time.monotonic() > deadline:
                         raise TimeoutError("the simulation clock never started")
                     time.sleep(0.1)
-                peer = Px4Peer(port, cfg.px4.home_alt_m)
+                peer = Px4Peer(port, cfg.site.altitude_m)
                 wall0 = time.monotonic()
                 peer.run(seconds)
                 wall = time.monotonic() - wall0

@@ -299,8 +299,8 @@ def test_every_vehicles_topics_decode_with_their_frames_and_stamps(key_mode: str
             frames.publish(shot.states, shot.cameras)
             for v in world.vehicle_list:  # as the dynamics server samples a vehicle it flies itself
                 v.rig.suite.sample_due(Truth.from_sim(v), Schedule())
-            home = world.config.px4
-            field_ned = earth_field_ned(home)
+            home = world.config.site
+            field_ned = earth_field_ned(world.config.px4, home)
             states.publish_sensors(shot.states, {n: v.rig.suite.latest for n, v in world.vehicles.items()})
         end = time.monotonic() + 10
         # per vehicle odom, odom_world, wind, 4 sensor and 7 camera keys; /clock and the tf keys (shared
@@ -347,9 +347,9 @@ def test_every_vehicles_topics_decode_with_their_frames_and_stamps(key_mode: str
         field_body = R.T @ ned_to_enu(field_ned) * 1e-4  # the WMM field (gauss, NED) in base_link, tesla
         got_field = [mag.magnetic_field.x, mag.magnetic_field.y, mag.magnetic_field.z]
         np.testing.assert_allclose(got_field, field_body, atol=5 * 0.002e-4)
-        isa = isa_pressure_pa(home.home_alt_m + st.position[2])
+        isa = isa_pressure_pa(home.altitude_m + st.position[2])
         assert baro.fluid_pressure == pytest.approx(isa, abs=5.0)  # Pa: 0.01 hPa noise, 5 sigma
-        lat, lon, alt = enu_to_geodetic(st.position, home.home_lat_deg, home.home_lon_deg, home.home_alt_m)
+        lat, lon, alt = enu_to_geodetic(st.position, *home.geodetic)
         assert (fix.status.status, fix.position_covariance_type) == (0, 2)
         assert (fix.latitude, fix.longitude, fix.altitude) == (
             pytest.approx(lat, abs=1e-6), pytest.approx(lon, abs=1e-6), pytest.approx(alt, abs=0.2),
@@ -422,9 +422,7 @@ def test_two_px4_instances_step_one_world_together() -> None:
             for k, msgs in enumerate(boot):
                 q = by_type(msgs, "HIL_STATE_QUATERNION")[-1]
                 pos = world.vehicle(f"uav{k}").state.position
-                lat, lon, _ = enu_to_geodetic(
-                    pos, cfg.px4.home_lat_deg, cfg.px4.home_lon_deg, cfg.px4.home_alt_m
-                )
+                lat, lon, _ = enu_to_geodetic(pos, *cfg.site.geodetic)
                 assert abs(q.lat - round(lat * 1e7)) <= 2 and abs(q.lon - round(lon * 1e7)) <= 2
             for p in peers:
                 p.step((0.0,) * 4, armed=False)  # both in lockstep now

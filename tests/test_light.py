@@ -20,7 +20,7 @@ from test_render import quad as render_quad
 
 from droneulator import frames
 from droneulator.commands.ops import RequestError, execute, make_request
-from droneulator.config import CameraConfig, ConfigError, LightConfig, load_config
+from droneulator.config import CameraConfig, ConfigError, LightConfig, SiteConfig, load_config
 from droneulator.render import Renderer
 from droneulator.render.light import (
     AMBIENT_GROUND,
@@ -35,7 +35,7 @@ from droneulator.render.light import (
 from droneulator.scenes.base import CollisionModel, MeshPart, Scene, SemanticClass
 from droneulator.sensors.camera import intrinsics
 
-HOME = (53.2281, -0.5470)  # the PX4 home, the default place of the sun
+HOME = SiteConfig()  # the default site, the default place of the sun
 GREY = np.full((4, 4, 4), 100, dtype=np.uint8)
 DARK = np.full((4, 4, 4), 40, dtype=np.uint8)
 GREY[..., 3] = DARK[..., 3] = 255
@@ -115,8 +115,8 @@ def test_solar_position_matches_published_values() -> None:
         t0 = datetime.datetime(d.year, d.month, d.day, 11, 30, tzinfo=datetime.UTC)
         return max(solar_position(t0 + datetime.timedelta(minutes=m), lat, 0.0) for m in range(60))
 
-    el, az = noon("2026-06-21", HOME[0])
-    assert abs(el - (90 - HOME[0] + 23.44)) < 0.5 and abs(az - 180) < 2, (el, az)
+    el, az = noon("2026-06-21", HOME.latitude_deg)
+    assert abs(el - (90 - HOME.latitude_deg + 23.44)) < 0.5 and abs(az - 180) < 2, (el, az)
     el, az = noon("2026-06-21", -33.87)  # Sydney's latitude: winter, the sun due north
     assert abs(el - (90 - 33.87 - 23.44)) < 0.5 and min(az, 360 - az) < 2, (el, az)
     el, _ = noon("2026-03-20", 45.0)
@@ -130,6 +130,30 @@ def test_solar_position_matches_published_values() -> None:
     morning_sun = resolve_lighting(at(7.0), scene([ground()]), HOME).sun
     assert noon_sun[1] < -0.4 and noon_sun[2] > 0.8 and abs(noon_sun[0]) < 0.05, noon_sun
     assert morning_sun[0] > 0.5, morning_sun
+
+
+def test_the_sun_is_computed_at_the_site_and_on_its_clock() -> None:
+    """The default site gives the sun the old PX4 home gave it (53.2281 N, 0.547 W, local mean solar
+    time); the config's site moves it, ``site.utc_offset_h`` sets the clock, a light's own place wins."""
+    from droneulator.render.renderer import config_lighting
+
+    plain = scene([ground()])
+    old_tz = datetime.timezone(datetime.timedelta(hours=-0.5470 / 15.0))
+    old = solar_position(datetime.datetime(2026, 6, 21, 9, 30, tzinfo=old_tz), 53.2281, -0.5470)
+    for lighting in (
+        resolve_lighting(at(9.5), plain),
+        config_lighting(plain, load_config(overrides=["light.time_of_day_h=9.5", "light.date=2026-06-21"])),
+    ):
+        assert (lighting.elevation_deg, lighting.azimuth_deg) == pytest.approx(old, abs=1e-9)
+    sydney = SiteConfig(latitude_deg=-33.87, longitude_deg=151.21)
+    assert resolve_lighting(at(12.0), plain, sydney).azimuth_deg == pytest.approx(0.0, abs=5.0)  # north
+    cest = SiteConfig(utc_offset_h=2.0)  # 12:00 CEST is 10:00 UTC, two hours before solar noon near 0 E
+    assert resolve_lighting(at(12.0), plain, cest).azimuth_deg == pytest.approx(
+        resolve_lighting(at(10.0, utc_offset_h=0.0), plain, HOME).azimuth_deg, abs=1e-9
+    )
+    assert resolve_lighting(at(12.0), plain, cest).azimuth_deg < 150.0
+    own = at(12.0, latitude_deg=0.0, longitude_deg=0.0, utc_offset_h=0.0)
+    assert resolve_lighting(own, plain, sydney) == resolve_lighting(own, plain, cest)
 
 
 def test_default_light_is_the_historical_one() -> None:

@@ -14,7 +14,7 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
 from droneulator import frames
-from droneulator.config import PX4Config
+from droneulator.config import SiteConfig
 from droneulator.workflows.planning.offboard import (
     TYPE_MASK_HOLD,
     TYPE_MASK_TRAJECTORY,
@@ -22,7 +22,7 @@ from droneulator.workflows.planning.offboard import (
     OffboardLink,
 )
 
-HOME = (PX4Config.home_lat_deg, PX4Config.home_lon_deg, PX4Config.home_alt_m)
+HOME = SiteConfig().geodetic
 #: PX4's custom_mode of OFFBOARD (main mode 6 in bits 16-23) and of POSCTL (3)
 OFFBOARD = 6 << 16
 POSCTL = 3 << 16

@@ -335,23 +335,23 @@ def test_connection_sends_every_sensor_then_rests_on_ground_in_lockstep(served, 
 
 
 def test_pressure_falls_with_altitude_per_isa_and_latitude_grows_northwards(served, sim):
-    home = served.link.cfg
+    home = served.link.world.config.site
     spawn = sim.scene.spawn_position
     low = first_batch(served, position=spawn)
     high = first_batch(served, position=spawn + [0.0, 0.0, 12.0], airborne=True)
     north = first_batch(served, position=spawn + [0.0, 10.0, 0.0])
     for batch, z in ((low, 0.0), (high, 12.0)):
-        s, alt = batch["HIL_SENSOR"], home.home_alt_m + z
+        s, alt = batch["HIL_SENSOR"], home.altitude_m + z
         assert s.abs_pressure == pytest.approx(isa_hpa(alt), abs=0.05)
         assert s.pressure_alt == pytest.approx(alt, abs=0.5)
         assert s.temperature == pytest.approx(15.0 - 0.0065 * alt, abs=0.01)
-    assert isa_hpa(home.home_alt_m) - isa_hpa(home.home_alt_m + 12.0) == pytest.approx(1.43, abs=0.02)
+    assert isa_hpa(home.altitude_m) - isa_hpa(home.altitude_m + 12.0) == pytest.approx(1.43, abs=0.02)
     assert high["HIL_SENSOR"].abs_pressure < low["HIL_SENSOR"].abs_pressure - 1.2
     d_lat = (north["HIL_GPS"].lat - low["HIL_GPS"].lat) * 1e-7
     assert math.radians(d_lat) * F.EARTH_RADIUS_M == pytest.approx(10.0, abs=2.0)
     assert abs(north["HIL_GPS"].lon - low["HIL_GPS"].lon) * 1e-7 < 3e-5  # within ~2 m
-    assert low["HIL_GPS"].alt == pytest.approx(home.home_alt_m * 1000, abs=2500)
-    assert low["HIL_STATE_QUATERNION"].lat == round(home.home_lat_deg * 1e7)  # ground truth: no noise
+    assert low["HIL_GPS"].alt == pytest.approx(home.altitude_m * 1000, abs=2500)
+    assert low["HIL_STATE_QUATERNION"].lat == round(home.latitude_deg * 1e7)  # ground truth: no noise
 
 
 def test_state_quaternion_is_frd_to_ned_with_matching_yaw(served, sim):

@@ -188,21 +188,21 @@ def test_sensor_topics_read_the_vehicle_at_rest(run):
         assert m.linear_acceleration_covariance[::4].tolist() == [0.02**2] * 3
         assert m.angular_velocity_covariance[::4].tolist() == [0.002**2] * 3
 
-    cfg = load_config(scene="tree_inspection").px4
+    run_cfg = load_config(scene="tree_inspection")
+    cfg, site = run_cfg.px4, run_cfg.site
     mag = msgs["droneulator/magnetic_field"]
     field = np.array([[m.magnetic_field.x, m.magnetic_field.y, m.magnetic_field.z] for m in mag])
-    want = R.T @ ned_to_enu(earth_field_ned(cfg)) * 1e-4  # WMM2025 at home, gauss NED -> tesla base_link
+    want = R.T @ ned_to_enu(earth_field_ned(cfg, site)) * 1e-4  # WMM2025 at the site, gauss NED -> tesla
     np.testing.assert_allclose(field.mean(axis=0), want, atol=5 * 0.002e-4 / np.sqrt(len(mag)))
     assert {m.header.frame_id for m in mag} == {"base_link"} and len(mag) > 50
     assert mag[0].magnetic_field_covariance[0] == pytest.approx((0.002e-4) ** 2)
     p = odom[stamp_ns(imu[-1])].pose.pose.position
     baro = msgs["droneulator/air_pressure"]
     pressure = np.mean([m.fluid_pressure for m in baro])
-    assert pressure == pytest.approx(isa_pressure_pa(cfg.home_alt_m + p.z), abs=5 * 1.0 / np.sqrt(len(baro)))
+    assert pressure == pytest.approx(isa_pressure_pa(site.altitude_m + p.z), abs=5 * 1.0 / np.sqrt(len(baro)))
     assert baro[0].variance == pytest.approx(1.0) and baro[0].header.frame_id == "base_link"  # (0.01 hPa)^2
     fixes = msgs["droneulator/gps/fix"]
-    home = (cfg.home_lat_deg, cfg.home_lon_deg, cfg.home_alt_m)
-    lat, lon, alt = enu_to_geodetic(np.array([p.x, p.y, p.z]), *home)
+    lat, lon, alt = enu_to_geodetic(np.array([p.x, p.y, p.z]), *site.geodetic)
     for f in fixes:
         assert (f.status.status, f.position_covariance_type, f.header.frame_id) == (0, 2, "base_link")
         assert f.position_covariance[::4].tolist() == pytest.approx([0.02**2, 0.02**2, 0.03**2])

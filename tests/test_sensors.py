@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from droneulator import frames as F
-from droneulator.config import GPS_PRESETS, ConfigError, PX4Config, load_config
+from droneulator.config import GPS_PRESETS, ConfigError, PX4Config, SiteConfig, load_config
 from droneulator.sensors import SensorSuite, Truth
 from droneulator.sensors.gps import Ekf2DriftCheck, GpsSample
 from droneulator.sensors.mag import Magnetometer, field_elements, wmm_field_ned_gauss
@@ -27,8 +27,7 @@ def at_rest(t_ns: int) -> Truth:
 
 def fix_error_ned(cfg: PX4Config, g: GpsSample, truth_enu: np.ndarray = Z3) -> np.ndarray:
     """The fix's position error (m, NED), recovered through PX4's own projection of lat/lon."""
-    home = (cfg.home_lat_deg, cfg.home_lon_deg, cfg.home_alt_m)
-    enu = F.geodetic_to_enu(g.lat_deg, g.lon_deg, g.alt_msl_m, *home)
+    enu = F.geodetic_to_enu(g.lat_deg, g.lon_deg, g.alt_msl_m, *SiteConfig().geodetic)
     return F.enu_to_ned(enu - truth_enu)
 
 
@@ -146,11 +145,10 @@ def test_before_the_delay_has_passed_the_oldest_state_is_sent_and_a_reset_restar
 # --------------------------------------------------------------------------- PX4's drift check
 def test_drift_check_replay_measures_a_steady_drift():
     """A fix creeping north at 0.05 m/s: EKF2's filtered rate converges to it (1 - e^-6 after 60 s)."""
-    cfg = PX4Config()
     check = Ekf2DriftCheck()
     for k in range(601):
         north = np.array([0.0, 0.005 * k, 0.0])
-        lat, lon, alt = F.enu_to_geodetic(north, cfg.home_lat_deg, cfg.home_lon_deg, 10.0)
+        lat, lon, alt = F.enu_to_geodetic(north, *SiteConfig().geodetic)
         check.update(0.1 * k, GpsSample(lat, lon, alt, Z3, 0.0, 0.0, 0.3, 0.5, 3, 10, k * FIX_NS))
     assert check.hdrift == pytest.approx(0.05 * (1 - math.exp(-6.0)), rel=0.01)
     assert check.vdrift == pytest.approx(0.0, abs=1e-6) and check.hspeed == 0.0 and not check.failed
@@ -221,9 +219,9 @@ def test_wmm_field_matches_noaas_published_test_values(year, h_km, lat, lon, dec
     assert el.strength_gauss * 1e5 == pytest.approx(f, abs=1.0)
 
 
-def level_facing_true_north_mean(cfg: PX4Config) -> np.ndarray:
+def level_facing_true_north_mean(cfg: PX4Config, site: SiteConfig | None = None) -> np.ndarray:
     """Mean magnetometer reading (gauss, FRD) with the nose on true north: FRD axes = NED axes."""
-    suite = SensorSuite(cfg, seed=1)
+    suite = SensorSuite(cfg, seed=1, site=site)
     north = F.quat_from_yaw(math.pi / 2)
     return np.mean([suite.mag(Truth(k * STEP_NS, Z3, Z3, north, Z3, Z3, Z3)) for k in range(400)], axis=0)
 
@@ -236,8 +234,8 @@ def test_magnetometer_measures_the_wmm_field_at_the_configured_home_and_year():
     assert default.inclination_deg == pytest.approx(67.89, abs=0.05)
     assert default.strength_gauss == pytest.approx(0.4953, abs=0.001)
     year, h_km, lat, lon, dec, inc, *_, f = WMM2025_TEST_VALUES[0]
-    cfg = PX4Config(home_lat_deg=lat, home_lon_deg=lon, home_alt_m=h_km * 1000.0, mag_wmm_year=year)
-    el = field_elements(level_facing_true_north_mean(cfg))
+    site = SiteConfig(latitude_deg=lat, longitude_deg=lon, altitude_m=h_km * 1000.0)
+    el = field_elements(level_facing_true_north_mean(PX4Config(mag_wmm_year=year), site))
     assert el.declination_deg == pytest.approx(dec, abs=0.05)
     assert el.inclination_deg == pytest.approx(inc, abs=0.05)
     assert el.strength_gauss * 1e5 == pytest.approx(f, abs=30)  # 0.002 G noise averaged over 400 samples

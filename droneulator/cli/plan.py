@@ -118,7 +118,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         nargs=3,
         default=None,
         metavar=("LAT", "LON", "ALT"),
-        help="geodetic point of the run's world origin if the run changed px4.home_* (default: the defaults)",
+        help="geodetic point of the run's world origin (default: the run's site section, else the default)",
     )
     p.add_argument(
         "--px4-on-stop",
@@ -220,7 +220,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
             if args.px4_home is not None:
                 home = dict(zip(keys, args.px4_home, strict=True))
             elif run_cfg is not None:
-                home = {k: getattr(run_cfg.px4, k) for k in keys}
+                home = dict(zip(keys, run_cfg.site.geodetic, strict=True))
             origin = None if args.px4_origin is None else tuple(args.px4_origin)
             try:
                 link_cfg = OffboardConfig(

@@ -7,7 +7,8 @@ three of them, a known stream); what a value may be for the vehicle (inside the 
 ground, under the speed limit) the core checks itself, for in-process callers too. The reference in
 docs/api.md is generated from the same table (:func:`ops_markdown`).
 
-The world is known here only as the interface the ops call: nothing imports the simulator.
+The world is known here only as the interface the ops call (:mod:`~droneulator.commands.surface`):
+nothing imports the simulator.
 """
 
 from __future__ import annotations
@@ -19,24 +20,19 @@ import math
 import time
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 from droneulator.commands.errors import ERROR_CODES, CommandError
+from droneulator.commands.surface import CommandedVehicle, CommandedWorld, Simulation
 from droneulator.config.scene import VEGETATION_RANGE
-
-#: what the ops run on: the world's command surface (:class:`~droneulator.world.World`: ``vehicle(name)``
-#: with its flight commands and state, ``vehicles``, ``reset``, ``scene``, ``config``, ``t``,
-#: ``stamp_ns``). Known by that interface only, never imported: the command path sits below the world
-#: in the package's layers.
-Simulation = Any
 
 #: the ``vehicle`` value of ``state`` and ``subscribe`` that means every vehicle (not a valid name)
 ALL_VEHICLES = "*"
 
 
-def world_of(sim: Simulation) -> Simulation:
+def world_of(sim: Simulation) -> CommandedWorld:
     """The world of ``sim``: a world itself, or the world a single-vehicle ``Simulator`` speaks for."""
-    return getattr(sim, "world", sim)
+    return cast(CommandedWorld, getattr(sim, "world", sim))
 
 
 log = logging.getLogger(__name__)
@@ -92,57 +88,57 @@ class Op:
     doc: str
     result: str
     args: tuple[Arg, ...] = ()
-    run: Callable[[Simulation, dict[str, Any]], dict[str, Any]] | None = None
+    run: Callable[[CommandedWorld, dict[str, Any]], dict[str, Any]] | None = None
     flight: bool = False
     locked: bool = True
 
 
-def _when(sim: Simulation) -> dict[str, Any]:
+def _when(sim: CommandedWorld) -> dict[str, Any]:
     """When a command was accepted: episode time ``t`` (s) and the ROS clock ``stamp_ns``."""
     return {"t": sim.t, "stamp_ns": sim.stamp_ns}
 
 
-def _vehicle(sim: Simulation, a: dict[str, Any]) -> Any:
+def _vehicle(sim: CommandedWorld, a: dict[str, Any]) -> CommandedVehicle:
     """The vehicle a request names (``vehicle``; default: the first); an unknown name is an error."""
     return sim.vehicle(a.get("vehicle"))
 
 
-def _takeoff(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+def _takeoff(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
     return {"duration": float(_vehicle(sim, a).takeoff(a.get("altitude"))), **_when(sim)}
 
 
-def _land(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+def _land(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
     return {"duration": float(_vehicle(sim, a).land()), **_when(sim)}
 
 
-def _goto(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+def _goto(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
     duration = _vehicle(sim, a).goto(a["position"], a.get("yaw"), a.get("speed"), a.get("duration"))
     return {"duration": float(duration), **_when(sim)}
 
 
-def _velocity(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+def _velocity(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
     _vehicle(sim, a).velocity(a["forward"], a["yaw_rate"])
     return _when(sim)
 
 
-def _track(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+def _track(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
     _vehicle(sim, a).track(
         a["position"], a.get("velocity"), a.get("acceleration"), a.get("yaw"), a.get("yaw_rate", 0.0)
     )
     return _when(sim)
 
 
-def _hold(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+def _hold(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
     _vehicle(sim, a).hold()
     return _when(sim)
 
 
-def _motors_off(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+def _motors_off(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
     _vehicle(sim, a).motors_off()
     return _when(sim)
 
 
-def _reset(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+def _reset(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
     from droneulator.scenes import list_scenes
 
     scene = a.get("scene")
@@ -176,23 +172,23 @@ def _reset(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
     return {**result, "light": dataclasses.asdict(sim.config.light)}
 
 
-def _state(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+def _state(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
     if a.get("vehicle") == ALL_VEHICLES:
         return {"t": sim.t, "stamp_ns": sim.stamp_ns,
                 "vehicles": {name: v.state.to_dict() for name, v in sim.vehicles.items()}}  # fmt: skip
     return _vehicle(sim, a).state.to_dict()
 
 
-def _trigger(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+def _trigger(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
     stamp = world_of(sim).trigger(a.get("vehicle"))
     return {"frame_stamp_ns": stamp, **_when(sim)}
 
 
-def _ping(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+def _ping(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
     return {"pong": True, "time": time.time()}
 
 
-def _scene_info(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+def _scene_info(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
     from droneulator.scenes import list_scenes
 
     sc, fl = sim.scene, sim.config.flight
@@ -231,7 +227,7 @@ _WIND_FIELDS = {
 }
 
 
-def _set_wind(sim: Simulation, a: dict[str, Any]) -> dict[str, Any]:
+def _set_wind(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
     world = world_of(sim)
     name = a.get("vehicle")
     row = 0 if name is None else list(world.vehicles).index(world.vehicle(name).name)
@@ -668,7 +664,8 @@ def execute(
 
     The caller holds the simulation lock when ``OPS[op].locked``. ``flight_locked`` (a reason) makes
     flight ops answer ``flight_locked``. ``extra_ops`` get the raw arguments and may return any
-    JSON-able value (None means ``{}``).
+    JSON-able value (None means ``{}``); ``sim`` is None only for them (a table op then answers
+    ``internal_error``).
     """
     try:
         if extra_ops and request.op in extra_ops:
@@ -681,6 +678,8 @@ def execute(
                 )
             if spec.flight and flight_locked is not None:
                 raise CommandError("flight_locked", flight_locked)
+            if sim is None:
+                raise CommandError("internal_error", f"{request.op} needs the simulator, and none was given")
             result = spec.run(world_of(sim), request.args)
         reply = ok_reply(request.id, result)
         encode(reply)  # fail here, with a proper error, rather than in the transport

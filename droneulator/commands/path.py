@@ -21,12 +21,12 @@ from droneulator.commands.ops import (
     ExtraOp,
     Request,
     RequestError,
-    Simulation,
     error_reply,
     execute,
     make_request,
     world_of,
 )
+from droneulator.commands.surface import Simulation
 from droneulator.logs import LogThrottle
 
 log = logging.getLogger("droneulator.commands")
@@ -38,7 +38,7 @@ BURST_GAP_S = 2.0
 class CommandPath:
     """Validation, flight lock and simulation lock for every command source (see the module docstring).
 
-    ``sim`` is the world the ops run on (:data:`~droneulator.commands.ops.Simulation`), or a
+    ``sim`` is the world the ops run on (:class:`~droneulator.commands.surface.CommandedWorld`), or a
     single-vehicle ``Simulator``, whose world it then commands.
     """
 

@@ -43,6 +43,7 @@ from droneulator.config.sensor_presets import (
     GpsError,
     ImuModel,
 )
+from droneulator.config.site import SiteConfig
 from droneulator.config.wind import WindConfig
 
 __all__ = [
@@ -67,6 +68,7 @@ __all__ = [
     "RenderConfig",
     "RuntimeConfig",
     "SimConfig",
+    "SiteConfig",
     "UIConfig",
     "VehicleConfig",
     "VehicleSpec",

@@ -41,12 +41,13 @@ class LightConfig:
     time_of_day_h: float | None = None
     #: the day (ISO ``YYYY-MM-DD``); null: DEFAULT_DATE
     date: str | None = None
-    #: where the sun is computed for, WGS84 degrees; null: the PX4 home (``px4.home_lat_deg``,
-    #: ``px4.home_lon_deg``), which is where the world's origin lies
+    #: where the sun is computed for, WGS84 degrees, if not at the world's place; null (the rule): the
+    #: site's (``site.latitude_deg``, ``site.longitude_deg``), where the GPS puts the world origin too.
+    #: Set, they move the sun alone (e.g. per episode through the API's ``reset``), not the GPS
     latitude_deg: float | None = None
     longitude_deg: float | None = None
-    #: the clock's offset from UTC, hours (e.g. 1.0 for CET, 2.0 for CEST); null: local mean solar time,
-    #: longitude / 15, so that 12:00 is within a quarter of an hour of solar noon
+    #: the clock's offset from UTC, hours (e.g. 1.0 for CET, 2.0 for CEST); null: the site's clock
+    #: (``site.utc_offset_h``, whose own null is local mean solar time, longitude / 15)
     utc_offset_h: float | None = None
     #: fraction of the sky covered by cloud, [0, 1]: direct sun scaled by 1 - cover, diffuse light and
     #: a grey sky in its place (1: overcast, no hard shadows); null: 0

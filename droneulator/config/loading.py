@@ -1,17 +1,27 @@
 """Loading a configuration: defaults, then a JSON or TOML file, then ``--set`` overrides, each value
-checked against its field's type (a bad value is a :class:`ConfigError` naming the dotted key)."""
+checked against its field's type (a bad value is a :class:`ConfigError` naming the dotted key).
+
+A renamed key (:data:`~droneulator.config.site.RENAMED`, e.g. ``px4.home_lat_deg``) still loads from a
+file, a ``--set`` or a dict given to :func:`from_dict`: it lands on its new key with a
+:class:`DeprecationWarning` (also logged) naming the new key.
+"""
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import tomllib
 import types
 import typing
+import warnings
 from pathlib import Path
 from typing import Any, get_type_hints
 
 from droneulator.config.sections import SimConfig
+from droneulator.config.site import RENAMED
+
+log = logging.getLogger(__name__)
 
 
 class ConfigError(ValueError):
@@ -59,12 +69,47 @@ def _coerce(value: Any, typ: Any, key: str) -> Any:
     return value
 
 
+def _renamed(old: str, new: str) -> None:
+    message = f"config key {old} is deprecated: set {new} instead (its value is used as {new})"
+    log.warning(message)
+    warnings.warn(message, DeprecationWarning, stacklevel=4)
+
+
+def migrate(data: dict[str, Any]) -> dict[str, Any]:
+    """``data`` (a nested :class:`SimConfig` dict) with every renamed key moved to its new key, each with
+    a warning; the old key and the new one both given with different values is a :class:`ConfigError`."""
+    out = data
+    for old, new in RENAMED.items():
+        (old_section, old_key), (new_section, new_key) = old.split("."), new.split(".")
+        section = out.get(old_section)
+        if not isinstance(section, dict) or old_key not in section:
+            continue
+        if out is data:
+            out = dict(data)
+        out[old_section] = {k: v for k, v in section.items() if k != old_key}
+        target = out.get(new_section)
+        target = dict(target) if isinstance(target, dict) else {}
+        value = section[old_key]
+        if new_key in target and target[new_key] != value:
+            raise ConfigError(
+                f"{old} (deprecated) and {new} are both set, to {value!r} and {target[new_key]!r}: "
+                f"set {new} only"
+            )
+        target[new_key] = value
+        out[new_section] = target
+        _renamed(old, new)
+    return out
+
+
 def from_dict(cls: type, data: dict[str, Any], prefix: str = "") -> Any:
     """Build dataclass ``cls`` from a (possibly partial) nested dict; unknown keys and values of the
-    wrong type are :class:`ConfigError` naming the key (under ``prefix``, e.g. ``"render."``)."""
+    wrong type are :class:`ConfigError` naming the key (under ``prefix``, e.g. ``"render."``); a
+    :class:`SimConfig`'s renamed keys are moved to their new keys first (:func:`migrate`)."""
     if not isinstance(data, dict):
         where = prefix.rstrip(".") or "the configuration"
         raise ConfigError(f"{where}: expected a table of {cls.__name__} options, got {data!r}")
+    if cls is SimConfig:
+        data = migrate(data)
     hints = get_type_hints(cls)
     names = [f.name for f in dataclasses.fields(cls)]
     unknown = sorted(set(data) - set(names))
@@ -100,13 +145,17 @@ def apply_override(data: dict[str, Any], assignment: str) -> dict[str, Any]:
     if "=" not in assignment:
         raise ValueError(f"override must look like section.key=value, got {assignment!r}")
     key, raw = assignment.split("=", 1)
+    key = key.strip()
+    if key in RENAMED:
+        _renamed(key, RENAMED[key])
+        key = RENAMED[key]
     try:
         value = json.loads(raw)
     except json.JSONDecodeError:
         value = raw
     node: dict[str, Any] = {}
     leaf = node
-    parts = key.strip().split(".")
+    parts = key.split(".")
     for p in parts[:-1]:
         leaf[p] = {}
         leaf = leaf[p]
@@ -118,7 +167,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
     """Defaults, then ``path``, then ``overrides``, then keyword arguments for top-level fields."""
     data = to_dict(SimConfig())
     if path is not None:
-        data = _merge(data, load_file(path))
+        data = _merge(data, migrate(load_file(path)))
     for o in overrides or []:
         data = apply_override(data, o)
     data.update({k: v for k, v in top.items() if v is not None})

@@ -22,6 +22,7 @@ from droneulator.config.sensor_presets import (
     ImuModel,
     check_preset,
 )
+from droneulator.config.site import SiteConfig
 from droneulator.config.wind import WindConfig
 
 
@@ -308,11 +309,8 @@ class PX4Config:
     instance: int = 0
     host: str = "127.0.0.1"
     base_port: int = 4560
-    #: home position (WGS84) of the world origin; the magnetic field is the World Magnetic Model's there
-    home_lat_deg: float = 53.2281
-    home_lon_deg: float = -0.5470
-    home_alt_m: float = 10.0
-    #: decimal year the World Magnetic Model (WMM2025, valid 2025.0-2029.99) is evaluated at; fixed so
+    #: decimal year the World Magnetic Model (WMM2025, valid 2025.0-2029.99) is evaluated at (at the
+    #: ``site``, whose position the home, the GPS fix and the ground truth are relative to); fixed so
     #: a run is reproducible (the declination at the default home grows by about 0.18 deg a year)
     mag_wmm_year: float = 2025.0
     #: explicit Earth field (gauss, NED) replacing the WMM's, e.g. to test PX4's magnetometer checks
@@ -418,8 +416,6 @@ class PX4Config:
             raise ValueError("px4.speed_factor must be >= 0 (0: as fast as PX4 answers)")
         if not 0 <= self.instance <= 255 or not 0 <= self.base_port + self.instance <= 65535:
             raise ValueError("px4.instance and px4.base_port must give a TCP port in [0, 65535]")
-        if not -90.0 <= self.home_lat_deg <= 90.0 or not -180.0 <= self.home_lon_deg <= 180.0:
-            raise ValueError("px4.home_lat_deg / home_lon_deg must be a valid WGS84 position")
         for name, table in (
             ("gps_preset", GPS_PRESETS),
             ("imu_preset", IMU_PRESETS),
@@ -550,6 +546,8 @@ class SimConfig:
     capture: CaptureConfig = field(default_factory=CaptureConfig)
     rl: RLConfig = field(default_factory=RLConfig)
     ui: UIConfig = field(default_factory=UIConfig)
+    #: where on Earth the world origin lies and its clock (GPS, barometer, magnetic field, PX4, the sun)
+    site: SiteConfig = field(default_factory=SiteConfig)
     #: time of day, clouds and haze of the rendered scene (RGB only; see docs/light.md)
     light: LightConfig = field(default_factory=LightConfig)
     #: the wind field every vehicle flies in (calm by default; see docs/wind.md)

@@ -799,8 +799,7 @@ class PX4Link:
         )
 
     def _state_message(self, truth: Truth, t_us: int) -> Any:
-        c = self.cfg
-        lat, lon, alt = enu_to_geodetic(truth.position, c.home_lat_deg, c.home_lon_deg, c.home_alt_m)
+        lat, lon, alt = enu_to_geodetic(truth.position, *self.world.config.site.geodetic)
         ias, tas = self.sensors.airspeed(truth) if "airspeed" in self.sensors else (0.0, 0.0)
         acc_mg = truth.acceleration_frd / G0 * 1000.0
         return self._tx.hil_state_quaternion_encode(

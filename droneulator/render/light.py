@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from droneulator.config.light import DEFAULT_DATE, LightConfig
+from droneulator.config.site import SiteConfig
 from droneulator.scenes.base import Scene
 
 #: the renderer's historical light (before the light section): direct sun, and the hemisphere ambient
@@ -142,11 +143,12 @@ def sun_vector(elevation_deg: float, azimuth_deg: float) -> np.ndarray:
     return np.array([math.cos(el) * math.sin(az), math.cos(el) * math.cos(az), math.sin(el)])
 
 
-def local_time(light: LightConfig, longitude_deg: float) -> datetime.datetime:
-    """The aware datetime of ``light``'s day and clock time (``time_of_day_h`` must be set)."""
+def local_time(light: LightConfig, site: SiteConfig) -> datetime.datetime:
+    """The aware datetime of ``light``'s day and clock time (``time_of_day_h`` must be set), on the clock
+    of ``light.utc_offset_h``, else the site's (:attr:`~droneulator.config.SiteConfig.clock_offset_h`)."""
     if light.time_of_day_h is None:
         raise ValueError("the light has no time of day")
-    offset = light.utc_offset_h if light.utc_offset_h is not None else longitude_deg / 15.0
+    offset = site.clock_offset_h if light.utc_offset_h is None else light.utc_offset_h
     day = datetime.date.fromisoformat(light.date or DEFAULT_DATE)
     tz = datetime.timezone(datetime.timedelta(hours=offset))
     midnight = datetime.datetime(day.year, day.month, day.day, tzinfo=tz)
@@ -239,11 +241,11 @@ def historical_lighting(scene: Scene) -> Lighting:
 
 
 def resolve_lighting(
-    light: LightConfig | None, scene: Scene, home: tuple[float, float] = (53.2281, -0.5470)
+    light: LightConfig | None, scene: Scene, site: SiteConfig | None = None
 ) -> Lighting:
     """The light of ``scene`` under ``light`` (null fields: the scene's ``light``, then the defaults);
-    ``home``: latitude and longitude (deg) the sun is computed for unless the light names its own
-    (normally the PX4 home, ``SimConfig.px4``). Raises ValueError for a bad scene default."""
+    ``site``: the place and clock the sun is computed for unless the light names its own (normally
+    ``SimConfig.site``; None: the default site). Raises ValueError for a bad scene default."""
     light = (light or LightConfig()).over(scene.light)
     base = historical_lighting(scene)
     cover = light.cloud_cover or 0.0
@@ -258,9 +260,11 @@ def resolve_lighting(
         zenith, horizon = base.zenith, base.horizon
         ambient_ground, ambient_sky = base.ambient_ground, base.ambient_sky
     else:
-        lat = home[0] if light.latitude_deg is None else light.latitude_deg
-        lon = home[1] if light.longitude_deg is None else light.longitude_deg
-        elevation, azimuth = solar_position(local_time(light, lon), lat, lon)
+        site = site or SiteConfig()
+        lat = site.latitude_deg if light.latitude_deg is None else light.latitude_deg
+        lon = site.longitude_deg if light.longitude_deg is None else light.longitude_deg
+        clock = dataclasses.replace(site, longitude_deg=lon)  # without an offset: solar time where the sun is
+        elevation, azimuth = solar_position(local_time(light, clock), lat, lon)
         sun_el = max(elevation, MIN_SHADOW_ELEVATION_DEG)
         sun = sun_vector(sun_el, azimuth)
         sun_color, sky = direct_sun(elevation), skylight(elevation)

@@ -836,6 +836,6 @@ def fleet_renderer(scene: Scene, config: SimConfig) -> Renderer:
 
 
 def config_lighting(scene: Scene, config: SimConfig) -> Lighting:
-    """The light of ``scene`` under ``config.light``, the sun computed at the PX4 home unless the light
-    names its own place."""
-    return resolve_lighting(config.light, scene, (config.px4.home_lat_deg, config.px4.home_lon_deg))
+    """The light of ``scene`` under ``config.light``, the sun computed at ``config.site`` unless the light
+    names its own place or clock."""
+    return resolve_lighting(config.light, scene, config.site)

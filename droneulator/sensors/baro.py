@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from droneulator.config.site import SiteConfig
 from droneulator.sensors.registry import register
 from droneulator.sensors.truth import Truth
 
@@ -37,9 +38,9 @@ def isa_density(alt_msl_m: float) -> float:
     return ISA_RHO0 * (isa_temperature_k(alt_msl_m) / ISA_T0_K) ** (ISA_EXPONENT - 1.0)
 
 
-def altitude_msl(cfg: Any, truth: Truth) -> float:
-    """Altitude above mean sea level: the home altitude ``cfg.home_alt_m`` plus the world z."""
-    return cfg.home_alt_m + float(truth.position[2])
+def altitude_msl(site: SiteConfig, truth: Truth) -> float:
+    """Altitude above mean sea level: the site's altitude ``site.altitude_m`` plus the world z."""
+    return site.altitude_m + float(truth.position[2])
 
 
 @dataclass(frozen=True)
@@ -54,8 +55,9 @@ class Barometer:
     """Absolute pressure with ``cfg.baro_bias_hpa`` and the noise of
     :meth:`~droneulator.config.PX4Config.baro_error` (``baro_preset``, or ``baro_noise_hpa`` set)."""
 
-    def __init__(self, cfg: Any, rng: np.random.Generator) -> None:
+    def __init__(self, cfg: Any, rng: np.random.Generator, site: SiteConfig | None = None) -> None:
         self.cfg = cfg
+        self.site = site or SiteConfig()
         self.rng = rng
         #: per-sample pressure noise (hPa, 1-sigma)
         self.sigma_hpa = cfg.baro_error()
@@ -63,7 +65,7 @@ class Barometer:
     def sample(self, truth: Truth) -> BaroSample:
         """Absolute pressure (ISA at the true altitude, plus bias and noise), the pressure altitude
         it implies, and the ISA temperature."""
-        alt = altitude_msl(self.cfg, truth)
+        alt = altitude_msl(self.site, truth)
         p_hpa = isa_pressure_pa(alt) / 100.0 + self.cfg.baro_bias_hpa
         p_hpa += self.rng.normal(0.0, self.sigma_hpa)
         return BaroSample(p_hpa, isa_altitude_m(p_hpa * 100.0), isa_temperature_k(alt) - KELVIN)

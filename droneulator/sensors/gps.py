@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from droneulator.config.site import SiteConfig
 from droneulator.frames import enu_to_geodetic, enu_to_ned, geodetic_to_enu
 from droneulator.sensors.registry import register
 from droneulator.sensors.truth import Truth
@@ -49,7 +50,8 @@ class GpsSample:
 
 @register("gps")
 class Gps:
-    """``cfg`` (a :class:`~droneulator.config.PX4Config`) gives the home position, the position error
+    """The fix of the world position at ``site`` (the world origin's geodetic point); ``cfg`` (a
+    :class:`~droneulator.config.PX4Config`) gives the position error
     (:meth:`~droneulator.config.PX4Config.gps_error`: ``gps_preset`` and the ``gps_*_m`` overrides),
     ``gps_vel_noise``, ``gps_vel_vertical_noise``, ``gps_delay_s``, ``gps_bias_m`` and ``gps_satellites``.
 
@@ -58,8 +60,9 @@ class Gps:
     interpolated linearly between the recorded steps.
     """
 
-    def __init__(self, cfg: Any, rng: np.random.Generator) -> None:
+    def __init__(self, cfg: Any, rng: np.random.Generator, site: SiteConfig | None = None) -> None:
         self.cfg = cfg
+        self.site = site or SiteConfig()
         self.rng = rng
         #: the position error model in effect (the preset, with explicitly set fields instead)
         self._model = cfg.gps_error()
@@ -126,7 +129,7 @@ class Gps:
         pos_ned = enu_to_ned(pos_enu) + np.asarray(c.gps_bias_m, dtype=float) + error
         vel_sigma = np.array([c.gps_vel_noise, c.gps_vel_noise, c.gps_vel_vertical_noise])
         vel_ned = enu_to_ned(vel_enu) + vel_sigma * rng.standard_normal(3)
-        lat, lon, alt = enu_to_geodetic(enu_to_ned(pos_ned), c.home_lat_deg, c.home_lon_deg, c.home_alt_m)
+        lat, lon, alt = enu_to_geodetic(enu_to_ned(pos_ned), *self.site.geodetic)
         course = math.degrees(math.atan2(vel_ned[1], vel_ned[0])) % 360.0
         return GpsSample(
             lat,

@@ -3,7 +3,8 @@
 PX4 checks the measured field against its own World Magnetic Model tables at the GPS position
 (declination for the heading, inclination and strength in its arming checks), so the default
 field is NOAA's WMM2025 (the ``wmm-calculator`` package, coefficients shipped with it, no network)
-at ``px4.home_lat_deg`` / ``home_lon_deg`` / ``home_alt_m`` on the decimal year ``px4.mag_wmm_year``.
+at the site (``site.latitude_deg`` / ``longitude_deg`` / ``altitude_m``) on the decimal year
+``px4.mag_wmm_year``.
 ``px4.mag_field_ned_gauss`` replaces it with an explicit field. The field is computed once: over
 a flight of a few kilometres the WMM changes by hundredths of a degree.
 """
@@ -17,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from droneulator.config.site import SiteConfig
 from droneulator.frames import ned_to_enu
 from droneulator.frames_numba import flu_to_frd, world_to_body
 from droneulator.sensors.registry import register
@@ -72,27 +74,27 @@ def field_elements(field_ned: Any) -> FieldElements:
     )
 
 
-def earth_field_ned(cfg: Any) -> np.ndarray:
+def earth_field_ned(cfg: Any, site: SiteConfig | None = None) -> np.ndarray:
     """The Earth field the magnetometer measures (gauss, NED): ``cfg.mag_field_ned_gauss`` when
-    set, else the WMM at the configured home and year."""
+    set, else the WMM at ``site`` (default: the default site) on ``cfg.mag_wmm_year``."""
     if cfg.mag_field_ned_gauss is not None:
         return np.array(cfg.mag_field_ned_gauss, dtype=float)
-    return wmm_field_ned_gauss(cfg.home_lat_deg, cfg.home_lon_deg, cfg.home_alt_m, cfg.mag_wmm_year)
+    return wmm_field_ned_gauss(*(site or SiteConfig()).geodetic, cfg.mag_wmm_year)
 
 
 @register("mag")
 class Magnetometer:
-    """Field in gauss; ``cfg`` gives the home position, ``mag_wmm_year`` or ``mag_field_ned_gauss``,
-    ``mag_bias`` and the noise (:meth:`~droneulator.config.PX4Config.mag_error`: ``mag_preset``, or
-    ``mag_noise`` set)."""
+    """Field in gauss at ``site`` (the world origin's place); ``cfg`` gives ``mag_wmm_year`` or
+    ``mag_field_ned_gauss``, ``mag_bias`` and the noise
+    (:meth:`~droneulator.config.PX4Config.mag_error`: ``mag_preset``, or ``mag_noise`` set)."""
 
-    def __init__(self, cfg: Any, rng: np.random.Generator) -> None:
+    def __init__(self, cfg: Any, rng: np.random.Generator, site: SiteConfig | None = None) -> None:
         self.cfg = cfg
         self.rng = rng
         #: per-sample noise of each axis (gauss, 1-sigma)
         self.sigma_gauss = cfg.mag_error()
         #: the Earth field (gauss, NED), and in the simulator's ENU world
-        self.field_ned = earth_field_ned(cfg)
+        self.field_ned = earth_field_ned(cfg, site)
         self._field_enu = np.ascontiguousarray(ned_to_enu(self.field_ned))
 
     @property

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from droneulator.config import CameraConfig
+from droneulator.config import CameraConfig, SiteConfig
 from droneulator.sensors.imu import IMU_HZ
 from droneulator.sensors.registry import get_sensor
 from droneulator.sensors.suite import SensorSuite
@@ -47,13 +47,15 @@ def build_rig(
     seed: int = 0,
     index: int = 0,
     imu_hz: float = IMU_HZ,
+    site: SiteConfig | None = None,
 ) -> Rig:
     """The rig of a vehicle with these ``cameras`` and ``sensors``; ``px4`` is the
     :class:`~droneulator.config.PX4Config` the noise models read; ``index`` the vehicle's place in
-    its world (see :func:`vehicle_seed`); ``imu_hz`` the IMU's sampling rate (the physics rate). A bad
+    its world (see :func:`vehicle_seed`); ``imu_hz`` the IMU's sampling rate (the physics rate); ``site``
+    the world origin's place (:class:`~droneulator.config.SiteConfig`; None: the default). A bad
     sensor kind or a repeated camera name is a ValueError."""
     camera = get_sensor("camera")
     built = {cam.name: camera(cam) for cam in cameras}
     if len(built) != len(cameras):
         raise ValueError(f"camera names must differ: {[c.name for c in cameras]}")
-    return Rig(built, SensorSuite(px4, vehicle_seed(seed, index), sensors, imu_hz=imu_hz))
+    return Rig(built, SensorSuite(px4, vehicle_seed(seed, index), sensors, imu_hz=imu_hz, site=site))

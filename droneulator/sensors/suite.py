@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from droneulator.config.site import SiteConfig
 from droneulator.sensors.baro import BaroSample
 from droneulator.sensors.gps import GpsSample
 from droneulator.sensors.imu import IMU_HZ
@@ -93,9 +94,10 @@ class SensorSuite:
     """The registered models of ``kinds`` (default all of :data:`SUITE_KINDS`), deterministic under
     ``seed``.
 
-    ``cfg`` is a :class:`~droneulator.config.PX4Config` (noise presets and overrides, biases, rates and
-    home position); ``imu_hz`` how often the IMU is sampled (the physics rate), at which its preset's
-    noise densities become per-sample sigmas.
+    ``cfg`` is a :class:`~droneulator.config.PX4Config` (noise presets and overrides, biases, rates);
+    ``site`` the :class:`~droneulator.config.SiteConfig` the GPS, barometer, magnetometer and airspeed
+    read the world origin's place from (None: the default site); ``imu_hz`` how often the IMU is
+    sampled (the physics rate), at which its preset's noise densities become per-sample sigmas.
     """
 
     def __init__(
@@ -104,8 +106,10 @@ class SensorSuite:
         seed: int | np.random.SeedSequence = 0,
         kinds: Sequence[str] = SUITE_KINDS,
         imu_hz: float = IMU_HZ,
+        site: SiteConfig | None = None,
     ) -> None:
         self.cfg = cfg
+        self.site = site or SiteConfig()
         self.kinds = check_kinds(kinds)
         self.imu_hz = float(imu_hz)
         seq = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
@@ -116,9 +120,9 @@ class SensorSuite:
             if kind == "imu":
                 self.models[kind] = model(cfg, np.random.default_rng(streams[kind]), rate_hz=self.imu_hz)
             elif kind in streams:
-                self.models[kind] = model(cfg, np.random.default_rng(streams[kind]))
+                self.models[kind] = model(cfg, np.random.default_rng(streams[kind]), site=self.site)
             else:
-                self.models[kind] = model(cfg)
+                self.models[kind] = model(cfg, site=self.site)
         #: the GPS delay line hears every sample, when there is a GPS
         self._gps = self.models.get("gps")
         #: the newest sample of each kind (see :class:`Reading`), whoever drew it

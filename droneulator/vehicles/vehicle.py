@@ -143,7 +143,13 @@ class Vehicle:
         self.flight = FlightController(self.quad_params, spec.flight)
         #: its cameras and noisy sensors, from its config table (:mod:`droneulator.sensors.rig`)
         self.rig = build_rig(
-            spec.cameras, spec.sensors, config.px4, config.seed, index, imu_hz=config.vehicle.control_hz
+            spec.cameras,
+            spec.sensors,
+            config.px4,
+            config.seed,
+            index,
+            imu_hz=config.vehicle.control_hz,
+            site=config.site,
         )
         self.collision_radius = config.vehicle.collision_radius
         self.s = row

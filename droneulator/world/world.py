@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import functools
 import logging
-from collections.abc import Collection
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -202,7 +202,7 @@ class World:
     def reset(
         self,
         seed: int | None = None,
-        position: np.ndarray | None = None,
+        position: Sequence[float] | np.ndarray | None = None,
         yaw: float | None = None,
         scene: str | None = None,
         airborne: bool | None = None,

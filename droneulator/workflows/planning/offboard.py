@@ -16,7 +16,7 @@ apart by their system id, ``MAV_SYS_ID`` = N + 1 (``rcS``), as MAVSDK users must
    PX4's system id, ``MAV_COMP_ID_ONBOARD_COMPUTER``; or MAVSDK's ground-station identity);
 3. learn PX4's local origin: ``GPS_GLOBAL_ORIGIN`` (asked for with ``MAV_CMD_REQUEST_MESSAGE``) is
    the geodetic point of EKF2's local NED (0, 0, 0); with the simulator's home (the geodetic point of
-   the world origin, ``px4.home_*``) it is a point of the ENU world (``frames.geodetic_to_enu``);
+   the world origin, the ``site`` section) it is a point of the ENU world (``frames.geodetic_to_enu``);
 4. when asked for control (:meth:`OffboardLink.engage`, or the first setpoint): wait for PX4's own
    position estimate (``LOCAL_POSITION_NED``, which PX4 streams at 30 Hz on this link, with
    ``ATTITUDE`` for the heading), stream a hold at that position and heading at ``rate_hz`` (wall
@@ -53,7 +53,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from droneulator import frames
-from droneulator.config import PX4Config
+from droneulator.config import SiteConfig
 
 log = logging.getLogger("droneulator.plan.offboard")
 
@@ -161,10 +161,11 @@ class OffboardConfig:
     on_stop: Literal["hold", "loiter", "land"] = "hold"
     #: ENU world position of PX4's local NED origin; None: from PX4's GPS_GLOBAL_ORIGIN and the home
     origin_enu: tuple[float, float, float] | None = None
-    #: geodetic point of the simulator's world origin (``px4.home_*`` of the run)
-    home_lat_deg: float = PX4Config.home_lat_deg
-    home_lon_deg: float = PX4Config.home_lon_deg
-    home_alt_m: float = PX4Config.home_alt_m
+    #: geodetic point of the simulator's world origin (the run's ``site.latitude_deg``, ``longitude_deg``,
+    #: ``altitude_m``)
+    home_lat_deg: float = SiteConfig.latitude_deg
+    home_lon_deg: float = SiteConfig.longitude_deg
+    home_alt_m: float = SiteConfig.altitude_m
     origin_timeout_s: float = 10.0
 
     def __post_init__(self) -> None:
