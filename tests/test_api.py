@@ -1,5 +1,5 @@
 """WebSocket command API: the protocol alone, then a real server on 127.0.0.1 (port 0) in front of a
-real Simulator that a background thread steps while holding the shared lock, like the runtime does."""
+real World that a background thread steps while holding the shared lock, like the runtime does."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ from websockets.sync.client import ClientConnection, connect
 from droneulator.api import ApiError, ApiServer, DroneulatorClient, handle_request
 from droneulator.commands import CommandPath
 from droneulator.commands.ops import ERROR_CODES, OPS, ops_markdown
-from droneulator.sim.simulator import Simulator
+from droneulator.world import World
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "api.md"
 STEPS_PER_TICK = 5  # control periods per 10 ms tick: the simulation runs at ~5x real time
@@ -30,8 +30,8 @@ MAX_MESSAGE = 4096
 
 # --------------------------------------------------------------------------- protocol alone
 @pytest.fixture()
-def bare_sim() -> Iterator[Simulator]:
-    s = Simulator(scene="default", render=False)
+def bare_sim() -> Iterator[World]:
+    s = World(scene="default", render=False)
     yield s
     s.close()
 
@@ -113,14 +113,14 @@ BAD_REQUESTS = [
 
 @pytest.mark.parametrize(("raw", "code"), BAD_REQUESTS, ids=[f"{c}:{str(r)[:30]}" for r, c in BAD_REQUESTS])
 def test_handle_request_rejects_bad_input_without_side_effects(bare_sim, raw, code):
-    before = bare_sim.state.position.copy()
+    before = bare_sim.vehicle().state.position.copy()
     reply = handle_request(bare_sim, raw)
     assert reply["ok"] is False
     assert reply["error"]["code"] == code, reply["error"]["message"]
     assert set(reply) == {"id", "ok", "error"} and reply["error"]["message"]
     json.dumps(reply, allow_nan=False)
-    assert bare_sim.mode.value == "idle" and bare_sim.t == 0.0
-    np.testing.assert_array_equal(bare_sim.state.position, before)
+    assert bare_sim.vehicle().mode.value == "idle" and bare_sim.t == 0.0
+    np.testing.assert_array_equal(bare_sim.vehicle().state.position, before)
 
 
 def test_replies_echo_the_id_and_unknown_op_lists_the_ops(bare_sim):
@@ -160,10 +160,10 @@ def test_flight_lock_and_extra_ops(bare_sim):
 
 # --------------------------------------------------------------------------- a real server
 class Rig:
-    """Simulator + lock + ApiServer + a thread stepping the simulation and publishing to the server."""
+    """A world + lock + ApiServer + a thread stepping the simulation and publishing to the server."""
 
     def __init__(self) -> None:
-        self.sim = Simulator(scene="default", render=False)
+        self.sim = World(scene="default", render=False)
         self.lock = threading.Lock()
         self.commands = CommandPath(self.sim, self.lock)
         self.server = ApiServer(self.commands, port=0, max_message_bytes=MAX_MESSAGE, state_rate_hz=30.0)
@@ -174,7 +174,7 @@ class Rig:
         while not self._stop.is_set():
             with self.lock:
                 events = [e.to_dict() for _ in range(STEPS_PER_TICK) for e in self.sim.step().events]
-                state = self.sim.state  # what the runtime publishes too
+                state = self.sim.vehicle().state  # what the runtime publishes too
             for e in events:
                 self.server.publish_event(e)
             self.server.publish_state(state)
@@ -369,7 +369,7 @@ def test_a_slow_state_subscriber_is_woken_only_when_a_state_is_due(bare_sim):
 
     def publish() -> None:
         while not stop.is_set():
-            server.publish_state(bare_sim.state)
+            server.publish_state(bare_sim.vehicle().state)
             time.sleep(0.001)
 
     with DroneulatorClient(server.url, timeout=5.0) as c:
@@ -388,7 +388,7 @@ def test_a_slow_state_subscriber_is_woken_only_when_a_state_is_due(bare_sim):
             pass
         time.sleep(0.5)
         sent = time.monotonic()
-        server.publish_state(bare_sim.state)
+        server.publish_state(bare_sim.vehicle().state)
         assert c.next_message(2.0) is not None
         assert time.monotonic() - sent < 0.2
     server.stop()
@@ -454,8 +454,8 @@ def test_stop_is_prompt_even_with_a_command_waiting_for_the_lock(rig, bare_sim):
         server.stop()
         assert time.monotonic() - start < 3.0
     time.sleep(0.1)
-    assert bare_sim.mode.value == "idle"  # the command never ran
-    server.publish_state(bare_sim.state)
+    assert bare_sim.vehicle().mode.value == "idle"  # the command never ran
+    server.publish_state(bare_sim.vehicle().state)
     server.publish_event({"type": "late"})
     with pytest.raises(ApiError) as e:
         c.ping()

@@ -18,7 +18,7 @@ from droneulator.ros import messages as M
 from droneulator.ros.publishers import subscribe_commands
 from droneulator.ros.zenoh_node import RosZenohNode, ZenohNodeConfig
 from droneulator.runtime.launch import free_port
-from droneulator.sim.simulator import Simulator
+from droneulator.world import World
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 T = TS.types
@@ -47,7 +47,7 @@ class Rig:
 
     def __init__(self) -> None:
         cfg = load_config(scene="default")
-        self.sim = Simulator(config=cfg, render=False)
+        self.sim = World(config=cfg, render=False)
         self.commands = CommandPath(self.sim)
         endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.node = RosZenohNode(ZenohNodeConfig(listen=(endpoint,), connect=()))
@@ -104,10 +104,10 @@ def test_ros_commands_follow_the_api_rules_and_are_logged_once_per_burst(rig, ca
     summary, second = rejections(caplog)[1:3]
     assert summary == "4 more ROS /droneulator/cmd_vel velocity commands rejected (invalid_argument)"
     assert "rejected (not_airborne)" in second
-    assert rig.sim.mode.value == "idle"
+    assert rig.sim.vehicle().mode.value == "idle"
 
     with rig.commands.lock:
-        rig.sim.takeoff(2.0)
+        rig.sim.vehicle().takeoff(2.0)
     rig.commands.refuse_flight("PX4 SITL is in control")
     caplog.clear()
     for _ in range(10):
@@ -119,17 +119,17 @@ def test_ros_commands_follow_the_api_rules_and_are_logged_once_per_burst(rig, ca
     refused = "cmd_vel velocity command rejected (flight_locked): PX4 SITL is in control"
     assert sum(refused in m for m in msgs) == 1
     assert any("goal_pose goto command rejected (flight_locked)" in m for m in msgs)
-    assert rig.sim.mode.value == "takeoff"  # nothing ran
+    assert rig.sim.vehicle().mode.value == "takeoff"  # nothing ran
 
     rig.commands.allow_flight()
     rig.cmd_vel.put(twist(0.5, 0.1))
-    wait(lambda: rig.sim.mode.value == "velocity", "the twist to be accepted")
+    wait(lambda: rig.sim.vehicle().mode.value == "velocity", "the twist to be accepted")
 
 
 def test_goals_in_other_frames_or_with_a_zero_quaternion_are_refused(rig, caplog):
     caplog.set_level(logging.WARNING, logger="droneulator.commands")
     with rig.commands.lock:
-        rig.sim.takeoff(2.0)
+        rig.sim.vehicle().takeoff(2.0)
     rig.goal_pose.put(goal("odom", (1.0, 1.0, 2.0), (0.0, 0.0, 0.0, 0.0)))
     wait(lambda: rejections(caplog), "the zero quaternion to be refused")
     assert "`yaw` must be a finite number" in rejections(caplog)[0]
@@ -139,13 +139,13 @@ def test_goals_in_other_frames_or_with_a_zero_quaternion_are_refused(rig, caplog
     rig.goal_pose.put(goal("base_link", (1.0, 1.0, 2.0), (0.0, 0.0, 0.0, 1.0)))
     wait(lambda: len(rejections(caplog)) >= 3, "the base_link goal to be refused")
     assert "goal in frame 'base_link': only map/odom" in rejections(caplog)[2]
-    assert rig.sim.mode.value == "takeoff"
+    assert rig.sim.vehicle().mode.value == "takeoff"
     rig.goal_pose.put(goal("map", (1.0, 1.0, 2.0), (0.0, 0.0, 0.0, 1.0)))
-    wait(lambda: rig.sim.mode.value == "goto", "the valid goal to be flown")
+    wait(lambda: rig.sim.vehicle().mode.value == "goto", "the valid goal to be flown")
 
 
 def test_the_flight_lock_can_cover_chosen_ops():
-    sim = Simulator(scene="default", render=False)
+    sim = World(scene="default", render=False)
     path = CommandPath(sim)
     path.refuse_flight("a PX4 is connected", ops=("reset",))
     assert path.execute(make_request("reset", {}))["error"]["code"] == "flight_locked"
@@ -172,7 +172,7 @@ def test_position_commands_follow_the_api_rules_and_the_flight_lock(rig, caplog)
     assert "/droneulator/position_cmd track command rejected (not_airborne)" in rejections(caplog)[0]
 
     with rig.commands.lock:
-        rig.sim.takeoff(2.0)
+        rig.sim.vehicle().takeoff(2.0)
     rig.commands.refuse_flight("PX4 SITL is in control")
     caplog.clear()
     for _ in range(20):
@@ -181,7 +181,7 @@ def test_position_commands_follow_the_api_rules_and_the_flight_lock(rig, caplog)
     time.sleep(0.3)
     refused = "position_cmd track command rejected (flight_locked): PX4 SITL is in control"
     assert sum(refused in m for m in rejections(caplog)) == 1  # once per burst
-    assert rig.sim.mode.value == "takeoff"
+    assert rig.sim.vehicle().mode.value == "takeoff"
 
     rig.commands.allow_flight()
     caplog.clear()
@@ -194,27 +194,27 @@ def test_position_commands_follow_the_api_rules_and_the_flight_lock(rig, caplog)
     assert "setpoint in frame 'base_link': only world/map/odom" in msgs[0]
     assert "rejected (out_of_bounds)" in msgs[1]
     assert "`yaw` must be a finite number" in msgs[2]
-    assert rig.sim.mode.value == "takeoff"
+    assert rig.sim.vehicle().mode.value == "takeoff"
 
     rig.position_cmd.put(setpoint("world", (0.5, 0.25, 2.0), yaw=0.5))
-    wait(lambda: rig.sim.mode.value == "track", "the setpoint to be tracked")
+    wait(lambda: rig.sim.vehicle().mode.value == "track", "the setpoint to be tracked")
     with rig.commands.lock:
         rig.sim.step()  # the first control tick after the setpoint: its reference is the setpoint itself
-        ref = rig.sim.state.reference
+        ref = rig.sim.vehicle().state.reference
     assert ref[0:3].tolist() == [0.5, 0.25, 2.0] and ref[3:6].tolist() == [0.2, 0.0, 0.0]
     assert ref[6:9].tolist() == [0.0, 0.0, 0.1] and (ref[9], ref[10]) == (0.5, 0.1)
 
 
 def test_commands_never_interleave_with_a_step():
     """A command from any source waits for the simulation lock held by the stepping loop."""
-    sim = Simulator(scene="default", render=False)
+    sim = World(scene="default", render=False)
     path = CommandPath(sim)
     done = threading.Event()
     with path.lock:
         worker = threading.Thread(target=lambda: (path.execute(make_request("takeoff", {})), done.set()))
         worker.start()
         time.sleep(0.2)
-        assert not done.is_set() and sim.mode.value == "idle"
+        assert not done.is_set() and sim.vehicle().mode.value == "idle"
     worker.join(5)
-    assert done.is_set() and sim.mode.value == "takeoff"
+    assert done.is_set() and sim.vehicle().mode.value == "takeoff"
     sim.close()

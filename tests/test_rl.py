@@ -11,10 +11,10 @@ import pytest
 from PIL import Image
 
 import droneulator.workflows.rl as rl
-from droneulator.sim.simulator import Simulator
 from droneulator.vehicles.dynamics import STATE
 from droneulator.workflows.rl.astar import OccupancyGrid
 from droneulator.workflows.rl.env import VineyardNavEnv, depth_strip, env_config, runtime_overrides
+from droneulator.world import World
 
 ALLEY = [-8.0, 0.0, 0.0]  # in the middle alley (y = 0), facing +x along it
 GOAL_FAR = [8.0, 0.0]
@@ -130,17 +130,18 @@ def test_depth_strip_is_the_centre_row_of_the_rendered_image(env):
     u = env.unwrapped
     obs, _ = env.reset(seed=5)
     cfg = env_config()
-    with Simulator(config=cfg) as sim:  # the Simulator's own renderer (RGB + depth) at the same pose
+    with World(config=cfg) as world:  # a world's own camera pipeline (RGB + depth) at the same pose
+        uav = world.vehicle()
         kin = u.kinematics
-        sim.reset(position=kin.position, yaw=kin.yaw)
-        depth = sim.render().cameras["front"].depth
+        world.reset(position=kin.position, yaw=kin.yaw)
+        depth = world.render().cameras[uav.name]["front"].depth
         assert depth.shape == (cfg.rl.camera_height, cfg.rl.camera_width)
         np.testing.assert_allclose(obs[:32], expected_strip(depth), atol=1e-6)
         for _ in range(15):
             obs, *_ = env.step(np.array([0.3, 0.5]))
         kin = u.kinematics
-        sim.s[STATE.x], sim.s[STATE.q] = kin.position, kin.quaternion  # the full attitude, rolled and pitched
-        depth = sim.render().cameras["front"].depth
+        uav.s[STATE.x], uav.s[STATE.q] = kin.position, kin.quaternion  # the full attitude, rolled and pitched
+        depth = world.render().cameras[uav.name]["front"].depth
         np.testing.assert_allclose(obs[:32], expected_strip(depth), atol=1e-6)
     assert (obs[:32] < 1.0).any()  # vines in view, not only misses
 

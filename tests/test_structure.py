@@ -83,7 +83,7 @@ LAYERS: dict[str, int] = {
     "scenes": 1, "wind": 1, "trajectories": 1, "sensors": 1, "commands": 1,
     "controllers": 2,
     "vehicles": 3,
-    "world": 4, "sim": 4, "render": 4, "imaging": 4,
+    "world": 4, "render": 4, "imaging": 4,
     "api": 5, "ros": 5, "px4": 5, "recording": 5,
     "runtime": 6, "ui": 6,
     "workflows": 7,
@@ -195,7 +195,7 @@ def test_cli_help_imports_no_simulator() -> None:
         "sub = next(a for a in ap._actions if isinstance(a, argparse._SubParsersAction))\n"
         "for p in (ap, *sub.choices.values()):\n"
         "    p.format_help()\n"
-        "heavy = ('numba', 'moderngl', 'torch', 'rotorpy', 'droneulator.sim', 'droneulator.vehicles')\n"
+        "heavy = ('numba', 'moderngl', 'torch', 'rotorpy', 'droneulator.world', 'droneulator.vehicles')\n"
         "print(sorted(m for m in heavy if m in sys.modules))"
     )
     assert r.returncode == 0 and r.stdout.strip() == "[]", r.stderr or r.stdout

@@ -1,6 +1,6 @@
 """WebSocket front end of the command protocol, on its own asyncio loop in a daemon thread.
 
-Threading: the dynamics server steps the :class:`~droneulator.sim.simulator.Simulator` in its main
+Threading: the dynamics server steps the :class:`~droneulator.world.World` in its main
 thread while holding the simulation lock. Commands go through the one
 :class:`~droneulator.commands.path.CommandPath` (validation, flight lock, simulation lock), one at a
 time in a worker thread of this server, so they never interleave with a physics step and never stall
@@ -47,7 +47,7 @@ from droneulator.commands import CommandPath
 from droneulator.threads import DaemonWorker
 
 if TYPE_CHECKING:
-    from droneulator.sim.simulator import VehicleState
+    from droneulator.vehicles.vehicle import VehicleState
 
 log = logging.getLogger(__name__)
 

@@ -20,19 +20,14 @@ import math
 import time
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
-from typing import Any, cast
+from typing import Any
 
 from droneulator.commands.errors import ERROR_CODES, CommandError
-from droneulator.commands.surface import CommandedVehicle, CommandedWorld, Simulation
+from droneulator.commands.surface import CommandedVehicle, CommandedWorld
 from droneulator.config.scene import VEGETATION_RANGE
 
 #: the ``vehicle`` value of ``state`` and ``subscribe`` that means every vehicle (not a valid name)
 ALL_VEHICLES = "*"
-
-
-def world_of(sim: Simulation) -> CommandedWorld:
-    """The world of ``sim``: a world itself, or the world a single-vehicle ``Simulator`` speaks for."""
-    return cast(CommandedWorld, getattr(sim, "world", sim))
 
 
 log = logging.getLogger(__name__)
@@ -180,7 +175,7 @@ def _state(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
 
 
 def _trigger(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
-    stamp = world_of(sim).trigger(a.get("vehicle"))
+    stamp = sim.trigger(a.get("vehicle"))
     return {"frame_stamp_ns": stamp, **_when(sim)}
 
 
@@ -228,7 +223,7 @@ _WIND_FIELDS = {
 
 
 def _set_wind(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
-    world = world_of(sim)
+    world = sim
     name = a.get("vehicle")
     row = 0 if name is None else list(world.vehicles).index(world.vehicle(name).name)
     changes = {field: a[arg] for arg, field in _WIND_FIELDS.items() if arg in a}
@@ -655,7 +650,7 @@ ExtraOp = Callable[[dict[str, Any]], Any]
 
 
 def execute(
-    sim: Simulation | None,
+    sim: CommandedWorld | None,
     request: Request,
     extra_ops: Mapping[str, ExtraOp] | None = None,
     flight_locked: str | None = None,
@@ -680,7 +675,7 @@ def execute(
                 raise CommandError("flight_locked", flight_locked)
             if sim is None:
                 raise CommandError("internal_error", f"{request.op} needs the simulator, and none was given")
-            result = spec.run(world_of(sim), request.args)
+            result = spec.run(sim, request.args)
         reply = ok_reply(request.id, result)
         encode(reply)  # fail here, with a proper error, rather than in the transport
         return reply

@@ -24,9 +24,8 @@ from droneulator.commands.ops import (
     error_reply,
     execute,
     make_request,
-    world_of,
 )
-from droneulator.commands.surface import Simulation
+from droneulator.commands.surface import CommandedWorld
 from droneulator.logs import LogThrottle
 
 log = logging.getLogger("droneulator.commands")
@@ -38,12 +37,11 @@ BURST_GAP_S = 2.0
 class CommandPath:
     """Validation, flight lock and simulation lock for every command source (see the module docstring).
 
-    ``sim`` is the world the ops run on (:class:`~droneulator.commands.surface.CommandedWorld`), or a
-    single-vehicle ``Simulator``, whose world it then commands.
+    ``sim`` is the world the ops run on (:class:`~droneulator.commands.surface.CommandedWorld`).
     """
 
-    def __init__(self, sim: Simulation, lock: AbstractContextManager[Any] | None = None) -> None:
-        self.sim = world_of(sim)
+    def __init__(self, sim: CommandedWorld, lock: AbstractContextManager[Any] | None = None) -> None:
+        self.sim = sim
         self.lock = lock if lock is not None else threading.Lock()
         #: vehicle name (None: every vehicle) -> (reason, the ops refused; None: every flight op)
         self._locks: dict[str | None, tuple[str, frozenset[str] | None]] = {}

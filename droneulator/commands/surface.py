@@ -4,7 +4,7 @@ The command path sits below the world in the package's layers (docs/architecture
 import :class:`~droneulator.world.World` or :class:`~droneulator.vehicles.Vehicle`, not even for type
 checking. It names them structurally instead: :class:`CommandedWorld` and :class:`CommandedVehicle`
 list every method and attribute an op calls, typed, and ``World`` / ``Vehicle`` satisfy them without
-knowing of them (tests/test_commands_surface.py checks both at run time; mypy checks the signatures).
+knowing of them (tests/test_command_surface.py checks both at run time; mypy checks the signatures).
 """
 
 from __future__ import annotations
@@ -139,15 +139,3 @@ class CommandedWorld(Protocol):
     def set_wind(self, config: WindConfig, vehicle: str | None = None) -> None:
         """Change the wind of every vehicle, or of ``vehicle`` only."""
         ...
-
-
-@runtime_checkable
-class HoldsWorld(Protocol):
-    """A single-vehicle front (``droneulator.sim.Simulator``) that speaks for a world."""
-
-    @property
-    def world(self) -> CommandedWorld: ...
-
-
-#: what a command source hands the command path: a world, or a front that holds one
-Simulation = CommandedWorld | HoldsWorld
