@@ -19,15 +19,10 @@ from pymavlink.dialects.v20 import common as mavlink
 from droneulator import frames as F
 from droneulator.config import PX4Config, load_config
 from droneulator.px4 import MotorMap, PX4Link, px4_rotor_order
-from droneulator.px4.link import (
-    BOOT_GRACE_S,
-    CANDIDATE_TIMEOUT_S,
-    LINK_SILENCE_S,
-    SENSOR_ACCEL,
-    SENSOR_BARO,
-    SENSOR_GYRO,
-    SENSOR_MAG,
-)
+from droneulator.px4.handover import Handover, loss_action
+from droneulator.px4.hil import SENSOR_ACCEL, SENSOR_BARO, SENSOR_GYRO, SENSOR_MAG
+from droneulator.px4.link import BOOT_GRACE_S
+from droneulator.px4.transport import CANDIDATE_TIMEOUT_S, LINK_SILENCE_S
 from droneulator.sensors import SensorSuite, Truth
 from droneulator.sim.simulator import Simulator
 from droneulator.vehicles.params import get_params
@@ -715,6 +710,26 @@ def test_a_bad_on_loss_is_refused_with_the_choices():
         PX4Config(on_loss="crash")
     with pytest.raises(ValueError, match="on_loss"):
         load_config(overrides=["px4.on_loss=drop"])
+
+
+def test_the_loss_rule_and_the_hand_over_decide_from_height_arming_and_landing_alone():
+    """The policy as pure decisions: a loss on the ground rests whatever ``on_loss`` says; a held PX4
+    armed in the air is refused once (said once, again only after it disarmed), and gets the rotors
+    down, disarmed or arming there."""
+    assert [loss_action(0.04, rule) for rule in ("land", "hold", "fall")] == ["rest"] * 3
+    assert [loss_action(3.0, rule) for rule in ("land", "hold", "fall")] == ["land", "hold", "fall"]
+    h = Handover()
+    h.connect(on_the_ground=False)
+    assert h.holding
+    assert [h.command(armed=True, down=False) for _ in range(2)] == ["refuse", "wait"]
+    assert h.command(armed=True, down=True) == "wait" and h.holding  # refused until it disarms
+    assert h.command(armed=False, down=False) == "wait" and not h.arm_refused
+    assert h.command(armed=True, down=False) == "refuse"
+    assert h.command(armed=False, down=True) == "hand_over" and not h.holding
+    h.connect(on_the_ground=False)
+    assert h.command(armed=True, down=True) == "hand_over"  # armed on the ground, never refused
+    h.connect(on_the_ground=True)
+    assert not h.holding
 
 
 def test_the_landing_spot_keeps_clear_of_the_scene():
