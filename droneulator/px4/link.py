@@ -553,6 +553,10 @@ class PX4Fleet:
         """True while any PX4 is connected (PX4 then drives the simulation clock)."""
         return any(link.connected for link in self.links)
 
+    def connected_vehicles(self) -> set[str]:
+        """The vehicles with a PX4 connected (each such link samples its vehicle's sensors every step)."""
+        return {link.vehicle.name for link in self.links if link.connected}
+
     def serve_once(self, timeout: float, lock: threading.Lock | None = None) -> StepResult | None:
         return serve_links(self.links, timeout, lock)
 
