@@ -42,7 +42,7 @@ def fleet_config(n: int = 2, **px4: Any) -> Any:
 
 
 def scene_info(cfg: Any) -> dict[str, Any]:
-    """``scene_info``'s vehicles as the run lists them (the dynamics server's ``_describe_vehicles``)."""
+    """``scene_info``'s vehicles as the run lists them (``runtime/api_host.py``'s ``_describe_vehicles``)."""
     instances = cfg.px4_instances()
     vehicles = []
     for name, names in fleet_names(cfg).items():

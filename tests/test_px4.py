@@ -19,18 +19,13 @@ from pymavlink.dialects.v20 import common as mavlink
 from droneulator import frames as F
 from droneulator.config import PX4Config, load_config
 from droneulator.px4 import MotorMap, PX4Link, px4_rotor_order
-from droneulator.px4.link import (
-    BOOT_GRACE_S,
-    CANDIDATE_TIMEOUT_S,
-    LINK_SILENCE_S,
-    SENSOR_ACCEL,
-    SENSOR_BARO,
-    SENSOR_GYRO,
-    SENSOR_MAG,
-)
+from droneulator.px4.handover import Handover, loss_action
+from droneulator.px4.hil import SENSOR_ACCEL, SENSOR_BARO, SENSOR_GYRO, SENSOR_MAG
+from droneulator.px4.link import BOOT_GRACE_S
+from droneulator.px4.transport import CANDIDATE_TIMEOUT_S, LINK_SILENCE_S
 from droneulator.sensors import SensorSuite, Truth
-from droneulator.sim.simulator import Simulator
 from droneulator.vehicles.params import get_params
+from droneulator.world import World
 
 ALL_FIELDS = SENSOR_ACCEL | SENSOR_GYRO | SENSOR_MAG | SENSOR_BARO
 STEP_US = 4000  # 250 Hz lockstep
@@ -43,14 +38,14 @@ def isa_hpa(alt_msl: float) -> float:
 
 def make_sim(
     params: str, px4: PX4Config | None = None, seed: int = 0, sensors: list[str] | None = None
-) -> Simulator:
-    """A 250 Hz simulator of airframe ``params`` whose vehicle's sensors read ``px4`` (noise, biases)."""
+) -> World:
+    """A 250 Hz one-vehicle world of airframe ``params``, its sensors reading ``px4`` (noise, biases)."""
     cfg = load_config(overrides=["vehicle.control_hz=250", f"vehicle.params={params}"], seed=seed)
     if px4 is not None:
         cfg.px4 = px4
     if sensors is not None:
         cfg.vehicle.sensors = sensors
-    return Simulator(scene="default", render=False, config=cfg)
+    return World(cfg, scene="default", render=False)
 
 
 def px4_cfg(**kw: Any) -> PX4Config:
@@ -67,7 +62,7 @@ def wait_until(pred: Any, timeout: float = 5.0) -> None:
 class Served:
     """A PX4Link served from a background thread, as the dynamics server does."""
 
-    def __init__(self, sim: Simulator, cfg: PX4Config | None = None, run_alone: bool = False) -> None:
+    def __init__(self, sim: World, cfg: PX4Config | None = None, run_alone: bool = False) -> None:
         """``run_alone``: step the simulation while no PX4 is connected and the vehicle is not at rest
         (as the dynamics server does); otherwise time stands still without PX4."""
         self.sim = sim
@@ -88,7 +83,7 @@ class Served:
                 self.sim_events.extend(res.events)
             elif self.run_alone and not self.link.connected:
                 with self.lock:  # no PX4: the simulator runs on its own, as the dynamics server does
-                    if self.sim.mode.value != "idle" or self.sim.state.position[2] > 0.05:
+                    if self.sim.vehicle().mode.value != "idle" or self.sim.vehicle().state.position[2] > 0.05:
                         self.sim_events.extend(self.sim.step().events)
 
     def reset(self, **kw: Any) -> None:
@@ -327,10 +322,11 @@ def test_connection_sends_every_sensor_then_rests_on_ground_in_lockstep(served, 
     np.testing.assert_allclose(np.mean(gyros, axis=0), 0.0, atol=0.001)
     assert np.std(np.array(accels)[:, 2]) == pytest.approx(0.02, rel=0.3)  # PX4Config.accel_noise
     # the magnetometer reads the NED field rotated into the body (FRD)
-    R = F.quat_to_matrix(F.quat_enu_flu_to_ned_frd(sim.state.quaternion))
+    R = F.quat_to_matrix(F.quat_enu_flu_to_ned_frd(sim.vehicle().state.quaternion))
     mag = R.T @ served.link.sensors.models["mag"].field_ned
     np.testing.assert_allclose([sensor.xmag, sensor.ymag, sensor.zmag], mag, atol=0.01)
-    assert sim.mode.value == "idle" and sim.state.position[2] == 0.0  # disarmed: motors off
+    uav = sim.vehicle()
+    assert uav.mode.value == "idle" and uav.state.position[2] == 0.0  # disarmed: motors off
     peer.close()
 
 
@@ -398,16 +394,16 @@ def test_px4_without_lockstep_free_runs_on_its_latest_outputs(sim, caplog):
     sim.reset()
     served = Served(sim, px4_cfg(speed_factor=1.0))
     peer = px4_in_the_air(served, start)
-    u = float(served.link.motor_map.speed_to_output(sim.vehicle.hover_speed))
+    u = float(served.link.motor_map.speed_to_output(sim.vehicle().hover_speed))
     msgs: list[Any] = []
     for _ in range(20):  # a PX4 built without lockstep, sending at 50 Hz of wall time
         peer.actuators([u] * 4, lockstep=False)
         msgs += peer.drain(0.02)
     assert len(by_type(msgs, "HIL_SENSOR")) > 20 and not served.link.lockstep
-    assert sim.mode.value == "external" and abs(sim.state.position[2] - start[2]) < 0.01
+    assert sim.vehicle().mode.value == "external" and abs(sim.vehicle().state.position[2] - start[2]) < 0.01
     with caplog.at_level(logging.WARNING, logger="droneulator.px4"):
         peer.drain(0.5)  # PX4 went quiet: after 0.2 s of sim time the motors stop (Gazebo's rule)
-        assert sim.mode.value == "idle" and sim.state.position[2] < start[2] - 0.1
+        assert sim.vehicle().mode.value == "idle" and sim.vehicle().state.position[2] < start[2] - 0.1
         assert "motors off" in caplog.text
     peer.close()
     served.close()
@@ -416,14 +412,14 @@ def test_px4_without_lockstep_free_runs_on_its_latest_outputs(sim, caplog):
 def test_hover_outputs_hold_altitude(served, sim):
     start = sim.scene.spawn_position + [0.0, 0.0, 3.0]
     peer = px4_in_the_air(served, start)
-    u = float(served.link.motor_map.speed_to_output(sim.vehicle.hover_speed))
+    u = float(served.link.motor_map.speed_to_output(sim.vehicle().hover_speed))
     assert u == pytest.approx(0.49, abs=0.01)  # SIH quad-X: hover at ~half thrust, as PX4 assumes
     zs, accel = [], []
     for _ in range(500):  # 2 s
         s = peer.step([u] * 4)[-1]
-        zs.append(sim.state.position[2])
+        zs.append(sim.vehicle().state.position[2])
         accel.append([s.xacc, s.yacc, s.zacc])
-    assert sim.mode.value == "external" and served.link.armed
+    assert sim.vehicle().mode.value == "external" and served.link.armed
     assert max(abs(z - start[2]) for z in zs) < 0.02
     np.testing.assert_allclose(np.mean(accel, axis=0), [0.0, 0.0, -9.81], atol=0.02)  # thrust balances g
     peer.close()
@@ -443,7 +439,7 @@ def test_one_motor_step_gives_the_quad_x_torque_signs(params, sim):
     s = sim if params == "px4_quadx" else make_sim(params)
     served = Served(s)
     try:
-        u = float(served.link.motor_map.speed_to_output(s.vehicle.hover_speed))
+        u = float(served.link.motor_map.speed_to_output(s.vehicle().hover_speed))
         for motor, signs in QUAD_X_RESPONSE.items():
             peer = px4_in_the_air(served, s.scene.spawn_position + [0.0, 0.0, 3.0])
             for _ in range(5):
@@ -456,7 +452,7 @@ def test_one_motor_step_gives_the_quad_x_torque_signs(params, sim):
             rates = np.array([truth.rollspeed, truth.pitchspeed, truth.yawspeed])
             assert np.all(np.sign(rates) == signs), (motor, rates)
             assert np.all(np.abs(rates) > 1e-3)
-            fastest = int(np.argmax(s.state.rotor_speeds))
+            fastest = int(np.argmax(s.vehicle().state.rotor_speeds))
             assert fastest == served.link.motor_map.order[motor - 1]
             peer.close()
     finally:
@@ -622,16 +618,16 @@ def test_a_quiet_link_is_kept_while_the_simulator_is_the_one_that_waits(served, 
     first.close()
 
 
-def _climb(peer: Peer, sim: Simulator, link: PX4Link, altitude: float) -> None:
+def _climb(peer: Peer, sim: World, link: PX4Link, altitude: float) -> None:
     """Fly as an armed PX4 would in a take-off: equal outputs from an altitude loop on the truth."""
-    hover = link.motor_map.speed_to_output(sim.vehicle.hover_speed)
+    hover = link.motor_map.speed_to_output(sim.vehicle().hover_speed)
     for _ in range(5000):
-        z, vz = sim.state.position[2], sim.state.velocity[2]
+        z, vz = sim.vehicle().state.position[2], sim.vehicle().state.velocity[2]
         u = float(np.clip(hover * (1.0 + 0.6 * (altitude - z) - 0.8 * vz), 0.1, 0.9))
         peer.step([u] * 4)
         if abs(z - altitude) < 0.05 and abs(vz) < 0.05:
             return
-    raise AssertionError(f"no hover at {altitude} m: z = {sim.state.position[2]:.2f} m")
+    raise AssertionError(f"no hover at {altitude} m: z = {sim.vehicle().state.position[2]:.2f} m")
 
 
 @pytest.mark.parametrize("on_loss", ["land", "hold", "fall"])
@@ -651,7 +647,7 @@ def test_a_px4_lost_in_the_air_and_restarted_never_drops_the_vehicle_unless_told
             first.step([0.0] * 4)  # armed on the ground: PX4 has the rotors
         assert link.in_control and not link.holding
         _climb(first, sim, link, 5.0)
-        assert sim.mode.value == "external"
+        assert sim.vehicle().mode.value == "external"
         link.take_events()
         served.sim_events.clear()
         first.close()  # PX4 killed in the hover
@@ -660,7 +656,7 @@ def test_a_px4_lost_in_the_air_and_restarted_never_drops_the_vehicle_unless_told
         # the link's thread changes the mode, then records the event: wait for the event itself
         taken: list = []
         wait_until(lambda: taken.extend(link.take_events()) or any(e.type == "px4_lost" for e in taken))
-        assert sim.mode.value != "external"
+        assert sim.vehicle().mode.value != "external"
         lost = [e for e in taken if e.type == "px4_lost"]
         assert len(lost) == 1 and lost[0].data["action"] == on_loss
 
@@ -673,21 +669,21 @@ def test_a_px4_lost_in_the_air_and_restarted_never_drops_the_vehicle_unless_told
             restarted.step(armed=False)
         for _ in range(500):  # the user arms it: refused in the air
             restarted.step(idle)
-            if sim.mode.value == "idle" and sim.state.position[2] < 0.05:
+            if sim.vehicle().mode.value == "idle" and sim.vehicle().state.position[2] < 0.05:
                 break
         events = link.take_events()
         if on_loss != "fall":
-            assert link.holding and sim.state.position[2] > 1.0
+            assert link.holding and sim.vehicle().state.position[2] > 1.0
             assert [e.type for e in events].count("px4_arm_refused") == 1
         if on_loss == "hold":
-            assert sim.mode.value == "hold" and abs(sim.state.position[2] - 5.0) < 0.1
+            assert sim.vehicle().mode.value == "hold" and abs(sim.vehicle().state.position[2] - 5.0) < 0.1
             with served.lock:
-                sim.land()  # what an API user does to hand the vehicle to the new PX4
+                sim.vehicle().land()  # what an API user does to hand the vehicle to the new PX4
         for _ in range(6000):  # disarmed while it comes down (PX4's land detector, or the user)
             restarted.step(armed=False)
-            if sim.mode.value == "idle" and sim.state.position[2] < 0.05:
+            if sim.vehicle().mode.value == "idle" and sim.vehicle().state.position[2] < 0.05:
                 break
-        assert sim.state.position[2] < 0.05
+        assert sim.vehicle().state.position[2] < 0.05
         for _ in range(5):
             restarted.step(armed=False)
         assert link.in_control and not link.holding
@@ -695,7 +691,7 @@ def test_a_px4_lost_in_the_air_and_restarted_never_drops_the_vehicle_unless_told
             assert "px4_in_control" in [e.type for e in link.take_events()]
         for _ in range(50):  # armed on the ground: its idle outputs now spin the rotors
             restarted.step(idle)
-        assert sim.mode.value == "external" and np.all(sim.state.rotor_speeds > 0.0)
+        assert sim.vehicle().mode.value == "external" and np.all(sim.vehicle().state.rotor_speeds > 0.0)
         impacts = [e for e in served.sim_events if e.type == "impact"]
         if on_loss == "fall":
             h = 5.0 - 0.0
@@ -717,10 +713,30 @@ def test_a_bad_on_loss_is_refused_with_the_choices():
         load_config(overrides=["px4.on_loss=drop"])
 
 
+def test_the_loss_rule_and_the_hand_over_decide_from_height_arming_and_landing_alone():
+    """The policy as pure decisions: a loss on the ground rests whatever ``on_loss`` says; a held PX4
+    armed in the air is refused once (said once, again only after it disarmed), and gets the rotors
+    down, disarmed or arming there."""
+    assert [loss_action(0.04, rule) for rule in ("land", "hold", "fall")] == ["rest"] * 3
+    assert [loss_action(3.0, rule) for rule in ("land", "hold", "fall")] == ["land", "hold", "fall"]
+    h = Handover()
+    h.connect(on_the_ground=False)
+    assert h.holding
+    assert [h.command(armed=True, down=False) for _ in range(2)] == ["refuse", "wait"]
+    assert h.command(armed=True, down=True) == "wait" and h.holding  # refused until it disarms
+    assert h.command(armed=False, down=False) == "wait" and not h.arm_refused
+    assert h.command(armed=True, down=False) == "refuse"
+    assert h.command(armed=False, down=True) == "hand_over" and not h.holding
+    h.connect(on_the_ground=False)
+    assert h.command(armed=True, down=True) == "hand_over"  # armed on the ground, never refused
+    h.connect(on_the_ground=True)
+    assert not h.holding
+
+
 def test_the_landing_spot_keeps_clear_of_the_scene():
     """Above a tree crown the simulator does not land straight down through it."""
     cfg = load_config(overrides=["vehicle.control_hz=250"])
-    s = Simulator(scene="tree_inspection", render=False, config=cfg)
+    s = World(cfg, scene="tree_inspection", render=False)
     try:
         col = s.scene.collision
         grid = np.stack(np.meshgrid(np.arange(-8, 8, 0.5), np.arange(-8, 8, 0.5), [3.0]), -1).reshape(-1, 3)
@@ -728,15 +744,15 @@ def test_the_landing_spot_keeps_clear_of_the_scene():
         assert min(d) < 0  # the crown is there
         above = grid[int(np.argmin(d))] + [0.0, 0.0, 4.0]
         s.reset(position=above)
-        xy = s.landing_spot()
+        xy = s.vehicle().landing_spot()
         column = np.array([[xy[0], xy[1], z] for z in np.linspace(0.75, above[2], 60)])
         assert min(col.distance(p) for p in column) >= 0.5 + cfg.vehicle.collision_radius
         assert np.linalg.norm(xy - above[:2]) > 0.5  # it moved off the crown
-        s.safe_land()
+        s.vehicle().safe_land()
         events: list[Any] = []
-        assert s.run_until(lambda sim: sim.mode.value == "idle", 60.0, events)
-        assert s.state.position[2] < 0.05 and s.collisions == 0
-        assert np.linalg.norm(s.state.position[:2] - xy) < 0.2
+        assert s.run_until(lambda sim: sim.vehicle().mode.value == "idle", 60.0, events)
+        assert s.vehicle().state.position[2] < 0.05 and s.vehicle().collisions == 0
+        assert np.linalg.norm(s.vehicle().state.position[:2] - xy) < 0.2
         assert [e.type for e in events if e.type in ("impact", "collision")] == []
     finally:
         s.close()
@@ -747,8 +763,8 @@ def test_on_the_ground_a_disarmed_px4_replacing_an_armed_one_stops_the_motors(se
     first.next()
     for _ in range(20):
         first.step([0.2] * 4)  # armed on the ground, motors turning below hover thrust
-    spinning = sim.state.rotor_speeds
-    assert sim.mode.value == "external" and np.all(spinning > 100.0)
+    spinning = sim.vehicle().state.rotor_speeds
+    assert sim.vehicle().mode.value == "external" and np.all(spinning > 100.0)
     first.close()
     wait_until(lambda: not served.link.connected)
     restarted = Peer(served.link.port)
@@ -756,8 +772,9 @@ def test_on_the_ground_a_disarmed_px4_replacing_an_armed_one_stops_the_motors(se
     assert served.link.in_control
     for _ in range(50):
         restarted.step(armed=False)
-    assert sim.mode.value == "idle" and sim.state.position[2] == pytest.approx(0.0, abs=0.01)
-    assert np.all(sim.state.rotor_speeds < 0.05 * spinning)  # spun down (motor lag)
+    uav = sim.vehicle()
+    assert uav.mode.value == "idle" and uav.state.position[2] == pytest.approx(0.0, abs=0.01)
+    assert np.all(sim.vehicle().state.rotor_speeds < 0.05 * spinning)  # spun down (motor lag)
     restarted.close()
 
 
@@ -782,12 +799,12 @@ def test_garbage_and_bad_actuator_values_are_rejected_and_the_link_keeps_working
     peer.sock.sendall(garbage)  # ends inside a bogus frame header claiming 267 bytes
     t = peer.step(armed=False)[-1].time_usec
     assert "not valid MAVLink" in caplog.text
-    u = float(served.link.motor_map.speed_to_output(sim.vehicle.hover_speed))
+    u = float(served.link.motor_map.speed_to_output(sim.vehicle().hover_speed))
     s = peer.step([float("nan"), u, u, u])[-1]
     assert s.time_usec == t + STEP_US and "not finite" in caplog.text
     s = peer.step([1.5, -0.2, u, u])[-1]
     assert s.time_usec == t + 2 * STEP_US and "outside [0, 1]" in caplog.text
-    assert np.all(np.isfinite(sim.state.rotor_speeds))
+    assert np.all(np.isfinite(sim.vehicle().state.rotor_speeds))
     for _ in range(5):
         s = peer.step(armed=False)[-1]
     assert s.time_usec == t + 7 * STEP_US and served.link.connected
@@ -806,7 +823,7 @@ def test_same_seed_gives_identical_sensor_streams(monkeypatch):
         served = Served(sim)
         peer = px4_in_the_air(served, sim.scene.spawn_position + [0.0, 0.0, 3.0])
         msgs = []
-        u = float(served.link.motor_map.speed_to_output(sim.vehicle.hover_speed))
+        u = float(served.link.motor_map.speed_to_output(sim.vehicle().hover_speed))
         for k in range(60):
             msgs += peer.step([u + 0.02 * math.sin(0.3 * k), u, u, u - 0.02 * math.sin(0.3 * k)])
         peer.close()
@@ -852,7 +869,7 @@ def test_a_vehicle_without_gps_sends_no_fix_and_one_without_a_magnetometer_is_re
         try:
             peer = px4_in_the_air(served, sim.scene.spawn_position + [0.0, 0.0, 3.0])
             msgs = peer.next()
-            u = float(served.link.motor_map.speed_to_output(sim.vehicle.hover_speed))
+            u = float(served.link.motor_map.speed_to_output(sim.vehicle().hover_speed))
             for _ in range(100):  # 0.4 s: four GPS periods at 10 Hz
                 msgs += peer.step([u] * 4)
             peer.close()

@@ -1,8 +1,10 @@
 """PX4 SITL simulator interface: PX4's ``simulator_mavlink`` protocol over TCP, in lockstep.
 
-:class:`~droneulator.px4.link.PX4Link` serves PX4 on TCP ``4560 + instance``; the sensor models are
-in :mod:`droneulator.sensors` (this package only packs their readings into MAVLink) and the quad-X
-motor mapping in :mod:`droneulator.px4.mixing`.
+:class:`~droneulator.px4.link.PX4Link` serves PX4 on TCP ``4560 + instance`` (the protocol state and
+lockstep stepping), over :mod:`~droneulator.px4.transport` (listening, vetting a connection, MAVLink
+framing); :mod:`~droneulator.px4.hil` packs the sensor readings into MAVLink (the sensor models are in
+:mod:`droneulator.sensors`), :mod:`~droneulator.px4.handover` decides who flies a vehicle when its PX4
+is lost or connects over it in the air, and :mod:`~droneulator.px4.mixing` maps the quad-X motors.
 See ``docs/px4.md``.
 """
 

@@ -17,9 +17,7 @@ import logging
 import os
 import signal
 import sys
-import time
 from multiprocessing.connection import Connection
-from typing import IO
 
 import zenoh
 
@@ -36,6 +34,7 @@ from droneulator.runtime.ipc import (
     Published,
     hub_connect,
 )
+from droneulator.runtime.latency import LatencyLog
 
 log = logging.getLogger("droneulator.bridge")
 
@@ -65,13 +64,7 @@ class Bridge:
         self.frames = FramePublisher(node, cfg, images_policy(cfg))
         self._publishing = False
         self._stop = False
-        self._latency: IO[str] | None = None
-        if cfg.bridge.latency_log:
-            self._latency = open(cfg.bridge.latency_log, "a", buffering=1)  # noqa: SIM115  (one write a line)
-
-    def _mark(self, stream: str, stamp_ns: int) -> None:
-        assert self._latency is not None
-        self._latency.write(f"{stream} {stamp_ns} {time.time_ns()}\n")
+        self._latency = LatencyLog.of(cfg)
 
     def on_signal(self, *_: object) -> None:
         """SIGTERM/SIGINT: exit at once between frames; mid-frame, finish the frame set first, so a
@@ -84,7 +77,7 @@ class Bridge:
     def serve(self) -> None:
         """Until the hub goes or a stop signal arrives; returns so the caller closes the Zenoh session
         (flushing what was put) after the last whole frame set."""
-        mark = self._mark if self._latency is not None else None
+        mark = self._latency.mark if self._latency is not None else None
         while not self._stop:
             try:
                 msg = self.conn.recv()

@@ -1,6 +1,8 @@
-"""The dynamics server: owns the world (its clock and every vehicle's flight), serves the WebSocket API,
-publishes the vehicle states to ROS 2 itself, and is the hub the render server and the bridge connect
-to. Each camera instant goes to the render server as every vehicle's state at once.
+"""The dynamics server: owns the world (its clock and every vehicle's flight) and is the hub the render
+server and the bridge connect to. Each camera instant goes to the render server as every vehicle's state
+at once. It composes what else runs on the clock: the WebSocket API (:mod:`.api_host`), the ROS 2 state
+and sensor topics (:mod:`.publishing`), the latency log (:mod:`.latency`), and the PX4 links with their
+flight lock (:mod:`droneulator.px4`).
 
 Lockstep: a control step is taken only while fewer than ``frame_slots - 1`` frames are in flight
 (requested from the render server and not yet published by the bridge), so sim time advances
@@ -13,19 +15,15 @@ Triggered cameras (``render.camera_trigger=command``) send a camera instant only
 ``trigger`` asks for one, in either mode, and it is never dropped; in lockstep a triggered frame holds
 the clock until it is published (:func:`lockstep_may_step`).
 
-Odometry, TF and ``/clock`` leave from here, right after the physics step that produced the state
-(no process hop), and so do the sensor topics (IMU, GPS fix, air pressure, magnetic field): a vehicle a
-connected PX4 flies publishes what its PX4 link sent PX4 (the link samples its sensors every step), any
-other vehicle what this server samples of its sensors at each state publish (the IMU every time, the
-others at ``px4.mag_hz``, ``baro_hz`` and ``gps_hz``). ROS commands (``cmd_vel``, ``goal_pose``) arrive
-here too and go through the same :class:`~droneulator.commands.path.CommandPath` as WebSocket commands.
+Odometry, TF, ``/clock`` and the sensor topics leave from here, right after the physics step that
+produced the state (no process hop). ROS commands (``cmd_vel``, ``goal_pose``) arrive here too and go
+through the same :class:`~droneulator.commands.path.CommandPath` as WebSocket commands.
 The Zenoh session of this process is the run's hub on Zenoh as well: by default a router listening on
 ``bridge.listen``, which the bridge process reaches over a private Unix socket.
 """
 
 from __future__ import annotations
 
-import functools
 import json
 import logging
 import os
@@ -34,15 +32,13 @@ import signal
 import threading
 import time
 from multiprocessing.connection import Connection, Listener, wait
-from pathlib import Path
-from typing import IO, Any
+from typing import TYPE_CHECKING, Any
 
-from droneulator.api.server import ApiServer
 from droneulator.commands import CommandPath
 from droneulator.config import SimConfig, from_dict
-from droneulator.ros.publishers import StatePublisher, fleet_names, subscribe_commands
-from droneulator.ros.topics import SENSOR_TOPICS
+from droneulator.ros.publishers import subscribe_commands
 from droneulator.ros.zenoh_node import RosZenohNode
+from droneulator.runtime.api_host import ApiHost
 from droneulator.runtime.ipc import (
     ENV_ADDRESS,
     ENV_AUTHKEY,
@@ -59,16 +55,19 @@ from droneulator.runtime.ipc import (
     Rendered,
     Welcome,
 )
+from droneulator.runtime.latency import LatencyLog
 from droneulator.runtime.pacing import Pacer
-from droneulator.sensors import Truth
-from droneulator.sensors.suite import Schedule
+from droneulator.runtime.publishing import StatePublishing
 from droneulator.vehicles.vehicle import NS, VehicleState
 from droneulator.world import World
 from droneulator.world.world import StepResult
 
+if TYPE_CHECKING:
+    from droneulator.px4.flight_lock import PX4FlightLock
+    from droneulator.px4.link import PX4Fleet
+
 log = logging.getLogger("droneulator.dynamics")
 ROLES = ("renderer", "bridge")
-STATIC_TF_PERIOD_S = 1.0
 #: lockstep under ``runtime.max_speed`` makes up a wait (a frame holding the clock) of up to this long, wall s
 MAX_SPEED_CATCH_UP_S = 1.0
 
@@ -106,25 +105,11 @@ class DynamicsServer:
         self.world = World(cfg, render=False, external_cameras=True)
         self.commands = CommandPath(self.world)
         rt = cfg.runtime
-        self.api = ApiServer(
-            self.commands,
-            host=rt.api_host,
-            port=rt.api_port,
-            max_message_bytes=rt.api_max_message_bytes,
-            state_rate_hz=rt.state_hz,
-        )
+        self.api = ApiHost(self.commands, cfg)
         self.node = open_zenoh_hub(cfg, zenoh_endpoint)
-        self.ros = StatePublisher(self.node, cfg)
-        #: vehicles with a sensor topic, and when each of their sensors is next sampled here
-        self._sensing = [
-            name for name, v in self.world.vehicles.items() if any(k in v.rig.suite for k in SENSOR_TOPICS)
-        ]
-        self._sensor_schedules = {name: Schedule() for name in self._sensing}
+        self._latency = LatencyLog.of(cfg)
+        self.publishing = StatePublishing(self.world, self.node, cfg, self._latency)
         subscribe_commands(self.node, cfg, self.commands)
-        self._latency: IO[str] | None = None
-        if cfg.bridge.latency_log:
-            Path(cfg.bridge.latency_log).parent.mkdir(parents=True, exist_ok=True)
-            self._latency = open(cfg.bridge.latency_log, "a", buffering=1)  # noqa: SIM115  (one write a line)
         self._hub_address, self._authkey = address, authkey
         self.listener: Listener | None = None
         self.peers: dict[str, Connection] = {}
@@ -134,36 +119,20 @@ class DynamicsServer:
         #: for all): frames requested and not yet published
         self.in_flight: dict[int, tuple[str, dict[str, VehicleState], tuple[str, ...] | None]] = {}
         self.window = rt.frame_slots - 1
-        self.state_period_ns = round(NS / rt.state_hz)
-        self._next_state_ns = 0
-        self._last_t_ns = 0
-        self._last_static = -float("inf")
         self._scene_key = (cfg.scene, cfg.seed, cfg.light, cfg.vegetation)
         #: the light the render server starts with (its config's): the world's may have changed since
         self._start_light = cfg.light
         self.stopping = threading.Event()
         self.dropped_frames = 0
         self.frames_published = 0
-        self.px4 = None
+        self.px4: PX4Fleet | None = None
+        self.flight_lock: PX4FlightLock | None = None
         if cfg.px4_instances():
+            from droneulator.px4.flight_lock import PX4FlightLock
             from droneulator.px4.link import PX4Fleet
 
             self.px4 = PX4Fleet.of(self.world)
-        #: vehicle -> what PX4 holds of it: "control" (all flight ops), "connected" (reset), or None
-        self._px4_holds: dict[str, str | None] = {}
-        if self.px4 is not None:
-            for link in self.px4.links:
-                link.on_change = functools.partial(self._update_px4_hold, link)
-
-    def _describe_vehicles(self) -> None:
-        """Tell each vehicle where it is reached (``scene_info.vehicles``): ROS names, PX4 port (bound)."""
-        ports = {}
-        if self.px4 is not None:
-            for link in self.px4.links:
-                ports[link.vehicle.name] = {"px4_instance": link.instance, "px4_port": link.port}
-        for name, names in fleet_names(self.cfg).items():
-            v = self.world.vehicles[name]
-            v.endpoints = {**names.describe([c.name for c in v.cameras]), **ports.get(name, {})}
+            self.flight_lock = PX4FlightLock(self.commands, self.px4)
 
     # ------------------------------------------------------------------ peers
     def _accept_loop(self) -> None:
@@ -268,34 +237,20 @@ class DynamicsServer:
         self._after_step(res, realtime, time.time_ns())
 
     def _after_step(self, res: StepResult, realtime: bool, stepped_wall_ns: int) -> None:
-        """Publish the states (ROS first: lowest latency), send camera instants to the render server,
-        events and states to the API. ``stepped_wall_ns``: when the step that produced them ended.
-
-        The states are published at ``runtime.state_hz``, and at every triggered camera instant (which
-        ends a control period: these states), so each triggered frame has odometry and TF of its stamp."""
+        """Publish the states when due (:meth:`StatePublishing.due`; ROS odometry first: lowest latency,
+        then the API, then the sensor topics), send camera instants to the render server, events to the
+        API. ``stepped_wall_ns``: when the step that produced them ended."""
         with self.lock:  # a command may reset the simulation between the step and here
             states = self.world.states_now()
             w = self.world.config
             scene = (w.scene, w.seed, w.light, w.vegetation)
-            st = next(iter(states.values()))
-            if st.t_ns < self._last_t_ns:  # reset through the API: re-send the static TF at once
-                self._last_static = -float("inf")
-                self._next_state_ns = 0
-            due = st.stamp_ns >= self._next_state_ns or any(r is not None for r in res.camera_rigs)
-            truths = self._sensor_truths(states) if due else {}
-        self._last_t_ns = st.t_ns
+            due = self.publishing.due(states, res)
+            fed = self.px4.connected_vehicles() if due and self.px4 is not None else set()
+            truths = self.publishing.sensor_truths(fed) if due else {}
         if due:
-            self._next_state_ns = st.stamp_ns + self.state_period_ns
-            if self._latency is not None:
-                self._latency.write(f"odom {st.stamp_ns} {stepped_wall_ns}\n")
-            self.ros.publish_states(states)
+            self.publishing.publish_states(states, stepped_wall_ns)
             self.api.publish_states(states)
-            if self._sensing:
-                self._publish_sensors(states, truths)
-            now = time.monotonic()
-            if now - self._last_static > STATIC_TF_PERIOD_S:
-                self._last_static = now
-                self.ros.publish_static(st.stamp_ns)
+            self.publishing.publish_sensors(states, truths)
         if scene != self._scene_key:  # reset to another scene, light or vegetation through the API
             self._scene_key = scene
             self.in_flight.clear()
@@ -310,25 +265,7 @@ class DynamicsServer:
             self.seq += 1
             self.in_flight[self.seq] = ("render", cam_state, rigs)
             self._send("renderer", Render(self.seq, cam_state, rigs))
-        for e in res.events:
-            self.api.publish_event(e.to_dict())
-
-    def _sensor_truths(self, states: dict[str, VehicleState]) -> dict[str, Truth]:
-        """(Under the lock, with the ``states`` just taken, which are about to be published) the truth each
-        sensing vehicle's sensors are sampled from, for the vehicles no connected PX4 flies: a PX4's link
-        has sampled its vehicle's sensors this step already."""
-        if not self._sensing:
-            return {}
-        fed = {link.vehicle.name for link in self.px4.links if link.connected} if self.px4 is not None else ()
-        return {n: Truth.from_sim(self.world.vehicles[n]) for n in self._sensing if n not in fed}
-
-    def _publish_sensors(self, states: dict[str, VehicleState], truths: dict[str, Truth]) -> None:
-        """Sample the sensors of the vehicles in ``truths`` (the IMU now, the others when due), then publish
-        every sensing vehicle's newest readings: one sample per reading, whoever drew it."""
-        vehicles = self.world.vehicles
-        for name, truth in truths.items():
-            vehicles[name].rig.suite.sample_due(truth, self._sensor_schedules[name])
-        self.ros.publish_sensors(states, {name: vehicles[name].rig.suite.latest for name in self._sensing})
+        self.api.publish_events(res.events)
 
     def _pipeline_warm(self) -> bool:
         """Renderer and bridge connected and a first frame through both (shaders compiled, scene
@@ -339,13 +276,10 @@ class DynamicsServer:
 
     def _px4_turn(self) -> bool:
         """While a PX4 is connected its actuator messages drive the clock (lockstep with every PX4 and
-        with every consumer); True then. The flight lock is per vehicle: while a PX4 is in control of its
-        vehicle, that vehicle's flight commands are refused (the others still fly on the API); a PX4 that
-        connected over a vehicle in the air is not in control until the vehicle is on the ground (the
-        simulator flies it meanwhile, by ``px4.on_loss`` after a loss), and while any PX4 is connected a
-        reset, which would turn its clock back, is refused. The links' events (connection, loss, arming,
-        hand-over) are published as API events, naming their vehicle."""
-        assert self.px4 is not None
+        with every consumer); True then. The flight lock follows each link (:class:`PX4FlightLock`); the
+        links' events (connection, loss, arming, hand-over) are published as API events, naming their
+        vehicle."""
+        assert self.px4 is not None and self.flight_lock is not None
         connected = self.px4.connected
         ready = all(r in self.peers for r in ROLES) and lockstep_may_step(self.in_flight, self.window)
         res = (
@@ -354,49 +288,18 @@ class DynamicsServer:
             else None
         )
         stepped_wall_ns = time.time_ns()
-        for event in self.px4.take_events():
-            self.api.publish_event(event.to_dict())
-        for link in self.px4.links:
-            self._update_px4_hold(link)
+        self.api.publish_events(self.px4.take_events())
+        self.flight_lock.update()
         if res is not None:
             self._after_step(res, False, stepped_wall_ns)
         if self.px4.connected:
             self._poll(0 if ready else 0.05)
         return self.px4.connected
 
-    def _update_px4_hold(self, link: Any) -> None:
-        name = link.vehicle.name
-        was = self._px4_holds.get(name)
-        hold = "control" if link.in_control else "connected" if link.connected else None
-        if hold == was:
-            return
-        self._px4_holds[name] = hold
-        if hold == "control":
-            self.commands.refuse_flight(
-                f"PX4 SITL is in control of {name}; flight commands come from PX4", vehicle=name
-            )
-            log.info("PX4 is in control of %s: it flies the vehicle and drives the simulation clock", name)
-            return
-        if hold == "connected":
-            # a PX4 that is connected but not flying (booting over a held vehicle) keeps the clock
-            self.commands.refuse_flight(
-                "a PX4 is connected: reset would turn its clock back", ops=("reset",), vehicle=name
-            )
-        else:
-            self.commands.allow_flight(name)
-        if was == "control":  # the link applied px4.on_loss (land, hold or fall) under the lock
-            log.warning(
-                "PX4 is not in control of %s: the simulator flies it (%s); a PX4 gets the rotors once it is "
-                "on the ground",
-                name,
-                link.vehicle.mode.value,
-            )
-
     def run(self) -> None:
         if self.px4 is not None:
             self.px4.start(listen=False)  # the port is ours now; PX4 is let in once the pipeline is warm
-        self._describe_vehicles()
-        self.api.start()
+        self.api.start(self.px4)
         # the hub socket last: it is the supervisor's sign that every port is bound and the run is up
         self.listener = Listener(self._hub_address, family="AF_UNIX", authkey=self._authkey)
         threading.Thread(target=self._accept_loop, name="hub-accept", daemon=True).start()

@@ -23,9 +23,10 @@ d) - rl.step_penalty``, plus ``rl.goal_reward`` on reaching ``rl.goal_radius`` o
 truncated after ``rl.time_limit_base_s + d0 / rl.min_average_speed`` seconds of sim time.
 
 ``mode="local"`` (default) steps an in-process :class:`~droneulator.world.World` and draws depth only
-(the camera pipeline, :mod:`droneulator.render.pipeline`); ``mode="remote"`` drives a running ``droneulator run`` (:mod:`.remote`). Both
-return the depth image and the vehicle state, and the observation is built from them by the same
-code. ``reset(options={"start": (x, y, yaw), "goal": (x, y)})`` sets the task explicitly.
+(the camera pipeline, :mod:`droneulator.render.pipeline`); ``mode="remote"`` drives a running
+``droneulator run`` (:mod:`.remote`). Both return the depth image and the vehicle state, and the
+observation is built from them by the same code. ``reset(options={"start": (x, y, yaw), "goal": (x,
+y)})`` sets the task explicitly.
 """
 
 from __future__ import annotations

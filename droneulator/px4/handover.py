@@ -1,0 +1,101 @@
+"""Who flies a PX4 vehicle when its PX4 comes and goes: the loss rule and the hand-over to a new PX4.
+
+PX4 lost while its outputs drive the rotors in the air: ``px4.on_loss`` says what the simulator does
+(``land``: its controller lands the vehicle at a spot clear of the scene; ``hold``; ``fall``: rotors
+stop); on the ground the rotors stop (``rest``). A PX4 that connects while the vehicle is in the air
+(a restarted PX4 boots believing it is landed, and would output idle when armed) does not get the
+rotors: the simulator keeps flying, and an arm in the air is refused (its outputs are not applied)
+until the vehicle is on the ground and PX4 disarmed or armed there.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Literal
+
+from droneulator.controllers.flight import Mode
+
+if TYPE_CHECKING:
+    from droneulator.vehicles.vehicle import Vehicle
+
+log = logging.getLogger(__name__)
+
+#: above this height (m, world z) the vehicle is in the air: a new PX4 does not get its rotors
+AIRBORNE_Z_M = 0.05
+
+LossAction = Literal["rest", "fall", "hold", "land"]
+
+
+def on_ground(vehicle: Vehicle) -> bool:
+    """(Under the lock) the vehicle rests on the ground: no PX4 is needed to keep it safe."""
+    return vehicle.state.position[2] <= AIRBORNE_Z_M and vehicle.mode in (Mode.IDLE, Mode.EXTERNAL)
+
+
+def landed(vehicle: Vehicle) -> bool:
+    """(Under the lock) the vehicle is down under the simulator's controller: a held PX4 may take over."""
+    return vehicle.mode == Mode.IDLE and vehicle.state.position[2] <= AIRBORNE_Z_M
+
+
+def loss_action(z: float, on_loss: str) -> LossAction:
+    """What the simulator does with a vehicle at height ``z`` whose PX4 had the rotors and was lost."""
+    if z <= AIRBORNE_Z_M:
+        return "rest"
+    if on_loss == "fall":
+        return "fall"
+    return "hold" if on_loss == "hold" else "land"
+
+
+def take_over(vehicle: Vehicle, on_loss: str) -> tuple[LossAction, dict[str, Any]] | None:
+    """(Under the lock) after PX4 was dropped: apply :func:`loss_action` to ``vehicle`` if PX4's outputs
+    drove its rotors (None otherwise: whatever flies it goes on). Returns the action and the
+    ``px4_lost`` event's data (``position``; ``spot``, the landing spot, for land)."""
+    if vehicle.mode != Mode.EXTERNAL:
+        return None
+    position = vehicle.state.position
+    data: dict[str, Any] = {"position": [round(float(v), 3) for v in position]}
+    action = loss_action(float(position[2]), on_loss)
+    if action in ("rest", "fall"):
+        vehicle.motors_off()
+        log.warning("PX4 lost %s: rotors stopped", "on the ground" if action == "rest" else "in the air")
+    elif action == "hold":
+        vehicle.hold()
+        log.warning("PX4 lost in the air: the simulator holds the vehicle at %s", data["position"])
+    else:
+        spot = vehicle.safe_land()
+        data["spot"] = [round(float(v), 3) for v in spot]
+        log.warning(
+            "PX4 lost in the air: the simulator lands the vehicle at %s (from %s)",
+            data["spot"],
+            data["position"],
+        )
+    return action, data
+
+
+@dataclass
+class Handover:
+    """Whether a connected PX4 has the rotors yet (``holding``: not yet), and whether its arm in the
+    air was refused (said once, until it disarms)."""
+
+    holding: bool = False
+    arm_refused: bool = False
+
+    def connect(self, on_the_ground: bool) -> None:
+        """A PX4 connected: it has the rotors at once only with the vehicle on the ground."""
+        self.holding, self.arm_refused = not on_the_ground, False
+
+    def command(self, armed: bool, down: bool) -> Literal["wait", "refuse", "hand_over"]:
+        """(While holding) PX4 sent outputs, ``armed`` or not, with the vehicle ``down`` (landed, under
+        the simulator's controller): ``hand_over`` once down with PX4 disarmed, or armed there;
+        ``refuse`` the first time PX4 is armed in the air (to be said); ``wait`` otherwise."""
+        if not armed:
+            self.arm_refused = False
+            if not down:
+                return "wait"
+        elif self.arm_refused or not down:
+            if self.arm_refused:
+                return "wait"
+            self.arm_refused = True
+            return "refuse"
+        self.holding = False
+        return "hand_over"
