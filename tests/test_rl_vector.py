@@ -227,7 +227,8 @@ def test_short_batched_ppo_run_writes_model_logs_and_checks_and_evaluate_draws_f
     for c in summary["checks"]:  # each check's rate with its 95 % Wilson interval
         low, high = c["success_interval_95"]
         assert 0.0 <= low <= c["success_rate"] <= high <= 1.0 and high - low > 0.2  # 10 episodes say little
-    assert summary["check_episodes"] == 10 and summary["check_seeds"] == list(range(2_500_000, 2_500_010))
+    checked = summary["check_seeds"]
+    assert summary["check_episodes"] == 10 and checked == list(range(2_500_000, 2_500_010))
     monitor = (out / "monitor.csv").read_text().splitlines()
     assert monitor[1].startswith("r,l,t") and len(monitor) > 2  # episodes of the batched envs were logged
 
@@ -242,7 +243,7 @@ def test_short_batched_ppo_run_writes_model_logs_and_checks_and_evaluate_draws_f
     assert main(["evaluate", str(out), "--episodes", "2"]) == 0  # a PPO model, evaluated by the single env
     result = json.loads((out / "evaluation.json").read_text())
     assert result["episodes"] == 2 and result["seeds"] == [1_000_000, 1_000_001]
-    assert result["stop_check_seeds"] == summary["check_seeds"] and len(result["success_interval_95"]) == 2
+    assert result["stop_check_seeds"] == checked and len(result["success_interval_95"]) == 2
     for png in ("trajectories.png", "training_curves.png"):
         with Image.open(out / png) as img:
             assert img.format == "PNG" and img.size[0] > 500

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 from droneulator.cli.common import add_ray_arg, add_rl_config_args
 from droneulator.config import SimConfig
@@ -116,13 +117,14 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     if args.check_episodes is not None and args.check_episodes < 1:
         raise ValueError(f"--check-episodes must be at least 1, got {args.check_episodes}")
+    rllib = args.ray is not None and args.ray_backend == "rllib"  # its final check flies them
+    if args.check_episodes is not None and args.stop_at is None and not rllib:
+        raise ValueError("--check-episodes goes with --stop-at (or --ray's RLlib run)")
     cfg = preflight.load(args.config, args.overrides, seed=args.scene_seed)
     if args.ray is not None:
         return _train_on_ray(args, cfg)
     if args.resume or args.env_runners != 1 or args.learners:
         raise ValueError("--resume, --env-runners and --learners go with --ray")
-    if args.check_episodes is not None and args.stop_at is None:
-        raise ValueError("--check-episodes goes with --stop-at (or --ray)")
     native = args.num_envs is not None
     if native and args.num_envs < 1:
         raise ValueError(f"--num-envs must be at least 1, got {args.num_envs}")
@@ -156,7 +158,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
-def _print_checks(summary: dict, stop_at: float) -> None:
+def _print_checks(summary: dict[str, Any], stop_at: float) -> None:
     """The stop check's line: the rate that stopped training (or the last one), with its 95 % interval."""
     from droneulator.workflows.rl.heldout import rate_text
 
