@@ -217,3 +217,15 @@ def test_the_stop_check_flies_all_its_episodes_on_one_batched_env():
         check.env.close()
     assert passes(45, 50, 0.9) and not passes(44, 50, 0.9) and passes(9, 10, 0.9) and passes(50, 50, 1.0)
     assert not passes(49, 50, 1.0) and passes(35, 50, 0.7) and math.isclose(0.9 * 50, 45.0)
+
+
+def test_rllib_training_seeds_on_the_check_seeds_are_refused_before_ray_starts(tmp_path, capsys):
+    pytest.importorskip("ray")
+    from droneulator.cli import main
+
+    # RLlib seeds env runner k's worlds seed + k + i: 2 runners of 8 worlds, seed to seed + 9
+    args = ["train", "--ray", "local", "--env-runners", "2", "--num-envs", "8", "--out", str(tmp_path)]
+    assert main([*args, "--seed", str(CHECK_SEED - 8)]) == 2
+    err = capsys.readouterr().err
+    assert f"training seeds {CHECK_SEED}..{CHECK_SEED + 1} are stop-check seeds" in err, err
+    assert err.count("\n") == 1 and not (tmp_path / "config.json").exists()

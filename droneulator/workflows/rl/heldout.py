@@ -42,6 +42,16 @@ def check_seeds(episodes: int = CHECK_EPISODES) -> list[int]:
     return list(range(CHECK_SEED, CHECK_SEED + episodes))
 
 
+def refuse_overlap(training: range | list[int], checks: list[int]) -> None:
+    """A one-line error when training seeds meet the stop check's (``checks``)."""
+    clash = sorted(set(training) & set(checks))
+    if clash:
+        raise ValueError(
+            f"training seeds {clash[0]}..{clash[-1]} are stop-check seeds ({checks[0]}..{checks[-1]}): "
+            "pick another --seed"
+        )
+
+
 def wilson_interval(successes: int, episodes: int, z: float = Z95) -> tuple[float, float]:
     """The Wilson score interval of a success rate, ``successes`` of ``episodes`` (95 % by default):
     ``(p + z²/2n ± z sqrt(p(1-p)/n + z²/4n²)) / (1 + z²/n)``; 0 and 1 exactly at 0/n and n/n."""

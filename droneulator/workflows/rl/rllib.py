@@ -35,7 +35,7 @@ import numpy as np
 from droneulator.config import SimConfig, to_dict
 from droneulator.workflows.rl import ENV_ID
 from droneulator.workflows.rl.env import env_config
-from droneulator.workflows.rl.heldout import CHECK_EPISODES, check_seeds, interval_record
+from droneulator.workflows.rl.heldout import CHECK_EPISODES, check_seeds, interval_record, refuse_overlap
 from droneulator.workflows.rl.train import (
     PPO_HYPERPARAMETERS,
     SAC_HYPERPARAMETERS,
@@ -223,6 +223,8 @@ def train_on_ray(
     if steps < 1:
         raise ValueError(f"steps must be at least 1, got {steps}")
     held_out = check_seeds(check_episodes)  # refuses fewer than one
+    # RLlib resets env runner k's worlds with seed + k + i (k = 1 .. env_runners; 0: the local one)
+    refuse_overlap(range(seed, seed + env_runners + num_envs), held_out)
     cfg = env_config(cfg)
     out = Path(out)
     checkpoint = (out / "checkpoint").resolve()

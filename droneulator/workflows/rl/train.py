@@ -42,7 +42,7 @@ from tqdm import TqdmExperimentalWarning
 from droneulator.config import SimConfig, from_dict, to_dict
 from droneulator.workflows.rl import ENV_ID
 from droneulator.workflows.rl.env import env_config
-from droneulator.workflows.rl.heldout import CHECK_EPISODES, check_seeds, interval_record
+from droneulator.workflows.rl.heldout import CHECK_EPISODES, check_seeds, interval_record, refuse_overlap
 
 ALGORITHMS = ("sac", "ppo")
 VEC_KINDS = ("auto", "dummy", "subproc", "native", "ray")
@@ -275,12 +275,8 @@ def train(
     if stop_at is not None and not 0.0 < stop_at <= 1.0:
         raise ValueError(f"stop_at must be a share in (0, 1], got {stop_at}")
     held_out = check_seeds(check_episodes)  # refuses fewer than one
-    clash = sorted(set(range(seed, seed + n_envs)) & set(held_out))
-    if stop_at is not None and clash:
-        raise ValueError(
-            f"training seeds {clash[0]}..{clash[-1]} are stop-check seeds ({held_out[0]}..{held_out[-1]}): "
-            "pick another --seed"
-        )
+    if stop_at is not None:
+        refuse_overlap(range(seed, seed + n_envs), held_out)
     if vec not in VEC_KINDS:
         raise ValueError(f"vec must be one of {', '.join(VEC_KINDS)}, got {vec!r}")
     on_ray = vec == "ray"
