@@ -203,6 +203,8 @@ def test_sb3_worlds_in_ray_actors_equal_the_in_process_env_and_survive_a_killed_
             obs, rewards, dones, infos = remote.step_wait()
             want = local.step_wait()
             assert remote.restarts == 1 and remote.where()[1][0] != pid
+            restarted = list(range(3 + 1_000_003 + 8, 3 + 1_000_003 + 16))  # RESTART_SEED_STRIDE, worlds 8-15
+            assert remote.seeds_used == list(range(3, 19)) + restarted  # train_summary's train_seeds
             assert dones[8:].all() and (rewards[8:] == 0).all()
             for i in range(8, 16):
                 assert infos[i]["TimeLimit.truncated"] and infos[i]["termination"] == "env_restarted"

@@ -322,7 +322,7 @@ def _learn(
     from stable_baselines3.common.logger import Logger, make_output_format
 
     venv = make_vec_env(cfg, n_envs, vec, monitor=out / "monitor.csv", depth=depth, actors=actors)
-    restarts, nodes = 0, None
+    restarts, nodes, ray_seeds = 0, None, []
     try:
         cls = SAC if algo == "sac" else PPO
         model = cls("MlpPolicy", venv, seed=seed, device="cpu", verbose=0, **hyper)
@@ -350,6 +350,7 @@ def _learn(
         if vec == "ray":
             restarts = venv.venv.restarts
             nodes = len({node for _, node in venv.venv.where()})
+            ray_seeds = venv.venv.seeds_used  # a restarted actor's worlds take fresh seeds
     finally:
         venv.close()
     summary = {
@@ -365,7 +366,7 @@ def _learn(
         "depth": depth if vec in ("native", "ray") else "render",
         "torch_threads": threads,
         "seed": seed,
-        "train_seeds": [seed + i for i in range(n_envs)],
+        "train_seeds": sorted({seed + i for i in range(n_envs)} | set(ray_seeds)),
         "hyperparameters": hyper,
         "model": str(out / "model.zip"),
     }
