@@ -84,6 +84,7 @@ def test_training_on_two_nodes_survives_a_killed_env_runner_and_resumes(cluster:
         restart_delay_s=1.0,
         progress=False,
         on_iteration=on_iteration,
+        check_episodes=10,  # 50 by default
     )
     assert len({node for _pid, node in seen[0]["runners"]}) == 2  # one env runner on each node
     # each runner, restarted ones too, on its one CPU: one numba and one torch thread (not every core's)
@@ -98,11 +99,14 @@ def test_training_on_two_nodes_survives_a_killed_env_runner_and_resumes(cluster:
     assert healthy[:2] == [2, 2] and 1 in healthy[2:] and healthy[-1] == 2  # trained on with one meanwhile
     assert (out / "checkpoint" / "algorithm_state.pkl").is_file()
     assert list((out / "tb").glob("events.out.tfevents.*"))
-    assert 0 <= summary["held_out_successes"] <= 10
+    assert 0 <= summary["held_out_successes"] <= 10 and summary["held_out_episodes"] == 10
+    assert summary["check_seeds"] == list(range(2_500_000, 2_500_010))
+    low, high = summary["held_out_interval_95"]
+    assert 0.0 <= low <= summary["held_out_successes"] / 10 <= high <= 1.0
 
     resumed = train_on_ray(
         None, out, address=cluster.address, steps=summary["steps"] + 1, env_runners=2, num_envs=16,
-        resume=True, progress=False,
+        resume=True, progress=False, check_episodes=10,
     )  # fmt: skip
     rows = list(csv.DictReader((out / "progress.csv").open()))
     assert resumed["resumed"] and resumed["steps"] > summary["steps"]
@@ -199,6 +203,8 @@ def test_sb3_worlds_in_ray_actors_equal_the_in_process_env_and_survive_a_killed_
             obs, rewards, dones, infos = remote.step_wait()
             want = local.step_wait()
             assert remote.restarts == 1 and remote.where()[1][0] != pid
+            restarted = list(range(3 + 1_000_003 + 8, 3 + 1_000_003 + 16))  # RESTART_SEED_STRIDE, worlds 8-15
+            assert remote.seeds_used == list(range(3, 19)) + restarted  # train_summary's train_seeds
             assert dones[8:].all() and (rewards[8:] == 0).all()
             for i in range(8, 16):
                 assert infos[i]["TimeLimit.truncated"] and infos[i]["termination"] == "env_restarted"

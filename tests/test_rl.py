@@ -210,6 +210,9 @@ def test_short_training_run_writes_logs_and_model_and_evaluate_writes_figures(tm
     result = json.loads((out / "evaluation.json").read_text())
     assert result["episodes"] == 2 and len(result["per_episode"]) == 2
     assert result["seeds"] == [1_000_000, 1_000_001] and 0.0 <= result["success_rate"] <= 1.0
+    low, high = result["success_interval_95"]  # 2 episodes: a wide 95 % Wilson interval
+    assert low <= result["success_rate"] <= high and high - low > 0.6
+    assert result["stop_check_seeds"] == [] and result["warning"] is None  # no stop check in this run
     for png in ("trajectories.png", "training_curves.png"):
         with Image.open(out / png) as img:
             assert img.format == "PNG" and img.size[0] > 500

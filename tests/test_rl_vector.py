@@ -213,7 +213,7 @@ def test_short_batched_ppo_run_writes_model_logs_and_checks_and_evaluate_draws_f
     out = tmp_path / "run"
     args = ["train", "--num-envs", "16", "--algo", "ppo", "--steps", "4096", "--out", str(out)]
     args += ["--no-progress", "--checkpoint-every", "2048", "--seed", "2", "--stop-at", "1.0"]
-    assert main([*args, "--check-every", "4096"]) == 0
+    assert main([*args, "--check-every", "4096", "--check-episodes", "10"]) == 0  # 50 by default
     for name in ("model.zip", "monitor.csv", "progress.csv", "config.json", "train_summary.json"):
         assert (out / name).stat().st_size > 0, name
     assert list((out / "tb").glob("events.out.tfevents.*"))
@@ -223,7 +223,12 @@ def test_short_batched_ppo_run_writes_model_logs_and_checks_and_evaluate_draws_f
     assert summary["steps"] >= 4096 and summary["n_envs"] == 16
     assert summary["train_seeds"] == list(range(2, 18))
     assert [c["steps"] for c in summary["checks"]] == [4096]
-    assert all(0 <= c["successes"] <= 10 for c in summary["checks"])
+    assert all(0 <= c["successes"] <= 10 and c["episodes"] == 10 for c in summary["checks"])
+    for c in summary["checks"]:  # each check's rate with its 95 % Wilson interval
+        low, high = c["success_interval_95"]
+        assert 0.0 <= low <= c["success_rate"] <= high <= 1.0 and high - low > 0.2  # 10 episodes say little
+    checked = summary["check_seeds"]
+    assert summary["check_episodes"] == 10 and checked == list(range(2_500_000, 2_500_010))
     monitor = (out / "monitor.csv").read_text().splitlines()
     assert monitor[1].startswith("r,l,t") and len(monitor) > 2  # episodes of the batched envs were logged
 
@@ -238,6 +243,7 @@ def test_short_batched_ppo_run_writes_model_logs_and_checks_and_evaluate_draws_f
     assert main(["evaluate", str(out), "--episodes", "2"]) == 0  # a PPO model, evaluated by the single env
     result = json.loads((out / "evaluation.json").read_text())
     assert result["episodes"] == 2 and result["seeds"] == [1_000_000, 1_000_001]
+    assert result["stop_check_seeds"] == checked and len(result["success_interval_95"]) == 2
     for png in ("trajectories.png", "training_curves.png"):
         with Image.open(out / png) as img:
             assert img.format == "PNG" and img.size[0] > 500

@@ -5,9 +5,13 @@ outcomes), ``training_curves.png`` (episode return, length and success over trai
 run's ``monitor.csv``) and ``trajectories.png`` (the rollouts over the vineyard's occupancy map,
 coloured by time, with the forward-speed and yaw-rate commands along them).
 
-Evaluation seeds start at :data:`EVAL_SEED` by default, far from the training seeds (``seed`` to
-``seed + envs - 1``; later training episodes draw from those seeds' generators); an overlap with the
-seeds recorded in ``train_summary.json`` is refused. Actions are deterministic (the policy's mean).
+Evaluation flies :data:`~droneulator.workflows.rl.heldout.EVAL_EPISODES` (50) episodes by default from
+:data:`EVAL_SEED`, far from the training seeds (``seed`` to ``seed + envs - 1``; later training episodes
+draw from those seeds' generators) and from the stop check's
+(:data:`~droneulator.workflows.rl.heldout.CHECK_SEED` on): an overlap with either, as
+``train_summary.json`` records them, is refused (summaries older than ``check_seeds`` give training seeds
+only). The success rate comes with its 95 % Wilson interval. Actions are deterministic (the policy's
+mean).
 """
 
 from __future__ import annotations
@@ -24,8 +28,8 @@ import numpy as np
 from droneulator.config import SimConfig, load_config
 from droneulator.workflows.rl.astar import occupancy_from_scene
 from droneulator.workflows.rl.env import VineyardNavEnv
+from droneulator.workflows.rl.heldout import EVAL_EPISODES, EVAL_SEED, interval_record
 
-EVAL_SEED = 1_000_000
 #: the commands panel overlays this moving mean (s) on the per-step commands
 SMOOTH_S = 0.5
 
@@ -80,11 +84,35 @@ def load_run_config(model: Path) -> SimConfig:
     return load_config(path if path.exists() else None)
 
 
-def training_seeds(model: Path) -> list[int]:
+def _run_summary(model: Path) -> dict[str, Any]:
     path = Path(model).parent / "train_summary.json"
-    if not path.exists():
-        return []
-    return [int(s) for s in json.loads(path.read_text()).get("train_seeds", [])]
+    return json.loads(path.read_text()) if path.exists() else {}
+
+
+def training_seeds(model: Path) -> list[int]:
+    """The seeds the run beside ``model`` trained on (``train_summary.json``; none without one)."""
+    return [int(s) for s in _run_summary(model).get("train_seeds", [])]
+
+
+def stop_check_seeds(model: Path) -> list[int]:
+    """The seeds the run's stop check (``--stop-at``) or final check flew (``train_summary.json``); none
+    for a run without a check or a summary older than ``check_seeds``."""
+    return [int(s) for s in _run_summary(model).get("check_seeds", [])]
+
+
+#: the seeds every stop check flew before they were recorded (10 from :data:`EVAL_SEED`, before 2026-11-29)
+LEGACY_CHECK_SEEDS = range(EVAL_SEED, EVAL_SEED + 10)
+
+
+def _legacy_warning(model: Path, seeds: list[int]) -> str | None:
+    """A note when an older run (``stop_at`` but no ``check_seeds``) was stopped on some of ``seeds``."""
+    run = _run_summary(model)
+    if run.get("stop_at") is None or "check_seeds" in run or not set(seeds) & set(LEGACY_CHECK_SEEDS):
+        return None
+    return (
+        f"this run predates recorded check seeds: its stop check flew seeds {EVAL_SEED} to {EVAL_SEED + 9}, "
+        "some of these evaluation seeds, so this rate is not independent of when it stopped"
+    )
 
 
 def trained_algorithm(model: Path) -> str:
@@ -253,7 +281,7 @@ def plot_trajectories(env: VineyardNavEnv, rollouts: list[Rollout], png: Path) -
 
 def evaluate(
     model: Path,
-    episodes: int = 10,
+    episodes: int = EVAL_EPISODES,
     seed: int = EVAL_SEED,
     out: Path | None = None,
     cfg: SimConfig | None = None,
@@ -264,17 +292,23 @@ def evaluate(
     deterministic: bool = True,
 ) -> dict[str, Any]:
     """Evaluate the SAC or PPO policy in ``model`` (a .zip, or a run folder holding ``model.zip``) on seeds
-    ``seed .. seed + episodes - 1``; returns (and writes) the summary. ``logs`` is the training run
-    folder for the curves (default: the model's)."""
+    ``seed .. seed + episodes - 1``; returns (and writes) the summary, its success rate with the 95 %
+    Wilson interval (``success_interval_95``). Seeds the run trained on or its stop check flew are
+    refused. ``logs`` is the training run folder for the curves (default: the model's)."""
     from stable_baselines3 import PPO, SAC
 
     model = resolve_model(model)
     if not model.exists():
         raise FileNotFoundError(f"no model at {model}")
+    if episodes < 1:
+        raise ValueError(f"--episodes must be at least 1, got {episodes}")
     seeds = list(range(seed, seed + episodes))
-    overlap = sorted(set(seeds) & set(training_seeds(model)))
-    if overlap:
-        raise ValueError(f"evaluation seeds {overlap} were used in training: pick another --seed")
+    used_by = {"in training": training_seeds(model), "by its stop check": stop_check_seeds(model)}
+    for what, used in used_by.items():
+        overlap = sorted(set(seeds) & set(used))
+        if overlap:
+            shown = str(overlap) if len(overlap) <= 5 else f"{overlap[0]}..{overlap[-1]} ({len(overlap)})"
+            raise ValueError(f"evaluation seeds {shown} were used {what}: pick another --seed")
     out = Path(out) if out is not None else model.parent
     out.mkdir(parents=True, exist_ok=True)
     cfg = cfg or load_run_config(model)
@@ -301,9 +335,10 @@ def evaluate(
         "episodes": episodes,
         "seeds": seeds,
         "training_seeds": training_seeds(model),
+        "stop_check_seeds": stop_check_seeds(model),
+        "warning": _legacy_warning(model, seeds),
         "deterministic": deterministic,
-        "successes": n_ok,
-        "success_rate": n_ok / episodes if episodes else 0.0,
+        **interval_record(n_ok, episodes),
         "terminations": {r: sum(e["termination"] == r for e in per_episode) for r in _reasons(per_episode)},
         "mean_return": float(np.mean([e["return"] for e in per_episode])) if per_episode else 0.0,
         "mean_time_to_goal_s": float(np.mean([e["sim_time_s"] for e in ok])) if ok else None,

@@ -90,6 +90,8 @@ class RayVecEnv(VecEnv):
         self.actors = [self._spawn(s) for s in self.slices]
         #: actors started again after one died
         self.restarts = 0
+        #: every seed a world was reset with (restarted actors' too): the run's training seeds
+        self.seeds_used: list[int] = []
         #: the seed of the next reset (``seed``), and the last one given (restarted actors derive theirs)
         self._next_seed: int | None = None
         self._base_seed: int | None = None
@@ -110,6 +112,7 @@ class RayVecEnv(VecEnv):
         seed = self._next_seed
         if seed is not None:
             self._base_seed = seed
+            self.seeds_used.extend(seed + i for i in range(self.num_envs))
         firsts = [None if seed is None else seed + s.start for s in self.slices]
         obs = self._ray.get([a.reset.remote(f) for a, f in zip(self.actors, firsts, strict=True)])
         self._next_seed = None
@@ -149,6 +152,8 @@ class RayVecEnv(VecEnv):
         self.actors[k] = self._spawn(part)
         base = self._base_seed
         seed = None if base is None else base + RESTART_SEED_STRIDE * self.restarts + part.start
+        if seed is not None:
+            self.seeds_used.extend(range(seed, seed + part.stop - part.start))
         fresh = self._ray.get(self.actors[k].reset.remote(seed))
         n = part.stop - part.start
         infos = [

@@ -15,8 +15,9 @@ at most one checkpoint period.
 
 Writes to ``out``: ``checkpoint/`` (RLlib's), ``progress.csv`` (one row per training iteration),
 ``tb/`` (TensorBoard scalars), ``config.json`` and ``train_summary.json``, which ends with the
-deterministic policy flown on 10 held-out seeds (:data:`~droneulator.workflows.rl.evaluate.EVAL_SEED` on),
-as ``--stop-at`` checks do.
+deterministic policy flown on ``check_episodes`` held-out seeds (50 by default, from
+:data:`~droneulator.workflows.rl.heldout.CHECK_SEED`, batched on one vector env), as ``--stop-at`` checks
+do, with the success rate's 95 % Wilson interval.
 """
 
 from __future__ import annotations
@@ -34,8 +35,8 @@ import numpy as np
 from droneulator.config import SimConfig, to_dict
 from droneulator.workflows.rl import ENV_ID
 from droneulator.workflows.rl.env import env_config
+from droneulator.workflows.rl.heldout import CHECK_EPISODES, check_seeds, interval_record, refuse_overlap
 from droneulator.workflows.rl.train import (
-    CHECK_EPISODES,
     PPO_HYPERPARAMETERS,
     SAC_HYPERPARAMETERS,
     held_out_successes,
@@ -205,8 +206,10 @@ def train_on_ray(
     num_cpus: int | None = None,
     progress: bool = True,
     on_iteration: Callable[[Any, dict[str, Any]], None] | None = None,
+    check_episodes: int = CHECK_EPISODES,
 ) -> dict[str, Any]:
-    """Train on Ray RLlib to ``steps`` env steps in total; returns (and writes) the summary.
+    """Train on Ray RLlib to ``steps`` env steps in total; returns (and writes) the summary, which ends
+    with the policy flown on ``check_episodes`` held-out episodes (their seeds and 95 % interval too).
 
     ``address``: ``local``, ``auto`` or a head node's ``HOST:PORT`` (:mod:`droneulator.runtime.cluster`).
     ``on_iteration(algorithm, result)`` is called after every training iteration (tests kill an env
@@ -215,11 +218,13 @@ def train_on_ray(
     from tqdm import tqdm
 
     from droneulator.runtime.cluster import connect
-    from droneulator.workflows.rl.evaluate import EVAL_SEED
     from droneulator.workflows.rl.vector import VineyardNavVectorEnv
 
     if steps < 1:
         raise ValueError(f"steps must be at least 1, got {steps}")
+    held_out = check_seeds(check_episodes)  # refuses fewer than one
+    # RLlib resets env runner k's worlds with seed + k + i (k = 1 .. env_runners; 0: the local one)
+    refuse_overlap(range(seed, seed + env_runners + num_envs), held_out)
     cfg = env_config(cfg)
     out = Path(out)
     checkpoint = (out / "checkpoint").resolve()
@@ -277,10 +282,9 @@ def train_on_ray(
             bar.close()
             wall = wall_before + time.perf_counter() - t0
             healthy = algorithm.env_runner_group.num_healthy_remote_workers()
-            env = VineyardNavVectorEnv(CHECK_EPISODES, cfg, depth)
-            seeds = list(range(EVAL_SEED, EVAL_SEED + CHECK_EPISODES))
+            env = VineyardNavVectorEnv(len(held_out), cfg, depth)
             policy = ModulePolicy(algorithm.get_module(), squash=algo == "sac")
-            successes = held_out_successes(policy, env, seeds)
+            successes = held_out_successes(policy, env, held_out)
             env.close()
         finally:
             writer.close()
@@ -304,7 +308,9 @@ def train_on_ray(
         "seed": seed,
         "resumed": resume,
         "held_out_successes": successes,
-        "held_out_episodes": CHECK_EPISODES,
+        "held_out_episodes": len(held_out),
+        "held_out_interval_95": interval_record(successes, len(held_out))["success_interval_95"],
+        "check_seeds": held_out,
         "settings": ppo_settings() if algo == "ppo" else sac_settings(),
         "checkpoint": str(checkpoint),
     }

@@ -15,9 +15,10 @@ in parallel subprocesses, each single-threaded.
 ``vec="native"`` (``--num-envs B``) trains on the batched env instead
 (:class:`~droneulator.workflows.rl.vector.VineyardNavVectorEnv` through
 :class:`~droneulator.workflows.rl.sb3.SB3VectorEnv`): B worlds in this process, depth by ray casting.
-SAC stays the default there: in the runs measured (``benchmarks/rl.py``, docs/rl.md) it reached 9/10
-held-out successes sooner than PPO (119 to 161 s over three seeds against 258 s) and its policies held
-up better on 50 further held-out episodes (40 to 50 against 36); it takes one
+SAC stays the default there: in the runs measured (``benchmarks/rl.py``, docs/rl.md; stopped on 10
+check episodes, before 2026-11-29) it reached 9/10 held-out successes sooner than PPO (119 to 161 s
+over three seeds against 258 s) and its policies held up better on 50 further held-out episodes (40 to
+50 against 36); it takes one
 gradient step per transition (``gradient_steps = B`` per vector step) unless told otherwise. PPO
 (:data:`PPO_HYPERPARAMETERS`: on-policy batches of B x ``n_steps`` transitions) uses the env's speed
 but needs about 60 times the transitions.
@@ -28,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import json
+import math
 import os
 import time
 import warnings
@@ -40,6 +42,7 @@ from tqdm import TqdmExperimentalWarning
 from droneulator.config import SimConfig, from_dict, to_dict
 from droneulator.workflows.rl import ENV_ID
 from droneulator.workflows.rl.env import env_config
+from droneulator.workflows.rl.heldout import CHECK_EPISODES, check_seeds, interval_record, refuse_overlap
 
 ALGORITHMS = ("sac", "ppo")
 VEC_KINDS = ("auto", "dummy", "subproc", "native", "ray")
@@ -157,11 +160,6 @@ def _episode_callback() -> Any:
     return EpisodeOutcomes()
 
 
-#: how many held-out episodes the success check during training (``stop_at``) flies: the evaluation's own
-#: seeds (:data:`~droneulator.workflows.rl.evaluate.EVAL_SEED` on), far from every training seed
-CHECK_EPISODES = 10
-
-
 def held_out_successes(policy: Any, env: Any, seeds: list[int]) -> int:
     """Episodes of ``policy`` (deterministic) reaching the goal, one per seed, on the batched ``env``
     (``len(seeds)`` environments, NEXT_STEP autoreset: each env's first episode counts)."""
@@ -179,20 +177,26 @@ def held_out_successes(policy: Any, env: Any, seeds: list[int]) -> int:
     return int(success.sum())
 
 
-def _success_check(cfg: SimConfig, every: int, target: float, depth: str, max_wall_s: float | None) -> Any:
-    """A callback that checks the policy on :data:`CHECK_EPISODES` held-out seeds every ``every`` steps
-    and ends training once ``target`` of them succeed (or after ``max_wall_s`` s of training); the
-    checks' wall time is kept apart."""
+def passes(successes: int, episodes: int, target: float) -> bool:
+    """Whether ``successes`` of ``episodes`` reach the share ``target`` (45 of 50 reach 0.9)."""
+    return successes >= math.ceil(target * episodes - 1e-9)
+
+
+def _success_check(
+    cfg: SimConfig, every: int, target: float, depth: str, max_wall_s: float | None, seeds: list[int]
+) -> Any:
+    """A callback that checks the policy on the held-out ``seeds`` (one batched env of ``len(seeds)``
+    worlds, all flown at once) every ``every`` steps and ends training once ``target`` of them succeed
+    (or after ``max_wall_s`` s of training); the checks' wall time is kept apart."""
     from stable_baselines3.common.callbacks import BaseCallback
 
-    from droneulator.workflows.rl.evaluate import EVAL_SEED
     from droneulator.workflows.rl.vector import VineyardNavVectorEnv
 
     class SuccessCheck(BaseCallback):
         def __init__(self) -> None:
             super().__init__()
-            self.env = VineyardNavVectorEnv(CHECK_EPISODES, cfg, depth)
-            self.seeds = list(range(EVAL_SEED, EVAL_SEED + CHECK_EPISODES))
+            self.env = VineyardNavVectorEnv(len(seeds), cfg, depth)
+            self.seeds = list(seeds)
             self.next = every
             self.check_s = 0.0
             self.history: list[dict[str, Any]] = []
@@ -209,9 +213,15 @@ def _success_check(cfg: SimConfig, every: int, target: float, depth: str, max_wa
             k = held_out_successes(self.model, self.env, self.seeds)
             self.check_s += time.perf_counter() - t
             wall = time.perf_counter() - self.t0 - self.check_s
-            self.history.append({"steps": self.num_timesteps, "wall_s": wall, "successes": k})
+            self.history.append(
+                {"steps": self.num_timesteps, "wall_s": wall, **interval_record(k, len(self.seeds))}
+            )
+            low, high = self.history[-1]["success_interval_95"]
             self.logger.record("eval/held_out_successes", k)
-            if k >= target * CHECK_EPISODES:
+            self.logger.record("eval/held_out_success_rate", k / len(self.seeds))
+            self.logger.record("eval/held_out_success_low95", low)
+            self.logger.record("eval/held_out_success_high95", high)
+            if passes(k, len(self.seeds), target):
                 self.reached = self.history[-1]
                 return False
             return True
@@ -240,6 +250,7 @@ def train(
     max_wall_s: float | None = None,
     ray_address: str | None = None,
     actors: int = 1,
+    check_episodes: int = CHECK_EPISODES,
 ) -> dict[str, Any]:
     """Train ``algo`` for ``steps`` environment steps; returns (and writes) the training summary.
 
@@ -249,9 +260,11 @@ def train(
     ``overrides`` replace entries of :data:`SAC_HYPERPARAMETERS` or :data:`PPO_HYPERPARAMETERS` (e.g.
     ``learning_starts`` for a short run). Environment ``i`` is first reset with seed ``seed + i``.
     ``stop_at`` (a success share, e.g. 0.9): every ``check_every`` steps the deterministic policy flies
-    :data:`CHECK_EPISODES` held-out episodes and training ends once that share reaches the goal (the
-    summary's ``reached`` gives the steps and the training wall time, the checks' time left out);
-    ``max_wall_s`` (with ``stop_at``) ends it after that much training time in any case.
+    ``check_episodes`` held-out episodes (:data:`CHECK_EPISODES` by default, seeds from
+    :data:`~droneulator.workflows.rl.heldout.CHECK_SEED`, batched on one vector env) and training ends
+    once that share reaches the goal (the summary's ``reached`` gives the steps, the training wall time
+    and the success rate's 95 % interval, the checks' time left out); ``max_wall_s`` (with ``stop_at``)
+    ends it after that much training time in any case. The check seeds may not meet the training seeds.
     """
     import torch
 
@@ -261,6 +274,9 @@ def train(
         raise ValueError("steps and envs must be at least 1")
     if stop_at is not None and not 0.0 < stop_at <= 1.0:
         raise ValueError(f"stop_at must be a share in (0, 1], got {stop_at}")
+    held_out = check_seeds(check_episodes)  # refuses fewer than one
+    if stop_at is not None:
+        refuse_overlap(range(seed, seed + n_envs), held_out)
     if vec not in VEC_KINDS:
         raise ValueError(f"vec must be one of {', '.join(VEC_KINDS)}, got {vec!r}")
     on_ray = vec == "ray"
@@ -291,14 +307,14 @@ def train(
             stack.enter_context(connect(str(ray_address)))
         return _learn(
             cfg, out, steps, seed, n_envs, algo, vec, checkpoint_every, threads, progress, hyper, depth,
-            stop_at, check_every, max_wall_s, actors,
+            stop_at, check_every, max_wall_s, actors, held_out,
         )  # fmt: skip
 
 
 def _learn(
     cfg: SimConfig, out: Path, steps: int, seed: int, n_envs: int, algo: str, vec: str, checkpoint_every: int,
     threads: int, progress: bool, hyper: dict[str, Any], depth: str, stop_at: float | None, check_every: int,
-    max_wall_s: float | None, actors: int,
+    max_wall_s: float | None, actors: int, held_out: list[int],
 ) -> dict[str, Any]:  # fmt: skip
     """:func:`train`'s learning, once its settings are checked (and Ray connected for ``vec="ray"``)."""
     from stable_baselines3 import PPO, SAC
@@ -306,7 +322,7 @@ def _learn(
     from stable_baselines3.common.logger import Logger, make_output_format
 
     venv = make_vec_env(cfg, n_envs, vec, monitor=out / "monitor.csv", depth=depth, actors=actors)
-    restarts, nodes = 0, None
+    restarts, nodes, ray_seeds = 0, None, []
     try:
         cls = SAC if algo == "sac" else PPO
         model = cls("MlpPolicy", venv, seed=seed, device="cpu", verbose=0, **hyper)
@@ -316,7 +332,9 @@ def _learn(
                 [make_output_format("csv", str(out)), make_output_format("tensorboard", str(out / "tb"))],
             )
         )
-        check = None if stop_at is None else _success_check(cfg, check_every, stop_at, depth, max_wall_s)
+        check = None
+        if stop_at is not None:
+            check = _success_check(cfg, check_every, stop_at, depth, max_wall_s, held_out)
         checkpoints = CheckpointCallback(
             save_freq=max(1, checkpoint_every // n_envs), save_path=str(out / "checkpoints"), name_prefix=algo
         )
@@ -332,6 +350,7 @@ def _learn(
         if vec == "ray":
             restarts = venv.venv.restarts
             nodes = len({node for _, node in venv.venv.where()})
+            ray_seeds = venv.venv.seeds_used  # a restarted actor's worlds take fresh seeds
     finally:
         venv.close()
     summary = {
@@ -347,7 +366,7 @@ def _learn(
         "depth": depth if vec in ("native", "ray") else "render",
         "torch_threads": threads,
         "seed": seed,
-        "train_seeds": [seed + i for i in range(n_envs)],
+        "train_seeds": sorted({seed + i for i in range(n_envs)} | set(ray_seeds)),
         "hyperparameters": hyper,
         "model": str(out / "model.zip"),
     }
@@ -355,6 +374,8 @@ def _learn(
         summary.update({"ray_actors": actors, "ray_nodes": nodes, "actor_restarts": restarts})
     if check is not None:
         summary["stop_at"] = stop_at
+        summary["check_episodes"] = len(held_out)
+        summary["check_seeds"] = held_out
         summary["checks"] = check.history
         summary["checks_wall_s"] = check.check_s
         summary["reached"] = check.reached
