@@ -31,6 +31,8 @@ from droneulator.scenes.base import Scene
 from droneulator.state import STATE, STATE_SIZE
 from droneulator.workflows.rl.astar import DistanceField, OccupancyGrid, bilinear, carrot
 
+#: where position, velocity, attitude and body rates start in a state row (plain ints for the kernel)
+_X, _V, _Q, _W = STATE.x.start, STATE.v.start, STATE.q.start, STATE.w.start
 #: why an episode ended (index 0: it goes on)
 REASONS = (None, "collision", "out_of_bounds", "goal", "time_limit")
 
@@ -55,7 +57,7 @@ def _task_rows(
         if not run[b]:
             continue
         s = rows[b]
-        px, py = s[0], s[1]
+        px, py = s[_X], s[_X + 1]
         fx, fy = (px - origin[0]) / res, (py - origin[1]) / res
         if advance:
             cx, cy = min(max(fx, 0.0), nx - 1.0), min(max(fy, 0.0), ny - 1.0)
@@ -96,11 +98,11 @@ def _task_rows(
                     tx, ty = origin[0] + a * res, origin[1] + c * res
         # heading, forward speed (body x) and yaw rate (world z) from the attitude (frames_numba)
         R = np.empty((3, 3))
-        quat_to_matrix_into(s[6:10], R)
+        quat_to_matrix_into(s[_Q : _Q + 4], R)
         yaw = math.atan2(R[1, 0], R[0, 0])
         heading = ((math.atan2(ty - py, tx - px) - yaw + math.pi) % (2 * math.pi) - math.pi) / math.pi
-        forward = R[0, 0] * s[3] + R[1, 0] * s[4] + R[2, 0] * s[5]
-        yaw_rate = R[2, 0] * s[10] + R[2, 1] * s[11] + R[2, 2] * s[12]
+        forward = R[0, 0] * s[_V] + R[1, 0] * s[_V + 1] + R[2, 0] * s[_V + 2]
+        yaw_rate = R[2, 0] * s[_W] + R[2, 1] * s[_W + 1] + R[2, 2] * s[_W + 2]
         tail[b, 0] = min(max(heading, -1.0), 1.0)
         tail[b, 1] = min(max((forward - k[6]) / k[7], -1.0), 1.0)
         tail[b, 2] = min(max(yaw_rate / k[8], -1.0), 1.0)
