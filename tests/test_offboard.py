@@ -40,7 +40,8 @@ class FakePX4:
     14540+N, HEARTBEATs as MAV_AUTOPILOT_PX4 with its custom mode, LOCAL_POSITION_NED (30 Hz) and
     ATTITUDE (its estimate, ``local_ned`` and ``yaw_ned``), acks commands (results per command, accepted by
     default; OFFBOARD only while setpoints stream, as PX4 does), answers REQUEST_MESSAGE for
-    GPS_GLOBAL_ORIGIN and records what it gets. ``silent`` stops its heartbeats and acks, not its estimate."""
+    GPS_GLOBAL_ORIGIN and records what it gets. ``silent`` stops its heartbeats and acks, not its estimate;
+    ``local_ned`` None: no position estimate yet (no LOCAL_POSITION_NED until it is set)."""
 
     def __init__(self, port: int, origin_geodetic: tuple[float, float, float] | None = HOME, sysid: int = 1,
                  hb_hz: float = 10.0, local_ned: Any = (0.0, 0.0, 0.0),
@@ -50,7 +51,7 @@ class FakePX4:
         )
         self.origin = origin_geodetic
         self.hb_hz = hb_hz
-        self.local_ned = np.asarray(local_ned, dtype=float)
+        self.local_ned = None if local_ned is None else np.asarray(local_ned, dtype=float)
         self.yaw_ned = yaw_ned
         self.results: dict[int, int] = {}
         self.custom_mode = POSCTL
@@ -76,9 +77,11 @@ class FakePX4:
                                              self.custom_mode, mavlink.MAV_STATE_STANDBY)  # fmt: skip
                 next_hb = now + 1.0 / self.hb_hz
             if now >= next_pos:
-                x, y, z = (float(v) for v in self.local_ned)
-                self.conn.mav.local_position_ned_send(0, x, y, z, 0.0, 0.0, 0.0)
+                # the heading first: a link that takes the position as it comes has the heading with it
                 self.conn.mav.attitude_send(0, 0.0, 0.0, self.yaw_ned, 0.0, 0.0, 0.0)
+                if self.local_ned is not None:
+                    x, y, z = (float(v) for v in self.local_ned)
+                    self.conn.mav.local_position_ned_send(0, x, y, z, 0.0, 0.0, 0.0)
                 next_pos = now + 1.0 / 30.0
             msg = self.conn.recv_match(blocking=True, timeout=0.01)
             if msg is None or msg.get_type() == "BAD_DATA":
@@ -437,20 +440,27 @@ def test_plan_node_sends_its_trajectory_to_px4_as_ned_setpoints_on_a_real_run(ca
     with launch_run(cfg) as run:
         client = run.client()
         link = OffboardLink(fast_cfg())
-        peer = None
-        # the vehicle does not follow (no PX4 flies it), so the off-track rule is off
-        node_cfg = PlanNodeConfig(zenoh=run.zenoh_endpoint, namespace=cfg.bridge.namespace, camera=cam.name,
-                                  max_tracking_error=math.inf)  # fmt: skip
-        node = PlanNode(node_cfg, autopilot=link)
+        # PX4 is up before the planner, as PX4 SITL is: the link gives a PX4 connect_timeout_s (wall) to
+        # appear, and building the planner (its kernels compile on a fresh clone: 67 s seen on a busy
+        # core) and the takeoff may take longer than that. Its estimate comes once the vehicle hovers
+        peer = FakePX4(link.address[1], origin_geodetic=frames.enu_to_geodetic(origin, *HOME), local_ned=None,
+                       yaw_ned=math.pi / 2)  # fmt: skip
+        node = None
         try:
             client.reset(position=origin.tolist(), yaw=0.0)
             client.subscribe(["events"])
             client.takeoff(altitude=2.0)
             client.wait_for_event("arrived", timeout=60)
             start = np.array(client.state()["position"])
+            # the planner starts at the hover, so its map is made of depth images taken there: one made
+            # before the reset, at the spawn 15 m away (images that reached it late on a busy core), put
+            # the goal outside the local map and the goal was refused ("no motion")
+            # the vehicle does not follow (no PX4 flies it), so the off-track rule is off
+            node_cfg = PlanNodeConfig(zenoh=run.zenoh_endpoint, namespace=cfg.bridge.namespace,
+                                      camera=cam.name, max_tracking_error=math.inf)  # fmt: skip
+            node = PlanNode(node_cfg, autopilot=link)
             # PX4's estimate: where the vehicle hovers, about the origin, facing east (ENU yaw 0)
-            peer = FakePX4(link.address[1], origin_geodetic=frames.enu_to_geodetic(origin, *HOME),
-                           local_ned=frames.enu_to_ned(start - origin), yaw_ned=math.pi / 2)  # fmt: skip
+            peer.local_ned = frames.enu_to_ned(start - origin)
             goal = start + [3.0, 0.0, 0.0]
             node.set_goal(goal)
             # ENU offset from the origin (e, n, u) -> NED (n, e, -u), written out
@@ -483,8 +493,8 @@ def test_plan_node_sends_its_trajectory_to_px4_as_ned_setpoints_on_a_real_run(ca
             state = client.state()
             assert state["mode"] != "track" and np.linalg.norm(np.array(state["position"]) - start) < 0.2
         finally:
-            node.close()
+            if node is not None:
+                node.close()
             link.close()
-            if peer is not None:
-                peer.close()
+            peer.close()
             client.close()
