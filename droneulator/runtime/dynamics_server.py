@@ -47,7 +47,6 @@ from droneulator.runtime.ipc import (
     PROTOCOL_VERSION,
     Hello,
     HubMessage,
-    LoadScene,
     Publish,
     Published,
     Refused,
@@ -58,6 +57,7 @@ from droneulator.runtime.ipc import (
 from droneulator.runtime.latency import LatencyLog
 from droneulator.runtime.pacing import Pacer
 from droneulator.runtime.publishing import StatePublishing
+from droneulator.runtime.scene_sync import SceneSync
 from droneulator.vehicles.vehicle import NS, VehicleState
 from droneulator.world import World
 from droneulator.world.world import StepResult
@@ -119,9 +119,8 @@ class DynamicsServer:
         #: for all): frames requested and not yet published
         self.in_flight: dict[int, tuple[str, dict[str, VehicleState], tuple[str, ...] | None]] = {}
         self.window = rt.frame_slots - 1
-        self._scene_key = (cfg.scene, cfg.seed, cfg.light, cfg.vegetation)
-        #: the light the render server starts with (its config's): the world's may have changed since
-        self._start_light = cfg.light
+        #: the scene the render server and the bridge must load, as API resets change the world's
+        self.scene_sync = SceneSync(self.world.config)
         self.stopping = threading.Event()
         self.dropped_frames = 0
         self.frames_published = 0
@@ -163,11 +162,9 @@ class DynamicsServer:
                 self.peers[role].close()
             self.peers[role] = conn
             log.info("%s connected", role)
-            w = self.world.config
-            if (w.scene, w.seed, w.vegetation) != (self.cfg.scene, self.cfg.seed, self.cfg.vegetation) or (
-                w.light != self._start_light
-            ):
-                self._send(role, LoadScene(w.scene, w.seed, w.light, w.vegetation))
+            load = self.scene_sync.for_newcomer()
+            if load is not None:
+                self._send(role, load)
             stage = "render" if role == "renderer" else "publish"
             for seq, (st, states, rigs) in sorted(self.in_flight.items()):
                 if st == stage:  # work the previous instance never finished
@@ -242,8 +239,7 @@ class DynamicsServer:
         API. ``stepped_wall_ns``: when the step that produced them ended."""
         with self.lock:  # a command may reset the simulation between the step and here
             states = self.world.states_now()
-            w = self.world.config
-            scene = (w.scene, w.seed, w.light, w.vegetation)
+            load = self.scene_sync.changed()
             due = self.publishing.due(states, res)
             fed = self.px4.connected_vehicles() if due and self.px4 is not None else set()
             truths = self.publishing.sensor_truths(fed) if due else {}
@@ -251,11 +247,10 @@ class DynamicsServer:
             self.publishing.publish_states(states, stepped_wall_ns)
             self.api.publish_states(states)
             self.publishing.publish_sensors(states, truths)
-        if scene != self._scene_key:  # reset to another scene, light or vegetation through the API
-            self._scene_key = scene
+        if load is not None:  # reset to another scene, light or vegetation through the API
             self.in_flight.clear()
             for role in ROLES:
-                self._send(role, LoadScene(*scene))
+                self._send(role, load)
         for cam_state, rigs in zip(res.camera_states, res.camera_rigs, strict=True):
             ready = "renderer" in self.peers and len(self.in_flight) < self.window
             busy = not ready or any(v[0] == "render" for v in self.in_flight.values())
