@@ -114,7 +114,8 @@ class CameraPipeline:
         segmentation only. With ``copy`` the images are the caller's; without, an ideal camera's images
         are the renderer's buffers, valid until the next call."""
         if self.renderer is None:
-            raise RuntimeError("this camera pipeline draws depth by ray casting only")
+            why = "is closed" if self.source == "render" else "draws depth by ray casting only"
+            raise RuntimeError(f"this camera pipeline {why}")
         drawn = self.renderer.render_rigs(poses, rgb=rgb, rigs=rigs)
         out: dict[str, dict[str, CameraFrame]] = {}
         for vehicle, cams in drawn.items():
@@ -151,7 +152,9 @@ class CameraPipeline:
         if self.caster is not None:
             exact = self.caster.depth(poses)
         else:
-            exact = np.stack([d.copy() for d in self._drawn(poses)])
+            exact = np.empty((len(poses), self.camera.height, self.camera.width), dtype=np.float32)
+            for k, d in enumerate(self._drawn(poses)):
+                exact[k] = d
         return self._through(exact, presets, scales)
 
     def centre_rows(
@@ -199,9 +202,9 @@ class CameraPipeline:
     def _through(
         self, depth: np.ndarray, presets: Sequence[str] | None, scales: np.ndarray | None
     ) -> np.ndarray:
-        """``depth`` (B, H, W) with image ``b`` through preset ``presets[b]`` and factors ``scales[b]``, each
-        preset on its images in one batch; exact images are copied."""
-        out = depth.copy()
+        """``depth`` (B, H, W, the caller's) with image ``b`` through preset ``presets[b]`` and factors
+        ``scales[b]``, in place, each preset on its images in one batch."""
+        out = depth
         names = [self.camera.depth_model] * len(depth) if presets is None else list(presets)
         which = np.asarray(names)
         for name in dict.fromkeys(names):
