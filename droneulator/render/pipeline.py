@@ -72,8 +72,8 @@ class CameraPipeline:
         self.scene = scene
         #: vehicle -> camera -> the realism model of every camera that is not ideal
         self.models: dict[str, dict[str, CameraModel]] = {}
-        #: the first camera's depth under each preset an episode may pick (:func:`depth_presets`)
-        self.presets: dict[str, CameraModel | None] = {}
+        self._presets: dict[str, CameraModel | None] | None = None
+        self._seed = config.seed if seed is None else seed
         #: the first vehicle: the one whose first camera :meth:`depth` and :meth:`centre_rows` draw
         self.vehicle = next(iter(config.camera_rigs()))
         self.load(scene, config.seed if seed is None else seed)
@@ -89,7 +89,15 @@ class CameraPipeline:
             self.caster = DepthCaster(scene, self.config.render.cameras[0])
         self.scene = scene
         self.models = fleet_camera_models(self.config, seed)
-        self.presets = depth_presets(self.config, seed)
+        self._seed, self._presets = seed, None
+
+    @property
+    def presets(self) -> dict[str, CameraModel | None]:
+        """The first camera's depth under each preset an episode may pick (:func:`depth_presets`), built on
+        first use: only the learning envs' depth batches need them."""
+        if self._presets is None:
+            self._presets = depth_presets(self.config, self._seed)
+        return self._presets
 
     def set_light(self, light: LightConfig) -> None:
         """Light the scene with ``light`` from the next frame on (the shadow map is drawn again). ValueError
