@@ -161,7 +161,7 @@ def test_the_batched_env_draws_per_env_and_applies_each_envs_depth_model():
         assert len(set(np.round(speeds, 6))) == 16 and speeds.min() >= 0.0 and speeds.max() <= 6.0
         # the same poses through each env's own preset: ideal rows exact, d435 rows noisy
         poses = np.repeat(np.eye(4)[None], 16, axis=0)
-        poses[:, :3, 3] = env.worlds.states[0, STATE.x]
+        poses[:, :3, 3] = env.states[0, STATE.x]
         scales = env._depth_scales.copy()
         assert scales[:, 0].min() >= 0.5 and scales[:, 0].max() <= 2.0 and scales[:, 0].std() > 0.1
         ideal = env._batch(0).cameras.centre_rows(poses, ["ideal"] * 16, scales)
@@ -171,7 +171,7 @@ def test_the_batched_env_draws_per_env_and_applies_each_envs_depth_model():
             assert same == (m == "ideal"), (b, m)
         for _ in range(20):
             env.step(np.tile([1.0, 0.0], (16, 1)).astype(np.float32))
-        winds = env.worlds.states[:, STATE.wind]
+        winds = env.states[:, STATE.wind]
         assert not np.allclose(winds[0], winds[1])
     finally:
         env.close()

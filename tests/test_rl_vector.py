@@ -262,25 +262,31 @@ def test_train_rejects_bad_batched_settings_in_one_line(capsys):
 
 def test_a_batched_world_that_hits_a_row_stays_there_and_takes_no_command():
     from droneulator.workflows.rl.env import env_config
-    from droneulator.world.batched import COLLIDED, VELOCITY, BatchedWorlds
+    from droneulator.world import World
+    from droneulator.world.step import FLAT, VELOCITY
 
-    worlds = BatchedWorlds(env_config(), 2)
-    # copy 0 faces the vine row beside its alley, copy 1 flies along the alley
+    worlds = World(env_config(), render=False, worlds=2)
+    # world 0 faces the vine row beside its alley, world 1 flies along the alley
     worlds.place(np.arange(2), np.array([[-8.0, 0.0, 1.5], [-8.0, 0.0, 1.5]]), np.array([np.pi / 2, 0.0]))
     worlds.velocity(None, np.array([2.0, 2.0]), np.zeros(2))
     for _ in range(90):
         _, hit = worlds.step_frame()
-        if hit[0]:
+        if hit[0, 0]:
             break
-    assert hit[0] and not hit[1] and worlds.mode.tolist() == [COLLIDED, VELOCITY]
-    stopped = worlds.states[0].copy()
+    assert hit[0, 0] and not hit[1, 0] and worlds.active[:, 0].tolist() == [False, True]
+    assert worlds.mode[:, 0].tolist() == [VELOCITY, VELOCITY]
+    stopped = worlds.states[0, 0].copy()
     assert np.allclose(stopped[3:6], 0.0)  # stopped where it touched, level
+    assert np.allclose(stopped[6:8], 0.0)
     t0 = worlds.frame_t_ns().copy()
     states, hit = worlds.step_frame()
-    assert np.array_equal(states[0], stopped) and not hit[0]  # not integrated further
-    assert (worlds.frame_t_ns() - t0).tolist() == [worlds.camera_ns] * 2  # its clock goes on
+    assert np.array_equal(states[0, 0], stopped) and not hit[0, 0]  # not integrated further
+    assert (worlds.frame_t_ns() - t0).tolist() == [worlds.camera_period_ns] * 2  # its clock goes on
     with pytest.raises(ValueError, match="collided"):
         worlds.velocity(np.array([0]), np.array([1.0]), np.array([0.0]))
-    worlds.velocity(np.array([1]), np.array([1.0]), np.array([0.0]))  # the other copy flies on
+    worlds.velocity(np.array([1]), np.array([1.0]), np.array([0.0]))  # the other world flies on
     with pytest.raises(ValueError, match="\\|forward\\|"):
         worlds.velocity(np.array([1]), np.array([99.0]), np.array([0.0]))
+    worlds.place([0], [[-8.0, 0.0, 1.5]], [0.0])  # placed again: it holds, then takes commands
+    assert worlds.active[0, 0] and worlds.mode[0, 0] == FLAT
+    worlds.velocity([0], [1.0], [0.0])

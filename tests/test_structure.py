@@ -291,7 +291,10 @@ def test_only_the_camera_pipeline_draws_cameras() -> None:
 
 
 def test_only_the_world_calls_the_physics_kernel() -> None:
-    """The compiled physics step (vehicles/dynamics.py) is called by the world package alone."""
-    kernel = {"integrate", "integrate_rows", "state_derivative"}
-    callers = {m for m in _callers(kernel) if m != "vehicles/dynamics.py"}
-    assert callers and all(m.startswith("world/") for m in callers), callers
+    """The compiled physics step (vehicles/dynamics.py) is called by the world's step alone, and the world's
+    step by the world alone: one stepper."""
+    callers = {m for m in _callers({"integrate", "state_derivative"}) if m != "vehicles/dynamics.py"}
+    assert callers == {"world/step.py"}, callers
+    steps = {"step_to_frame", "begin_period", "integrate_segment", "end_period", ".step_to_frame",
+             ".begin_period", ".integrate_segment", ".end_period"}  # fmt: skip
+    assert {m for m in _callers(steps) if m != "world/step.py"} == {"world/world.py"}

@@ -255,21 +255,22 @@ def test_set_wind_changes_the_wind_of_one_vehicle_or_all_and_rejects_bad_values(
     world.step()  # the world goes on
 
 
-def test_batched_worlds_fly_each_copy_in_its_own_wind():
-    """Domain randomisation's hook: one calm copy hovers still, two copies in a 6 m/s wind each feel
+def test_many_worlds_fly_each_in_its_own_wind():
+    """Domain randomisation's hook: one calm world hovers still, two worlds in a 6 m/s wind each feel
     their own turbulence and are pushed off their hover."""
-    from droneulator.world.batched import BatchedWorlds
+    from droneulator.world import World
 
-    worlds = BatchedWorlds(load_config(scene="default"), 3)
+    worlds = World(load_config(scene="default"), render=False, worlds=3)
     start = worlds.scene.spawn_position + [0.0, 0.0, 3.0]
     worlds.place(None, np.tile(start, (3, 1)), np.zeros(3))
-    worlds.set_wind([WindConfig(), WindConfig(speed_m_s=6.0), WindConfig(speed_m_s=6.0)])
+    worlds.set_wind_rows([WindConfig(), WindConfig(speed_m_s=6.0), WindConfig(speed_m_s=6.0)])
     for _ in range(60):
         worlds.step_frame()
-    wind = worlds.states[:, STATE.wind]
+    wind = worlds.states[:, 0, STATE.wind]
     np.testing.assert_array_equal(wind[0], 0.0)
     assert wind[1, 0] > 2.0 and wind[2, 0] > 2.0 and not np.allclose(wind[1], wind[2])
-    drift = np.linalg.norm(worlds.states[:, STATE.x] - start, axis=1)
+    drift = np.linalg.norm(worlds.states[:, 0, STATE.x] - start, axis=1)
     assert drift[0] < 1e-3 and drift[1] > 0.02 and drift[2] > 0.02
+    profile = World(load_config(overrides=["vehicle.wind=constant"]), render=False, worlds=2)
     with pytest.raises(ValueError, match="RotorPy"):
-        BatchedWorlds(load_config(overrides=["vehicle.wind=constant"]), 2)
+        profile.step_frame()

@@ -116,35 +116,6 @@ def se3_into(s: np.ndarray, flat: np.ndarray, k: np.ndarray, out: np.ndarray, R:
         out[i] = math.copysign(math.sqrt(abs(c)), c)
 
 
-@numba.njit(cache=True)
-def _se3_serial(states, flats, active, gains, gidx, out, R):  # fmt: skip
-    for r in range(states.shape[0]):
-        if active[r]:
-            se3_into(states[r], flats[r], gains[gidx[r]], out[r], R[r])
-
-
-@numba.njit(cache=True, parallel=True)
-def _se3_parallel(states, flats, active, gains, gidx, out, R):  # fmt: skip
-    for r in numba.prange(states.shape[0]):
-        if active[r]:
-            se3_into(states[r], flats[r], gains[gidx[r]], out[r], R[r])
-
-
-def se3_rows(
-    states: np.ndarray,
-    flats: np.ndarray,
-    active: np.ndarray,
-    gains: np.ndarray,
-    gidx: np.ndarray,
-    out: np.ndarray,
-    R: np.ndarray,
-    parallel: bool = False,
-) -> None:
-    """:func:`se3_into` for every ``active`` row: ``states`` (rows, STATE_SIZE) tracking ``flats`` (rows,
-    FLAT_SIZE) with the gain vectors ``gains[gidx[row]]``; rotor speeds into ``out`` (rows, 4)."""
-    (_se3_parallel if parallel else _se3_serial)(states, flats, active, gains, gidx, out, R)
-
-
 #: RotorPy ``SE3Control``'s position gains (the same for every airframe), and its attitude gains unless the
 #: airframe's parameters name their own (``kp_att``, ``kd_att``)
 KP_POS = (6.5, 6.5, 15.0)

@@ -358,7 +358,7 @@ _WORK_ROWS = 11
 
 
 def work_arrays(rows: int) -> tuple[np.ndarray, np.ndarray]:
-    """Scratch space for :func:`integrate_rows` (one set per row, reused every step)."""
+    """Scratch space for :func:`integrate` (one set per row, reused every step)."""
     return np.zeros((rows, _WORK_ROWS, STATE_SIZE)), np.zeros((rows, 3, 3))
 
 
@@ -436,54 +436,9 @@ def integrate(
     return False
 
 
-@numba.njit(cache=True)
-def _integrate_serial(states, cmds, active, dt, n_sub, P, G, D, pidx, sdf, origin, res, radius, out, hit,
-                      work, R):  # fmt: skip
-    for r in range(states.shape[0]):
-        if active[r]:
-            k = pidx[r]
-            hit[r] = integrate(states[r], cmds[r], dt, n_sub, P[k], G[k], D[k], sdf, origin, res, radius[r],
-                               out[r], work[r], R[r])  # fmt: skip
-
-
-@numba.njit(cache=True, parallel=True)
-def _integrate_parallel(states, cmds, active, dt, n_sub, P, G, D, pidx, sdf, origin, res, radius, out, hit,
-                        work, R):  # fmt: skip
-    for r in numba.prange(states.shape[0]):
-        if active[r]:
-            k = pidx[r]
-            hit[r] = integrate(states[r], cmds[r], dt, n_sub, P[k], G[k], D[k], sdf, origin, res, radius[r],
-                               out[r], work[r], R[r])  # fmt: skip
-
-
-#: from this many rows on, :func:`integrate_rows` spreads them over the cores (below, threads cost more
-#: than they save: one vehicle's step is a few microseconds)
+#: from this many rows (worlds x vehicles) on, the world's step (:mod:`droneulator.world.step`) spreads
+#: them over the cores (below, threads cost more than they save: one vehicle's step is a few microseconds)
 PARALLEL_ROWS = 32
-
-
-def integrate_rows(
-    states: np.ndarray,
-    cmds: np.ndarray,
-    active: np.ndarray,
-    dt: float,
-    n_sub: int,
-    table: ParamTable,
-    pidx: np.ndarray,
-    sdf: np.ndarray,
-    origin: np.ndarray,
-    res: float,
-    radius: np.ndarray,
-    out: np.ndarray,
-    hit: np.ndarray,
-    work: np.ndarray,
-    R: np.ndarray,
-) -> None:
-    """:func:`integrate` for every ``active`` row of ``states`` (rows, STATE_SIZE), each with the parameter
-    set ``table[pidx[row]]``, its commanded rotor speeds ``cmds[row]`` and collision radius ``radius[row]``;
-    ``hit[row]`` says whether the row touched the scene. ``out`` rows accumulate as :func:`integrate`'s."""
-    run = _integrate_parallel if states.shape[0] >= PARALLEL_ROWS else _integrate_serial
-    run(states, cmds, active, dt, n_sub, table.params, table.geometry, table.directions, pidx, sdf, origin,
-        res, radius, out, hit, work, R)  # fmt: skip
 
 
 class ParamTable:

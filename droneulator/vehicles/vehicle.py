@@ -428,18 +428,15 @@ class Vehicle:
         )
 
     # ------------------------------------------------------------------ the world's hooks
-    def on_collision(self, with_: str | None = None) -> Event:
-        """The vehicle touched the scene (or ``with_``, another vehicle): it stops where it is, level."""
-        s = self.s
-        s[STATE.v] = 0.0
-        s[STATE.w] = 0.0
-        s[STATE.q] = quat_from_yaw(yaw_of(s[STATE.q]))
+    def on_collision(self, with_: str | None = None, t: float | None = None) -> Event:
+        """The vehicle touched the scene at ``t`` (default: now), or ``with_``, another vehicle; the world's
+        step has stopped it where it was, level (:func:`~droneulator.world.step.stop_level`)."""
         self.flight.collided()
         self.collisions += 1
-        data: dict[str, Any] = {"position": s[STATE.x].tolist()}
+        data: dict[str, Any] = {"position": self.s[STATE.x].tolist()}
         if with_ is not None:
             data["vehicles"] = [self.name, with_]
-        return Event("collision", self.t, data, self.name)
+        return Event("collision", self.t if t is None else t, data, self.name)
 
     def holding_force(self) -> np.ndarray:
         """Specific force of the vehicle held still against gravity, in the body frame."""

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 from collections.abc import Collection, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -34,23 +35,17 @@ import numpy as np
 from droneulator.commands.errors import CommandError
 from droneulator.config import LightConfig, SimConfig, load_config
 from droneulator.controllers.flight import Event, Mode
-from droneulator.controllers.se3 import se3_rows
+from droneulator.controllers.velocity import VCMD, VREF_SIZE, start_reference, velocity_limits
+from droneulator.frames import yaw_of
 from droneulator.scenes import get_scene
 from droneulator.scenes.base import Scene
 from droneulator.state import FLAT_SIZE, STATE, STATE_SIZE
-from droneulator.vehicles.dynamics import (
-    OUTPUT,
-    OUTPUT_SIZE,
-    PARALLEL_ROWS,
-    ParamTable,
-    integrate_rows,
-    substeps,
-    work_arrays,
-)
+from droneulator.vehicles.dynamics import OUTPUT, OUTPUT_SIZE, PARALLEL_ROWS, ParamTable, work_arrays
 from droneulator.vehicles.vehicle import Vehicle, VehicleState
 from droneulator.wind.field import WindField
-from droneulator.world.contact import contacts
-from droneulator.world.downwash import WakeModel, downwash
+from droneulator.world import step as kernel
+from droneulator.world.downwash import WakeModel
+from droneulator.world.step import FLAT, ROTORS, VELOCITY, SdfStack
 
 if TYPE_CHECKING:
     from droneulator.render.pipeline import CameraPipeline
@@ -84,7 +79,14 @@ class StepResult:
 
 
 class World:
-    """A scene, a clock and the vehicles of ``config.vehicles`` (one by default), stepped in lockstep.
+    """``worlds`` copies (one by default) of a scene, a clock and the vehicles of ``config.vehicles`` (one by
+    default), stepped in lockstep.
+
+    The first world's vehicles have handles (:meth:`vehicle`) whose flight controllers drive them through
+    :meth:`step` (one world). Any number of worlds is driven row by row with the batched commands
+    (:meth:`place`, :meth:`velocity`, :meth:`step_frame`): each world its own clock, scene variant
+    (:meth:`add_scene`), wind and reset, all stepped by one compiled call, the vehicles of a world seeing
+    each other's wakes and bodies (learning's batched envs).
 
     ``render=False`` skips the renderer entirely (physics-only use, e.g. benchmarks);
     ``external_cameras=True`` (with ``render=False``) still splits the physics at camera instants and
@@ -98,19 +100,23 @@ class World:
         seed: int | None = None,
         render: bool = True,
         external_cameras: bool = False,
+        worlds: int = 1,
     ) -> None:
         self.config = config or load_config()
         if scene is not None:
             self.config.scene = scene
         if seed is not None:
             self.config.seed = seed
+        if isinstance(worlds, bool) or not isinstance(worlds, (int, np.integer)) or worlds < 1:
+            raise ValueError(f"worlds must be a positive integer, got {worlds!r}")
         cfg = self.config
         self.specs = cfg.vehicle_specs()
-        n = len(self.specs)
+        self.num_worlds = W = int(worlds)
+        self.num_vehicles = n = len(self.specs)
         # a scene without room for the fleet fails here (ValueError), before any vehicle is built
         get_scene(cfg.scene, cfg.seed, cfg.vegetation).spawn_points(sum(s.spawn is None for s in self.specs))
-        #: every vehicle's state, ``(worlds, vehicles, STATE_SIZE)``: one world here
-        self.states = np.zeros((1, n, STATE_SIZE))
+        #: every vehicle's state, ``(worlds, vehicles, STATE_SIZE)``
+        self.states = np.zeros((W, n, STATE_SIZE))
         self._rows = self.states[0]
         self.vehicles: dict[str, Vehicle] = {}
         self.table = ParamTable()
@@ -121,28 +127,44 @@ class World:
         vs = list(self.vehicles.values())
         self._pidx = np.array([self.table.add((v.spec.params,), v.packed) for v in vs], dtype=np.int64)
         self._gains = np.stack([v.flight.se3.gains() for v in vs])
-        self._gidx = np.arange(n, dtype=np.int64)
         self._radius = np.array([v.collision_radius for v in vs])
+        self._hover = np.array([v.hover_speed for v in vs])
+        self._lim = np.stack([velocity_limits(v.flight_config) for v in vs])
+        self._max_speed = np.array([v.flight_config.max_speed for v in vs])
         self._impact_speed = cfg.vehicle.impact_speed
         self._wake = WakeModel.of(vs)
-        # per-row scratch and outputs of the compiled steps, reused every step
-        self._cmds = np.zeros((n, 4))
-        self._flats = np.zeros((n, FLAT_SIZE))
-        self._se3 = np.zeros(n, dtype=bool)
-        self._imu = np.zeros((n, OUTPUT_SIZE))
-        self._hit = np.zeros(n, dtype=bool)
-        self._active = np.ones(n, dtype=bool)
-        self._work, self._R = work_arrays(n)
-        self._Rc = np.zeros((n, 3, 3))
+        # the rows' commands, flags and scratch for the compiled step (:mod:`droneulator.world.step`)
+        #: how each row gets its rotor command: FLAT, VELOCITY or ROTORS
+        self.mode = np.full((W, n), FLAT, dtype=np.int64)
+        self._flats = np.zeros((W, n, FLAT_SIZE))
+        self._cmds = np.zeros((W, n, 4))
+        self._vref = np.zeros((W, n, VREF_SIZE))
+        self._out = np.zeros((W, n, OUTPUT_SIZE))
+        #: rows that touched the scene during the last step (stopped there, inactive)
+        self.hit = np.zeros((W, n), dtype=bool)
+        self._hit_t = np.zeros((W, n), dtype=np.int64)
+        #: rows integrated (a collided or retired row is not)
+        self.active = np.ones((W, n), dtype=bool)
+        #: for each row, the vehicle of its world it touched in the last :meth:`step_frame` (-1: none)
+        self.touched = np.full((W, n), -1, dtype=np.int64)
+        work, R = work_arrays(W * n)
+        self._work, self._R = work.reshape(W, n, *work.shape[1:]), R.reshape(W, n, 3, 3)
+        self._period_start = np.zeros((W, n, STATE_SIZE))
+        self._wind_rows = np.zeros((W, n, 3))
+        #: each row's state at its world's last camera instant (:meth:`step_frame`)
+        self.camera_states = np.zeros((W, n, STATE_SIZE))
+        self._all = np.ones(W, dtype=bool)
         #: vehicles whose command must be computed next period: not :attr:`FlightController.steady`, or
         #: commanded since (each flight controller reports its commands); the others keep theirs
         self._busy: set[int] = set(range(n))
         for i, v in enumerate(vs):
             v.flight.on_command = functools.partial(self._busy.add, i)
-        self._period_start = np.zeros((n, STATE_SIZE))
         self.control_period_ns = round(NS / cfg.vehicle.control_hz)
         self.camera_period_ns = round(NS / cfg.render.camera_hz)
         self._substep = 1.0 / (cfg.vehicle.control_hz * cfg.vehicle.substeps)
+        #: each world's clock (ns since its reset) and next camera instant
+        self.clocks = np.zeros(W, dtype=np.int64)
+        self._next_frame = np.full(W, self.camera_period_ns, dtype=np.int64)
         self.render_enabled = render
         self.camera_schedule = render or external_cameras
         #: cameras shoot only when :meth:`trigger` asks (``render.camera_trigger = "command"``)
@@ -152,9 +174,11 @@ class World:
         #: the camera pipeline (:mod:`droneulator.render.pipeline`) when the world renders its own frames
         self.cameras: CameraPipeline | None = None
         self.scene: Scene
-        self.t_ns = 0
+        #: the scene variants worlds fly in (the first is the config's scene) and each world's variant
+        self.scenes: list[Scene] = []
+        self.variant = np.zeros(W, dtype=np.int64)
         #: the wind field every vehicle flies in (:mod:`droneulator.wind.field`), seeded by the world's seed
-        self.wind = WindField(cfg.wind, n, self.control_period_ns / NS, cfg.seed)
+        self.wind = WindField(cfg.wind, W * n, self.control_period_ns / NS, cfg.seed)
         self._load_scene(cfg.scene, cfg.seed, cfg.vegetation)
         self.reset()
 
@@ -164,6 +188,8 @@ class World:
         # a scene without room for the fleet fails here (ValueError), before anything changes
         scene.spawn_points(sum(spec.spawn is None for spec in self.specs))
         self.scene = scene
+        self.scenes[:1] = [scene]
+        self._sdfs = SdfStack([sc.collision for sc in self.scenes])
         self.wind.collision = scene.collision
         if self.render_enabled:
             from droneulator.render.pipeline import CameraPipeline
@@ -172,6 +198,12 @@ class World:
                 self.cameras = CameraPipeline(scene, self.config, seed)
             else:
                 self.cameras.load(scene, seed)
+
+    def add_scene(self, scene: Scene) -> int:
+        """Make ``scene`` a variant worlds can fly in (:meth:`place` with ``variant``); returns its index."""
+        self.scenes.append(scene)
+        self._sdfs = SdfStack([sc.collision for sc in self.scenes])
+        return len(self.scenes) - 1
 
     @property
     def vehicle_list(self) -> list[Vehicle]:
@@ -241,13 +273,24 @@ class World:
             )
         # the ROS clock never runs backwards: a reset continues it one control period after the last stamp
         self._stamp_base_ns = self.stamp_ns + self.control_period_ns if hasattr(self, "_stamp_base_ns") else 0
-        self.t_ns = 0
-        self._next_frame_ns = self.camera_period_ns
+        self.clocks[:] = 0
+        self._next_frame[:] = self.camera_period_ns
         self.frame_count = 0
         self._shots.clear()  # a reset ends the episode a trigger was for
         for v in self.vehicles.values():
             pos, heading = starts[v.name]
             v.place(pos, float(heading), airborne if v is target else None)
+        self.mode[:] = FLAT
+        self.active[:] = True
+        self.hit[:] = False
+        self.touched[:] = -1
+        self.variant[:] = 0
+        self._busy.update(range(self.num_vehicles))
+        if self.num_worlds > 1:  # every other world a copy of the first, holding where it is
+            self.states[1:] = self._rows
+            self._flats[1:] = 0.0
+            self._flats[1:, :, 0:3] = self._rows[:, STATE.x]
+            self._flats[1:, :, 9] = [yaw_of(q) for q in self._rows[:, STATE.q]]
         # a fresh realisation each episode, the same sequence of them under the same seed
         self._episodes = getattr(self, "_episodes", -1) + 1
         self.wind.reset(np.random.SeedSequence([self.config.seed, 0x57494E44, self._episodes]))
@@ -283,6 +326,15 @@ class World:
 
     # ------------------------------------------------------------------ clocks
     @property
+    def t_ns(self) -> int:
+        """The first world's clock (ns since its reset)."""
+        return int(self.clocks[0])
+
+    @t_ns.setter
+    def t_ns(self, value: int) -> None:
+        self.clocks[0] = value
+
+    @property
     def t(self) -> float:
         return self.t_ns / NS
 
@@ -295,14 +347,42 @@ class World:
         return {name: v.state for name, v in self.vehicles.items()}
 
     # ------------------------------------------------------------------ stepping
+    def _parallel(self) -> bool:
+        return self.states.shape[0] * self.states.shape[1] >= PARALLEL_ROWS
+
+    def _args(self) -> tuple[Any, ...]:
+        """The compiled step's arrays, in :func:`~droneulator.world.step.integrate_segment`'s order after
+        ``t_to``."""
+        sd = self._sdfs
+        t = self.table
+        return (self.clocks, self.states, self._cmds, self.active, self._substep, t.params, t.geometry,
+                t.directions, self._pidx, sd.buffer, sd.offsets, sd.shapes, sd.origins,
+                sd.resolutions, self.variant, self._radius, self._out, self.hit, self._hit_t, self._work,
+                self._R)  # fmt: skip
+
+    def _begin(self, go: np.ndarray, dt: float) -> None:
+        kernel.begin_period(
+            go, self._parallel(), self.states, self._wind_rows, self._wake.active, self._wake.k_eta,
+            self._wake.disk_area, self._period_start, self._out, self.mode, self._flats, self._cmds,
+            self._vref, dt, self._lim, self._gains, self._R,
+        )  # fmt: skip
+
     def step(self, n: int = 1) -> StepResult:
-        """Advance ``n`` control periods; returns the frames rendered and events raised meanwhile."""
+        """Advance ``n`` control periods of the first world, its vehicles driven by their flight controllers;
+        returns the frames rendered and events raised meanwhile. (Many worlds step with
+        :meth:`step_frame`.)"""
+        if self.num_worlds > 1:
+            raise RuntimeError("a World of many worlds steps with step_frame(), its rows driven by place() "
+                               "and velocity()")  # fmt: skip
         out = StepResult()
         dt = self.control_period_ns / NS
         vs = self.vehicle_list
-        rows, cmds, flats = self._rows, self._cmds, self._flats
-        parallel = len(vs) >= PARALLEL_ROWS
+        rows, cmds, flats = self._rows, self._cmds[0], self._flats[0]
         rate = self.camera_schedule and not self.triggered
+        go = self._all
+        args = self._args()
+        t_to = np.zeros(1, dtype=np.int64)
+        self.wind.dt = dt
         for _ in range(n):
             t = self.t
             for i in sorted(self._busy):
@@ -312,54 +392,175 @@ class World:
                     e.vehicle = v.name
                 out.events.extend(events)
                 v._reference = ref
-                self._se3[i] = cmd is None
                 if cmd is None:
                     flats[i] = ref
+                    self.mode[0, i] = FLAT
                 else:
                     cmds[i] = cmd
-                self._active[i] = v.flight.mode != Mode.COLLIDED
+                    self.mode[0, i] = ROTORS
+                self.active[0, i] = v.flight.mode != Mode.COLLIDED
                 if v.flight.steady:  # holding or motors off: this command stands until the next one
                     self._busy.discard(i)
-            if self._se3.any():
-                se3_rows(rows, flats, self._se3, self._gains, self._gidx, cmds, self._Rc, parallel)
+            wind = self._wind_rows[0]
             if self._still_air:
-                rows[:, STATE.wind] = 0.0
+                wind[:] = 0.0
             elif self.config.vehicle.wind == "none":
-                rows[:, STATE.wind] = self.wind.update(rows[:, STATE.x], rows[:, STATE.v])
+                wind[:] = self.wind.update(rows[:, STATE.x], rows[:, STATE.v])
             else:
                 for i, v in enumerate(vs):
-                    rows[i, STATE.wind] = v.wind.update(t, rows[i, STATE.x])
-            if self._wake.active:
-                downwash(rows, self._wake)
-            self._imu[:] = 0.0
-            if len(vs) > 1:
-                self._period_start[:] = rows
+                    wind[i] = v.wind.update(t, rows[i, STATE.x])
+            self._begin(go, dt)
             t_start = t
             t_end = self.t_ns + self.control_period_ns
-            col = self.scene.collision
             while self.t_ns < t_end:
-                t_next = min(t_end, self._next_frame_ns) if rate else t_end
-                h = (t_next - self.t_ns) / NS
-                self._hit[:] = False
-                n_sub = substeps(h, self._substep)
-                integrate_rows(
-                    rows, cmds, self._active, h, n_sub, self.table, self._pidx, col.sdf, col.origin,
-                    col.resolution, self._radius, self._imu, self._hit, self._work, self._R,
-                )  # fmt: skip
-                for i in np.flatnonzero(self._hit):
-                    out.events.append(vs[i].on_collision())
-                    self._active[i] = False
-                self.t_ns = t_next
-                if rate and self.t_ns == self._next_frame_ns:
+                t_to[0] = min(t_end, int(self._next_frame[0])) if rate else t_end
+                self.hit[:] = False
+                kernel.integrate_segment(go, self._parallel(), t_to, *args)
+                for i in np.flatnonzero(self.hit[0]):
+                    out.events.append(vs[i].on_collision(t=self._hit_t[0, i] / NS))
+                if rate and self.t_ns == self._next_frame[0]:
                     self._shoot(out, None)
-                    self._next_frame_ns += self.camera_period_ns
+                    self._next_frame[0] += self.camera_period_ns
             if len(vs) > 1:
-                self._vehicle_contacts(vs, out.events)
+                pairs = kernel.end_period(go, self.states, self.active, self._radius, self._period_start)
+                self._vehicle_contacts(vs, sorted((int(p[1]), int(p[2])) for p in pairs), out.events)
             self._finish_period(vs, dt, t_start, out.events)
             if self._shots:
                 self._shoot(out, tuple(name for name in self.vehicles if name in self._shots))
                 self._shots.clear()
         return out
+
+    # ------------------------------------------------------------------ many worlds, row by row
+    def _worlds(self, idx: Any) -> np.ndarray:
+        """World indices from ``idx``: None (all), a bool mask or indices."""
+        if idx is None:
+            return np.arange(self.num_worlds)
+        a = np.asarray(idx)
+        rows = np.flatnonzero(a) if a.dtype == bool else a.astype(np.int64).reshape(-1)
+        if len(rows) and (rows.min() < 0 or rows.max() >= self.num_worlds):
+            raise ValueError(f"world indices must lie in [0, {self.num_worlds}), got {rows.tolist()[:8]}")
+        return rows
+
+    def _per_row(self, name: str, values: Any, k: int) -> np.ndarray:
+        """``values`` as (k, vehicles) floats: one per vehicle of each world (or one per world with one
+        vehicle), finite."""
+        n = self.num_vehicles
+        a = np.asarray(values, dtype=float)
+        if a.size != k * n:
+            raise ValueError(f"{name} needs {k} x {n} values (worlds x vehicles), got shape {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{name} must be finite numbers")
+        return a.reshape(k, n)
+
+    def place(self, worlds: Any, positions: Any, yaws: Any, variant: Any = None) -> None:
+        """Restart worlds ``worlds`` (indices or a mask) at t = 0, their vehicles at rest hovering at
+        ``positions`` ``(k, vehicles, 3)`` facing ``yaws`` ``(k, vehicles)``, in scene variant ``variant``
+        (one index or one per world; None: as they were). The rows then follow the batched commands
+        (:meth:`velocity`, else they hold where they were placed)."""
+        rows = self._worlds(worlds)
+        k, n = len(rows), self.num_vehicles
+        pos = self._per_row("positions", positions, k * 3).reshape(k, n, 3)
+        yaw = self._per_row("yaws", yaws, k)
+        if variant is not None:
+            var = np.broadcast_to(np.asarray(variant, dtype=np.int64), (k,))
+            if var.min() < 0 or var.max() >= len(self.scenes):
+                raise ValueError(f"scene variants are 0 to {len(self.scenes) - 1}, got {var.tolist()[:8]}")
+            self.variant[rows] = var
+        s = self.states[rows]
+        s[:] = 0.0
+        s[:, :, STATE.x] = pos
+        s[:, :, 8] = np.sin(yaw / 2)
+        s[:, :, 9] = np.cos(yaw / 2)
+        s[:, :, STATE.rotor_speeds] = self._hover[None, :, None]
+        self.states[rows] = s
+        flats = np.zeros((k, n, FLAT_SIZE))
+        flats[:, :, 0:3] = pos
+        flats[:, :, 9] = yaw
+        self._flats[rows] = flats
+        self.mode[rows] = FLAT
+        self.active[rows] = True
+        self.hit[rows] = False
+        self.touched[rows] = -1
+        self.clocks[rows] = 0
+        self._next_frame[rows] = self.camera_period_ns
+        self.wind.reset_rows((rows[:, None] * n + np.arange(n)).ravel())
+
+    def velocity(self, worlds: Any, forward: Any, yaw_rate: Any) -> None:
+        """Velocity-mode commands (forward speed m/s, yaw rate rad/s; ``(k, vehicles)``) for the vehicles of
+        worlds ``worlds``, as ``Vehicle.velocity``: a row entering the mode starts its reference where its
+        hold reference is, at its current speed. Retired or collided rows take none (ValueError)."""
+        rows = self._worlds(worlds)
+        k = len(rows)
+        f = self._per_row("forward", forward, k)
+        r = self._per_row("yaw_rate", yaw_rate, k)
+        if np.any(np.abs(f) > self._max_speed) or np.any(np.abs(r) > math.pi):
+            raise ValueError(f"need |forward| <= {self._max_speed.min():g} m/s and |yaw_rate| <= pi rad/s")
+        if not self.active[rows].all():
+            raise ValueError("a collided or retired vehicle takes no command until its world is placed again")
+        for w, i in zip(*np.nonzero(self.mode[rows] != VELOCITY), strict=True):
+            b = rows[w]
+            hold = self._flats[b, i]
+            heading = float(hold[9])
+            speed0 = float(self.states[b, i, 3:5] @ (math.cos(heading), math.sin(heading)))
+            start_reference(self._vref[b, i], hold[0:3], heading, speed0, 0.0)
+            self.mode[b, i] = VELOCITY
+        self._vref[rows, :, VCMD] = f
+        self._vref[rows, :, VCMD + 1] = r
+
+    def retire(self, worlds: Any, vehicles: Any) -> None:
+        """Take vehicle rows out of their worlds until the world is placed again: the rows ``(worlds[j],
+        vehicles[j])`` stop being integrated, touched and seen, and their rotors (and wakes) stop."""
+        w = np.asarray(worlds, dtype=np.int64).reshape(-1)
+        v = np.asarray(vehicles, dtype=np.int64).reshape(-1)
+        self.active[w, v] = False
+        self.mode[w, v] = FLAT
+        self.states[w, v, STATE.rotor_speeds] = 0.0
+        self.states[w, v, 3:6] = 0.0
+
+    def set_wind_rows(self, configs: Any, worlds: Any = None) -> None:
+        """The wind settings (one :class:`~droneulator.config.WindConfig`, or one per world) of the vehicles
+        of worlds ``worlds`` (None: all), from their next step on."""
+        rows = self._worlds(worlds)
+        n = self.num_vehicles
+        per = [configs] * len(rows) if not isinstance(configs, (list, tuple)) else list(configs)
+        if len(per) != len(rows):
+            raise ValueError(f"{len(per)} wind configs for {len(rows)} worlds")
+        self.wind.configure([c for c in per for _ in range(n)], (rows[:, None] * n + np.arange(n)).ravel())
+        self._update_still_air()
+
+    def frame_t_ns(self) -> np.ndarray:
+        """Each world's latest camera instant (ns since its reset)."""
+        return self._next_frame - self.camera_period_ns
+
+    def step_frame(self, run: Any = None) -> tuple[np.ndarray, np.ndarray]:
+        """Advance the worlds where ``run`` (a mask; None: all) to the end of the control period holding
+        their next camera instant, in one compiled call. Returns (every row's state at its world's camera
+        instant, ``(worlds, vehicles, STATE_SIZE)``; rows that touched the scene on the way), arrays this
+        world reuses (rows of worlds not run keep old values); :attr:`touched` names the vehicle each row
+        touched. The wind is sampled once a frame."""
+        if self.config.vehicle.wind != "none":
+            raise ValueError("many worlds fly the wind field (the wind section), not RotorPy's profiles: "
+                             "set vehicle.wind = 'none'")  # fmt: skip
+        mask = self._all if run is None else np.asarray(run, dtype=bool)
+        if mask.shape != (self.num_worlds,):
+            raise ValueError(f"run must be {self.num_worlds} booleans, got shape {mask.shape}")
+        W, n = self.num_worlds, self.num_vehicles
+        if self._still_air:
+            self._wind_rows[:] = 0.0
+        else:
+            self.wind.dt = self.camera_period_ns / NS
+            flat = self.states.reshape(W * n, STATE_SIZE)
+            self._wind_rows[:] = self.wind.update(flat[:, STATE.x], flat[:, STATE.v]).reshape(W, n, 3)
+        (clocks, states, cmds, active, substep, P, G, D, pidx, buf, off, shapes, origins, res, variant,
+         radius, out, hit, hit_t, work, R) = self._args()  # fmt: skip
+        kernel.step_to_frame(
+            mask, self._parallel(), self.control_period_ns, self.camera_period_ns, clocks, self._next_frame,
+            states, self._wind_rows, self._wake.active, self._wake.k_eta, self._wake.disk_area,
+            self._period_start, out, self.mode, self._flats, cmds, self._vref, self._lim, self._gains, active,
+            substep, P, G, D, pidx, buf, off, shapes, origins, res, variant, radius, hit, hit_t, work, R,
+            self.camera_states, self.touched,
+        )  # fmt: skip
+        return self.camera_states, self.hit
 
     def _shoot(self, out: StepResult, rigs: tuple[str, ...] | None) -> None:
         """A camera instant now: the frames (own renderer) or the states for a render server."""
@@ -389,7 +590,7 @@ class World:
     def _finish_period(self, vs: list[Vehicle], dt: float, t_start: float, events: list[Event]) -> None:
         """Every vehicle's IMU means over the period just stepped, and ``impact`` events for hard
         touchdowns."""
-        imu = self._imu
+        imu = self._out[0]
         sf = imu[:, OUTPUT.specific_force] / dt
         held = dt - imu[:, OUTPUT.elapsed]
         for i in np.flatnonzero(held > 1e-12):  # time not integrated (stopped) is spent held by the obstacle
@@ -402,16 +603,13 @@ class World:
             events.append(Event("impact", t_start + float(imu[i, OUTPUT.touchdown_time]),
                                 {"position": where, "speed": speed}, vs[i].name))  # fmt: skip
 
-    def _vehicle_contacts(self, vs: list[Vehicle], events: list[Event]) -> None:
-        """Vehicles whose bodies overlap stop where they were at the start of the period (both)."""
+    def _vehicle_contacts(self, vs: list[Vehicle], pairs: list[tuple[int, int]], events: list[Event]) -> None:
+        """Vehicles whose bodies overlapped (stopped by the step where they were at the start of the period):
+        one ``collision`` event per pair, naming both."""
         rows = self._rows
-        pairs = contacts(rows[:, 0:3], self._radius, self._active)
         for a, b in pairs:
-            for i in (a, b):
-                rows[i] = self._period_start[i]
             vs[a].on_collision(with_=vs[b].name)
             vs[b].on_collision(with_=vs[a].name)
-            self._active[a] = self._active[b] = False
             mid = 0.5 * (rows[a, STATE.x] + rows[b, STATE.x])
             names = [vs[a].name, vs[b].name]
             events.append(Event("collision", self.t, {"position": mid.tolist(), "vehicles": names}, names[0]))

@@ -2,7 +2,7 @@
 
 A native :class:`gymnasium.vector.VectorEnv` (the registration's vector entry point), not B copies of
 :class:`~droneulator.workflows.rl.env.VineyardNavEnv` in subprocesses: B independent one-vehicle worlds
-of the vineyard (:class:`~droneulator.world.batched.BatchedWorlds`: their own clock, vehicle, start and
+of the vineyard (one :class:`~droneulator.world.World` of B worlds: their own clock, vehicle, start and
 goal; the layout is the config's scene seed, as the single env's) step to their next camera frame in one
 compiled call, and the depth of all of them comes from one batched call (``depth``: ``"raycast"``, our
 BVH ray caster, the default here; ``"render"``, the OpenGL renderer drawing them one after the other,
@@ -10,8 +10,8 @@ as the single env does by default).
 
 With domain randomisation of the scene, each env flies each episode in one of the single env's scene
 variants (:func:`~droneulator.workflows.rl.env.scene_variants`), drawn at its reset as the single env
-draws it: every variant is a batch of worlds of that scene, and an env's vehicle flies in the batch of its
-episode's scene (the batches of the other scenes leave its row idle).
+draws it: every variant is a scene of the world (:meth:`~droneulator.world.World.add_scene`), with its
+own depth source and occupancy grid, and an env's world flies in its episode's scene.
 
 Each env follows the single env's rules exactly (one :class:`~droneulator.workflows.rl.env.NavTask` per
 env: task sampling, reward, terminations, time limit), so env ``i`` seeded ``s`` with the same actions
@@ -41,6 +41,7 @@ from gymnasium.vector.utils import batch_space
 from droneulator.config import SimConfig
 from droneulator.frames import transforms_from_poses
 from droneulator.render.pipeline import CameraPipeline
+from droneulator.scenes import get_scene
 from droneulator.state import STATE
 from droneulator.workflows.rl.backend import Kinematics
 from droneulator.workflows.rl.env import (
@@ -53,8 +54,7 @@ from droneulator.workflows.rl.env import (
     strips,
 )
 from droneulator.workflows.rl.task import REASONS, TaskRows
-from droneulator.world.batched import BatchedWorlds
-from droneulator.world.world import NS
+from droneulator.world.world import NS, World
 
 
 def depth_strips(
@@ -106,18 +106,19 @@ class VineyardNavVectorEnv(VectorEnv):
         cfg = env_config(config, **rl_overrides)
         self.config = cfg
         self.num_envs = n = int(num_envs)
-        #: the scenes episodes fly in (one, or randomisation's variants), each with a batch of worlds,
+        if depth not in DEPTH_SOURCES:
+            raise ValueError(f"depth must be one of {', '.join(DEPTH_SOURCES)}, got {depth!r}")
+        #: every env's world: one vehicle each (physics only)
+        self.worlds = World(cfg, render=False, worlds=n)
+        #: the scenes episodes fly in (one, or randomisation's variants), each a scene of the world with
         #: its depth source and its occupancy grid, built the first time an env draws it
         self.variants = scene_variants(cfg)
         self._batches: dict[int, _SceneBatch] = {}
         self._variant = np.zeros(n, dtype=np.int64)
         self._depth = depth
-        if depth not in DEPTH_SOURCES:
-            raise ValueError(f"depth must be one of {', '.join(DEPTH_SOURCES)}, got {depth!r}")
-        #: the first scene variant's worlds and scene (with one scene, every env's; with scene
-        #: randomisation an env's episode flies in the batch ``_variant`` names)
-        self.worlds = self._batch(0).worlds
-        self.scene = self.worlds.scene
+        #: the first scene variant (with one scene, every env's; with scene randomisation an env's
+        #: episode flies in the one ``_variant`` names)
+        self.scene = self._batch(0).scene
         self.tasks = [NavTask(cfg, self.scene) for _ in range(n)]
         task = self.tasks[0]
         self.single_observation_space = task.observation_space
@@ -140,9 +141,9 @@ class VineyardNavVectorEnv(VectorEnv):
 
     # ------------------------------------------------------------------ helpers
     def _batch(self, k: int) -> _SceneBatch:
-        """Scene variant ``k``'s worlds, depth source and grid (built on first use)."""
+        """Scene variant ``k``: its scene in the world, depth source and grid (built on first use)."""
         if k not in self._batches:
-            self._batches[k] = _SceneBatch(self.variants[k], self.num_envs, self._depth)
+            self._batches[k] = _SceneBatch(self.variants[k], self.worlds, self._depth)
         return self._batches[k]
 
     def _groups(self, idx: np.ndarray) -> list[tuple[_SceneBatch, np.ndarray]]:
@@ -153,13 +154,8 @@ class VineyardNavVectorEnv(VectorEnv):
 
     @property
     def states(self) -> np.ndarray:
-        """Every env's vehicle state (``(B, STATE_SIZE)``), from the worlds of its scene."""
-        if len(self._batches) == 1:
-            return self.worlds.states
-        out = np.empty_like(self.worlds.states)
-        for batch, idx in self._groups(np.arange(self.num_envs)):
-            out[idx] = batch.worlds.states[idx]
-        return out
+        """Every env's vehicle state (``(B, STATE_SIZE)``, a view of its world's row)."""
+        return self.worlds.states[:, 0]
 
     def _reset_envs(self, idx: np.ndarray, options: dict[str, Any] | None) -> None:
         """Sample (or take from ``options``) a task for each env of ``idx``, place its vehicle there and
@@ -171,7 +167,7 @@ class VineyardNavVectorEnv(VectorEnv):
             task = self.tasks[i]
             if len(self.variants) > 1:
                 self._variant[i] = k = int(self._rngs[i].integers(len(self.variants)))
-                task.use_scene(self._batch(k).worlds.scene)
+                task.use_scene(self._batch(k).scene)
             if "start" in opts or "goal" in opts:
                 begun.append(task.given_task(opts))
             else:
@@ -181,11 +177,10 @@ class VineyardNavVectorEnv(VectorEnv):
         at = {int(i): j for j, i in enumerate(idx)}
         for batch, sub in self._groups(idx):
             rows = [at[int(i)] for i in sub]
-            batch.worlds.place(sub, positions[rows], yaws[rows])
+            self.worlds.place(sub, positions[rows], yaws[rows], variant=batch.index)
         if self.config.randomize.enabled:
             draws = [self.config.randomize.draw(self._rngs[i], self._base_wind) for i in idx]
-            for batch, sub in self._groups(idx):
-                batch.worlds.set_wind([draws[at[int(i)]].wind for i in sub], sub)
+            self.worlds.set_wind_rows([d.wind for d in draws], idx)
             for i, d in zip(idx, draws, strict=True):
                 self._depth_models[i] = d.depth_model
                 self._depth_scales[i] = d.depth_noise_scale, d.depth_dropout_scale
@@ -198,13 +193,13 @@ class VineyardNavVectorEnv(VectorEnv):
         for batch, sub in self._groups(idx):
             mine = none.copy()
             mine[sub] = True
-            self.rows.step(mine, rows, none, batch.grid, batch.worlds.scene, advance=False)
+            self.rows.step(mine, rows, none, batch.grid, batch.scene, advance=False)
         self._obs[idx, STRIP_SAMPLES:] = self.rows.tail[idx]
         self._commands[idx] = 0.0
         self._strips(idx, self.states)
 
     def _kinematics(self, i: int, t_ns: int) -> Kinematics:
-        row = self._batches[int(self._variant[i])].worlds.states[i]
+        row = self.worlds.states[i, 0]
         return Kinematics(t_ns / NS, row[STATE.x].copy(), row[STATE.q].copy(), row[STATE.v].copy(),
                           row[STATE.w].copy(), "hold")  # fmt: skip
 
@@ -304,23 +299,14 @@ class VineyardNavVectorEnv(VectorEnv):
         a = np.clip(a, -1.0, 1.0)
         self._commands[:, 0] = k[6] + a[:, 0] * k[7]
         self._commands[:, 1] = a[:, 1] * k[8]
-        groups = self._groups(idx)
-        if len(groups) == 1:
-            batch = groups[0][0]
-            batch.worlds.velocity(idx, self._commands[idx, 0], self._commands[idx, 1])
-            cam, hit = batch.worlds.step_frame(run)
-            t = batch.worlds.frame_t_ns() / NS
-            self._nav(batch, run, cam, hit)
-        else:
-            cam, hit, t = self.states, np.zeros(n, dtype=bool), np.zeros(n)
-            for batch, sub in groups:
-                mine = np.zeros(n, dtype=bool)
-                mine[sub] = True
-                batch.worlds.velocity(sub, self._commands[sub, 0], self._commands[sub, 1])
-                c, h = batch.worlds.step_frame(mine)
-                cam[sub], hit[sub] = c[sub], h[sub]
-                t[sub] = batch.worlds.frame_t_ns()[sub] / NS
-                self._nav(batch, mine, cam, hit)
+        self.worlds.velocity(idx, self._commands[idx, 0], self._commands[idx, 1])
+        cams, hits = self.worlds.step_frame(run)
+        cam, hit = cams[:, 0], hits[:, 0]
+        t = self.worlds.frame_t_ns() / NS
+        for batch, sub in self._groups(idx):
+            mine = np.zeros(n, dtype=bool)
+            mine[sub] = True
+            self.rows.step(mine, cam, hit, batch.grid, batch.scene, advance=True)
         self._obs[idx, STRIP_SAMPLES:] = self.rows.tail[idx]
         self._strips(idx, cam)
         rewards = np.where(run, self.rows.reward, 0.0)
@@ -350,10 +336,6 @@ class VineyardNavVectorEnv(VectorEnv):
         self._done = done if next_step else np.zeros(n, dtype=bool)
         return self._obs.copy(), rewards, terminated, truncated, infos
 
-    def _nav(self, batch: _SceneBatch, run: np.ndarray, cam: np.ndarray, hit: np.ndarray) -> None:
-        """The task step (:mod:`.task`) of envs ``run``, all flying in ``batch``'s scene."""
-        self.rows.step(run, cam, hit, batch.grid, batch.worlds.scene, advance=True)
-
     def close_extras(self, **kwargs: Any) -> None:
         for batch in getattr(self, "_batches", {}).values():
             batch.cameras.close()
@@ -361,10 +343,15 @@ class VineyardNavVectorEnv(VectorEnv):
 
 
 class _SceneBatch:
-    """One scene variant of a vector env: a batch of worlds of that scene (a row for every env; the rows
-    of envs flying elsewhere stay idle), its camera pipeline (depth from ``depth``) and occupancy grid."""
+    """One scene variant of a vector env: its scene in the world (``index``: the world's variant), its
+    camera pipeline (depth from ``depth``) and occupancy grid."""
 
-    def __init__(self, cfg: SimConfig, num_envs: int, depth: str) -> None:
-        self.worlds = BatchedWorlds(cfg, num_envs)
-        self.cameras = CameraPipeline(self.worlds.scene, cfg, source=depth)
-        self.grid = occupancy_grid(self.worlds.scene, cfg.rl, cfg.vehicle.collision_radius)
+    def __init__(self, cfg: SimConfig, world: World, depth: str) -> None:
+        if (cfg.scene, cfg.seed, cfg.vegetation) == (world.config.scene, world.config.seed,
+                                                     world.config.vegetation):  # fmt: skip
+            self.scene, self.index = world.scene, 0
+        else:
+            self.scene = get_scene(cfg.scene, cfg.seed, cfg.vegetation)
+            self.index = world.add_scene(self.scene)
+        self.cameras = CameraPipeline(self.scene, cfg, source=depth)
+        self.grid = occupancy_grid(self.scene, cfg.rl, cfg.vehicle.collision_radius)
