@@ -35,8 +35,24 @@ from droneulator.sensors.camera_models import CameraModel, camera_rng, fleet_cam
 
 #: where depth comes from: the OpenGL renderer, or ray casting (depth only)
 DEPTH_SOURCES = ("render", "raycast")
+#: other bodies as spheres for the cast depth: centres (B, K, 3) and radii (B, K) (pad with radius 0)
+Spheres = tuple[Any, Any]
 #: a pose's motion for the motion blur: (velocity m/s world, angular velocity rad/s body FLU)
 Motion = tuple[Any, Any]
+
+
+def _no_spheres(spheres: Spheres | None) -> None:
+    """ValueError for spheres given to the renderer, which draws the vehicles' own bodies."""
+    if spheres is not None:
+        raise ValueError(
+            "spheres are for the ray caster: the renderer draws the other vehicles' bodies itself "
+            "(pose them with frames())"
+        )
+
+
+def _picked(spheres: Spheres | None, mask: np.ndarray) -> Spheres | None:
+    """The spheres of the poses ``mask`` selects."""
+    return None if spheres is None else (np.asarray(spheres[0])[mask], np.asarray(spheres[1])[mask])
 
 
 def depth_presets(config: SimConfig, seed: int | None = None) -> dict[str, CameraModel | None]:
@@ -151,48 +167,64 @@ class CameraPipeline:
         return all(self.presets[name] is None for name in names)
 
     def depth(
-        self, poses: np.ndarray, presets: Sequence[str] | None = None, scales: np.ndarray | None = None
+        self,
+        poses: np.ndarray,
+        presets: Sequence[str] | None = None,
+        scales: np.ndarray | None = None,
+        spheres: Spheres | None = None,
     ) -> np.ndarray:
         """The first camera's depth images ``(B, H, W)`` at body poses ``(B, 4, 4)``, image ``b`` through the
         depth preset ``presets[b]`` (None: the camera's own) with noise and dropout factors ``scales[b]``
-        (``(B, 2)``; None: the camera's)."""
+        (``(B, 2)``; None: the camera's). ``spheres``: other bodies as spheres, (centres ``(B, K, 3)``,
+        radii ``(B, K)``), seen before the preset applies (ray casting only, see
+        :meth:`DepthCaster.sphere_depth <droneulator.render.raycast.DepthCaster.sphere_depth>`)."""
         poses = np.asarray(poses, dtype=float).reshape(-1, 4, 4)
         if self.caster is not None:
-            exact = self.caster.depth(poses)
+            exact = self.caster.depth(poses, spheres=spheres)
         else:
+            _no_spheres(spheres)
             exact = np.empty((len(poses), self.camera.height, self.camera.width), dtype=np.float32)
             for k, d in enumerate(self._drawn(poses)):
                 exact[k] = d
         return self._through(exact, presets, scales)
 
     def centre_rows(
-        self, poses: np.ndarray, presets: Sequence[str] | None = None, scales: np.ndarray | None = None
+        self,
+        poses: np.ndarray,
+        presets: Sequence[str] | None = None,
+        scales: np.ndarray | None = None,
+        spheres: Spheres | None = None,
     ) -> np.ndarray:
         """The centre rows (row ``H // 2``) of :meth:`depth` ``(B, W)``; whole images are drawn only for the
-        poses whose preset is not ideal (a depth model's edges and thin structures need the rows around)."""
+        poses whose preset is not ideal (a depth model's edges and thin structures need the rows around).
+        ``spheres``: as :meth:`depth`'s."""
         poses = np.asarray(poses, dtype=float).reshape(-1, 4, 4)
+        if self.caster is None:
+            _no_spheres(spheres)
         names = [self.camera.depth_model] * len(poses) if presets is None else list(presets)
         noisy = np.array([self.presets[m] is not None for m in names], dtype=bool)
         out = np.empty((len(poses), self.camera.width), dtype=np.float32)
         exact = ~noisy
         if exact.any():
             if self.caster is not None:
-                out[exact] = self.caster.centre_row(poses[exact])
+                out[exact] = self.caster.centre_row(poses[exact], spheres=_picked(spheres, exact))
             else:
                 out[exact] = self._exact_rows(poses[exact])
         if noisy.any():
             picked = [m for m, n in zip(names, noisy, strict=True) if n]
             s = None if scales is None else np.asarray(scales)[noisy]
-            depth = self.depth(poses[noisy], picked, s)
+            depth = self.depth(poses[noisy], picked, s, _picked(spheres, noisy))
             out[noisy] = depth[:, depth.shape[1] // 2]
         return out
 
-    def sector_minima(self, poses: np.ndarray, sectors: int) -> np.ndarray:
+    def sector_minima(self, poses: np.ndarray, sectors: int, spheres: Spheres | None = None) -> np.ndarray:
         """``(B, sectors)``: the nearest exact depth in each of ``sectors`` equal runs of the centre row (NaN:
-        no return), by ray casting only, which casts no more of a sector than its nearest return needs."""
+        no return), by ray casting only, which casts no more of a sector than its nearest return needs;
+        ``spheres``: as :meth:`depth`'s."""
         if self.caster is None:
             raise RuntimeError("sector minima are cast: make the pipeline with source='raycast'")
-        return self.caster.centre_row_minima(np.asarray(poses, dtype=float).reshape(-1, 4, 4), sectors)
+        poses = np.asarray(poses, dtype=float).reshape(-1, 4, 4)
+        return self.caster.centre_row_minima(poses, sectors, spheres=spheres)
 
     def _exact_rows(self, poses: np.ndarray) -> np.ndarray:
         """Exact depth centre rows drawn by the renderer."""

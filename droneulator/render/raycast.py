@@ -9,7 +9,10 @@ returns for each pose:
   ``K^-1 (u, v, 1)`` (pixel centres on integer coordinates, row 0 at the top);
 * NaN where nothing lies between the near and far planes (GL clips there; a surface nearer than
   ``near`` is not seen and the ray goes on behind it);
-* the vehicle's own body is not drawn (the renderer draws a body only in *other* vehicles' cameras).
+* the vehicle's own body is not drawn (the renderer draws a body only in *other* vehicles' cameras);
+  other vehicles can be added as spheres (their collision spheres, per pose: :meth:`DepthCaster.sphere_depth`
+  and the ``spheres`` argument of :meth:`DepthCaster.centre_row` and the like), intersected analytically
+  along the same rays and merged per pixel with the scene's depth (the nearer).
 
 The rays run in optical-z units (direction ``R (x, y, 1)``), so the distance along a ray is the depth;
 each hit is refined in float64 against the hit triangle's plane, which is what the renderer's
@@ -61,6 +64,8 @@ _FIRST = np.array([(m & -m).bit_length() - 1 for m in range(1 << LANES)], dtype=
 _LAST = np.array([m.bit_length() - 1 for m in range(1 << LANES)], dtype=np.int64)
 #: Rays per thread below which a batch is not split across threads.
 MIN_RAYS_PER_THREAD = 1024
+#: Bodies as spheres for the depth: centres (B, K, 3, world) and radii (B, K), K per pose (pad: radius 0).
+Spheres = tuple[np.ndarray, np.ndarray]
 
 
 def _aligned(shape: tuple[int, int]) -> np.ndarray:
@@ -564,6 +569,68 @@ def _trace_parts(
         )  # fmt: skip
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _sphere_rows(
+    row_pose: np.ndarray,
+    row_v: np.ndarray,
+    width: int,
+    R: np.ndarray,
+    C: np.ndarray,
+    K: np.ndarray,
+    near: float,
+    far: float,
+    centres: np.ndarray,
+    radii: np.ndarray,
+    depth: np.ndarray,
+) -> None:
+    """Depth of the image rows (pose index ``row_pose``, pixel row ``row_v``, written from ``row * width``
+    on) against pose ``b``'s spheres (``centres[b]``, ``radii[b]``): per pixel the nearest ray-sphere
+    intersection at ``near <= t < far`` (NaN where none), the rays those of :func:`_trace`.
+
+    Each sphere goes to the optical frame once per row; with the ray ``t (x, y, 1)`` and the centre ``c``,
+    ``t`` solves ``a t^2 - 2 h t + q = 0`` (``a = x^2 + y^2 + 1``, ``h = (x, y, 1) . c``,
+    ``q = |c|^2 - r^2``), its roots taken in the cancellation-free form ``q / (h + s)``, ``(h + s) / a``.
+    A sphere holding the camera (``q <= 0``), a radius not > 0 or a non-finite centre is skipped; a near
+    plane cutting the sphere shows its far side (the renderer culls no faces)."""
+    fx, fy, cx, cy = K[0], K[1], K[2], K[3]
+    n_spheres = radii.shape[1]
+    best = np.empty(width)
+    for row in range(row_pose.shape[0]):
+        b = row_pose[row]
+        y = (row_v[row] - cy) / fy
+        best[:] = np.inf
+        for j in range(n_spheres):
+            r = radii[b, j]
+            px, py, pz = centres[b, j, 0] - C[b, 0], centres[b, j, 1] - C[b, 1], centres[b, j, 2] - C[b, 2]
+            if not (r > 0.0 and math.isfinite(r) and math.isfinite(px + py + pz)):
+                continue
+            # the centre in the optical frame (R: optical axes in the world)
+            ox = R[b, 0, 0] * px + R[b, 1, 0] * py + R[b, 2, 0] * pz
+            oy = R[b, 0, 1] * px + R[b, 1, 1] * py + R[b, 2, 1] * pz
+            oz = R[b, 0, 2] * px + R[b, 1, 2] * py + R[b, 2, 2] * pz
+            q = ox * ox + oy * oy + oz * oz - r * r
+            if q <= 0.0 or oz + r < near or oz - r >= far:
+                continue
+            for u in range(width):
+                x = (u - cx) / fx
+                h = x * ox + y * oy + oz
+                if h <= 0.0:
+                    continue  # the sphere lies behind this ray's origin
+                a = x * x + y * y + 1.0
+                disc = h * h - a * q
+                if disc < 0.0:
+                    continue
+                hs = h + math.sqrt(disc)
+                t = q / hs
+                if t < near:
+                    t = hs / a
+                if near <= t < far and t < best[u]:
+                    best[u] = t
+        o = row * width
+        for u in range(width):
+            depth[o + u] = best[u] if best[u] < far else np.nan
+
+
 def sector_edges(width: int, sectors: int) -> np.ndarray:
     """The first pixel of each of ``sectors`` equal runs of a ``width``-pixel row, then ``width``."""
     return np.linspace(0, width, sectors + 1).round().astype(np.int64)
@@ -712,23 +779,42 @@ class DepthCaster:
             raise ValueError(f"T_world_body has non-finite entries (poses {bad[:8].tolist()})")
         return self.cameras[name], T @ self._mounts[name]
 
-    def depth(self, T_world_body: np.ndarray, camera: str | None = None) -> np.ndarray:
-        """(B, H, W) float32 depth of ``camera`` (default: the first) for the (B, 4, 4) body poses."""
-        return self.trace(T_world_body, camera)[0]
+    def depth(
+        self, T_world_body: np.ndarray, camera: str | None = None, spheres: Spheres | None = None
+    ) -> np.ndarray:
+        """(B, H, W) float32 depth of ``camera`` (default: the first) for the (B, 4, 4) body poses; with
+        ``spheres`` (see :meth:`sphere_depth`) the nearer of the scene and the spheres per pixel."""
+        cam, T_wo = self._poses(T_world_body, camera)
+        B, H = len(T_wo), cam.height
+        pose, rows = np.repeat(np.arange(B, dtype=np.int64), H), np.tile(np.arange(H, dtype=np.int64), B)
+        depth = self._cast(cam, T_wo, pose, rows)[0]
+        if spheres is not None:
+            np.fmin(depth, self._spheres(cam, T_wo, pose, rows, spheres), out=depth)
+        return depth.reshape(B, H, cam.width)
 
-    def centre_row(self, T_world_body: np.ndarray, camera: str | None = None) -> np.ndarray:
+    def centre_row(
+        self, T_world_body: np.ndarray, camera: str | None = None, spheres: Spheres | None = None
+    ) -> np.ndarray:
         """(B, W) float32: row ``H // 2`` of :meth:`depth` (the row the RL depth strip pools), casting only
-        that row's rays."""
+        that row's rays; with ``spheres`` the nearer of the scene and the spheres per pixel."""
         cam, T_wo = self._poses(T_world_body, camera)
         B = len(T_wo)
-        rows = np.full(B, cam.height // 2, dtype=np.int64)
-        return self._cast(cam, T_wo, np.arange(B, dtype=np.int64), rows)[0].reshape(B, cam.width)
+        pose, rows = np.arange(B, dtype=np.int64), np.full(B, cam.height // 2, dtype=np.int64)
+        depth = self._cast(cam, T_wo, pose, rows)[0]
+        if spheres is not None:
+            np.fmin(depth, self._spheres(cam, T_wo, pose, rows, spheres), out=depth)
+        return depth.reshape(B, cam.width)
 
     def centre_row_minima(
-        self, T_world_body: np.ndarray, sectors: int, camera: str | None = None
+        self,
+        T_world_body: np.ndarray,
+        sectors: int,
+        camera: str | None = None,
+        spheres: Spheres | None = None,
     ) -> np.ndarray:
         """(B, sectors) float32: the nearest depth in each of ``sectors`` equal runs of :meth:`centre_row`
-        (:func:`sector_edges`; NaN where the run has no return), what the RL depth strip keeps of the row.
+        (:func:`sector_edges`; NaN where the run has no return), what the RL depth strip keeps of the row;
+        with ``spheres``, of the merged row (the fmin of the scene's and the spheres' minima).
 
         Faster than pooling :meth:`centre_row`: a ray's hit bounds the search of the other rays of its
         sector, so a ray through a gap in the leaves stops where its neighbour's surface is instead of
@@ -739,9 +825,50 @@ class DepthCaster:
         B, k = len(T_wo), int(sectors)
         if not B:
             return np.zeros((0, k), np.float32)
-        rows = np.full(B, cam.height // 2, dtype=np.int64)
-        depth = self._cast(cam, T_wo, np.arange(B, dtype=np.int64), rows, k)[0].reshape(B, cam.width)
-        return np.fmin.reduceat(depth, sector_edges(cam.width, k)[:-1], axis=1)
+        pose, rows = np.arange(B, dtype=np.int64), np.full(B, cam.height // 2, dtype=np.int64)
+        depth = self._cast(cam, T_wo, pose, rows, k)[0]
+        if spheres is not None:
+            np.fmin(depth, self._spheres(cam, T_wo, pose, rows, spheres), out=depth)
+        return np.fmin.reduceat(depth.reshape(B, cam.width), sector_edges(cam.width, k)[:-1], axis=1)
+
+    def sphere_depth(
+        self, T_world_body: np.ndarray, centres: np.ndarray, radii: np.ndarray, camera: str | None = None
+    ) -> np.ndarray:
+        """(B, H, W) float32 depth of spheres alone (no scene): pose ``b`` sees the spheres ``centres[b]``
+        (B, K, 3, world) of ``radii[b]`` (B, K), e.g. the other vehicles' collision spheres. Same rays,
+        z-depth and near/far as :meth:`depth`; NaN where no sphere is hit. Spheres of radius <= 0 (or
+        non-finite) or with a non-finite centre are skipped (padding), and so is a sphere holding the
+        camera (the vehicle's own body, which its camera does not see)."""
+        cam, T_wo = self._poses(T_world_body, camera)
+        B, H = len(T_wo), cam.height
+        pose, rows = np.repeat(np.arange(B, dtype=np.int64), H), np.tile(np.arange(H, dtype=np.int64), B)
+        return self._spheres(cam, T_wo, pose, rows, (centres, radii)).reshape(B, H, cam.width)
+
+    def sphere_centre_row(
+        self, T_world_body: np.ndarray, centres: np.ndarray, radii: np.ndarray, camera: str | None = None
+    ) -> np.ndarray:
+        """(B, W) float32: row ``H // 2`` of :meth:`sphere_depth`, the rays :meth:`centre_row` casts."""
+        cam, T_wo = self._poses(T_world_body, camera)
+        B = len(T_wo)
+        pose, rows = np.arange(B, dtype=np.int64), np.full(B, cam.height // 2, dtype=np.int64)
+        return self._spheres(cam, T_wo, pose, rows, (centres, radii)).reshape(B, cam.width)
+
+    def _spheres(
+        self, cam: CameraConfig, T_wo: np.ndarray, pose: np.ndarray, rows: np.ndarray, spheres: Spheres
+    ) -> np.ndarray:
+        """Flat float32 depth of the spheres along the image rows (pose index, pixel row), checked."""
+        centres = np.ascontiguousarray(spheres[0], dtype=np.float64)
+        radii = np.ascontiguousarray(spheres[1], dtype=np.float64)
+        B = len(T_wo)
+        if centres.ndim != 3 or centres.shape[0] != B or centres.shape[2] != 3:
+            raise ValueError(f"sphere centres must have shape ({B}, K, 3), got {centres.shape}")
+        if radii.shape != centres.shape[:2]:
+            raise ValueError(f"sphere radii must have shape {centres.shape[:2]}, got {radii.shape}")
+        depth = np.empty(len(pose) * cam.width, dtype=np.float32)
+        R = np.ascontiguousarray(T_wo[:, :3, :3])
+        C = np.ascontiguousarray(T_wo[:, :3, 3])
+        _sphere_rows(pose, rows, cam.width, R, C, self._K[cam.name], cam.near, cam.far, centres, radii, depth)
+        return depth
 
     def trace(self, T_world_body: np.ndarray, camera: str | None = None) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`depth` and, per pixel, the triangle seen (int32 index into the scene's triangles, parts

@@ -40,7 +40,7 @@ from gymnasium.vector.utils import batch_space
 
 from droneulator.config import SimConfig
 from droneulator.frames import transforms_from_poses
-from droneulator.render.pipeline import CameraPipeline
+from droneulator.render.pipeline import CameraPipeline, Spheres
 from droneulator.scenes import get_scene
 from droneulator.state import STATE
 from droneulator.workflows.rl.backend import Kinematics
@@ -58,14 +58,20 @@ from droneulator.world.world import NS, World
 
 
 def depth_strips(
-    cameras: CameraPipeline, poses: np.ndarray, presets: Sequence[str], scales: np.ndarray, clip: float
+    cameras: CameraPipeline,
+    poses: np.ndarray,
+    presets: Sequence[str],
+    scales: np.ndarray,
+    clip: float,
+    spheres: Spheres | None = None,
 ) -> np.ndarray:
     """The observation's depth strips (:func:`~droneulator.workflows.rl.env.strips`) at ``poses``, each
     through its episode's depth preset and factors; for exact depth cast, only each sector's nearest return
-    is cast (the same strips sooner)."""
+    is cast (the same strips sooner). ``spheres``: other vehicles' bodies as spheres, (centres ``(B, K, 3)``,
+    radii ``(B, K)``), seen in the depth (ray casting only)."""
     if cameras.source == "raycast" and cameras.ideal(presets):
-        return strips(cameras.sector_minima(poses, STRIP_SAMPLES), clip)
-    return strips(cameras.centre_rows(poses, presets, scales), clip)
+        return strips(cameras.sector_minima(poses, STRIP_SAMPLES, spheres), clip)
+    return strips(cameras.centre_rows(poses, presets, scales, spheres), clip)
 
 
 class VineyardNavVectorEnv(VectorEnv):
