@@ -121,9 +121,8 @@ def test_agents_see_each_other_and_flying_into_each_other_ends_both_with_the_pen
         assert info[agent]["termination"] == "collision" and info[agent]["collided_with"] == [other]
         assert -31.0 < reward[agent] < -29.0
         assert abs(info[agent]["position"][0]) < 0.5  # they met in the middle
-    for agent, v in env.world.vehicles.items():  # parked: motors off on the ground, by the +y edge
-        assert v.state.mode == "idle"
-        np.testing.assert_allclose(v.state.position, env.parking[agent], atol=1e-6)
+    # both left the world: not flown, touched or seen, rotors stopped
+    assert not env.world.active[0].any() and not env.world.states[0, :, 16:20].any()
     with pytest.raises(RuntimeError, match="reset"):
         env.step({})
 
@@ -144,6 +143,6 @@ def test_a_done_agent_leaves_the_world_and_the_others_fly_on(env):
     obs, *_ = env.step({"uav0": np.zeros(2), "uav1": hover})  # a done agent's action is ignored
     assert list(obs) == ["uav1"]
     assert obs["uav1"][CENTRE].min() > 0.95  # uav0 gone from the alley ahead: nothing within 9.5 m
-    assert env.world.vehicles["uav0"].state.mode == "idle"
+    assert not env.world.active[0, 0] and env.world.active[0, 1]
     with pytest.raises(ValueError, match="unknown agents"):
         env.reset(options={"tasks": {"uav7": FACING["uav0"]}})

@@ -459,59 +459,88 @@ class World:
         (:meth:`velocity`, else they hold where they were placed)."""
         rows = self._worlds(worlds)
         k, n = len(rows), self.num_vehicles
-        pos = self._per_row("positions", positions, k * 3).reshape(k, n, 3)
-        yaw = self._per_row("yaws", yaws, k)
+        pos = self._per_row("positions", positions, k * 3).reshape(k * n, 3)
+        yaw = self._per_row("yaws", yaws, k).reshape(k * n)
         if variant is not None:
             var = np.broadcast_to(np.asarray(variant, dtype=np.int64), (k,))
             if var.min() < 0 or var.max() >= len(self.scenes):
                 raise ValueError(f"scene variants are 0 to {len(self.scenes) - 1}, got {var.tolist()[:8]}")
             self.variant[rows] = var
-        s = self.states[rows]
-        s[:] = 0.0
-        s[:, :, STATE.x] = pos
-        s[:, :, 8] = np.sin(yaw / 2)
-        s[:, :, 9] = np.cos(yaw / 2)
-        s[:, :, STATE.rotor_speeds] = self._hover[None, :, None]
-        self.states[rows] = s
-        flats = np.zeros((k, n, FLAT_SIZE))
-        flats[:, :, 0:3] = pos
-        flats[:, :, 9] = yaw
-        self._flats[rows] = flats
-        self.mode[rows] = FLAT
-        self.active[rows] = True
-        self.hit[rows] = False
-        self.touched[rows] = -1
         self.clocks[rows] = 0
         self._next_frame[rows] = self.camera_period_ns
-        self.wind.reset_rows((rows[:, None] * n + np.arange(n)).ravel())
+        self.place_rows(np.repeat(rows, n), np.tile(np.arange(n), k), pos, yaw)
+
+    def _pairs(self, worlds: Any, vehicles: Any) -> tuple[np.ndarray, np.ndarray]:
+        """Row indices ``(worlds[j], vehicles[j])``, checked."""
+        w = np.asarray(worlds, dtype=np.int64).reshape(-1)
+        v = np.asarray(vehicles, dtype=np.int64).reshape(-1)
+        if len(w) != len(v):
+            raise ValueError(f"{len(w)} worlds for {len(v)} vehicles")
+        W, n = self.num_worlds, self.num_vehicles
+        if len(w) and (w.min() < 0 or w.max() >= W or v.min() < 0 or v.max() >= n):
+            raise ValueError(f"rows must lie in {self.num_worlds} worlds x {self.num_vehicles} vehicles")
+        return w, v
+
+    def place_rows(self, worlds: Any, vehicles: Any, positions: Any, yaws: Any) -> None:
+        """Put vehicle ``vehicles[j]`` of world ``worlds[j]`` at rest hovering at ``positions[j]`` facing
+        ``yaws[j]``; its world's clock goes on (a respawn: the other vehicles fly on)."""
+        w, v = self._pairs(worlds, vehicles)
+        m = len(w)
+        pos = np.asarray(positions, dtype=float).reshape(m, 3)
+        yaw = np.asarray(yaws, dtype=float).reshape(m)
+        if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(yaw))):
+            raise ValueError("positions and yaws must be finite")
+        s = np.zeros((m, STATE_SIZE))
+        s[:, STATE.x] = pos
+        s[:, 8], s[:, 9] = np.sin(yaw / 2), np.cos(yaw / 2)
+        s[:, STATE.rotor_speeds] = self._hover[v, None]
+        self.states[w, v] = s
+        flats = np.zeros((m, FLAT_SIZE))
+        flats[:, 0:3] = pos
+        flats[:, 9] = yaw
+        self._flats[w, v] = flats
+        self.mode[w, v] = FLAT
+        self.active[w, v] = True
+        self.hit[w, v] = False
+        self.touched[w, v] = -1
+        self.wind.reset_rows(w * self.num_vehicles + v)
 
     def velocity(self, worlds: Any, forward: Any, yaw_rate: Any) -> None:
         """Velocity-mode commands (forward speed m/s, yaw rate rad/s; ``(k, vehicles)``) for the vehicles of
-        worlds ``worlds``, as ``Vehicle.velocity``: a row entering the mode starts its reference where its
-        hold reference is, at its current speed. Retired or collided rows take none (ValueError)."""
+        worlds ``worlds`` (:meth:`velocity_rows` for some of them)."""
         rows = self._worlds(worlds)
-        k = len(rows)
+        k, n = len(rows), self.num_vehicles
         f = self._per_row("forward", forward, k)
         r = self._per_row("yaw_rate", yaw_rate, k)
-        if np.any(np.abs(f) > self._max_speed) or np.any(np.abs(r) > math.pi):
+        self.velocity_rows(np.repeat(rows, n), np.tile(np.arange(n), k), f, r)
+
+    def velocity_rows(self, worlds: Any, vehicles: Any, forward: Any, yaw_rate: Any) -> None:
+        """Velocity-mode commands for vehicle ``vehicles[j]`` of world ``worlds[j]``, as ``Vehicle.velocity``:
+        a row entering the mode starts its reference where its hold reference is, at its current speed.
+        Retired or collided rows take none (ValueError)."""
+        w, v = self._pairs(worlds, vehicles)
+        f = np.asarray(forward, dtype=float).reshape(len(w))
+        r = np.asarray(yaw_rate, dtype=float).reshape(len(w))
+        if not (np.all(np.isfinite(f)) and np.all(np.isfinite(r))):
+            raise ValueError("forward and yaw_rate must be finite numbers")
+        if np.any(np.abs(f) > self._max_speed[v]) or np.any(np.abs(r) > math.pi):
             raise ValueError(f"need |forward| <= {self._max_speed.min():g} m/s and |yaw_rate| <= pi rad/s")
-        if not self.active[rows].all():
-            raise ValueError("a collided or retired vehicle takes no command until its world is placed again")
-        for w, i in zip(*np.nonzero(self.mode[rows] != VELOCITY), strict=True):
-            b = rows[w]
+        if not self.active[w, v].all():
+            raise ValueError("a collided or retired vehicle takes no command until it is placed again")
+        for j in np.flatnonzero(self.mode[w, v] != VELOCITY):
+            b, i = w[j], v[j]
             hold = self._flats[b, i]
             heading = float(hold[9])
             speed0 = float(self.states[b, i, 3:5] @ (math.cos(heading), math.sin(heading)))
             start_reference(self._vref[b, i], hold[0:3], heading, speed0, 0.0)
             self.mode[b, i] = VELOCITY
-        self._vref[rows, :, VCMD] = f
-        self._vref[rows, :, VCMD + 1] = r
+        self._vref[w, v, VCMD] = f
+        self._vref[w, v, VCMD + 1] = r
 
     def retire(self, worlds: Any, vehicles: Any) -> None:
         """Take vehicle rows out of their worlds until the world is placed again: the rows ``(worlds[j],
         vehicles[j])`` stop being integrated, touched and seen, and their rotors (and wakes) stop."""
-        w = np.asarray(worlds, dtype=np.int64).reshape(-1)
-        v = np.asarray(vehicles, dtype=np.int64).reshape(-1)
+        w, v = self._pairs(worlds, vehicles)
         self.active[w, v] = False
         self.mode[w, v] = FLAT
         self.states[w, v, STATE.rotor_speeds] = 0.0

@@ -1,76 +1,409 @@
-"""``droneulator_vineyard_nav_v0``: the vineyard navigation task for N vehicles sharing one world, as a
-PettingZoo :class:`~pettingzoo.ParallelEnv` (optional extra ``droneulator[rl]``).
+"""The vineyard navigation task for many vehicles: W worlds of N agents on the one core.
 
-The agents are the vehicles ``uav0 .. uav<N-1>``. Each has the single-agent task of :mod:`.env`, through
-the same :class:`~droneulator.workflows.rl.env.NavTask` code: the same observation and action spaces,
-the same reward and termination, its own start, goal and time limit. Every dict the environment returns
-is keyed by vehicle name and holds the agents that were live at the start of the step.
+Every agent has the single-agent task of :mod:`.env` (the same :class:`~droneulator.workflows.rl.env.NavTask`
+rules, observation and action spaces, reward and termination through the task kernel of :mod:`.task`, its
+own start, goal and time limit). The N agents of a world share it: they see each other in their depth,
+feel each other's rotor wakes, and two whose bodies touch both collide (each episode ends with
+``rl.collision_penalty``, ``collided_with`` naming the other). Starts and goals are drawn apart: no two
+closer than ``min_spacing``.
 
-* One :class:`~droneulator.world.World` steps every vehicle together, one step per camera frame; one
-  depth-only renderer draws every live agent's camera in one call, each seeing the other live agents'
-  bodies (with one agent there are none, and it sees exactly what :class:`.env.VineyardNavEnv` sees).
-* Starts and goals are drawn from the environment's generator (``reset(seed=...)`` reproduces them) so
-  that no two starts and no two goals lie closer than ``min_spacing``.
-* Two vehicles whose bodies touch both collide (the world's contact model stops them): each agent's
-  episode ends then with ``rl.collision_penalty``, ``info["collided_with"]`` naming the other.
-* An agent whose episode has ended leaves :attr:`agents` (PettingZoo semantics) and the world: its
-  vehicle is parked on the ground, motors off, at a spot of its own by the scene's +y edge (outside the
-  task area: starts and goals lie between the outermost alleys), and no longer drawn. A hovering or
-  frozen vehicle would stay in the other agents' way (and a collided one, which the world no longer
-  integrates, would be an obstacle they pass through unseen by the contact model).
+Two faces of one environment:
 
-``reset(options={"tasks": {"uav0": {"start": (x, y, yaw), "goal": (x, y)}, ...}})`` sets the tasks of
-the named agents; the others are sampled apart from them.
+* :class:`VineyardMultiVectorEnv` (for trainers): a :class:`gymnasium.vector.VectorEnv` of ``W * N`` rows,
+  row ``r`` agent ``r % N`` of world ``r // N``. One :class:`~droneulator.world.World` of W worlds steps
+  every vehicle to the next camera frame in one compiled call; the depth of every agent comes from one
+  batched ray cast (``depth="raycast"``, the other vehicles as spheres of their collision radius) or from
+  the renderer, world by world (``depth="render"``: each camera sees the other vehicles' meshes).
+  ``episodes="agent"`` (the default): a row is a stream of single-agent episodes, an agent whose episode
+  ends starts a new task in its world while the others fly on (Gymnasium's autoreset, ``NEXT_STEP`` or
+  ``SAME_STEP``). ``episodes="world"``: an agent whose episode ended leaves its world (it is no longer
+  flown, touched or seen) and the world starts over once all its agents are done (held-out evaluation of
+  a team; ``info["world_success"]``: every agent of the world reached its goal).
+* :class:`VineyardNavParallelEnv` (``droneulator_vineyard_nav_v0``): PettingZoo's
+  :class:`~pettingzoo.ParallelEnv`, dicts keyed by vehicle name (``uav0 .. uav<N-1>``), a view of the
+  vector env with one world and ``episodes="world"``: a done agent leaves :attr:`agents`. Its depth is the
+  renderer's by default, as the single env's.
+
+``reset(options={"tasks": {"uav0": {"start": (x, y, yaw), "goal": (x, y)}, ...}})`` sets the tasks of the
+named agents in every world; the others are sampled apart from them.
 """
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from typing import Any
 
 import gymnasium as gym
+import numba
 import numpy as np
 from gymnasium.utils import seeding
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
 from pettingzoo import ParallelEnv
 
 from droneulator.config import SimConfig, fleet
-from droneulator.scenes.base import Scene
-from droneulator.scenes.collision import sdf_lookup_many
-from droneulator.vehicles.vehicle import VehicleState
+from droneulator.frames import transforms_from_poses
+from droneulator.render.pipeline import CameraPipeline
+from droneulator.state import STATE
 from droneulator.workflows.rl.backend import CAMERA_NAME, Kinematics
-from droneulator.workflows.rl.env import NavTask, env_config
+from droneulator.workflows.rl.env import DEPTH_SOURCES, STRIP_SAMPLES, NavTask, env_config, strips
+from droneulator.workflows.rl.task import REASONS, TaskRows
+from droneulator.workflows.rl.vector import depth_strips
+from droneulator.world.world import NS, World
 
 NAME = "droneulator_vineyard_nav_v0"
+EPISODES = ("agent", "world")
 
 Info = dict[str, Any]
 
 
-def parking_spots(scene: Scene, n: int, radius: float, gap: float = 1.0) -> list[np.ndarray]:
-    """``n`` ground spots ``gap`` apart in lines along the scene's +y edge (the first ``gap`` inside it),
-    each at least ``radius + gap`` from the scene's geometry."""
-    col = scene.collision
-    lo, hi = scene.bounds_min, scene.bounds_max
-    spots: list[np.ndarray] = []
-    y = hi[1] - gap
-    while len(spots) < n and y > lo[1]:
-        xs = np.arange(lo[0] + gap, hi[0] - gap + 1e-9, gap)
-        pts = np.column_stack([xs, np.full_like(xs, y), np.full_like(xs, radius + 0.05)])
-        clear = sdf_lookup_many(col.sdf, col.origin, col.resolution, pts) >= radius + gap
-        spots += [np.array([p[0], p[1], 0.0]) for p in pts[clear]]
-        y -= gap
-    if len(spots) < n:
-        raise ValueError(f"the scene has no room to park {n} vehicles")
-    return spots[:n]
+class VineyardMultiVectorEnv(VectorEnv):
+    """``num_worlds`` worlds of ``num_agents`` agents as ``num_worlds * num_agents`` rows (see the module
+    docstring).
+
+    ``config``: a :class:`SimConfig` (its ``rl`` section and vehicle settings; its ``vehicles`` are replaced
+    by ``num_agents`` vehicles ``uav0 ..``); ``depth``: ``"raycast"`` or ``"render"``; ``episodes``:
+    ``"agent"`` or ``"world"``; ``min_spacing``: the least distance (m) between two agents' starts (a
+    respawn: from the others' positions) and between two goals of a world; ``threads``: the compiled
+    steps' threads (default: numba's); further keyword arguments replace fields of ``config.rl``.
+    Seeding as Gymnasium's vector envs, per world: ``reset(seed=s)`` seeds world ``w`` with ``s + w``.
+    """
+
+    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": [], "render_fps": 30}
+
+    def __init__(
+        self,
+        num_worlds: int = 1,
+        num_agents: int = 2,
+        config: SimConfig | None = None,
+        depth: str = "raycast",
+        autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP,
+        episodes: str = "agent",
+        min_spacing: float = 3.0,
+        threads: int | None = None,
+        **rl_overrides: Any,
+    ) -> None:
+        for name, value in (("num_worlds", num_worlds), ("num_agents", num_agents)):
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if depth not in DEPTH_SOURCES:
+            raise ValueError(f"depth must be one of {', '.join(DEPTH_SOURCES)}, got {depth!r}")
+        if episodes not in EPISODES:
+            raise ValueError(f"episodes must be one of {', '.join(EPISODES)}, got {episodes!r}")
+        if threads is not None and not 1 <= threads <= numba.config.NUMBA_NUM_THREADS:
+            raise ValueError(f"threads must be 1 to {numba.config.NUMBA_NUM_THREADS}, got {threads!r}")
+        if not min_spacing >= 0.0:
+            raise ValueError(f"min_spacing must be a distance >= 0, got {min_spacing!r}")
+        mode = AutoresetMode(autoreset_mode)
+        if mode == AutoresetMode.DISABLED:
+            raise ValueError("autoreset_mode must be NEXT_STEP or SAME_STEP")
+        self.metadata = {**self.metadata, "autoreset_mode": mode}
+        self.autoreset_mode = mode
+        cfg = env_config(config, **rl_overrides)
+        if cfg.randomize.enabled:
+            raise ValueError("domain randomisation is batched for one agent per world only "
+                             "(VineyardNavVectorEnv): set randomize.enabled = false")  # fmt: skip
+        cfg.vehicles = fleet(int(num_agents))
+        self.config = cfg
+        self.episodes = episodes
+        self.min_spacing = float(min_spacing)
+        self._threads = threads
+        self.num_worlds = W = int(num_worlds)
+        self.num_agents = N = int(num_agents)
+        self.num_envs = R = W * N
+        #: every world, one compiled step (physics only)
+        self.world = World(cfg, render=False, worlds=W)
+        self.scene = self.world.scene
+        self.agent_names: list[str] = list(self.world.vehicles)
+        self.tasks = [NavTask(cfg, self.scene) for _ in range(R)]
+        self.grid = self.tasks[0].grid
+        task = self.tasks[0]
+        self.single_observation_space = task.observation_space
+        self.single_action_space = task.action_space
+        self.observation_space = batch_space(self.single_observation_space, R)
+        self.action_space = batch_space(self.single_action_space, R)
+        self.rows = TaskRows(cfg, self.grid, R)
+        self.cameras = CameraPipeline(self.scene, cfg, source=depth)
+        self.depth = depth
+        cam = cfg.render.cameras[0]
+        self._presets = [cam.depth_model] * R
+        self._scales = np.tile([cam.depth_noise_scale, cam.depth_dropout_scale], (R, 1))
+        self._radius = float(cfg.vehicle.collision_radius)
+        self._rngs = [np.random.default_rng() for _ in range(W)]
+        self._obs = np.zeros((R, self.single_observation_space.shape[0]), dtype=np.float32)
+        self._commands = np.zeros((R, 2))
+        #: rows whose episode ended at the last step (restarted at this one, with NEXT_STEP)
+        self._done = np.zeros(R, dtype=bool)
+        #: rows in their world (with episodes="world", a done agent leaves it until the world starts over)
+        self.live = np.zeros(R, dtype=bool)
+        self._collided_with = np.full(R, "", dtype=object)
+        self._reset_called = False
+
+    # ------------------------------------------------------------------ rows and worlds
+    def _where(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return rows // self.num_agents, rows % self.num_agents
+
+    def _sample(self, rows: np.ndarray, given: dict[str, Any]) -> list[tuple[Any, ...]]:
+        """A task for each of ``rows`` (in order), apart from the tasks of the other live agents of its
+        world (their current position and goal) and from those sampled before it."""
+        N = self.num_agents
+        flat = self.world.states.reshape(self.num_envs, -1)
+        picked: dict[int, tuple[Any, ...]] = {}
+        for r in rows:
+            w, a = divmod(int(r), N)
+            name = self.agent_names[a]
+            if name in given:
+                picked[int(r)] = self.tasks[r].given_task(given[name])
+                continue
+            taken = []
+            for o in range(w * N, (w + 1) * N):
+                if o in picked:
+                    taken.append((picked[o][0], picked[o][2]))
+                elif o != r and self.live[o] and o not in rows:
+                    taken.append((flat[o, STATE.x][:2], self.tasks[o].goal))
+            picked[int(r)] = self.tasks[r].sample_task(self._rngs[w], taken, self.min_spacing)
+        return [picked[int(r)] for r in rows]
+
+    def _start(self, rows: np.ndarray, given: dict[str, Any], whole_worlds: bool) -> None:
+        """New tasks for ``rows``: sampled (or ``given``), their vehicles placed hovering at the starts (whole
+        worlds restart their clocks) and their episodes begun there."""
+        if len(rows) == 0:
+            return
+        tasks = self._sample(rows, given)
+        alt = self.config.rl.altitude
+        pos = np.array([(s[0], s[1], alt) for s, *_ in tasks])
+        yaw = np.array([y for _, y, *_ in tasks])
+        w, a = self._where(rows)
+        if whole_worlds:
+            worlds = w[:: self.num_agents]
+            self.world.place(worlds, pos, yaw)
+        else:
+            self.world.place_rows(w, a, pos, yaw)
+        self.live[rows] = True
+        self._collided_with[rows] = ""
+        states = self.world.states
+        for r, (start, heading, goal, field) in zip(rows, tasks, strict=True):
+            s = states[r // self.num_agents, r % self.num_agents]
+            t = self.world.clocks[r // self.num_agents] / NS
+            kin = Kinematics(t, s[STATE.x].copy(), s[STATE.q].copy(), s[STATE.v].copy(), s[STATE.w].copy(),
+                             "hold")  # fmt: skip
+            self.tasks[r].begin(start, heading, goal, field, kin, self.rows, int(r))
+            self.tasks[r].field = None  # its arrays live in this env's rows now
+        mask = np.zeros(self.num_envs, dtype=bool)
+        mask[rows] = True
+        self.rows.step(mask, self._flat(states), ~mask, self.grid, self.scene, advance=False)
+        self._obs[rows, STRIP_SAMPLES:] = self.rows.tail[rows]
+        self._commands[rows] = 0.0
+
+    def _flat(self, states: np.ndarray) -> np.ndarray:
+        return states.reshape(self.num_envs, -1)
+
+    def _strips(self, rows: np.ndarray, states: np.ndarray) -> None:
+        """The depth strips of ``rows`` at ``states`` (worlds, agents, state) into ``_obs``: each agent sees
+        the other agents of its world that are in it."""
+        if len(rows) == 0:
+            return
+        N, clip = self.num_agents, self.config.rl.depth_clip
+        flat = self._flat(states)
+        if self.depth == "render":
+            for w in np.unique(rows // N):
+                mine = rows[rows // N == w]
+                inside = [w * N + a for a in range(N) if self.live[w * N + a] or w * N + a in mine]
+                bodies = transforms_from_poses(flat[inside, 0:3], flat[inside, 6:10])
+                names = [self.agent_names[r % N] for r in mine]
+                frames = self.cameras.frames(
+                    {self.agent_names[r % N]: T for r, T in zip(inside, bodies, strict=True)},
+                    rigs=names, rgb=False, copy=False,
+                )  # fmt: skip
+                rows_px = [frames[name][CAMERA_NAME].depth for name in names]
+                centre = np.array([d[d.shape[0] // 2] for d in rows_px])
+                self._obs[mine, :STRIP_SAMPLES] = strips(centre, clip)
+            return
+        poses = transforms_from_poses(flat[rows, 0:3], flat[rows, 6:10])
+        others = np.array([[o for o in range(N) if o != a] for a in range(N)], dtype=np.int64)
+        others = others.reshape(N, N - 1)
+        w, a = self._where(rows)
+        idx = w[:, None] * N + others[a]
+        centres = flat[idx, 0:3]
+        radii = np.where(self.live[idx], self._radius, 0.0)
+        spheres = (centres, radii) if N > 1 else None
+        self._obs[rows, :STRIP_SAMPLES] = depth_strips(
+            self.cameras, poses, [self._presets[r] for r in rows], self._scales[rows], clip, spheres
+        )
+
+    def _infos(self, states: np.ndarray, mask: np.ndarray, world_success: np.ndarray) -> dict[str, Any]:
+        """The single env's info keys as arrays, with ``collided_with``, ``world`` and ``agent`` (and
+        ``world_success`` with episodes="world")."""
+        flat = self._flat(states)
+        q = flat[:, 6:10]
+        yaw = np.arctan2(2 * (q[:, 3] * q[:, 2] + q[:, 0] * q[:, 1]), 1 - 2 * (q[:, 1] ** 2 + q[:, 2] ** 2))
+        w, a = self._where(np.arange(self.num_envs))
+        info = {
+            "t": np.repeat(self.world.frame_t_ns() / NS, self.num_agents),
+            "position": flat[:, 0:3].copy(),
+            "yaw": yaw,
+            "command": self._commands.copy(),
+            "distance": self.rows.dist.copy(),
+            "goal_distance": self.rows.goal_dist.copy(),
+            "termination": np.array([REASONS[r] for r in self.rows.reason], dtype=object),
+            "is_success": self.rows.reason == REASONS.index("goal"),
+            "collided_with": self._collided_with.copy(),
+            "world": w,
+            "agent": a,
+        }
+        if self.episodes == "world":
+            info["world_success"] = world_success
+        out: dict[str, Any] = {}
+        for key, value in info.items():
+            out[key], out[f"_{key}"] = value, mask.copy()
+        return out
+
+    @contextlib.contextmanager
+    def _own_threads(self) -> Iterator[None]:
+        if self._threads is None:
+            yield
+            return
+        before = numba.get_num_threads()
+        numba.set_num_threads(self._threads)
+        try:
+            yield
+        finally:
+            numba.set_num_threads(before)
+
+    # ------------------------------------------------------------------ gymnasium API
+    def reset(
+        self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        with self._own_threads():
+            return self._reset(seed, options)
+
+    def step(
+        self, actions: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        with self._own_threads():
+            return self._step(actions)
+
+    def _reset(
+        self, seed: int | list[int | None] | None, options: dict[str, Any] | None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        W = self.num_worlds
+        if seed is None:
+            seeds: list[int | None] = [None] * W
+        elif isinstance(seed, (int, np.integer)):
+            seeds = [int(seed) + w for w in range(W)]
+        else:
+            seeds = list(seed)
+            if len(seeds) != W:
+                raise ValueError(f"reset got {len(seeds)} seeds for {W} worlds")
+        given = dict((options or {}).get("tasks", {}))
+        unknown = set(given) - set(self.agent_names)
+        if unknown:
+            raise ValueError(f"options name unknown agents {sorted(unknown)}, not of {self.agent_names}")
+        for w, s in enumerate(seeds):
+            if s is not None or not self._reset_called:
+                self._rngs[w], _ = seeding.np_random(s)
+        self._reset_called = True
+        self.live[:] = False
+        self.rows.reason[:] = 0
+        rows = np.arange(self.num_envs)
+        self._start(rows, given, whole_worlds=True)
+        self._strips(rows, self.world.states)
+        self._done[:] = False
+        infos = self._infos(self.world.states, np.ones(self.num_envs, dtype=bool), np.zeros(W, dtype=bool))
+        return self._obs.copy(), infos
+
+    def _step(
+        self, actions: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        if not self._reset_called:
+            raise RuntimeError("call reset() before step()")
+        R, N = self.num_envs, self.num_agents
+        a = np.asarray(actions, dtype=np.float64)
+        if a.shape != (R, 2) or not np.all(np.isfinite(a)):
+            raise ValueError(f"actions must be finite numbers of shape ({R}, 2), got shape {a.shape}")
+        next_step = self.autoreset_mode == AutoresetMode.NEXT_STEP
+        restarting = self._restart(self._done) if next_step else np.zeros(R, dtype=bool)
+        moving = self.live & ~restarting
+        k = self.rows.k
+        a = np.clip(a, -1.0, 1.0)
+        self._commands[moving, 0] = k[6] + a[moving, 0] * k[7]
+        self._commands[moving, 1] = a[moving, 1] * k[8]
+        idx = np.flatnonzero(moving)
+        w, ag = self._where(idx)
+        self.world.velocity_rows(w, ag, self._commands[idx, 0], self._commands[idx, 1])
+        # restarted agents wait at their start through this frame (not flown: their episode begins now)
+        held = np.flatnonzero(restarting)
+        self.world.active[held // N, held % N] = False
+        cams, hits = self.world.step_frame(self.live.reshape(-1, N).any(axis=1))
+        self.world.active[held // N, held % N] = True
+        touched = self.world.touched.reshape(R)
+        hit = hits.reshape(R) | (touched >= 0)
+        for r in np.flatnonzero(moving & (touched >= 0)):
+            self._collided_with[r] = self.agent_names[touched[r]]
+        cam = self._flat(cams)
+        self.rows.step(moving, cam, hit, self.grid, self.scene, advance=True)
+        self.rows.step(restarting, cam, ~restarting, self.grid, self.scene, advance=False)
+        seen = moving | restarting
+        self._obs[seen, STRIP_SAMPLES:] = self.rows.tail[seen]
+        self._strips(np.flatnonzero(seen), cams)
+        rewards = np.where(moving, self.rows.reward, 0.0)
+        reason = np.where(moving, self.rows.reason, 0)
+        truncated = reason == REASONS.index("time_limit")
+        terminated = (reason != 0) & ~truncated
+        done = terminated | truncated
+        world_success = np.zeros(self.num_worlds, dtype=bool)
+        if self.episodes == "world" and done.any():
+            ended = np.flatnonzero(done)
+            self.world.retire(ended // N, ended % N)
+            self.live[ended] = False
+            finished = ~self.live.reshape(-1, N).any(axis=1)
+            goal = REASONS.index("goal")
+            # every agent's last episode of a finished world: ``reason`` keeps each row's last outcome
+            world_success = finished & (self.rows.reason.reshape(-1, N) == goal).all(axis=1)
+        infos = self._infos(cams, np.ones(R, dtype=bool), np.repeat(world_success, N))
+        if not next_step and done.any():
+            final_obs = np.full(R, None, dtype=object)
+            for r in np.flatnonzero(done):
+                final_obs[r] = self._obs[r].copy()
+            final_info = {
+                key: done.copy() if key.startswith("_") else value.copy() for key, value in infos.items()
+            }
+            fresh = self._restart(done)
+            for key, value in self._infos(self.world.states, fresh, np.repeat(world_success, N)).items():
+                if not key.startswith("_"):
+                    infos[key][fresh] = value[fresh]
+            infos["final_obs"], infos["_final_obs"] = final_obs, done.copy()
+            infos["final_info"], infos["_final_info"] = final_info, done.copy()
+        self._done = done if next_step else np.zeros(R, dtype=bool)
+        return self._obs.copy(), rewards, terminated, truncated, infos
+
+    def _restart(self, done: np.ndarray) -> np.ndarray:
+        """Start over what ``done`` ended: each done agent (episodes="agent"), or each world none of whose
+        agents is left (episodes="world"). Returns the rows restarted (their observations in ``_obs``)."""
+        N = self.num_agents
+        if self.episodes == "agent":
+            rows = np.flatnonzero(done)
+            self._start(rows, {}, whole_worlds=False)
+        else:
+            over = np.flatnonzero(~self.live.reshape(-1, N).any(axis=1))
+            rows = (over[:, None] * N + np.arange(N)).ravel()
+            self._start(rows, {}, whole_worlds=True)
+        mask = np.zeros(self.num_envs, dtype=bool)
+        mask[rows] = True
+        self._strips(rows, self.world.states)
+        return mask
+
+    def close_extras(self, **kwargs: Any) -> None:
+        if getattr(self, "cameras", None) is not None:
+            self.cameras.close()
+            self.cameras = None  # type: ignore[assignment]
 
 
 class VineyardNavParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
-    """Vineyard point-to-point navigation for ``num_agents`` vehicles in one world (see the module
-    docstring).
-
-    ``config``: a :class:`SimConfig` (its ``rl`` section and vehicle/flight settings; its ``vehicles``
-    are replaced by ``num_agents`` vehicles ``uav0 ..``); ``min_spacing``: the least distance (m) between
-    two agents' sampled starts, and between two goals; further keyword arguments replace fields of
-    ``config.rl``.
-    """
+    """Vineyard point-to-point navigation for ``num_agents`` vehicles in one world: PettingZoo's parallel
+    API over :class:`VineyardMultiVectorEnv` with one world and ``episodes="world"`` (see the module
+    docstring). ``depth``: ``"render"`` (default, as the single env) or ``"raycast"``."""
 
     metadata = {"name": NAME, "render_modes": []}
 
@@ -79,33 +412,22 @@ class VineyardNavParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
         config: SimConfig | None = None,
         num_agents: int = 2,
         min_spacing: float = 3.0,
+        depth: str = "render",
         **rl_overrides: Any,
     ) -> None:
-        from droneulator.render.pipeline import CameraPipeline
-        from droneulator.world import World
-
-        cfg = env_config(config, **rl_overrides)
-        cfg.vehicles = fleet(num_agents)
-        self.config = cfg
-        self.rl = cfg.rl
-        self.min_spacing = float(min_spacing)
+        self.core = VineyardMultiVectorEnv(1, num_agents, config, depth=depth, episodes="world",
+                                           min_spacing=min_spacing, **rl_overrides)  # fmt: skip
+        self.config = self.core.config
+        self.world = self.core.world
+        self.min_spacing = self.core.min_spacing
         self.render_mode: str | None = None
-        self.world = World(cfg, render=False, external_cameras=True)
-        self.scene = self.world.scene
-        vehicles = self.world.vehicles
-        self.possible_agents: list[str] = list(vehicles)
+        self.possible_agents: list[str] = list(self.core.agent_names)
         self.agents: list[str] = []
-        #: each agent's task and episode state
-        self.tasks = {name: NavTask(cfg, self.scene) for name in self.possible_agents}
-        self.observation_spaces = {name: t.observation_space for name, t in self.tasks.items()}
-        self.action_spaces = {name: t.action_space for name, t in self.tasks.items()}
-        #: every live agent's depth camera, each seeing the other vehicles' bodies (one mesh per airframe),
-        #: through its depth errors (rl.depth_model; seeded per vehicle)
-        self.cameras = CameraPipeline(self.scene, cfg)
-        spots = parking_spots(self.scene, num_agents, cfg.vehicle.collision_radius)
-        #: where each agent's vehicle waits, motors off, once its episode has ended
-        self.parking = dict(zip(self.possible_agents, spots, strict=True))
-        self._np_random: np.random.Generator | None = None
+        #: each agent's task (start, goal, the rules)
+        self.tasks = dict(zip(self.possible_agents, self.core.tasks, strict=True))
+        task = self.core.tasks[0]
+        self.observation_spaces = {name: task.observation_space for name in self.possible_agents}
+        self.action_spaces = {name: task.action_space for name in self.possible_agents}
 
     def observation_space(self, agent: str) -> gym.spaces.Box:
         return self.observation_spaces[agent]
@@ -113,46 +435,26 @@ class VineyardNavParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
     def action_space(self, agent: str) -> gym.spaces.Box:
         return self.action_spaces[agent]
 
-    @property
-    def np_random(self) -> np.random.Generator:
-        """The generator of starts and goals (seeded by ``reset(seed=...)``, else from OS entropy)."""
-        if self._np_random is None:
-            self._np_random, _ = seeding.np_random()
-        return self._np_random
+    def _dicts(self, obs: np.ndarray, infos: dict[str, Any], names: list[str]) -> tuple[dict, dict]:
+        out_obs, out_info = {}, {}
+        keys = [k for k in infos if not k.startswith("_") and k not in ("world", "agent", "world_success")]
+        for name in names:
+            r = self.possible_agents.index(name)
+            out_obs[name] = obs[r]
+            info = {k: infos[k][r] for k in keys}
+            info["position"] = info["position"].copy()
+            info["collided_with"] = [info["collided_with"]] if info["collided_with"] else []
+            info["is_success"] = bool(info["is_success"])
+            info["command"] = tuple(float(c) for c in info["command"])
+            out_info[name] = info
+        return out_obs, out_info
 
-    # ------------------------------------------------------------------ PettingZoo API
     def reset(
         self, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, np.ndarray], dict[str, Info]]:
-        if seed is not None:
-            self._np_random, _ = seeding.np_random(seed)
-        given = dict((options or {}).get("tasks", {}))
-        unknown = set(given) - set(self.possible_agents)
-        if unknown:
-            raise ValueError(f"options name unknown agents {sorted(unknown)}, not of {self.possible_agents}")
-        tasks = {name: self.tasks[name].given_task(task) for name, task in given.items()}
-        for name in self.possible_agents:
-            if name not in tasks:
-                taken = [(t[0], t[2]) for t in tasks.values()]
-                tasks[name] = self.tasks[name].sample_task(self.np_random, taken, self.min_spacing)
-        first, *others = self.possible_agents
-        alt = self.rl.altitude
-        start, yaw, *_ = tasks[first]
-        self.world.reset(position=np.array([start[0], start[1], alt]), yaw=yaw, airborne=True, vehicle=first)
-        for name in others:
-            start, yaw, *_ = tasks[name]
-            self.world.vehicles[name].place(np.array([start[0], start[1], alt]), yaw, airborne=True)
+        obs, infos = self.core.reset(seed=seed, options=options)
         self.agents = list(self.possible_agents)
-        now = self.world.states_now()
-        depth = self._depth(now)
-        states = {name: _kinematics(st) for name, st in now.items()}
-        obs, infos = {}, {}
-        for name, task in self.tasks.items():
-            start, yaw, goal, field = tasks[name]
-            task.begin(start, yaw, goal, field, states[name])
-            obs[name] = task.observe(depth[name], states[name])
-            infos[name] = task.step_info(states[name], None, (0.0, 0.0)) | {"collided_with": []}
-        return obs, infos
+        return self._dicts(obs, infos, self.agents)
 
     def step(
         self, actions: dict[str, np.ndarray]
@@ -167,50 +469,19 @@ class VineyardNavParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
             detail = f"missing {missing}, unknown {sorted(unknown)}"
             raise ValueError(f"need an action for each live agent {self.agents}: {detail}")
         live = list(self.agents)
-        commands = {name: self.tasks[name].check_action(actions[name]) for name in live}
-        for name, command in commands.items():
-            self.world.vehicles[name].velocity(*command)
-        hit: dict[str, list[str]] = {}
-        while True:
-            res = self.world.step()
-            for e in res.events:
-                if e.type == "collision":
-                    involved = e.data.get("vehicles", [e.vehicle])
-                    for name in involved:
-                        hit.setdefault(name, []).extend(n for n in involved if n != name)
-            if res.camera_states:
-                at_frame = {name: res.camera_states[-1][name] for name in live}
-                break
-        depth = self._depth(at_frame)
-        states = {name: _kinematics(st) for name, st in at_frame.items()}
-        obs, rewards, terminated, truncated, infos = {}, {}, {}, {}, {}
+        batch = np.zeros((len(self.possible_agents), 2))
         for name in live:
-            task, kin = self.tasks[name], states[name]
-            reward, term, trunc, reason = task.advance(kin, name in hit)
-            obs[name] = task.observe(depth[name], kin)
-            rewards[name], terminated[name], truncated[name] = reward, term, trunc
-            infos[name] = task.step_info(kin, reason, commands[name]) | {"collided_with": hit.get(name, [])}
-        self.agents = [name for name in live if not (terminated[name] or truncated[name])]
-        for name in live:
-            if name not in self.agents:
-                self.world.vehicles[name].place(self.parking[name], 0.0, airborne=False)
-        return obs, rewards, terminated, truncated, infos
-
-    def _depth(self, states: dict[str, VehicleState]) -> dict[str, np.ndarray]:
-        """The depth image of each vehicle in ``states``, drawn in one call, each seeing the others'
-        bodies (only theirs: done agents' vehicles are out of the picture)."""
-        poses = {name: st.T_world_body for name, st in states.items()}
-        frames = self.cameras.frames(poses, rgb=False, copy=False)
-        return {name: frames[name][CAMERA_NAME].depth for name in states}
+            self.tasks[name].check_action(actions[name])
+            batch[self.possible_agents.index(name)] = np.asarray(actions[name], dtype=np.float64).reshape(2)
+        obs, rewards, terminated, truncated, infos = self.core.step(batch)
+        out_obs, out_info = self._dicts(obs, infos, live)
+        rows = [self.possible_agents.index(name) for name in live]
+        rew = {name: float(rewards[r]) for name, r in zip(live, rows, strict=True)}
+        term = {name: bool(terminated[r]) for name, r in zip(live, rows, strict=True)}
+        trunc = {name: bool(truncated[r]) for name, r in zip(live, rows, strict=True)}
+        self.agents = [name for name in live if not (term[name] or trunc[name])]
+        return out_obs, rew, term, trunc, out_info
 
     def close(self) -> None:
-        if getattr(self, "cameras", None) is not None:
-            self.cameras.close()
-            self.cameras = None  # type: ignore[assignment]
-        if getattr(self, "world", None) is not None:
-            self.world.close()
-            self.world = None  # type: ignore[assignment]
-
-
-def _kinematics(st: VehicleState) -> Kinematics:
-    return Kinematics(st.t, st.position, st.quaternion, st.velocity, st.angular_velocity, st.mode)
+        if getattr(self, "core", None) is not None:
+            self.core.close()
