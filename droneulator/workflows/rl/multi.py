@@ -323,7 +323,7 @@ class VineyardMultiVectorEnv(VectorEnv):
         if a.shape != (R, 2) or not np.all(np.isfinite(a)):
             raise ValueError(f"actions must be finite numbers of shape ({R}, 2), got shape {a.shape}")
         next_step = self.autoreset_mode == AutoresetMode.NEXT_STEP
-        restarting = self._restart(self._done) if next_step else np.zeros(R, dtype=bool)
+        restarting = self._restart(self._done, observe=False) if next_step else np.zeros(R, dtype=bool)
         moving = self.live & ~restarting
         k = self.rows.k
         a = np.clip(a, -1.0, 1.0)
@@ -378,9 +378,10 @@ class VineyardMultiVectorEnv(VectorEnv):
         self._done = done if next_step else np.zeros(R, dtype=bool)
         return self._obs.copy(), rewards, terminated, truncated, infos
 
-    def _restart(self, done: np.ndarray) -> np.ndarray:
+    def _restart(self, done: np.ndarray, observe: bool = True) -> np.ndarray:
         """Start over what ``done`` ended: each done agent (episodes="agent"), or each world none of whose
-        agents is left (episodes="world"). Returns the rows restarted (their observations in ``_obs``)."""
+        agents is left (episodes="world"). Returns the rows restarted (with ``observe``, their observations
+        are in ``_obs``; else the caller draws them)."""
         N = self.num_agents
         if self.episodes == "agent":
             rows = np.flatnonzero(done)
@@ -391,7 +392,8 @@ class VineyardMultiVectorEnv(VectorEnv):
             self._start(rows, {}, whole_worlds=True)
         mask = np.zeros(self.num_envs, dtype=bool)
         mask[rows] = True
-        self._strips(rows, self.world.states)
+        if observe:
+            self._strips(rows, self.world.states)
         return mask
 
     def close_extras(self, **kwargs: Any) -> None:
