@@ -10,7 +10,7 @@ import pytest
 from pettingzoo.test import parallel_api_test, parallel_seed_test
 
 from droneulator.workflows.rl.env import VineyardNavEnv
-from droneulator.workflows.rl.multi import VineyardNavParallelEnv
+from droneulator.workflows.rl.multi import VineyardMultiVectorEnv, VineyardNavParallelEnv
 
 # the middle alley (y = 0): uav0 at x = -4 facing +x, uav1 at x = +4 facing -x, 8 m apart head on
 FACING = {
@@ -146,3 +146,153 @@ def test_a_done_agent_leaves_the_world_and_the_others_fly_on(env):
     assert not env.world.active[0, 0] and env.world.active[0, 1]
     with pytest.raises(ValueError, match="unknown agents"):
         env.reset(options={"tasks": {"uav7": FACING["uav0"]}})
+
+
+# ------------------------------------------------------------------ the vector form: W worlds x N agents
+def _rollout(env, seed: int, actions: np.ndarray) -> dict[str, list[np.ndarray]]:
+    out: dict[str, list[np.ndarray]] = {"obs": [env.reset(seed=seed)[0]], "reward": [], "terminated": [],
+                                        "truncated": [], "position": []}  # fmt: skip
+    for a in actions:
+        obs, reward, terminated, truncated, info = env.step(a)
+        for key, value in (("obs", obs), ("reward", reward), ("terminated", terminated),
+                           ("truncated", truncated), ("position", info["position"])):  # fmt: skip
+            out[key].append(value)
+    return {key: np.array(value) for key, value in out.items()}
+
+
+def test_each_world_of_the_vector_form_flies_as_that_world_alone():
+    # short time limits: every agent's episode ends and restarts (and its world's rng draws again) meanwhile
+    kw = {"time_limit_base_s": 0.5, "min_average_speed": 100.0}
+    many = VineyardMultiVectorEnv(3, 2, **kw)
+    alone = [VineyardMultiVectorEnv(1, 2, **kw) for _ in range(3)]
+    try:
+        assert many.num_envs == 6 and many.observation_space.shape == (6, 35)
+        actions = np.random.default_rng(4).uniform(-1, 1, (70, 6, 2)).astype(np.float32)
+        a = _rollout(many, 11, actions)
+        assert a["terminated"].any() or a["truncated"].any()
+        assert (a["truncated"].sum(axis=0) >= 1).all()  # every agent's episode ended at least once
+        for w, env in enumerate(alone):
+            b = _rollout(env, 11 + w, actions[:, 2 * w : 2 * w + 2])
+            for key in a:
+                mine = a[key][:, 2 * w : 2 * w + 2]
+                np.testing.assert_array_equal(mine, b[key], err_msg=f"{key}, world {w}")
+    finally:
+        many.close()
+        for env in alone:
+            env.close()
+
+
+def test_ray_cast_agents_see_each_other_as_the_renderer_draws_them():
+    cast = VineyardMultiVectorEnv(1, 2, depth="raycast")
+    drawn = VineyardMultiVectorEnv(1, 2, depth="render")
+    try:
+        a, _ = cast.reset(options={"tasks": FACING})
+        b, _ = drawn.reset(options={"tasks": FACING})
+        for row in range(2):  # the other vehicle 8 m ahead: a sphere of its radius against its mesh
+            assert 0.7 < a[row, CENTRE].min() < 0.8
+            assert abs(a[row, CENTRE].min() - b[row, CENTRE].min()) < 0.03
+        np.testing.assert_allclose(a[:, 32:], b[:, 32:], atol=1e-6)
+    finally:
+        cast.close()
+        drawn.close()
+
+
+def test_agent_episodes_restart_one_agent_while_the_other_flies_on():
+    env = VineyardMultiVectorEnv(1, 2)
+    tasks = {"uav0": {"start": (0.0, 0.0, 0.0), "goal": (2.2, 0.0)}, "uav1": FACING["uav0"]}
+    try:
+        env.reset(seed=3, options={"tasks": tasks})
+        slow = np.tile(env.tasks[0].command_to_action(0.5, 0.0), (2, 1))
+        for _ in range(150):
+            _, reward, terminated, _, info = env.step(slow)
+            if terminated[0]:
+                break
+        assert terminated[0] and info["termination"][0] == "goal" and not terminated[1]
+        before = info["position"][1].copy()
+        obs, reward, terminated, truncated, info = env.step(slow)  # uav0 starts over: a new task
+        assert reward[0] == 0.0 and not terminated[0] and not truncated[0]
+        assert np.linalg.norm(info["position"][0][:2] - [2.2, 0.0]) > 1.0  # placed at a new start
+        assert 0.0 < np.linalg.norm(info["position"][1] - before) < 0.2  # uav1 flew on, one frame
+        assert reward[1] != 0.0 and info["t"][0] > 1.0  # the world's clock goes on
+        assert math.dist(env.tasks[0].start[:2], info["position"][1][:2]) >= env.min_spacing
+    finally:
+        env.close()
+
+
+def test_world_episodes_count_a_success_only_when_every_agent_reaches_its_goal():
+    env = VineyardMultiVectorEnv(1, 2, episodes="world")
+    both = {"uav0": {"start": (0.0, 0.0, 0.0), "goal": (2.2, 0.0)},
+            "uav1": {"start": (-4.0, 0.0, 0.0), "goal": (-1.8, 0.0)}}  # fmt: skip
+
+    def fly(tasks: dict, action: np.ndarray) -> tuple[bool, bool, list]:
+        env.reset(seed=1, options={"tasks": tasks})
+        reasons = []
+        for _ in range(150):
+            _, _, terminated, truncated, info = env.step(np.tile(action, (2, 1)))
+            reasons += [r for r in info["termination"][terminated | truncated]]
+            if info["world_over"][0]:
+                return True, bool(info["world_success"][0]), reasons
+        return False, False, reasons
+
+    try:
+        slow = env.tasks[0].command_to_action(0.3, 0.0)
+        assert fly(both, slow) == (True, True, ["goal", "goal"])
+        assert fly(FACING, np.array([1.0, 0.0])) == (True, False, ["collision", "collision"])
+        assert not env.live.any() and not env.world.active[0].any()
+        obs, reward, *_ = env.step(np.zeros((2, 2), dtype=np.float32))  # the world starts over
+        assert env.live.all() and env.world.frame_t_ns()[0] == 0 and (reward == 0).all()
+    finally:
+        env.close()
+
+
+def test_the_vector_forms_bad_input_is_a_clear_error_and_it_keeps_working():
+    from droneulator.config import load_config
+
+    for kwargs, match in (
+        ({"num_worlds": 0}, "num_worlds"),
+        ({"num_agents": 1.5}, "num_agents"),
+        ({"depth": "lidar"}, "depth"),
+        ({"episodes": "team"}, "episodes"),
+        ({"autoreset_mode": "Disabled"}, "autoreset_mode must be"),
+        ({"min_spacing": -1.0}, "min_spacing"),
+        ({"config": load_config(overrides=["randomize.enabled=true"])}, "randomisation"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            VineyardMultiVectorEnv(**kwargs)
+    env = VineyardMultiVectorEnv(2, 2)
+    try:
+        with pytest.raises(RuntimeError, match="reset"):
+            env.step(np.zeros((4, 2)))
+        env.reset(seed=0)
+        for bad in (np.zeros((2, 2)), np.full((4, 2), np.nan)):
+            with pytest.raises(ValueError, match="actions must be"):
+                env.step(bad)
+        with pytest.raises(ValueError, match="seeds for 2 worlds"):
+            env.reset(seed=[1, 2, 3])
+        with pytest.raises(ValueError, match="unknown agents"):
+            env.reset(options={"tasks": {"uav9": FACING["uav0"]}})
+        obs, *_ = env.step(np.zeros((4, 2)))
+        assert obs.shape == (4, 35) and np.isfinite(obs).all()
+    finally:
+        env.close()
+
+
+def test_a_shared_policy_trains_on_worlds_of_two_agents_and_is_judged_by_world(tmp_path):
+    from droneulator.workflows.rl.env import env_config
+    from droneulator.workflows.rl.train import held_out_env, held_out_successes, train
+
+    summary = train(None, tmp_path, steps=240, n_envs=2, agents=2, vec="native", progress=False,
+                    overrides={"learning_starts": 100, "batch_size": 32})  # fmt: skip
+    assert summary["agents"] == 2 and summary["steps"] >= 240
+    assert summary["hyperparameters"]["gradient_steps"] == 4  # one update per agent transition
+    from stable_baselines3 import SAC
+
+    policy = SAC.load(tmp_path / "model.zip", device="cpu", custom_objects={"replay_buffer_class": None})
+    env = held_out_env(env_config(), 3, "raycast", agents=2)
+    try:
+        k = held_out_successes(policy, env, [5, 6, 7])
+        assert 0 <= k <= 3 and not env.live.reshape(3, 2).any(axis=1).all()
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="agents"):
+        train(None, tmp_path, steps=10, n_envs=2, agents=2, vec="dummy")

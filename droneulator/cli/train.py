@@ -45,6 +45,15 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "SAC, 256 for PPO); with --ray, in each env runner (default 64)",
     )
     p.add_argument(
+        "--agents",
+        type=int,
+        default=1,
+        metavar="N",
+        help="agents sharing each of the --num-envs worlds (default 1): they see, downwash and hit each "
+        "other and train one shared policy; a held-out episode is a world's, a success all of its agents "
+        "at their goals, none touching",
+    )
+    p.add_argument(
         "--depth",
         choices=("raycast", "render"),
         default="raycast",
@@ -128,6 +137,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     native = args.num_envs is not None
     if native and args.num_envs < 1:
         raise ValueError(f"--num-envs must be at least 1, got {args.num_envs}")
+    if args.agents < 1 or (args.agents > 1 and not native):
+        raise ValueError(f"--agents must be at least 1, and more than one need --num-envs, got {args.agents}")
     algo = args.algo or "sac"
     overrides = {} if args.learning_starts is None else {"learning_starts": args.learning_starts}
     if overrides and algo != "sac":
@@ -148,6 +159,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         threads=args.threads,
         progress=not args.no_progress,
         overrides=overrides,
+        agents=args.agents,
     )
     print(
         f"trained {summary['steps']} steps in {summary['wall_s']:.0f} s "

@@ -1,21 +1,28 @@
-"""The world: one scene, one clock and every vehicle in it, stepped together in lockstep.
+"""The world: ``worlds`` copies (one by default) of one scene, each with its clock and every vehicle in it,
+stepped together in lockstep by one compiled step (:mod:`droneulator.world.step`).
 
-Simulation time is an integer count of nanoseconds. :meth:`World.step` advances one control period:
+Simulation time is an integer count of nanoseconds. :meth:`World.step` advances the first world one
+control period, its vehicles driven by their flight controllers:
 
 1. every vehicle's flight controller gives its rotor command or its reference (vehicles holding or with
    the motors off keep the last one, without a call);
-2. the SE(3) controller turns every reference into rotor commands in one compiled loop;
-3. each vehicle's wind is the wind field's where it is (:mod:`droneulator.wind.field`: mean wind, Dryden
-   turbulence, gusts, the canopy's shelter; or a RotorPy profile, ``vehicle.wind``) plus the rotor wakes
-   of the vehicles above it (:mod:`droneulator.world.downwash`);
-4. one compiled step integrates every vehicle's row of the state array (``states``, laid out
-   ``(worlds, vehicles, STATE_SIZE)`` with one world here), split at camera instants so that every
-   frame is rendered from the exact state at ``k / camera_hz``, with the scene's collisions per row;
-5. vehicles whose bodies overlap collide (:mod:`droneulator.world.contact`): one ``collision`` event
+2. each vehicle's wind is the wind field's where it is (:mod:`droneulator.wind.field`: mean wind, Dryden
+   turbulence, gusts, the canopy's shelter; or a RotorPy profile, ``vehicle.wind``);
+3. the compiled step (:mod:`droneulator.world.step`) adds the rotor wakes of the vehicles above
+   (:mod:`droneulator.world.downwash`), turns every reference into rotor commands (SE(3)) and integrates
+   every row of the state array (``states``, laid out ``(worlds, vehicles, STATE_SIZE)``), split at camera
+   instants so that every frame is rendered from the exact state at ``k / camera_hz``, with the scene's
+   collisions per row;
+4. vehicles whose bodies overlap collide (:mod:`droneulator.world.contact`): one ``collision`` event
    names both, and both stop where they were at the start of the period;
-6. each vehicle's IMU means and hard touchdowns;
-7. with triggered cameras (``render.camera_trigger=command``), the frame sets :meth:`World.trigger` asked
+5. each vehicle's IMU means and hard touchdowns;
+6. with triggered cameras (``render.camera_trigger=command``), the frame sets :meth:`World.trigger` asked
    for, at the end of the period, instead of the camera rate's.
+
+Many worlds (learning's batched envs) are driven row by row instead: :meth:`World.place` restarts worlds
+by mask (hovering at given poses, in a scene variant), :meth:`World.velocity` gives velocity-mode
+commands (the compiled velocity reference every ``Vehicle.velocity`` runs) and :meth:`World.step_frame`
+advances each chosen world to its next camera instant in one call, with the same compiled step.
 
 One vehicle is the default (:class:`~droneulator.config.SimConfig` with no ``vehicles``);
 ``world.vehicle()`` is its handle.
@@ -360,12 +367,11 @@ class World:
                 sd.resolutions, self.variant, self._radius, self._out, self.hit, self._hit_t, self._work,
                 self._R)  # fmt: skip
 
-    def _begin(self, go: np.ndarray, dt: float) -> None:
-        kernel.begin_period(
-            go, self._parallel(), self.states, self._wind_rows, self._wake.active, self._wake.k_eta,
-            self._wake.disk_area, self._period_start, self._out, self.mode, self._flats, self._cmds,
-            self._vref, dt, self._lim, self._gains, self._R,
-        )  # fmt: skip
+    def _begin_args(self, dt: float) -> tuple[Any, ...]:
+        """The arrays :func:`~droneulator.world.step.advance` takes after :meth:`_args`'s."""
+        wake = self._wake
+        return (self._wind_rows, wake.active, wake.k_eta, wake.disk_area, self._period_start, self.mode,
+                self._flats, self._vref, dt, self._lim, self._gains)  # fmt: skip
 
     def step(self, n: int = 1) -> StepResult:
         """Advance ``n`` control periods of the first world, its vehicles driven by their flight controllers;
@@ -381,6 +387,8 @@ class World:
         rate = self.camera_schedule and not self.triggered
         go = self._all
         args = self._args()
+        extra = self._begin_args(dt)
+        parallel = self._parallel()
         t_to = np.zeros(1, dtype=np.int64)
         self.wind.dt = dt
         for _ in range(n):
@@ -409,13 +417,14 @@ class World:
             else:
                 for i, v in enumerate(vs):
                     wind[i] = v.wind.update(t, rows[i, STATE.x])
-            self._begin(go, dt)
             t_start = t
             t_end = self.t_ns + self.control_period_ns
+            begin = True
             while self.t_ns < t_end:
                 t_to[0] = min(t_end, int(self._next_frame[0])) if rate else t_end
                 self.hit[:] = False
-                kernel.integrate_segment(go, self._parallel(), t_to, *args)
+                kernel.advance(go, parallel, begin, t_to, *args, *extra)
+                begin = False
                 for i in np.flatnonzero(self.hit[0]):
                     out.events.append(vs[i].on_collision(t=self._hit_t[0, i] / NS))
                 if rate and self.t_ns == self._next_frame[0]:

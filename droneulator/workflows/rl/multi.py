@@ -67,7 +67,8 @@ class VineyardMultiVectorEnv(VectorEnv):
     ``"agent"`` or ``"world"``; ``min_spacing``: the least distance (m) between two agents' starts (a
     respawn: from the others' positions) and between two goals of a world; ``threads``: the compiled
     steps' threads (default: numba's); further keyword arguments replace fields of ``config.rl``.
-    Seeding as Gymnasium's vector envs, per world: ``reset(seed=s)`` seeds world ``w`` with ``s + w``.
+    Seeding as Gymnasium's vector envs, per world: ``reset(seed=s)`` seeds world ``w`` with ``s + w``; a
+    list gives each world its own (or each row its own, as SB3 does: a world takes its first row's).
     """
 
     metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": [], "render_fps": 30}
@@ -232,9 +233,12 @@ class VineyardMultiVectorEnv(VectorEnv):
             self.cameras, poses, [self._presets[r] for r in rows], self._scales[rows], clip, spheres
         )
 
-    def _infos(self, states: np.ndarray, mask: np.ndarray, world_success: np.ndarray) -> dict[str, Any]:
-        """The single env's info keys as arrays, with ``collided_with``, ``world`` and ``agent`` (and
-        ``world_success`` with episodes="world")."""
+    def _infos(
+        self, states: np.ndarray, mask: np.ndarray, world_over: np.ndarray, world_success: np.ndarray
+    ) -> dict[str, Any]:
+        """The single env's info keys as arrays, with ``collided_with``, ``world`` and ``agent`` (and, with
+        episodes="world", ``world_over``: its world's episode ended at this step, and ``world_success``:
+        every agent of it reached its goal)."""
         flat = self._flat(states)
         q = flat[:, 6:10]
         yaw = np.arctan2(2 * (q[:, 3] * q[:, 2] + q[:, 0] * q[:, 1]), 1 - 2 * (q[:, 1] ** 2 + q[:, 2] ** 2))
@@ -253,7 +257,7 @@ class VineyardMultiVectorEnv(VectorEnv):
             "agent": a,
         }
         if self.episodes == "world":
-            info["world_success"] = world_success
+            info["world_over"], info["world_success"] = world_over, world_success
         out: dict[str, Any] = {}
         for key, value in info.items():
             out[key], out[f"_{key}"] = value, mask.copy()
@@ -294,6 +298,8 @@ class VineyardMultiVectorEnv(VectorEnv):
             seeds = [int(seed) + w for w in range(W)]
         else:
             seeds = list(seed)
+            if len(seeds) == self.num_envs and self.num_envs != W:  # one per row: each world's first row's
+                seeds = seeds[:: self.num_agents]
             if len(seeds) != W:
                 raise ValueError(f"reset got {len(seeds)} seeds for {W} worlds")
         given = dict((options or {}).get("tasks", {}))
@@ -310,7 +316,8 @@ class VineyardMultiVectorEnv(VectorEnv):
         self._start(rows, given, whole_worlds=True)
         self._strips(rows, self.world.states)
         self._done[:] = False
-        infos = self._infos(self.world.states, np.ones(self.num_envs, dtype=bool), np.zeros(W, dtype=bool))
+        none = np.zeros(self.num_envs, dtype=bool)
+        infos = self._infos(self.world.states, ~none, none, none)
         return self._obs.copy(), infos
 
     def _step(
@@ -332,11 +339,13 @@ class VineyardMultiVectorEnv(VectorEnv):
         idx = np.flatnonzero(moving)
         w, ag = self._where(idx)
         self.world.velocity_rows(w, ag, self._commands[idx, 0], self._commands[idx, 1])
-        # restarted agents wait at their start through this frame (not flown: their episode begins now)
+        # restarted agents wait at their start through this frame (not flown: their episode begins now);
+        # a world with none of its agents flying does not step
         held = np.flatnonzero(restarting)
         self.world.active[held // N, held % N] = False
-        cams, hits = self.world.step_frame(self.live.reshape(-1, N).any(axis=1))
+        cams, hits = self.world.step_frame(moving.reshape(-1, N).any(axis=1))
         self.world.active[held // N, held % N] = True
+        cams[held // N, held % N] = self.world.states[held // N, held % N]
         touched = self.world.touched.reshape(R)
         hit = hits.reshape(R) | (touched >= 0)
         for r in np.flatnonzero(moving & (touched >= 0)):
@@ -352,16 +361,18 @@ class VineyardMultiVectorEnv(VectorEnv):
         truncated = reason == REASONS.index("time_limit")
         terminated = (reason != 0) & ~truncated
         done = terminated | truncated
+        over = np.zeros(self.num_worlds, dtype=bool)
         world_success = np.zeros(self.num_worlds, dtype=bool)
         if self.episodes == "world" and done.any():
             ended = np.flatnonzero(done)
             self.world.retire(ended // N, ended % N)
+            was_live = self.live.reshape(-1, N).any(axis=1)
             self.live[ended] = False
-            finished = ~self.live.reshape(-1, N).any(axis=1)
+            over = was_live & ~self.live.reshape(-1, N).any(axis=1)
             goal = REASONS.index("goal")
             # every agent's last episode of a finished world: ``reason`` keeps each row's last outcome
-            world_success = finished & (self.rows.reason.reshape(-1, N) == goal).all(axis=1)
-        infos = self._infos(cams, np.ones(R, dtype=bool), np.repeat(world_success, N))
+            world_success = over & (self.rows.reason.reshape(-1, N) == goal).all(axis=1)
+        infos = self._infos(cams, np.ones(R, dtype=bool), np.repeat(over, N), np.repeat(world_success, N))
         if not next_step and done.any():
             final_obs = np.full(R, None, dtype=object)
             for r in np.flatnonzero(done):
@@ -370,7 +381,9 @@ class VineyardMultiVectorEnv(VectorEnv):
                 key: done.copy() if key.startswith("_") else value.copy() for key, value in infos.items()
             }
             fresh = self._restart(done)
-            for key, value in self._infos(self.world.states, fresh, np.repeat(world_success, N)).items():
+            ends = np.repeat(over, N), np.repeat(world_success, N)
+            fresh_infos = self._infos(self.world.states, fresh, *ends)
+            for key, value in fresh_infos.items():
                 if not key.startswith("_"):
                     infos[key][fresh] = value[fresh]
             infos["final_obs"], infos["_final_obs"] = final_obs, done.copy()
@@ -439,7 +452,8 @@ class VineyardNavParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
 
     def _dicts(self, obs: np.ndarray, infos: dict[str, Any], names: list[str]) -> tuple[dict, dict]:
         out_obs, out_info = {}, {}
-        keys = [k for k in infos if not k.startswith("_") and k not in ("world", "agent", "world_success")]
+        extra = ("world", "agent", "world_over", "world_success")
+        keys = [k for k in infos if not k.startswith("_") and k not in extra]
         for name in names:
             r = self.possible_agents.index(name)
             out_obs[name] = obs[r]

@@ -103,14 +103,25 @@ def make_vec_env(
     monitor: Path | None = None,
     depth: str = "raycast",
     actors: int = 1,
+    agents: int = 1,
 ) -> Any:
     """``n_envs`` environments in a DummyVecEnv (one, or ``vec="dummy"``), a SubprocVecEnv, the batched
-    env (``vec="native"``, ``depth`` from ray casting or the renderer), or batched envs in ``actors`` Ray
-    actors (``vec="ray"``, Ray connected), wrapped in a VecMonitor writing ``monitor`` (CSV) when given."""
+    env (``vec="native"``, ``depth`` from ray casting or the renderer; with ``agents`` > 1, ``n_envs``
+    worlds of that many agents sharing each, one row per agent), or batched envs in ``actors`` Ray actors
+    (``vec="ray"``, Ray connected), wrapped in a VecMonitor writing ``monitor`` (CSV) when given."""
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecMonitor
 
     kind = ("subproc" if n_envs > 1 else "dummy") if vec == "auto" else vec
-    if kind == "ray":
+    if agents > 1:
+        from gymnasium.vector import AutoresetMode
+
+        from droneulator.workflows.rl.multi import VineyardMultiVectorEnv
+        from droneulator.workflows.rl.sb3 import SB3VectorEnv
+
+        if kind != "native":
+            raise ValueError("several agents per world train on the batched env (vec='native')")
+        venv = SB3VectorEnv(VineyardMultiVectorEnv(n_envs, agents, cfg, depth, AutoresetMode.SAME_STEP))
+    elif kind == "ray":
         from droneulator.workflows.rl.ray_vec import RayVecEnv
 
         venv = RayVecEnv(cfg, n_envs, actors, depth)
@@ -162,17 +173,24 @@ def _episode_callback() -> Any:
 
 def held_out_successes(policy: Any, env: Any, seeds: list[int]) -> int:
     """Episodes of ``policy`` (deterministic) reaching the goal, one per seed, on the batched ``env``
-    (``len(seeds)`` environments, NEXT_STEP autoreset: each env's first episode counts)."""
+    (``len(seeds)`` environments, NEXT_STEP autoreset: each env's first episode counts). On a multi-agent
+    env (``len(seeds)`` worlds, episodes="world") an episode is a world's, a success every agent of it
+    reaching its goal without touching anything."""
     import numpy as np
 
+    team = getattr(env, "num_agents", 1)
     obs, _ = env.reset(seed=seeds)
-    done = np.zeros(env.num_envs, dtype=bool)
-    success = np.zeros(env.num_envs, dtype=bool)
+    done = np.zeros(len(seeds), dtype=bool)
+    success = np.zeros(len(seeds), dtype=bool)
     while not done.all():
         action, _ = policy.predict(obs, deterministic=True)
         obs, _, terminated, truncated, info = env.step(action)
-        ended = (terminated | truncated) & ~done
-        success |= ended & info["is_success"]
+        if team > 1:
+            ended = info["world_over"][::team] & ~done
+            success |= ended & info["world_success"][::team]
+        else:
+            ended = (terminated | truncated) & ~done
+            success |= ended & info["is_success"]
         done |= ended
     return int(success.sum())
 
@@ -182,20 +200,31 @@ def passes(successes: int, episodes: int, target: float) -> bool:
     return successes >= math.ceil(target * episodes - 1e-9)
 
 
+def held_out_env(cfg: SimConfig, episodes: int, depth: str, agents: int = 1) -> Any:
+    """The batched env that flies ``episodes`` held-out episodes at once: one vector env of that many
+    worlds (of ``agents`` agents each, whose episodes are the world's)."""
+    if agents > 1:
+        from droneulator.workflows.rl.multi import VineyardMultiVectorEnv
+
+        return VineyardMultiVectorEnv(episodes, agents, cfg, depth, episodes="world")
+    from droneulator.workflows.rl.vector import VineyardNavVectorEnv
+
+    return VineyardNavVectorEnv(episodes, cfg, depth)
+
+
 def _success_check(
-    cfg: SimConfig, every: int, target: float, depth: str, max_wall_s: float | None, seeds: list[int]
-) -> Any:
+    cfg: SimConfig, every: int, target: float, depth: str, max_wall_s: float | None, seeds: list[int],
+    agents: int = 1,
+) -> Any:  # fmt: skip
     """A callback that checks the policy on the held-out ``seeds`` (one batched env of ``len(seeds)``
     worlds, all flown at once) every ``every`` steps and ends training once ``target`` of them succeed
     (or after ``max_wall_s`` s of training); the checks' wall time is kept apart."""
     from stable_baselines3.common.callbacks import BaseCallback
 
-    from droneulator.workflows.rl.vector import VineyardNavVectorEnv
-
     class SuccessCheck(BaseCallback):
         def __init__(self) -> None:
             super().__init__()
-            self.env = VineyardNavVectorEnv(len(seeds), cfg, depth)
+            self.env = held_out_env(cfg, len(seeds), depth, agents)
             self.seeds = list(seeds)
             self.next = every
             self.check_s = 0.0
@@ -251,6 +280,7 @@ def train(
     ray_address: str | None = None,
     actors: int = 1,
     check_episodes: int = CHECK_EPISODES,
+    agents: int = 1,
 ) -> dict[str, Any]:
     """Train ``algo`` for ``steps`` environment steps; returns (and writes) the training summary.
 
@@ -265,6 +295,8 @@ def train(
     once that share reaches the goal (the summary's ``reached`` gives the steps, the training wall time
     and the success rate's 95 % interval, the checks' time left out); ``max_wall_s`` (with ``stop_at``)
     ends it after that much training time in any case. The check seeds may not meet the training seeds.
+    ``agents`` > 1 (``vec="native"``): ``n_envs`` worlds of that many agents train one shared policy (one
+    row per agent); a held-out episode is then a world's, a success every agent reaching its goal.
     """
     import torch
 
@@ -272,6 +304,10 @@ def train(
         raise ValueError(f"unknown algorithm {algo!r}; available: {', '.join(ALGORITHMS)}")
     if steps < 1 or n_envs < 1:
         raise ValueError("steps and envs must be at least 1")
+    if agents < 1 or (agents > 1 and vec != "native"):
+        raise ValueError(
+            f"agents must be at least 1, and more than one train on vec='native' (got {agents})"
+        )
     if stop_at is not None and not 0.0 < stop_at <= 1.0:
         raise ValueError(f"stop_at must be a share in (0, 1], got {stop_at}")
     held_out = check_seeds(check_episodes)  # refuses fewer than one
@@ -295,9 +331,9 @@ def train(
         raise ValueError(f"unknown {algo} hyperparameters: {', '.join(sorted(unknown))}")
     hyper = {**defaults, **(overrides or {})}
     if algo == "sac" and vec in ("native", "ray") and "gradient_steps" not in (overrides or {}):
-        hyper["gradient_steps"] = n_envs  # one update per transition, as one env with train_freq 1
+        hyper["gradient_steps"] = n_envs * agents  # one update per transition, as one env, train_freq 1
     if algo == "ppo":  # a minibatch never exceeds the rollout: B x n_steps transitions
-        hyper["batch_size"] = min(hyper["batch_size"], hyper["n_steps"] * n_envs)
+        hyper["batch_size"] = min(hyper["batch_size"], hyper["n_steps"] * n_envs * agents)
     (out / "config.json").write_text(json.dumps(to_dict(cfg), indent=2))
 
     with contextlib.ExitStack() as stack:
@@ -307,21 +343,23 @@ def train(
             stack.enter_context(connect(str(ray_address)))
         return _learn(
             cfg, out, steps, seed, n_envs, algo, vec, checkpoint_every, threads, progress, hyper, depth,
-            stop_at, check_every, max_wall_s, actors, held_out,
+            stop_at, check_every, max_wall_s, actors, held_out, agents,
         )  # fmt: skip
 
 
 def _learn(
     cfg: SimConfig, out: Path, steps: int, seed: int, n_envs: int, algo: str, vec: str, checkpoint_every: int,
     threads: int, progress: bool, hyper: dict[str, Any], depth: str, stop_at: float | None, check_every: int,
-    max_wall_s: float | None, actors: int, held_out: list[int],
+    max_wall_s: float | None, actors: int, held_out: list[int], agents: int = 1,
 ) -> dict[str, Any]:  # fmt: skip
     """:func:`train`'s learning, once its settings are checked (and Ray connected for ``vec="ray"``)."""
     from stable_baselines3 import PPO, SAC
     from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
     from stable_baselines3.common.logger import Logger, make_output_format
 
-    venv = make_vec_env(cfg, n_envs, vec, monitor=out / "monitor.csv", depth=depth, actors=actors)
+    venv = make_vec_env(
+        cfg, n_envs, vec, monitor=out / "monitor.csv", depth=depth, actors=actors, agents=agents
+    )
     restarts, nodes, ray_seeds = 0, None, []
     try:
         cls = SAC if algo == "sac" else PPO
@@ -334,7 +372,7 @@ def _learn(
         )
         check = None
         if stop_at is not None:
-            check = _success_check(cfg, check_every, stop_at, depth, max_wall_s, held_out)
+            check = _success_check(cfg, check_every, stop_at, depth, max_wall_s, held_out, agents)
         checkpoints = CheckpointCallback(
             save_freq=max(1, checkpoint_every // n_envs), save_path=str(out / "checkpoints"), name_prefix=algo
         )
@@ -362,6 +400,7 @@ def _learn(
         "steps_per_s": model.num_timesteps / wall,
         "sim_s": model.num_timesteps / cfg.render.camera_hz,
         "n_envs": n_envs,
+        "agents": agents,
         "vec": ("subproc" if n_envs > 1 else "dummy") if vec == "auto" else vec,
         "depth": depth if vec in ("native", "ray") else "render",
         "torch_threads": threads,

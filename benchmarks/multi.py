@@ -1,0 +1,153 @@
+"""Many agents in many worlds: agent-steps per second of the multi-agent vineyard env, and a shared policy
+trained for teams of two.
+
+1. Agent-steps per second (random actions, every agent's restarts included, depth by ray casting with
+   the other agents as spheres) of :class:`~droneulator.workflows.rl.multi.VineyardMultiVectorEnv` at W
+   worlds x N agents (default 64 x 4, 128 x 2, 256 x 1), each in its own process, against the one-agent
+   vector env at B = 256 measured in the same run (the ratio is what to quote on a shared machine).
+2. ``--train``: SAC with one policy shared by two agents per world (``droneulator train --num-envs 8
+   --agents 2 --stop-at 0.9``): training stops once 45 of 50 held-out team episodes (seeds from
+   2,500,000, two agents per world, a success both at their goals and no collision) succeed, or at the
+   cap (default 600 s); the final policy then flies the 50 evaluation team episodes (seeds from
+   1,000,000, never used to decide when to stop), with the 95 % Wilson interval. One run per seed.
+
+Reproduce: ``python benchmarks/multi.py`` (about 3 min), ``--train`` adds up to 11 min per seed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from _common import write
+
+#: steps per figure: every agent flies this many frames (10 s), so restarts are part of the figure
+STEPS = 300
+
+
+def agent_steps(worlds: int, agents: int, steps: int = STEPS) -> dict[str, Any]:
+    """Agent-steps per second of ``worlds`` x ``agents`` (``agents`` 0: the one-agent vector env)."""
+    if agents:
+        from droneulator.workflows.rl.multi import VineyardMultiVectorEnv
+
+        env: Any = VineyardMultiVectorEnv(worlds, agents)
+    else:
+        from droneulator.workflows.rl.vector import VineyardNavVectorEnv
+
+        env = VineyardNavVectorEnv(worlds)
+    rows = env.num_envs
+    rng = np.random.default_rng(0)
+    t = time.perf_counter()
+    env.reset(seed=0)
+    reset_s = time.perf_counter() - t
+    for _ in range(10):  # warm-up: compiled code, the BVH
+        env.step(rng.uniform(-1, 1, (rows, 2)).astype(np.float32))
+    ended = 0
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        _, _, term, trunc, _ = env.step(rng.uniform(-1, 1, (rows, 2)).astype(np.float32))
+        ended += int((term | trunc).sum())
+    wall = time.perf_counter() - t0
+    env.close()
+    return {
+        "worlds": worlds,
+        "agents": agents or 1,
+        "agent_steps": steps * rows,
+        "wall_s": wall,
+        "agent_steps_per_s": steps * rows / wall,
+        "episodes_ended": ended,
+        "first_reset_s": reset_s,
+    }
+
+
+def in_subprocess(fn: str, *args: Any) -> dict[str, Any]:
+    code = f"import json, sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); import multi; "
+    code += f"print(json.dumps(multi.{fn}(*{args!r})))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def train_team(out: Path, seed: int, worlds: int, every: int, cap_s: float) -> dict[str, Any]:
+    """A shared policy for two agents per world to 45 of 50 check team episodes (or ``cap_s``), then the
+    50 evaluation team episodes."""
+    from stable_baselines3 import SAC
+
+    from droneulator.workflows.rl.env import env_config
+    from droneulator.workflows.rl.heldout import EVAL_EPISODES, EVAL_SEED, interval_record
+    from droneulator.workflows.rl.train import held_out_env, held_out_successes, train
+
+    summary = train(None, out, steps=50_000_000, seed=seed, n_envs=worlds, vec="native", agents=2,
+                    progress=False, stop_at=0.9, check_every=every, max_wall_s=cap_s)  # fmt: skip
+    policy = SAC.load(out / "model.zip", device="cpu", custom_objects={"replay_buffer_class": None})
+    seeds = list(range(EVAL_SEED, EVAL_SEED + EVAL_EPISODES))
+    assert not set(seeds) & set(summary["check_seeds"])
+    env = held_out_env(env_config(), len(seeds), "raycast", agents=2)
+    try:
+        successes = held_out_successes(policy, env, seeds)
+    finally:
+        env.close()
+    reached = summary["reached"]
+    return {
+        "seed": seed,
+        "worlds": worlds,
+        "agents": 2,
+        "reached_target": reached is not None,
+        "wall_s_to_target": reached["wall_s"] if reached else None,
+        "steps_to_target": reached["steps"] if reached else None,
+        "train_wall_s": summary["wall_s"],
+        "steps": summary["steps"],
+        "checks": summary["checks"],
+        "evaluation_seeds": [seeds[0], seeds[-1]],
+        "evaluation": interval_record(successes, len(seeds)),
+        "command": f"droneulator train --num-envs {worlds} --agents 2 --seed {seed} --stop-at 0.9 "
+        f"--check-every {every} --out {out}",
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--sizes", nargs="+", default=["64x4", "128x2", "256x1"], help="W x N configurations")
+    ap.add_argument("--steps", type=int, default=STEPS, help=f"steps per figure (default {STEPS})")
+    ap.add_argument("--train", action="store_true", help="also train a shared policy for teams of two")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="training seeds (default 0)")
+    ap.add_argument("--worlds", type=int, default=8, help="training worlds of two agents (default 8)")
+    ap.add_argument("--check-every", type=int, default=10_000, help="SAC steps between checks")
+    ap.add_argument("--cap", type=float, default=600.0, help="training time cap per seed (s, default 600)")
+    ap.add_argument("--out", default="out/multi-bench", help="training runs folder")
+    ap.add_argument("--json", default=None, help="output path (default benchmarks/results/multi.json)")
+    args = ap.parse_args()
+    sizes = [tuple(int(v) for v in s.lower().split("x")) for s in args.sizes]
+    base = in_subprocess("agent_steps", 256, 0, args.steps)
+    print(f"one-agent vector env, B = 256: {base['agent_steps_per_s']:,.0f} steps/s", flush=True)
+    figures = []
+    for w, n in sizes:
+        r = in_subprocess("agent_steps", w, n, args.steps)
+        r["vs_one_agent_env_256"] = r["agent_steps_per_s"] / base["agent_steps_per_s"]
+        figures.append(r)
+        print(f"{w} worlds x {n} agents: {r['agent_steps_per_s']:,.0f} agent-steps/s "
+              f"({r['vs_one_agent_env_256']:.2f} x the one-agent env), {r['episodes_ended']} episodes ended",
+              flush=True)  # fmt: skip
+    teams = []
+    if args.train:
+        from droneulator.workflows.rl.heldout import rate_text
+
+        for seed in args.seeds:
+            r = train_team(Path(args.out) / f"seed{seed}", seed, args.worlds, args.check_every, args.cap)
+            teams.append(r)
+            when = f"45/50 checks not reached within {args.cap:.0f} s"
+            if r["reached_target"]:
+                when = f"45/50 checks after {r['wall_s_to_target']:.0f} s ({r['steps_to_target']} steps)"
+            ev = r["evaluation"]
+            print(f"seed {seed}: {when}; evaluation {rate_text(ev['successes'], ev['episodes'])}", flush=True)
+    write("multi", {"one_agent_256": base, "throughput": figures, "teams": teams,
+                    "settings": vars(args)}, args.json)  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
