@@ -121,7 +121,7 @@ def _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx
     N = states.shape[1]
     w, n = k // N, k % N
     if not go[w] or not active[w, n] or t_to[w] <= t_ns[w]:
-        return
+        return 0
     h = (t_to[w] - t_ns[w]) / NS
     n_sub = max(1, math.ceil(h / substep - 1e-9))
     v = variant[w]
@@ -133,6 +133,8 @@ def _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx
         hit_t[w, n] = t_ns[w]
         active[w, n] = False
         stop_level(s)
+        return 1
+    return 0
 
 
 @numba.njit(cache=True, parallel=True)
@@ -140,32 +142,35 @@ def integrate_segment(go, parallel, t_to, t_ns, states, cmds, active, substep, P
                       shapes, origins, res, variant, radius, out, hit, hit_t, work, R):  # fmt: skip
     """Step 2: integrate the active rows of the worlds where ``go`` from their clock to ``t_to`` (ns, per
     world), then set those clocks to ``t_to``. A row that touches the scene is flagged in ``hit`` (with
-    the segment's start time in ``hit_t``), stopped and made inactive."""
+    the segment's start time in ``hit_t``), stopped and made inactive. Returns how many rows hit."""
     W, N = states.shape[0], states.shape[1]
+    hits = 0
     if parallel:
         for k in numba.prange(W * N):
-            _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, off, shapes,
-                         origins, res, variant, radius, out, hit, hit_t, work, R)  # fmt: skip
+            hits += _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, off,
+                                 shapes, origins, res, variant, radius, out, hit, hit_t, work, R)  # fmt: skip
     else:
         for k in range(W * N):
-            _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, off, shapes,
-                         origins, res, variant, radius, out, hit, hit_t, work, R)  # fmt: skip
+            hits += _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, off,
+                                 shapes, origins, res, variant, radius, out, hit, hit_t, work, R)  # fmt: skip
     for w in range(W):
         if go[w]:
             t_ns[w] = max(t_ns[w], t_to[w])
+    return hits
 
 
 @numba.njit(cache=True)
-def advance(go, parallel, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, off, shapes,
-            origins, res, variant, radius, out, hit, hit_t, work, R, wind, wakes, k_eta, area, period_start,
-            mode, flats, vref, dt, lim, gains):  # fmt: skip
+def run_period(go, parallel, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, off,
+               shapes, origins, res, variant, radius, out, hit, hit_t, work, R, wind, wakes, k_eta, area,
+               period_start, mode, flats, vref, dt, lim, gains):  # fmt: skip
     """Steps 1 (with ``begin``) and 2 in one call: one dispatch instead of two when a period holds no
-    camera instant (a compiled call's cost grows with its arguments: a few microseconds a vehicle-period)."""
+    camera instant (a compiled call's cost grows with its arguments). Returns how many rows hit the
+    scene."""
     if begin:
         begin_period(go, parallel, states, wind, wakes, k_eta, area, period_start, out, mode, flats, cmds,
                      vref, dt, lim, gains, R)  # fmt: skip
-    integrate_segment(go, parallel, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, off,
-                      shapes, origins, res, variant, radius, out, hit, hit_t, work, R)  # fmt: skip
+    return integrate_segment(go, parallel, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs,
+                             off, shapes, origins, res, variant, radius, out, hit, hit_t, work, R)  # fmt: skip
 
 
 @numba.njit(cache=True)

@@ -368,7 +368,7 @@ class World:
                 self._R)  # fmt: skip
 
     def _begin_args(self, dt: float) -> tuple[Any, ...]:
-        """The arrays :func:`~droneulator.world.step.advance` takes after :meth:`_args`'s."""
+        """The arrays :func:`~droneulator.world.step.run_period` takes after :meth:`_args`'s."""
         wake = self._wake
         return (self._wind_rows, wake.active, wake.k_eta, wake.disk_area, self._period_start, self.mode,
                 self._flats, self._vref, dt, self._lim, self._gains)  # fmt: skip
@@ -390,6 +390,8 @@ class World:
         extra = self._begin_args(dt)
         parallel = self._parallel()
         t_to = np.zeros(1, dtype=np.int64)
+        clock = self.clocks
+        self.hit[:] = False
         self.wind.dt = dt
         for _ in range(n):
             t = self.t
@@ -418,16 +420,18 @@ class World:
                 for i, v in enumerate(vs):
                     wind[i] = v.wind.update(t, rows[i, STATE.x])
             t_start = t
-            t_end = self.t_ns + self.control_period_ns
+            now = int(clock[0])
+            t_end = now + self.control_period_ns
             begin = True
-            while self.t_ns < t_end:
+            while now < t_end:
                 t_to[0] = min(t_end, int(self._next_frame[0])) if rate else t_end
-                self.hit[:] = False
-                kernel.advance(go, parallel, begin, t_to, *args, *extra)
+                if kernel.run_period(go, parallel, begin, t_to, *args, *extra):
+                    for i in np.flatnonzero(self.hit[0]):
+                        out.events.append(vs[i].on_collision(t=self._hit_t[0, i] / NS))
+                    self.hit[:] = False
                 begin = False
-                for i in np.flatnonzero(self.hit[0]):
-                    out.events.append(vs[i].on_collision(t=self._hit_t[0, i] / NS))
-                if rate and self.t_ns == self._next_frame[0]:
+                now = int(clock[0])
+                if rate and now == self._next_frame[0]:
                     self._shoot(out, None)
                     self._next_frame[0] += self.camera_period_ns
             if len(vs) > 1:
