@@ -169,8 +169,9 @@ def run_period(go, parallel, begin, t_to, t_ns, states, cmds, active, substep, P
     if begin:
         begin_period(go, parallel, states, wind, wakes, k_eta, area, period_start, out, mode, flats, cmds,
                      vref, dt, lim, gains, R)  # fmt: skip
-    return integrate_segment(go, parallel, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs,
-                             off, shapes, origins, res, variant, radius, out, hit, hit_t, work, R)  # fmt: skip
+    return integrate_segment(go, parallel, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx,
+                             sdfs, off, shapes, origins, res, variant, radius, out, hit, hit_t, work,
+                             R)  # fmt: skip
 
 
 @numba.njit(cache=True)
