@@ -370,6 +370,29 @@ def test_rmw_gid_is_the_token_hash_in_rmw_zenoh_byte_order() -> None:
     assert rmw_gid(token) != rmw_gid(token.replace("talker", "listener"))
 
 
+def test_a_publisher_matches_only_while_a_subscriber_is_there() -> None:
+    """``matching`` is the subscriber's presence: a publish before it would be lost, and ``replay`` waits
+    on it. (It once read a status object's truth, always True.)"""
+    import zenoh
+
+    ep = free_endpoint()
+    with RosZenohNode(ZenohNodeConfig(listen=(ep,))) as node:
+        pub = node.publisher("/a/b", "geometry_msgs/msg/Twist")
+        time.sleep(0.3)
+        assert not pub.matching
+        conf = zenoh.Config()
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("connect/endpoints", json.dumps([ep]))
+        other = zenoh.open(conf)
+        try:
+            sub = other.declare_subscriber("a/**", lambda sample: None)
+            assert wait_until(lambda: pub.matching)
+            sub.undeclare()
+            assert wait_until(lambda: not pub.matching)
+        finally:
+            other.close()
+
+
 # --------------------------------------------------------------------------- ros2dds keys
 def test_ros2dds_publish_reaches_peer_process(spawn: Callable[[dict[str, Any]], Peer]) -> None:
     ep = free_endpoint()

@@ -358,8 +358,10 @@ class RosPublisher:
 
     @property
     def matching(self) -> bool:
-        """Whether a Zenoh subscriber currently matches this publisher's key."""
-        return bool(getattr(self._pub, "matching_status", False))
+        """Whether a Zenoh subscriber currently matches this publisher's key (an advanced publisher, the
+        transient-local kind, does not say: False)."""
+        status = getattr(self._pub, "matching_status", None)
+        return bool(status is not None and status.matching)
 
     def publish(self, cdr: messages.CdrBytes, t_ns: int | None = None) -> None:
         """Put one CDR sample (encapsulation header included, e.g. from :func:`messages.serialize`).
