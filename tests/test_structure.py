@@ -295,6 +295,6 @@ def test_only_the_world_calls_the_physics_kernel() -> None:
     step by the world alone: one stepper."""
     callers = {m for m in _callers({"integrate", "state_derivative"}) if m != "vehicles/dynamics.py"}
     assert callers == {"world/step.py"}, callers
-    steps = {"step_to_frame", "begin_period", "integrate_segment", "end_period", "run_period"}
+    steps = {"step_to_frame", "run_period_serial", "run_period_parallel", "end_period"}
     steps |= {f".{name}" for name in steps}
     assert {m for m in _callers(steps) if m != "world/step.py"} == {"world/world.py"}

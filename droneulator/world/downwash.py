@@ -139,8 +139,8 @@ def _downwash(rows: np.ndarray, k_eta: np.ndarray, area: np.ndarray, out: np.nda
                     out[lo, 2] -= speed * az
 
 
-def downwash(rows: np.ndarray, model: WakeModel) -> None:
-    """Add every vehicle's wake to the wind of the vehicles below it (``rows[:, STATE.wind]``, in place)."""
+def wakes(rows: np.ndarray, model: WakeModel) -> np.ndarray:
+    """The wind every vehicle's wake adds to the vehicles below it ``(rows, 3)``, for state ``rows``."""
     wake = np.zeros((rows.shape[0], 3))
     _downwash(rows, model.k_eta, model.disk_area, wake)
-    rows[:, STATE.wind] += wake
+    return wake

@@ -4,19 +4,21 @@
 rows: its vehicles' Python flight controllers (one world, every flight mode) or the batched commands
 (any number of worlds; hold and velocity mode, what learning needs). A period is
 
-1. :func:`begin_period`: each row's wind (the given wind plus the rotor wakes of its world's vehicles
-   above it), the period's start state, and its rotor command: given (``ROTORS``), or the SE(3)
-   controller's tracking a flat output that is given (``FLAT``: hold, goto, trajectories) or advanced
-   here by the compiled velocity reference (``VELOCITY``);
-2. :func:`integrate_segment`, once per stretch between camera instants: RK4 with the scene's collisions
+1. (:func:`run_period_serial` with ``begin``) each row's wind (given, the rotor wakes of its world's
+   vehicles above it included, :mod:`droneulator.world.downwash`), the period's start state, and its
+   rotor command: given (``ROTORS``), or the SE(3) controller's tracking a flat output that is given
+   (``FLAT``: hold, goto, trajectories) or advanced here by the compiled velocity reference
+   (``VELOCITY``);
+2. (:func:`run_period_serial`, once per stretch between camera instants) RK4 with the scene's collisions
    (a row that touches its world's scene stops there, level, and is integrated no further);
 3. :func:`end_period`: vehicles of one world whose bodies overlap stop where they were at the start of
    the period, level.
 
 :func:`step_to_frame` runs whole periods of chosen worlds, each to the end of the period holding its
 next camera instant, in one call. Each world has its own clock, camera instants and scene (a variant
-index into :class:`SdfStack`), so worlds reset at different times step side by side. Rows are spread
-over the cores from :data:`~droneulator.vehicles.dynamics.PARALLEL_ROWS` rows on.
+index into :class:`SdfStack`), so worlds reset at different times step side by side. From
+:data:`~droneulator.vehicles.dynamics.PARALLEL_ROWS` rows on, :func:`run_period_parallel` spreads the
+rows over the cores.
 """
 
 from __future__ import annotations
@@ -85,10 +87,9 @@ def _begin_row(k, go, states, mode, flats, cmds, vref, dt, lim, gains, R):  # fm
         se3_into(s, flats[w, n], gains[n], cmds[w, n], R[w, n])
 
 
-@numba.njit(cache=True, parallel=True)
-def begin_period(go, parallel, states, wind, wakes, k_eta, area, period_start, out, mode, flats, cmds, vref,
-                 dt, lim, gains, R):  # fmt: skip
-    """Step 1 of a period for the worlds where ``go``: wind, wakes, start states, rotor commands."""
+@numba.njit(cache=True)
+def _begin_worlds(go, states, wind, period_start, out):  # fmt: skip
+    """Step 1's part per world: each row's wind, its start state, its outputs."""
     W, N = states.shape[0], states.shape[1]
     for w in range(W):
         if not go[w]:
@@ -96,23 +97,11 @@ def begin_period(go, parallel, states, wind, wakes, k_eta, area, period_start, o
         for n in range(N):
             for j in range(3):
                 states[w, n, _WIND + j] = wind[w, n, j]
-        if wakes:
-            wake = np.zeros((N, 3))
-            _downwash(states[w], k_eta, area, wake)
-            for n in range(N):
-                for j in range(3):
-                    states[w, n, _WIND + j] += wake[n, j]
         for n in range(N):
             for j in range(STATE_SIZE):
                 period_start[w, n, j] = states[w, n, j]
             for j in range(OUTPUT_SIZE):
                 out[w, n, j] = 0.0
-    if parallel:
-        for k in numba.prange(W * N):
-            _begin_row(k, go, states, mode, flats, cmds, vref, dt, lim, gains, R)
-    else:
-        for k in range(W * N):
-            _begin_row(k, go, states, mode, flats, cmds, vref, dt, lim, gains, R)
 
 
 @numba.njit(cache=True)
@@ -137,41 +126,51 @@ def _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx
     return 0
 
 
-@numba.njit(cache=True, parallel=True)
-def integrate_segment(go, parallel, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, off,
-                      shapes, origins, res, variant, radius, out, hit, hit_t, work, R):  # fmt: skip
-    """Step 2: integrate the active rows of the worlds where ``go`` from their clock to ``t_to`` (ns, per
-    world), then set those clocks to ``t_to``. A row that touches the scene is flagged in ``hit`` (with
-    the segment's start time in ``hit_t``), stopped and made inactive. Returns how many rows hit."""
-    W, N = states.shape[0], states.shape[1]
-    hits = 0
-    if parallel:
-        for k in numba.prange(W * N):
-            hits += _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, off,
-                                 shapes, origins, res, variant, radius, out, hit, hit_t, work, R)  # fmt: skip
-    else:
-        for k in range(W * N):
-            hits += _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, off,
-                                 shapes, origins, res, variant, radius, out, hit, hit_t, work, R)  # fmt: skip
-    for w in range(W):
+@numba.njit(cache=True)
+def _advance_clocks(go, t_to, t_ns):  # fmt: skip
+    for w in range(t_ns.shape[0]):
         if go[w]:
             t_ns[w] = max(t_ns[w], t_to[w])
-    return hits
 
 
 @numba.njit(cache=True)
-def run_period(go, parallel, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, off,
-               shapes, origins, res, variant, radius, out, hit, hit_t, work, R, wind, wakes, k_eta, area,
-               period_start, mode, flats, vref, dt, lim, gains):  # fmt: skip
-    """Steps 1 (with ``begin``) and 2 in one call: one dispatch instead of two when a period holds no
-    camera instant (a compiled call's cost grows with its arguments). Returns how many rows hit the
-    scene."""
+def run_period_serial(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, off, shapes,
+                      origins, res, variant, radius, out, hit, hit_t, work, R, wind, period_start, mode,
+                      flats, vref, dt, lim, gains):  # fmt: skip
+    """Steps 1 (with ``begin``: wind, wakes included, start states, rotor commands) and 2 (integrate the
+    active rows of the worlds where ``go`` from their clock to ``t_to``, ns per world, then set those
+    clocks) in one call, row after row. A row that touches the scene is flagged in ``hit`` (with the
+    segment's start time in ``hit_t``), stopped and made inactive. Returns how many rows hit."""
+    W, N = states.shape[0], states.shape[1]
     if begin:
-        begin_period(go, parallel, states, wind, wakes, k_eta, area, period_start, out, mode, flats, cmds,
-                     vref, dt, lim, gains, R)  # fmt: skip
-    return integrate_segment(go, parallel, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx,
-                             sdfs, off, shapes, origins, res, variant, radius, out, hit, hit_t, work,
-                             R)  # fmt: skip
+        _begin_worlds(go, states, wind, period_start, out)
+        for k in range(W * N):
+            _begin_row(k, go, states, mode, flats, cmds, vref, dt, lim, gains, R)
+    hits = 0
+    for k in range(W * N):
+        hits += _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, off,
+                             shapes, origins, res, variant, radius, out, hit, hit_t, work, R)  # fmt: skip
+    _advance_clocks(go, t_to, t_ns)
+    return hits
+
+
+@numba.njit(cache=True, parallel=True)
+def run_period_parallel(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, off,
+                        shapes, origins, res, variant, radius, out, hit, hit_t, work, R, wind, period_start,
+                        mode, flats, vref, dt, lim, gains):  # fmt: skip
+    """:func:`run_period_serial` with the rows spread over the cores (compiled apart: a parallel kernel
+    takes several times as long to compile, which a world of few vehicles never pays)."""
+    W, N = states.shape[0], states.shape[1]
+    if begin:
+        _begin_worlds(go, states, wind, period_start, out)
+        for k in numba.prange(W * N):
+            _begin_row(k, go, states, mode, flats, cmds, vref, dt, lim, gains, R)
+    hits = 0
+    for k in numba.prange(W * N):
+        hits += _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, off,
+                             shapes, origins, res, variant, radius, out, hit, hit_t, work, R)  # fmt: skip
+    _advance_clocks(go, t_to, t_ns)
+    return hits
 
 
 @numba.njit(cache=True)
@@ -218,10 +217,19 @@ def step_to_frame(run, parallel, period_ns, camera_ns, t_ns, next_frame, states,
                 hit[w, n] = False
                 touched[w, n] = -1
     t_to = np.empty(W, dtype=np.int64)
+    now = wind.copy()
+    wake = np.zeros((N, 3))
     while go.any():
-        begin_period(go, parallel, states, wind, wakes, k_eta, area, period_start, out, mode, flats, cmds,
-                     vref, dt, lim, gains, R)  # fmt: skip
+        if wakes:  # the frame's wind plus the wakes of the period's start
+            for w in range(W):
+                if go[w]:
+                    wake[:] = 0.0
+                    _downwash(states[w], k_eta, area, wake)
+                    for n in range(N):
+                        for j in range(3):
+                            now[w, n, j] = wind[w, n, j] + wake[n, j]
         t_end = t_ns + period_ns
+        begin = True
         framed = np.zeros(W, dtype=np.bool_)
         while True:
             left = False
@@ -230,9 +238,15 @@ def step_to_frame(run, parallel, period_ns, camera_ns, t_ns, next_frame, states,
                 left = left or (go[w] and t_ns[w] < t_end[w])
             if not left:
                 break
-            integrate_segment(go, parallel, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs,
-                              off, shapes, origins, res, variant, radius, out, hit, hit_t, work,
-                              R)  # fmt: skip
+            if parallel:
+                run_period_parallel(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx,
+                                    sdfs, off, shapes, origins, res, variant, radius, out, hit, hit_t, work,
+                                    R, now, period_start, mode, flats, vref, dt, lim, gains)  # fmt: skip
+            else:
+                run_period_serial(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs,
+                                  off, shapes, origins, res, variant, radius, out, hit, hit_t, work, R, now,
+                                  period_start, mode, flats, vref, dt, lim, gains)  # fmt: skip
+            begin = False
             for w in range(W):
                 if go[w] and t_ns[w] == next_frame[w]:
                     for n in range(N):

@@ -51,7 +51,7 @@ from droneulator.vehicles.dynamics import OUTPUT, OUTPUT_SIZE, PARALLEL_ROWS, Pa
 from droneulator.vehicles.vehicle import Vehicle, VehicleState
 from droneulator.wind.field import WindField
 from droneulator.world import step as kernel
-from droneulator.world.downwash import WakeModel
+from droneulator.world.downwash import WakeModel, wakes
 from droneulator.world.step import FLAT, ROTORS, VELOCITY, SdfStack
 
 if TYPE_CHECKING:
@@ -358,7 +358,7 @@ class World:
         return self.states.shape[0] * self.states.shape[1] >= PARALLEL_ROWS
 
     def _args(self) -> tuple[Any, ...]:
-        """The compiled step's arrays, in :func:`~droneulator.world.step.integrate_segment`'s order after
+        """The compiled step's arrays, in :func:`~droneulator.world.step.run_period_serial`'s order after
         ``t_to``."""
         sd = self._sdfs
         t = self.table
@@ -368,10 +368,9 @@ class World:
                 self._R)  # fmt: skip
 
     def _begin_args(self, dt: float) -> tuple[Any, ...]:
-        """The arrays :func:`~droneulator.world.step.run_period` takes after :meth:`_args`'s."""
-        wake = self._wake
-        return (self._wind_rows, wake.active, wake.k_eta, wake.disk_area, self._period_start, self.mode,
-                self._flats, self._vref, dt, self._lim, self._gains)  # fmt: skip
+        """The arrays :func:`~droneulator.world.step.run_period_serial` takes after :meth:`_args`'s."""
+        return (self._wind_rows, self._period_start, self.mode, self._flats, self._vref, dt, self._lim,
+                self._gains)  # fmt: skip
 
     def step(self, n: int = 1) -> StepResult:
         """Advance ``n`` control periods of the first world, its vehicles driven by their flight controllers;
@@ -388,7 +387,7 @@ class World:
         go = self._all
         args = self._args()
         extra = self._begin_args(dt)
-        parallel = self._parallel()
+        run_period = kernel.run_period_parallel if self._parallel() else kernel.run_period_serial
         t_to = np.zeros(1, dtype=np.int64)
         clock = self.clocks
         self.hit[:] = False
@@ -419,13 +418,15 @@ class World:
             else:
                 for i, v in enumerate(vs):
                     wind[i] = v.wind.update(t, rows[i, STATE.x])
+            if self._wake.active:
+                wind += wakes(rows, self._wake)
             t_start = t
             now = int(clock[0])
             t_end = now + self.control_period_ns
             begin = True
             while now < t_end:
                 t_to[0] = min(t_end, int(self._next_frame[0])) if rate else t_end
-                if kernel.run_period(go, parallel, begin, t_to, *args, *extra):
+                if run_period(go, begin, t_to, *args, *extra):
                     for i in np.flatnonzero(self.hit[0]):
                         out.events.append(vs[i].on_collision(t=self._hit_t[0, i] / NS))
                     self.hit[:] = False
