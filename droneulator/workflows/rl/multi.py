@@ -30,15 +30,13 @@ named agents in every world; the others are sampled apart from them.
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Iterator
 from typing import Any
 
 import gymnasium as gym
 import numba
 import numpy as np
 from gymnasium.utils import seeding
-from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 from pettingzoo import ParallelEnv
 
@@ -49,7 +47,7 @@ from droneulator.state import STATE
 from droneulator.workflows.rl.backend import CAMERA_NAME, Kinematics
 from droneulator.workflows.rl.env import DEPTH_SOURCES, STRIP_SAMPLES, NavTask, env_config, strips
 from droneulator.workflows.rl.task import REASONS, TaskRows
-from droneulator.workflows.rl.vector import depth_strips
+from droneulator.workflows.rl.vector import ThreadedVectorEnv, depth_strips
 from droneulator.world.world import NS, World
 
 NAME = "droneulator_vineyard_nav_v0"
@@ -58,7 +56,7 @@ EPISODES = ("agent", "world")
 Info = dict[str, Any]
 
 
-class VineyardMultiVectorEnv(VectorEnv):
+class VineyardMultiVectorEnv(ThreadedVectorEnv):
     """``num_worlds`` worlds of ``num_agents`` agents as ``num_worlds * num_agents`` rows (see the module
     docstring).
 
@@ -262,31 +260,6 @@ class VineyardMultiVectorEnv(VectorEnv):
         for key, value in info.items():
             out[key], out[f"_{key}"] = value, mask.copy()
         return out
-
-    @contextlib.contextmanager
-    def _own_threads(self) -> Iterator[None]:
-        if self._threads is None:
-            yield
-            return
-        before = numba.get_num_threads()
-        numba.set_num_threads(self._threads)
-        try:
-            yield
-        finally:
-            numba.set_num_threads(before)
-
-    # ------------------------------------------------------------------ gymnasium API
-    def reset(
-        self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
-    ) -> tuple[np.ndarray, dict[str, Any]]:
-        with self._own_threads():
-            return self._reset(seed, options)
-
-    def step(
-        self, actions: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        with self._own_threads():
-            return self._step(actions)
 
     def _reset(
         self, seed: int | list[int | None] | None, options: dict[str, Any] | None

@@ -74,7 +74,49 @@ def depth_strips(
     return strips(cameras.centre_rows(poses, presets, scales, spheres), clip)
 
 
-class VineyardNavVectorEnv(VectorEnv):
+class ThreadedVectorEnv(VectorEnv):
+    """A vector env whose compiled calls run on ``_threads`` threads (None: numba's, every core), the
+    caller's thread keeping its own setting (numba's thread count belongs to the calling thread).
+    Subclasses write ``_reset`` and ``_step``."""
+
+    _threads: int | None = None
+
+    @contextlib.contextmanager
+    def _own_threads(self) -> Iterator[None]:
+        if self._threads is None:
+            yield
+            return
+        before = numba.get_num_threads()
+        numba.set_num_threads(self._threads)
+        try:
+            yield
+        finally:
+            numba.set_num_threads(before)
+
+    def reset(
+        self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        with self._own_threads():
+            return self._reset(seed, options)
+
+    def step(
+        self, actions: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        with self._own_threads():
+            return self._step(actions)
+
+    def _reset(
+        self, seed: int | list[int | None] | None, options: dict[str, Any] | None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        raise NotImplementedError
+
+    def _step(
+        self, actions: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        raise NotImplementedError
+
+
+class VineyardNavVectorEnv(ThreadedVectorEnv):
     """B vineyard navigation tasks in one process (see the module docstring).
 
     ``num_envs``: B; ``config``: a :class:`SimConfig` (its ``rl`` section and vehicle settings, as the
@@ -239,33 +281,6 @@ class VineyardNavVectorEnv(VectorEnv):
         for key, value in info.items():
             out[key], out[f"_{key}"] = value, mask.copy()
         return out
-
-    @contextlib.contextmanager
-    def _own_threads(self) -> Iterator[None]:
-        """The compiled calls inside on ``threads`` threads; the caller's thread keeps its own setting
-        (numba's thread count belongs to the calling thread)."""
-        if self._threads is None:
-            yield
-            return
-        before = numba.get_num_threads()
-        numba.set_num_threads(self._threads)
-        try:
-            yield
-        finally:
-            numba.set_num_threads(before)
-
-    # ------------------------------------------------------------------ gymnasium API
-    def reset(
-        self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
-    ) -> tuple[np.ndarray, dict[str, Any]]:
-        with self._own_threads():
-            return self._reset(seed, options)
-
-    def step(
-        self, actions: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        with self._own_threads():
-            return self._step(actions)
 
     def _reset(
         self, seed: int | list[int | None] | None, options: dict[str, Any] | None
