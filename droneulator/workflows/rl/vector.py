@@ -97,23 +97,13 @@ class ThreadedVectorEnv(VectorEnv):
         self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         with self._own_threads():
-            return self._reset(seed, options)
+            return self._reset(seed, options)  # type: ignore[attr-defined]
 
     def step(
         self, actions: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         with self._own_threads():
-            return self._step(actions)
-
-    def _reset(
-        self, seed: int | list[int | None] | None, options: dict[str, Any] | None
-    ) -> tuple[np.ndarray, dict[str, Any]]:
-        raise NotImplementedError
-
-    def _step(
-        self, actions: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        raise NotImplementedError
+            return self._step(actions)  # type: ignore[attr-defined]
 
 
 class VineyardNavVectorEnv(ThreadedVectorEnv):
