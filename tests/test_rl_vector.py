@@ -258,6 +258,9 @@ def test_train_rejects_bad_batched_settings_in_one_line(capsys):
     assert "SAC setting" in capsys.readouterr().err
     assert main(["train", "--num-envs", "4", "--stop-at", "1.5"]) == 2
     assert "stop_at" in capsys.readouterr().err
+    for bad in (["--agents", "2"], ["--num-envs", "4", "--agents", "0"]):
+        assert main(["train", *bad]) == 2
+        assert "--agents must be at least 1, and more than one need --num-envs" in capsys.readouterr().err
 
 
 def test_a_batched_world_that_hits_a_row_stays_there_and_takes_no_command():
