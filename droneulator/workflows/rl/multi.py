@@ -256,25 +256,15 @@ class VineyardMultiVectorEnv(ThreadedVectorEnv):
         }
         if self.episodes == "world":
             info["world_over"], info["world_success"] = world_over, world_success
-        out: dict[str, Any] = {}
-        for key, value in info.items():
-            out[key], out[f"_{key}"] = value, mask.copy()
-        return out
+        return self._masked(info, mask)
 
     def _reset(
         self, seed: int | list[int | None] | None, options: dict[str, Any] | None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         W = self.num_worlds
-        if seed is None:
-            seeds: list[int | None] = [None] * W
-        elif isinstance(seed, (int, np.integer)):
-            seeds = [int(seed) + w for w in range(W)]
-        else:
-            seeds = list(seed)
-            if len(seeds) == self.num_envs and self.num_envs != W:  # one per row: each world's first row's
-                seeds = seeds[:: self.num_agents]
-            if len(seeds) != W:
-                raise ValueError(f"reset got {len(seeds)} seeds for {W} worlds")
+        if isinstance(seed, (list, tuple)) and len(seed) == self.num_envs != W:  # one per row, as SB3's:
+            seed = list(seed)[:: self.num_agents]  # each world takes its first row's
+        seeds = self._seeds(seed, W, "worlds")
         given = dict((options or {}).get("tasks", {}))
         unknown = set(given) - set(self.agent_names)
         if unknown:

@@ -93,6 +93,26 @@ class ThreadedVectorEnv(VectorEnv):
         finally:
             numba.set_num_threads(before)
 
+    @staticmethod
+    def _seeds(seed: int | list[int | None] | None, n: int, what: str) -> list[int | None]:
+        """Gymnasium's vector seeding for ``n`` ``what``: None each, ``seed + i``, or a list of ``n``."""
+        if seed is None:
+            return [None] * n
+        if isinstance(seed, (int, np.integer)):
+            return [int(seed) + i for i in range(n)]
+        seeds = list(seed)
+        if len(seeds) != n:
+            raise ValueError(f"reset got {len(seeds)} seeds for {n} {what}")
+        return seeds
+
+    @staticmethod
+    def _masked(info: dict[str, Any], mask: np.ndarray) -> dict[str, Any]:
+        """Gymnasium's vector info: each key's array with its ``_key`` mask."""
+        out: dict[str, Any] = {}
+        for key, value in info.items():
+            out[key], out[f"_{key}"] = value, mask.copy()
+        return out
+
     def reset(
         self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
@@ -267,23 +287,13 @@ class VineyardNavVectorEnv(ThreadedVectorEnv):
             "termination": termination,
             "is_success": task.reason == REASONS.index("goal"),
         }
-        out: dict[str, Any] = {}
-        for key, value in info.items():
-            out[key], out[f"_{key}"] = value, mask.copy()
-        return out
+        return self._masked(info, mask)
 
     def _reset(
         self, seed: int | list[int | None] | None, options: dict[str, Any] | None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         n = self.num_envs
-        if seed is None:
-            seeds: list[int | None] = [None] * n
-        elif isinstance(seed, (int, np.integer)):
-            seeds = [int(seed) + i for i in range(n)]
-        else:
-            seeds = list(seed)
-            if len(seeds) != n:
-                raise ValueError(f"reset got {len(seeds)} seeds for {n} environments")
+        seeds = self._seeds(seed, n, "environments")
         for i, s in enumerate(seeds):
             if s is not None or not self._reset_called:
                 self._rngs[i], _ = gym.utils.seeding.np_random(s)
