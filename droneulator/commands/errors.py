@@ -27,6 +27,10 @@ ERROR_CODES: dict[str, str] = {
     "unsupported": "`subscribe`/`unsubscribe` sent to a transport without streams (in-process use of "
     "`handle_request`; the WebSocket server always supports them), or `trigger` while the cameras shoot "
     "at their rate (`render.camera_trigger=rate`, the default)",
+    "tank_empty": "`spray` on while the vehicle's spray tank is empty (refill with `spray_refill`); the "
+    "flight goes on",
+    "no_spray_system": "a spray op for a vehicle without a spray system (no `spray` section, or not "
+    "running with spraying on)",
     "internal_error": "an unexpected failure inside the server; the message says what, the server "
     "keeps running and the traceback is logged",
 }

@@ -44,6 +44,7 @@ from droneulator.config.sensor_presets import (
     ImuModel,
 )
 from droneulator.config.site import SiteConfig
+from droneulator.config.spray import NozzleConfig, SprayConfig, WeatherConfig
 from droneulator.config.wind import WindConfig
 
 __all__ = [
@@ -62,6 +63,7 @@ __all__ = [
     "GpsError",
     "ImuModel",
     "LightConfig",
+    "NozzleConfig",
     "PX4Config",
     "RLConfig",
     "RandomizeConfig",
@@ -69,9 +71,11 @@ __all__ = [
     "RuntimeConfig",
     "SimConfig",
     "SiteConfig",
+    "SprayConfig",
     "UIConfig",
     "VehicleConfig",
     "VehicleSpec",
+    "WeatherConfig",
     "WindConfig",
     "apply_override",
     "fleet",

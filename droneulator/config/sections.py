@@ -23,6 +23,7 @@ from droneulator.config.sensor_presets import (
     check_preset,
 )
 from droneulator.config.site import SiteConfig
+from droneulator.config.spray import SprayConfig, WeatherConfig
 from droneulator.config.wind import WindConfig
 
 
@@ -552,6 +553,10 @@ class SimConfig:
     light: LightConfig = field(default_factory=LightConfig)
     #: the wind field every vehicle flies in (calm by default; see docs/wind.md)
     wind: WindConfig = field(default_factory=WindConfig)
+    #: the spray system of spraying vehicles and the droplet solver (docs/spray.md)
+    spray: SprayConfig = field(default_factory=SprayConfig)
+    #: the air's temperature, humidity and pressure (the droplets' drag and evaporation)
+    weather: WeatherConfig = field(default_factory=WeatherConfig)
     #: domain randomisation: wind, light and depth-camera ranges drawn at every reset (off by default)
     randomize: RandomizeConfig = field(default_factory=RandomizeConfig)
     #: the vehicles of the world; empty: one vehicle, ``uav0``, from the single-vehicle sections (so

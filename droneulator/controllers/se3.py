@@ -169,6 +169,15 @@ class FastSE3Control:
         self._gains = self.gains()
         self._R = np.empty((3, 3))
 
+    def set_mass(self, quad_params: dict[str, Any]) -> None:
+        """Take the mass and inertia of ``quad_params`` (a payload came or went)."""
+        q = quad_params
+        self.mass = float(q["mass"])
+        self.inertia = np.array([[q["Ixx"], q["Ixy"], q["Ixz"]],
+                                 [q["Ixy"], q["Iyy"], q["Iyz"]],
+                                 [q["Ixz"], q["Iyz"], q["Izz"]]], dtype=float)  # fmt: skip
+        self._gains = self.gains()
+
     def gains(self) -> np.ndarray:
         """The packed gain vector :func:`se3_into` reads (GAINS_SIZE floats)."""
         k = np.zeros(GAINS_SIZE)

@@ -168,6 +168,20 @@ def pack_params(
     return p, geometry, directions
 
 
+def with_payload(quad_params: dict[str, Any], kg: float, offset: Any = (0.0, 0.0, 0.0)) -> dict[str, Any]:
+    """A copy of ``quad_params`` carrying a point mass of ``kg`` at ``offset`` (body FLU, m, from the
+    centre of mass): the mass grows by ``kg`` and the inertia by ``kg (|r|^2 I - r r^T)`` (parallel axes;
+    the shift of the centre of mass itself is left out, as RotorPy's model has the origin at it)."""
+    r = np.asarray(offset, dtype=float).reshape(3)
+    extra = kg * (float(r @ r) * np.eye(3) - np.outer(r, r))
+    q = dict(quad_params)
+    q["mass"] = float(quad_params["mass"]) + kg
+    for (a, b), name in zip(((0, 0), (1, 1), (2, 2), (0, 1), (1, 2), (0, 2)),
+                            ("Ixx", "Iyy", "Izz", "Ixy", "Iyz", "Ixz"), strict=True):  # fmt: skip
+        q[name] = float(quad_params[name]) + float(extra[a, b])
+    return q
+
+
 @numba.njit(cache=True)
 def _derivative(
     s: np.ndarray,

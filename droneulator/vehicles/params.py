@@ -9,11 +9,14 @@ from rotorpy.vehicles.crazyfliebrushless_params import quad_params as crazyflie_
 from rotorpy.vehicles.hummingbird_params import quad_params as hummingbird
 from rotorpy.vehicles.px4_sihsim_quadx_params import quad_params as px4_quadx
 
+from droneulator.vehicles.sprayers import SPRAYERS
+
 PARAMETER_SETS: dict[str, dict[str, Any]] = {
     "hummingbird": hummingbird,
     "crazyflie": crazyflie,
     "crazyflie_brushless": crazyflie_brushless,
     "px4_quadx": px4_quadx,
+    **SPRAYERS,
 }
 
 

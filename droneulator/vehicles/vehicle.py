@@ -134,6 +134,8 @@ class Vehicle:
         self.spec = spec
         self.name = spec.name
         self.quad_params = get_params(spec.params)
+        #: the airframe's own parameters, before any payload (:meth:`World.set_payload`)
+        self.base_params = dict(self.quad_params)
         #: the packed airframe the physics kernel reads (:func:`~droneulator.vehicles.dynamics.pack_params`)
         #: the legs' spring-damper ground contact
         self.contact = _contact(config)

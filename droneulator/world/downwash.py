@@ -50,11 +50,17 @@ _Q, _W = STATE.q.start, STATE.rotor_speeds.start
 def wake_speed(thrust: float, disk_area: float, z: float, r: float) -> float:
     """Wake speed (m/s) ``z`` m below a rotor plane of total ``disk_area`` m^2 making ``thrust`` N, ``r`` m
     off its axis (the module docstring's model)."""
-    if z <= 0.0 or z > Z_MAX or thrust <= 0.0:
+    if thrust <= 0.0:
         return 0.0
-    r0 = math.sqrt(disk_area / math.pi)
+    return disk_wake_speed(math.sqrt(thrust / (2.0 * RHO * disk_area)), math.sqrt(disk_area / math.pi), z, r)
+
+
+@numba.njit(cache=True)
+def disk_wake_speed(vh: float, r0: float, z: float, r: float) -> float:
+    """:func:`wake_speed` of a disk of radius ``r0`` whose induced velocity at hover is ``vh`` (m/s)."""
+    if z <= 0.0 or z > Z_MAX:
+        return 0.0
     rw = r0 / math.sqrt(2.0)
-    vh = math.sqrt(thrust / (2.0 * RHO * disk_area))
     b = rw + SPREAD * z
     if r > 3.0 * b:
         return 0.0

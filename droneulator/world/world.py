@@ -47,7 +47,16 @@ from droneulator.frames import yaw_of
 from droneulator.scenes import get_scene
 from droneulator.scenes.base import Scene
 from droneulator.state import FLAT_SIZE, STATE, STATE_SIZE
-from droneulator.vehicles.dynamics import OUTPUT, OUTPUT_SIZE, PARALLEL_ROWS, ParamTable, work_arrays
+from droneulator.vehicles.dynamics import (
+    OUTPUT,
+    OUTPUT_SIZE,
+    PARALLEL_ROWS,
+    ParamTable,
+    hover_speed,
+    pack_params,
+    with_payload,
+    work_arrays,
+)
 from droneulator.vehicles.vehicle import Vehicle, VehicleState
 from droneulator.wind.field import WindField
 from droneulator.world import step as kernel
@@ -225,6 +234,28 @@ class World:
         except KeyError:
             known = ", ".join(self.vehicles)
             raise CommandError("invalid_argument", f"no vehicle {name!r}; the vehicles are {known}") from None
+
+    def set_payload(self, name: str | None, kg: float, offset: Any = (0.0, 0.0, 0.0)) -> None:
+        """Carry ``kg`` of payload (e.g. a spray tank's liquid) at ``offset`` (body FLU, m) on vehicle
+        ``name``, in every world: its mass and inertia in the dynamics (and the ground contact's legs),
+        and in its SE(3) controller's feed-forward, as :func:`~droneulator.vehicles.dynamics.with_payload`
+        gives them. The vehicle gets a parameter row of its own."""
+        v = self.vehicle(name)
+        if not (isinstance(kg, int | float) and math.isfinite(kg) and kg >= 0.0):
+            raise ValueError(f"payload must be a finite mass >= 0 kg, got {kg!r}")
+        i = v.index
+        q = with_payload(v.base_params, float(kg), offset)
+        v.quad_params = q
+        v.packed = pack_params(q, self.config.vehicle.aero, True, v.contact)
+        v.hover_speed = hover_speed(v.packed[0])
+        row = self.table.add((v.spec.params, v.name, "payload"), v.packed)
+        for arr, value in zip((self.table.params, self.table.geometry, self.table.directions), v.packed,
+                              strict=True):  # fmt: skip
+            arr[row] = value
+        self._pidx[i] = row
+        v.flight.se3.set_mass(q)
+        self._gains[i] = v.flight.se3.gains()
+        self._hover[i] = v.hover_speed
 
     def spawns(self) -> list[tuple[np.ndarray, float]]:
         """Each vehicle's start (position, yaw): its spec's, or the scene's spawn pattern."""
