@@ -25,6 +25,7 @@ from droneulator.cli import (
     scenes,
     score,
     snapshot,
+    spray,
     sweep,
     train,
     ui,
@@ -37,7 +38,7 @@ from droneulator.runtime.spawn import CHILD_COMMAND, frozen, run_child
 #: the subcommands, in the order ``droneulator --help`` lists them
 COMMANDS = (
     scenes, snapshot, demo, run, ui, record, replay,
-    capture, reconstruct, score, sweep, train, evaluate, plan, config,
+    capture, reconstruct, score, sweep, train, evaluate, plan, spray, config,
 )  # fmt: skip
 
 

@@ -106,10 +106,9 @@ def air_velocity(
     caller's."""
     h = max(z, 0.0)
     w20, z0 = wind[2], wind[3]
-    if wind[4] > 0.5:
+    mean = w20
+    if wind[4] > 0.5:  # the log profile, zero below the roughness length
         mean = w20 * math.log(h / z0) / math.log(6.096 / z0) if h > z0 else 0.0
-    else:
-        mean = w20
     out[0] = wind[0] * mean
     out[1] = wind[1] * mean
     out[2] = 0.0
@@ -462,7 +461,8 @@ PARALLEL_PARCELS = 20_000
 
 
 def step_parcels(*args: object) -> None:
-    """Advance parcels ``0..count-1`` (those with ``n > 0``) by ``dt`` (compiled twice, serial and parallel, chosen by the parcel count).
+    """Advance parcels ``0..count-1`` (those with ``n > 0``) by ``dt`` (compiled twice, serial and
+    parallel, chosen by the parcel count).
 
     ``air`` = (rho_air, mu, rho_liquid, wet-bulb depression C, d_min m, leaf size m, wood size m, g);
     The targets' grids (``shelter``, ``leaf``, ``wood``, ``plant``, ``third``, ``wood_class``) come

@@ -42,12 +42,18 @@ def coverage_plan(
 ) -> CoveragePlan:
     """The plan for ``scene`` (see the module docstring); ``swath`` (m) is the row spacing by default."""
     if not (height > 0 and speed > 0 and run_in >= 0):
-        raise ValueError(f"coverage plan: height and speed must be > 0, run_in >= 0 (got {height}, {speed}, {run_in})")
+        raise ValueError(
+            f"coverage plan: height and speed must be > 0, run_in >= 0 (got {height}, {speed}, {run_in})"
+        )
     lm = scene.landmarks
     if "row_y" in lm and "row_x_min" in lm:
         rows = np.asarray(lm["row_y"], float)
         x0, x1 = float(lm["row_x_min"][0]), float(lm["row_x_max"][0])
-        top = float(np.max(lm["canopy_z"])) if "canopy_z" in lm else float(np.max(lm.get("tree_heights", [3.0])))
+        top = (
+            float(np.max(lm["canopy_z"]))
+            if "canopy_z" in lm
+            else float(np.max(lm.get("tree_heights", [3.0])))
+        )
         spacing = float(np.median(np.diff(rows))) if len(rows) > 1 else 3.0
         lanes = list(rows)
         half = spacing / 2.0

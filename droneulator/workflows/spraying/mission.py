@@ -121,13 +121,21 @@ def report(spraying: Spraying, plan: CoveragePlan) -> dict[str, Any]:
         "tank": spraying.system(None).state(),
         "parcels": cloud.parcels_released,
         "sim_s": spraying.world.t,
-        "ground_grid": {"x0": float(cloud.ground_origin[0]), "y0": float(cloud.ground_origin[1]), "cell_m": c},
+        "ground_grid": {
+            "x0": float(cloud.ground_origin[0]),
+            "y0": float(cloud.ground_origin[1]),
+            "cell_m": c,
+        },
     }
 
 
 def _drift_curve(
-    ground: np.ndarray, xs: np.ndarray, ys: np.ndarray, target: tuple[float, float, float, float],
-    heading: tuple[float, float], applied: float,
+    ground: np.ndarray,
+    xs: np.ndarray,
+    ys: np.ndarray,
+    target: tuple[float, float, float, float],
+    heading: tuple[float, float],
+    applied: float,
 ) -> dict[str, list[float]]:
     """Mean ground deposit in 1 m bands at :data:`DRIFT_M` downwind of the target area's edge (along the
     wind's main axis, over the area's width), as % of the applied volume per area."""
