@@ -20,23 +20,46 @@ from droneulator.spray.targets import SprayTargets
 from droneulator.spray.trials import Airframe, drift_curve, effective_swath, swath_cv
 
 #: Gunn & Kinzer (1949) Table 2, diameter (um) -> terminal velocity (m/s), 20 C, 1013 hPa
-GUNN_KINZER = {200: 0.72, 300: 1.17, 400: 1.62, 500: 2.06, 600: 2.47, 700: 2.87, 800: 3.27, 900: 3.67, 1000: 4.03}
+GUNN_KINZER = {
+    200: 0.72,
+    300: 1.17,
+    400: 1.62,
+    500: 2.06,
+    600: 2.47,
+    700: 2.87,
+    800: 3.27,
+    900: 3.67,
+    1000: 4.03,
+}
 STD_AIR = WeatherConfig(temperature_c=20.0, relative_humidity=0.5, pressure_hpa=1013.25)
 
 
 def _mono(d_um: float, speed: float = 0.01, kind: str = "flat_fan") -> NozzleConfig:
     """A nozzle of (nearly) one droplet size."""
-    return NozzleConfig(dv10_um=0.999 * d_um, dv50_um=d_um, dv90_um=1.001 * d_um, exit_speed_m_s=speed, type=kind)
+    return NozzleConfig(
+        dv10_um=0.999 * d_um, dv50_um=d_um, dv90_um=1.001 * d_um, exit_speed_m_s=speed, type=kind
+    )
 
 
 def _cloud(
-    nozzle: NozzleConfig, wind: WindConfig | None = None, weather: WeatherConfig = STD_AIR, seed: int = 0, **kw
+    nozzle: NozzleConfig,
+    wind: WindConfig | None = None,
+    weather: WeatherConfig = STD_AIR,
+    seed: int = 0,
+    **kw,
 ) -> SprayCloud:
     spray = SprayConfig(nozzles=[nozzle], **kw)
     return SprayCloud(spray, weather, wind or WindConfig(), Domain(-30, 80, -30, 30, 30), seed=seed)
 
 
-def _hover(cloud: SprayCloud, nozzle: NozzleConfig, height: float, seconds: float, litres_s: float, params="sprayer10"):
+def _hover(
+    cloud: SprayCloud,
+    nozzle: NozzleConfig,
+    height: float,
+    seconds: float,
+    litres_s: float,
+    params="sprayer10",
+):
     frame = Airframe.of(params, SprayConfig())
     pos = np.array([0.0, 0.0, height])
     for _ in range(round(seconds / cloud.dt)):
@@ -148,7 +171,9 @@ def test_a_row_behind_another_is_sheltered():
     full = row_doses(targets.leaf)
     assert full[0] > full[1] > full[2]
     # take the first row's leaves away: the second row gets what the first caught
-    first = np.abs((targets.origin[1] + (np.arange(targets.leaf.shape[1]) + 0.5) * targets.cell) - rows[0]) < 0.6
+    first = (
+        np.abs((targets.origin[1] + (np.arange(targets.leaf.shape[1]) + 0.5) * targets.cell) - rows[0]) < 0.6
+    )
     bare = targets.leaf.copy()
     bare[:, first, :] = 0.0
     opened = row_doses(bare)
