@@ -251,7 +251,8 @@ def test_the_tank_empties_at_the_pumps_rate_and_the_vehicle_gets_lighter():
     for _ in range(round(seconds / 0.01)):
         world.step()
         spraying.step()
-    flow = cfg.spray.flow_l_min / 60.0
+    assert system.config.flow_l_min == pytest.approx(1.8)  # the sprayer10's own four flat fans
+    flow = system.config.flow_l_min / 60.0
     assert system.level_l == pytest.approx(cfg.spray.load_l - flow * seconds, rel=1e-6)
     assert v.quad_params["mass"] == pytest.approx(16.0 + system.level_l, abs=0.011)
     assert world._gains[0][0] == pytest.approx(v.quad_params["mass"])  # the controller's feed-forward mass

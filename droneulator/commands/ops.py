@@ -52,6 +52,7 @@ TYPES: dict[str, str] = {
     "boolean": "`true` or `false`",
     "string": "JSON string",
     "vec3": "array of 3 finite numbers",
+    "strings": "non-empty array of JSON strings",
     "streams": 'non-empty array of `"state"` and/or `"events"`',
     "light": "JSON object of light settings (the config's `light` section, docs/light.md): "
     "`time_of_day_h`, `latitude_deg`, `longitude_deg`, `utc_offset_h`, `cloud_cover`, `visibility_m` "
@@ -237,6 +238,28 @@ def _set_wind(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
     return {"wind": dataclasses.asdict(config), "vehicle": name, **_when(sim)}
 
 
+def _spraying(sim: CommandedWorld) -> Any:
+    spraying = getattr(sim, "spraying", None)
+    if spraying is None:
+        raise CommandError(
+            "no_spray_system", "this run has no spray systems: start it with --set spray.enabled=true"
+        )
+    return spraying
+
+
+def _spray(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
+    name = _vehicle(sim, a).name
+    system = _spraying(sim).system(name)
+    system.set(a["rate"], a.get("nozzles"))
+    return {"spray": system.state(), "vehicle": name, **_when(sim)}
+
+
+def _spray_refill(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
+    name = _vehicle(sim, a).name
+    system = _spraying(sim).refill(name, a.get("litres"))
+    return {"spray": system.state(), "vehicle": name, **_when(sim)}
+
+
 #: the ``vehicle`` field of every flight op
 _VEHICLE = Arg(
     "vehicle", "string", "the vehicle to command, by name (see `scene_info.vehicles`; default: the first)"
@@ -403,6 +426,28 @@ OPS: dict[str, Op] = {
             _set_wind,
         ),
         Op(
+            "spray",
+            "Switch a vehicle's spray system (`spray.enabled`): spray at `rate` (0: off, 1: the pump's full "
+            "flow) through `nozzles` (default: all). The tank empties at the flow and the vehicle grows "
+            "lighter; spraying from an empty tank is refused (`tank_empty`), the flight goes on.",
+            "`spray`: the system's state (`on`, `rate`, `level_l`, `tank_l`, `flow_l_min`, `sprayed_l`, "
+            "`nozzles`); `vehicle`; `t`: " + _T,
+            (
+                Arg("rate", "number", "share of the pump's full flow", required=True, bounds=(0, 1)),
+                Arg("nozzles", "strings", "the nozzles to open, by name (default: all)"),
+                _VEHICLE,
+            ),
+            _spray,
+        ),
+        Op(
+            "spray_refill",
+            "Fill a vehicle's spray tank (as on the ground between flights; its mass follows).",
+            "`spray`: the system's state; `vehicle`; `t`: " + _T,
+            (Arg("litres", "number", "how full (L; default: the configured load)", bounds=(0, 1000)),
+             _VEHICLE),  # fmt: skip
+            _spray_refill,
+        ),
+        Op(
             "trigger",
             "Have the vehicle's cameras take one frame set (every camera of its rig: RGB, depth and "
             "segmentation, with camera_info and pose) at the end of the next control period, as a survey "
@@ -562,6 +607,10 @@ def _validate(arg: Arg, value: Any) -> Any:
         if not isinstance(value, list) or len(value) != 3:
             raise CommandError("invalid_argument", f"{what} must be an array of 3 numbers [x, y, z]")
         out = [_number(v, f"{what}[{i}]") for i, v in enumerate(value)]
+    elif arg.type == "strings":
+        if not isinstance(value, list) or not value or not all(isinstance(v, str) for v in value):
+            raise CommandError("invalid_argument", f"{what} must be a non-empty array of strings")
+        out = list(value)
     elif arg.type == "streams":
         if not isinstance(value, list) or not value or any(s not in STREAMS for s in value):
             streams = " and/or ".join(f'"{s}"' for s in STREAMS)

@@ -95,6 +95,9 @@ def _two_nozzles() -> list[NozzleConfig]:
 class SprayConfig:
     """A vehicle's spray system and the droplet solver (docs/spray.md)."""
 
+    #: give every vehicle of a run this spray system (the ``spray`` op switches it; its state rides on
+    #: the vehicle's state); ``droneulator spray`` turns it on itself
+    enabled: bool = False
     #: tank volume (L) and how full it starts (L)
     tank_l: float = 10.0
     load_l: float = 10.0

@@ -46,6 +46,8 @@ __all__ = [
     "header",
     "image",
     "imu",
+    "labelled_array",
+    "occupancy_grid",
     "magnetic_field",
     "nav_sat_fix",
     "odometry",
@@ -126,6 +128,11 @@ _MagneticField = _T["sensor_msgs/msg/MagneticField"]
 _FluidPressure = _T["sensor_msgs/msg/FluidPressure"]
 _NavSatFix = _T["sensor_msgs/msg/NavSatFix"]
 _NavSatStatus = _T["sensor_msgs/msg/NavSatStatus"]
+_Float64MultiArray = _T["std_msgs/msg/Float64MultiArray"]
+_MultiArrayLayout = _T["std_msgs/msg/MultiArrayLayout"]
+_MultiArrayDimension = _T["std_msgs/msg/MultiArrayDimension"]
+_OccupancyGrid = _T["nav_msgs/msg/OccupancyGrid"]
+_MapMetaData = _T["nav_msgs/msg/MapMetaData"]
 
 _NS_PER_S = 1_000_000_000
 
@@ -458,6 +465,31 @@ def image(t_ns: int, frame_id: str, array: np.ndarray, encoding: str | None = No
 
 
 # --------------------------------------------------------------------------- (de)serialisation
+def labelled_array(labels: Sequence[str], values: Sequence[float]) -> Any:
+    """std_msgs/Float64MultiArray of ``values``, one layout dimension per value naming it (size 1)."""
+    if len(labels) != len(values):
+        raise ValueError(f"{len(labels)} labels for {len(values)} values")
+    dims = [_MultiArrayDimension(label=str(k), size=1, stride=1) for k in labels]
+    return _Float64MultiArray(
+        layout=_MultiArrayLayout(dim=dims, data_offset=0), data=np.asarray(values, dtype=np.float64)
+    )
+
+
+def occupancy_grid(
+    t_ns: int, frame_id: str, values: np.ndarray, resolution: float, origin_xy: ArrayLike
+) -> Any:
+    """nav_msgs/OccupancyGrid of ``values`` (int8, indexed ``[x, y]``, -1..100): row-major in y as the
+    message wants, its cell (0, 0) corner at ``origin_xy`` (m) in ``frame_id``."""
+    grid = np.ascontiguousarray(np.asarray(values, dtype=np.int8).T)
+    h, w = grid.shape
+    ox, oy = (float(v) for v in np.asarray(origin_xy, dtype=float)[:2])
+    info = _MapMetaData(
+        map_load_time=stamp(t_ns), resolution=float(resolution), width=w, height=h,
+        origin=_Pose(position=_Point(x=ox, y=oy, z=0.0), orientation=_Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)),
+    )  # fmt: skip
+    return _OccupancyGrid(header=header(t_ns, frame_id), info=info, data=grid.reshape(-1))
+
+
 def serialize(msg: Any) -> CdrBytes:
     """CDR bytes of a rosbags message, encapsulation header included (``00 01 00 00``, little endian).
 

@@ -34,7 +34,17 @@ from droneulator.frames import (
 from droneulator.frames_numba import body_to_world, world_to_body
 from droneulator.imaging import encode_jpeg, encode_png
 from droneulator.ros import messages as M
-from droneulator.ros.topics import CLOCK, MAP_FRAME, SENSOR_TOPICS, TYPES, VehicleNames, vehicle_names
+from droneulator.ros.topics import (
+    CLOCK,
+    DEPOSIT_LOG_RANGE,
+    MAP_FRAME,
+    SENSOR_TOPICS,
+    SPRAY_FIELDS,
+    TYPES,
+    VehicleNames,
+    spray_deposit_topic,
+    vehicle_names,
+)
 from droneulator.sensors.camera import Camera
 from droneulator.sensors.mag import TESLA_PER_GAUSS
 
@@ -92,6 +102,8 @@ class _VehicleOut:
         self.sensor_pack: M.SensorPacker | None = None
         #: sensor kind -> ``seq`` of the reading last published
         self.sent: dict[str, int] = {}
+        #: the spray state's publisher (``spray.enabled``)
+        self.spray: Any = None
 
 
 def sensor_variances(cfg: SimConfig) -> dict[str, float]:
@@ -147,6 +159,8 @@ class StatePublisher:
                 pub(t["tf"], "tf"),
                 pub(t["wind"], "wind"),
             )
+            if cfg.spray.enabled:
+                out.spray = pub(t["spray"], "spray")
             for kind in spec.sensors or ():
                 if kind in SENSOR_TOPICS:
                     key = SENSOR_TOPICS[kind]
@@ -159,6 +173,11 @@ class StatePublisher:
             self._static.setdefault(t["tf_static"], []).extend(static_transforms(spec.cameras, names))
             self._static_pubs[t["tf_static"]] = pub(t["tf_static"], "tf_static")
         self._clock_pack = next(iter(self.vehicles.values())).pack
+        self._deposit = (
+            node.publisher(spray_deposit_topic(cfg.bridge.namespace), TYPES["spray_deposit"])
+            if cfg.spray.enabled
+            else None
+        )
 
     def publish(self, st: VehicleState) -> None:
         """Publish one vehicle's state (see :meth:`publish_states`)."""
@@ -186,6 +205,20 @@ class StatePublisher:
             out.odom_world.publish(out.pack.odometry(t, p, q, st.velocity, w_world), t)
             if st.wind is not None:
                 out.wind.publish(out.pack.vector(t, st.wind), t)
+            if st.spray is not None and out.spray is not None:
+                values = [float(st.spray[k]) for k in SPRAY_FIELDS]
+                out.spray.publish(M.serialize(M.labelled_array(SPRAY_FIELDS, values)), t)
+
+    def publish_deposit(self, t_ns: int, deposit_ul_cm2: np.ndarray, cell: float, origin_xy: Any) -> None:
+        """The ground deposit (uL/cm^2 per cell, ``[x, y]``) as an occupancy grid in ``map``: 0 where
+        nothing landed, 1..100 over log10 of :data:`~droneulator.ros.topics.DEPOSIT_LOG_RANGE`."""
+        if self._deposit is None:
+            return
+        lo, hi = DEPOSIT_LOG_RANGE
+        with np.errstate(divide="ignore"):
+            level = (np.log10(deposit_ul_cm2) - lo) / (hi - lo)
+        values = np.where(deposit_ul_cm2 > 0, 1 + np.clip(level, 0.0, 1.0) * 99, 0).astype(np.int8)
+        self._deposit.publish(M.serialize(M.occupancy_grid(t_ns, MAP_FRAME, values, cell, origin_xy)), t_ns)
 
     def publish_sensors(
         self, states: Mapping[str, VehicleState], readings: Mapping[str, Mapping[str, Reading]]

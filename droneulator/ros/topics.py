@@ -13,6 +13,10 @@ client, the benchmarks) finds them here instead of spelling them out itself::
     /<ns>/gps/fix                                    sensor_msgs/NavSatFix (WGS84, ENU covariance)
     /<ns>/air_pressure                               sensor_msgs/FluidPressure (Pa, base_link)
     /<ns>/magnetic_field                             sensor_msgs/MagneticField (tesla, base_link)
+    /<ns>/spray/state                                std_msgs/Float64MultiArray (spray.enabled: rate,
+                                                     level_l, tank_l, flow_l_min, sprayed_l, labelled)
+    /<namespace>/spray/deposit                       nav_msgs/OccupancyGrid (spray.enabled, 1 Hz: the
+                                                     ground deposit, log scale, in map; docs/spray.md)
     /<ns>/cmd_vel, /<ns>/goal_pose       (in)        geometry_msgs/Twist, geometry_msgs/PoseStamped
     /<ns>/position_cmd                   (in)        quadrotor_msgs/PositionCommand (EGO-Planner's)
     /<ns>/<cam>/pose                                 geometry_msgs/PoseStamped (optical frame in odom)
@@ -67,6 +71,8 @@ TYPES: dict[str, str] = {
     "gps_fix": "sensor_msgs/msg/NavSatFix",
     "air_pressure": "sensor_msgs/msg/FluidPressure",
     "magnetic_field": "sensor_msgs/msg/MagneticField",
+    "spray": "std_msgs/msg/Float64MultiArray",
+    "spray_deposit": "nav_msgs/msg/OccupancyGrid",
     "cmd_vel": "geometry_msgs/msg/Twist",
     "goal_pose": "geometry_msgs/msg/PoseStamped",
     "position_cmd": "quadrotor_msgs/msg/PositionCommand",
@@ -115,6 +121,18 @@ def topic_names(ns: str, cam: str) -> dict[str, str]:
     }
 
 
+#: the spray state's fields, in order, as its layout labels them
+SPRAY_FIELDS = ("rate", "level_l", "tank_l", "flow_l_min", "sprayed_l")
+#: the deposit grid: cell values 1..100 span log10 of the deposit from 1e-4 to 1e1 uL/cm^2 (0: none)
+DEPOSIT_LOG_RANGE = (-4.0, 1.0)
+
+
+def spray_deposit_topic(namespace: str) -> str:
+    """The world's ground-deposit grid, under the run's namespace (one for the whole fleet)."""
+    _check_name("namespace", namespace)
+    return f"/{namespace}/spray/deposit"
+
+
 def optical_frame(cam: str) -> str:
     """Frame id of camera ``cam``'s optical frame (x right, y down, z forward), its images' ``frame_id``."""
     return f"{cam}_optical_frame"
@@ -134,6 +152,7 @@ def vehicle_topics(ns: str) -> dict[str, str]:
         "gps_fix": f"/{ns}/gps/fix",
         "air_pressure": f"/{ns}/air_pressure",
         "magnetic_field": f"/{ns}/magnetic_field",
+        "spray": f"/{ns}/spray/state",
         "cmd_vel": f"/{ns}/cmd_vel",
         "goal_pose": f"/{ns}/goal_pose",
         "position_cmd": f"/{ns}/position_cmd",

@@ -26,6 +26,8 @@ from droneulator.world import World
 from droneulator.world.world import StepResult
 
 STATIC_TF_PERIOD_S = 1.0
+#: how often the spray deposit grid goes out (sim time)
+DEPOSIT_PERIOD_NS = NS
 
 
 class StatePublishing:
@@ -45,6 +47,7 @@ class StatePublishing:
         self._next_state_ns = 0
         self._last_t_ns = 0
         self._last_static = -float("inf")
+        self._next_deposit_ns = 0
 
     def due(self, states: dict[str, VehicleState], res: StepResult) -> bool:
         """(Under the lock, with the ``states`` just taken after step ``res``) whether they are published:
@@ -71,6 +74,12 @@ class StatePublishing:
         if self._latency is not None:
             self._latency.mark("odom", next(iter(states.values())).stamp_ns, stepped_wall_ns)
         self.ros.publish_states(states)
+        spraying = self.world.spraying
+        stamp = next(iter(states.values())).stamp_ns
+        if spraying is not None and stamp >= self._next_deposit_ns:
+            self._next_deposit_ns = stamp + DEPOSIT_PERIOD_NS
+            c = spraying.cloud
+            self.ros.publish_deposit(stamp, c.ground_deposit_ul_cm2(), c.ground_cell, c.ground_origin)
 
     def publish_sensors(self, states: dict[str, VehicleState], truths: dict[str, Truth]) -> None:
         """Sample the sensors of the vehicles in ``truths`` (the IMU now, the others when due), publish every

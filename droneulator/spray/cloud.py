@@ -85,6 +85,7 @@ class SprayCloud:
         targets: SprayTargets | None = None,
         shelter: np.ndarray | None = None,
         seed: int = 0,
+        dt: float | None = None,
     ) -> None:
         self.config = spray
         self.air = Air.of(weather)
@@ -100,7 +101,7 @@ class SprayCloud:
         self.seed = int(seed)
         self.rng = np.random.default_rng([seed, 0x5B8A7])
         self._spectra: dict[tuple[float, float, float], Spectrum] = {}
-        self.dt = spray.dt_s
+        self.dt = spray.dt_s if dt is None else float(dt)
         self.steps = 0
         self.t = 0.0
         cap = 1 << 14
@@ -253,6 +254,7 @@ class SprayCloud:
                 out[k, 8] = probe[0] - e.velocity[0]
                 out[k, 9] = probe[1] - e.velocity[1]
                 k += 1
+        out[:, 10] = kernel.reach(out)
         return out
 
     def step(self, emitters: list[Emitter]) -> None:
@@ -301,6 +303,10 @@ class SprayCloud:
     def ground_deposit(self) -> np.ndarray:
         """(gx, gy) volume (m^3) deposited on each ground cell."""
         return self.ground.sum(0)
+
+    def ground_deposit_ul_cm2(self) -> np.ndarray:
+        """(gx, gy) deposit per area (uL/cm^2) on each ground cell."""
+        return self.ground_deposit() / self.ground_cell**2 * 1e5
 
     def plant_dose(self) -> np.ndarray:
         """(plants, 3) volume (m^3) on each plant's lower, middle and upper third."""

@@ -40,15 +40,16 @@ import numba
 import numpy as np
 
 from droneulator.spray.droplets import EVAPORATION_UM2_S_C, VENTILATION, drag_factor
-from droneulator.world.downwash import SPREAD, disk_wake_speed
+from droneulator.world.downwash import SPREAD, Z_MAX, disk_wake_speed
 
 #: the ledger's columns (volumes, m^3): leaves; trunks, branches, posts, wires; ground on the grid; ground
 #: beyond it; evaporated; left the domain (drift, airborne)
 CANOPY, TRUNKS, BRANCHES, POSTS, WIRES, GROUND, GROUND_OFF, EVAPORATED, LEFT = range(9)
 LEDGER = ("canopy", "trunks", "branches", "posts", "wires", "ground", "ground_off_grid", "evaporated", "left")
 #: a rotor row: position (3), thrust axis (3, unit, world), its induced velocity at the disk (m/s), its
-#: radius (m), the horizontal velocity of the air relative to the rotor (2, m/s) that skews its wake
-ROTOR_SIZE = 10
+#: radius (m), the horizontal velocity of the air relative to the rotor (2, m/s) that skews its wake, and
+#: the horizontal distance (m) beyond which neither its wake nor its wall jet reaches (:func:`reach`)
+ROTOR_SIZE = 11
 #: what :func:`air_velocity` writes: mean wind (3), wakes (3), the wake's speed and width
 AIR_SIZE = 8
 #: the collection efficiency's constant (Langmuir & Blodgett's cylinder fit, squared form)
@@ -91,6 +92,19 @@ def _lookup(dims: np.ndarray, origin: np.ndarray, cell: float, x: float, y: floa
     return (i * ny + j) * nz + k
 
 
+def reach(rows: np.ndarray) -> np.ndarray:
+    """Each rotor row's horizontal reach (m): the widest its skewed wake (3 widths at the deepest it is
+    followed, moved by the skew) or its wall jet (:data:`WALL_JET_REACH` widths round the impingement
+    point) gets from the rotor, with a metre to spare for the axis's tilt."""
+    vh, r0 = np.maximum(rows[:, 6], 1e-6), rows[:, 7]
+    skew = np.hypot(rows[:, 8], rows[:, 9])
+    b = r0 / math.sqrt(2.0) + SPREAD * Z_MAX
+    down = np.minimum(np.maximum(rows[:, 2], 0.0), Z_MAX)
+    wake = 3.0 * b + skew * Z_MAX / (1.5 * vh) + Z_MAX * np.hypot(rows[:, 3], rows[:, 4])
+    wall = WALL_JET_REACH * (r0 / math.sqrt(2.0) + SPREAD * down) + skew * down / (1.5 * vh)
+    return np.maximum(wake, wall) + 1.0
+
+
 @numba.njit(cache=True)
 def air_velocity(
     x: float,
@@ -125,8 +139,10 @@ def air_velocity(
         vh, r0 = rotors[r, 6], rotors[r, 7]
         if vh <= 0.0:
             continue
-        ax, ay, az = rotors[r, 3], rotors[r, 4], rotors[r, 5]
         rx, ry, rz = x - rotors[r, 0], y - rotors[r, 1], z - rotors[r, 2]
+        if rx * rx + ry * ry > rotors[r, 10] * rotors[r, 10]:
+            continue  # too far to the side for this rotor's wake or wall jet
+        ax, ay, az = rotors[r, 3], rotors[r, 4], rotors[r, 5]
         depth = -(rx * ax + ry * ay + rz * az)  # below the rotor plane, along the axis
         if depth <= 0.0:
             continue

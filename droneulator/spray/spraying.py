@@ -9,12 +9,14 @@ wind (as :mod:`droneulator.wind.field` does for the vehicles).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
 import numpy as np
 
 from droneulator.commands.errors import CommandError
+from droneulator.config.loading import from_dict
 from droneulator.config.spray import SprayConfig, WeatherConfig
 from droneulator.config.wind import WindConfig
 from droneulator.frames import quat_to_matrix
@@ -23,6 +25,7 @@ from droneulator.spray.cloud import Domain, Emitter, SprayCloud
 from droneulator.spray.system import SpraySystem
 from droneulator.spray.targets import SprayTargets
 from droneulator.state import STATE
+from droneulator.vehicles.sprayers import SPRAYERS, spray_system
 from droneulator.wind.field import SHELTER_FETCH, SHELTER_STEP_M, _shelter_exponents
 
 #: where the tank's liquid sits (body FLU, m): under the centre of mass
@@ -48,6 +51,18 @@ def shelter_grid(scene: Scene, targets: SprayTargets, wind: WindConfig) -> np.nd
     e = _shelter_exponents(col.sdf, col.origin, col.resolution, pts, heading, recovery, SHELTER_STEP_M,
                            SHELTER_FETCH)  # fmt: skip
     return np.exp(-wind.canopy_attenuation_per_m * e).reshape(shape).astype(np.float32)
+
+
+def system_config(spray: SprayConfig, vehicle: Any) -> SprayConfig:
+    """The spray system ``vehicle`` carries: a spray airframe's own tank and nozzles
+    (:func:`~droneulator.vehicles.sprayers.spray_system`) with every field the ``spray`` section changes
+    from its defaults over them; any other airframe, the section as it is."""
+    params = vehicle.spec.params
+    if params not in SPRAYERS:
+        return spray
+    default = dataclasses.asdict(SprayConfig())
+    changed = {k: v for k, v in dataclasses.asdict(spray).items() if v != default[k]}
+    return from_dict(SprayConfig, {**spray_system(params), **changed}, "spray")
 
 
 def rotor_rows(vehicle: Any, s: np.ndarray) -> np.ndarray:
@@ -83,22 +98,43 @@ class Spraying:
         names = list(world.vehicles) if vehicles is None else vehicles
         for name in names:
             world.vehicle(name)
-        self.systems = {name: SpraySystem(self.config) for name in names}
-        scene = world.scene
-        self.targets = SprayTargets.of(scene, self.config.leaf_projection) if targets is None else targets
-        wind = cfg.wind
-        self.domain = domain or Domain.around(scene.bounds_min, scene.bounds_max, self.config.margin_m,
-                                              self.config.ceiling_m)  # fmt: skip
-        self.cloud = SprayCloud(
-            self.config, weather or cfg.weather, wind, self.domain, self.targets,
-            shelter_grid(scene, self.targets, wind), seed=cfg.seed,
-        )  # fmt: skip
+        self.systems = {name: SpraySystem(system_config(self.config, world.vehicle(name))) for name in names}
+        self.weather = weather or cfg.weather
+        self._given = (domain, targets)
+        self._scene: Scene | None = None
+        self._payload: dict[str, float] = {}
+        # the cloud steps ``substeps`` times a control period, or once every ``every`` periods when its
+        # step is the longer
         period = world.control_period_ns / 1e9
         self.substeps = max(1, math.ceil(period / self.config.dt_s - 1e-9))
-        self.cloud.dt = period / self.substeps
-        self.cloud._turbulence = self.cloud._turbulence_table(len(self.cloud._turbulence))
-        self._payload: dict[str, float] = {}
-        for name in names:
+        self.every = max(1, round(self.config.dt_s / period))
+        self.dt = period / self.substeps if self.substeps > 1 else period * self.every
+        self.reset()
+
+    def reset(self) -> None:
+        """A new episode: an empty cloud over the world's scene (its targets rebuilt if the scene changed),
+        full tanks, every spray off."""
+        world, cfg = self.world, self.world.config
+        domain, targets = self._given
+        scene = world.scene
+        if targets is not None:
+            self.targets = targets
+        elif self._scene is not scene:
+            self.targets = SprayTargets.of(scene, self.config.leaf_projection)
+        self._scene = scene
+        wind = cfg.wind
+        self.domain = domain or Domain.around(
+            scene.bounds_min, scene.bounds_max, self.config.margin_m, self.config.ceiling_m
+        )
+        shelter = shelter_grid(scene, self.targets, wind)
+        self.cloud = SprayCloud(
+            self.config, self.weather, wind, self.domain, self.targets, shelter, seed=cfg.seed, dt=self.dt
+        )
+        self._periods = 0
+        for name, system in self.systems.items():
+            system.refill()
+            system.rate = 0.0
+            system.sprayed_l = 0.0
             self._update_payload(name, force=True)
 
     def system(self, name: str | None) -> SpraySystem:
@@ -107,6 +143,13 @@ class Spraying:
         if v.name not in self.systems:
             raise CommandError("no_spray_system", f"vehicle {v.name!r} has no spray system")
         return self.systems[v.name]
+
+    def refill(self, name: str | None, litres: float | None = None) -> SpraySystem:
+        """Fill vehicle ``name``'s tank (None: to its load); its mass follows at once."""
+        system = self.system(name)
+        system.refill(litres)
+        self._update_payload(self.world.vehicle(name).name, force=True)
+        return system
 
     def _update_payload(self, name: str, force: bool = False) -> None:
         kg = self.systems[name].liquid_kg
@@ -137,6 +180,9 @@ class Spraying:
 
     def step(self) -> None:
         """Follow the world's last control period: release, move the parcels, update the payloads."""
+        self._periods += 1
+        if self._periods % self.every:
+            return
         for _ in range(self.substeps):
             self.cloud.step(self.emitters(self.cloud.dt))
         for name in self.systems:

@@ -55,6 +55,8 @@ class VehicleState:
     vehicle: str = "uav0"
     #: the wind at the vehicle (world frame, m/s; rotor wakes of vehicles above included): ground truth
     wind: np.ndarray | None = None
+    #: its spray system's state (:meth:`droneulator.spray.system.SpraySystem.state`), when it has one
+    spray: dict[str, Any] | None = None
 
     @property
     def t(self) -> float:
@@ -82,6 +84,7 @@ class VehicleState:
             "yaw": self.yaw,
             "mode": self.mode,
             "wind": None if self.wind is None else self.wind.tolist(),
+            **({} if self.spray is None else {"spray": self.spray}),
         }
 
 
@@ -220,7 +223,14 @@ class Vehicle:
             None if self._reference is None else self._reference.copy(),
             self.name,
             s[STATE.wind].copy(),
+            self._spray_state(),
         )
+
+    def _spray_state(self) -> dict[str, Any] | None:
+        """Its spray system's state, when its world sprays (``spray.enabled``) and it carries one."""
+        spraying = getattr(self.world, "spraying", None)
+        system = None if spraying is None else spraying.systems.get(self.name)
+        return None if system is None else system.state()
 
     @property
     def thrust(self) -> float:

@@ -65,6 +65,7 @@ from droneulator.world.step import FLAT, ROTORS, VELOCITY, SdfStack
 
 if TYPE_CHECKING:
     from droneulator.render.pipeline import CameraPipeline
+    from droneulator.spray.spraying import Spraying
 
 NS = 1_000_000_000
 
@@ -195,8 +196,14 @@ class World:
         self.variant = np.zeros(W, dtype=np.int64)
         #: the wind field every vehicle flies in (:mod:`droneulator.wind.field`), seeded by the world's seed
         self.wind = WindField(cfg.wind, W * n, self.control_period_ns / NS, cfg.seed)
+        #: the vehicles' spray systems and their droplets (``spray.enabled``; the first world's)
+        self.spraying: Spraying | None = None
         self._load_scene(cfg.scene, cfg.seed, cfg.vegetation)
         self.reset()
+        if cfg.spray.enabled:
+            from droneulator.spray.spraying import Spraying
+
+            self.spraying = Spraying(self)
 
     # ------------------------------------------------------------------ setup
     def _load_scene(self, name: str, seed: int, vegetation: float) -> None:
@@ -324,6 +331,8 @@ class World:
         self.touched[:] = -1
         self.variant[:] = 0
         self._busy.update(range(self.num_vehicles))
+        if self.spraying is not None:  # a fresh cloud (the scene's targets if it changed), full tanks
+            self.spraying.reset()
         if self.num_worlds > 1:  # every other world a copy of the first, holding where it is
             self.states[1:] = self._rows
             self._flats[1:] = 0.0
@@ -470,6 +479,8 @@ class World:
                 pairs = kernel.end_period(go, self.states, self.active, self._radius, self._period_start)
                 self._vehicle_contacts(vs, sorted((int(p[1]), int(p[2])) for p in pairs), out.events)
             self._finish_period(vs, dt, t_start, out.events)
+            if self.spraying is not None:
+                self.spraying.step()
             if self._shots:
                 self._shoot(out, tuple(name for name in self.vehicles if name in self._shots))
                 self._shots.clear()
