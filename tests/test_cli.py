@@ -173,6 +173,7 @@ BAD_FILES = {
     "missing": ("missing.json", None, "no such file"),
     "json": ("bad.json", '{"runtime": {"api_port": 1,}}', "not valid JSON"),
     "toml": ("bad.toml", "[runtime\napi_port = 1\n", "not valid TOML"),
+    "yaml": ("bad.yaml", "runtime:\n  api_port: [1\n", "not valid YAML"),
     "unknown key": ("unknown.toml", "[render]\nshadowz = false\n", "render.shadowz"),
     "wrong type": ("type.json", '{"runtime": {"api_port": [8765]}}', "runtime.api_port"),
     "not a table": ("list.json", "[1, 2]", "expected a table"),

@@ -3,7 +3,7 @@
 Every option is a dataclass field of :class:`SimConfig`, one section per concern
 (:mod:`~droneulator.config.sections`; the capture and learning workflows' sections in
 :mod:`~droneulator.config.capture` and :mod:`~droneulator.config.rl`). A config is built from the
-defaults, then a JSON or TOML file (``--config FILE``), then ``--set section.key=value`` overrides
+defaults, then a JSON, TOML or YAML file (``--config FILE``), then ``--set section.key=value`` overrides
 from the command line, in that order (:mod:`~droneulator.config.loading`).
 """
 

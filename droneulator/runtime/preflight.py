@@ -22,12 +22,12 @@ import re
 import signal
 import socket
 import subprocess
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from droneulator.config import SimConfig, from_dict, load_config, to_dict
+from droneulator.config.loading import ConfigError, file_format, parse_text
 from droneulator.runtime.spawn import code_command
 
 #: exit status for usage and configuration errors (as argparse uses), and for everything else
@@ -80,26 +80,27 @@ def load(path: str | Path | None, overrides: list[str] | None = None, **top: Any
         raise StartupError(f"--set: {exc}" if overrides else str(exc), USAGE) from exc
 
 
+_JSON_HINT = " (files not named *.toml, *.yaml or *.yml are read as JSON)"
+
+
 def _check_config_file(path: Path) -> None:
     try:
         text = path.read_text()
     except FileNotFoundError:
         raise StartupError(f"--config {path}: no such file", USAGE) from None
     except IsADirectoryError:
-        raise StartupError(f"--config {path}: is a folder, not a JSON or TOML file", USAGE) from None
+        raise StartupError(f"--config {path}: is a folder, not a JSON, TOML or YAML file", USAGE) from None
     except (OSError, UnicodeDecodeError) as exc:
         raise StartupError(f"--config {path}: cannot be read ({_reason(exc)})", USAGE) from None
+    fmt = file_format(path)
     try:
-        data = tomllib.loads(text) if path.suffix == ".toml" else json.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise StartupError(f"--config {path}: not valid TOML: {exc}", USAGE) from None
-    except json.JSONDecodeError as exc:
-        hint = "" if path.suffix == ".json" else " (files not named *.toml are read as JSON)"
-        raise StartupError(
-            f"--config {path}: not valid JSON{hint}: {exc.msg} at line {exc.lineno} column {exc.colno}",
-            USAGE,
-        ) from None
-    if not isinstance(data, dict):
+        data = parse_text(text, fmt)
+    except ConfigError as exc:
+        message = str(exc)
+        if fmt == "json" and path.suffix != ".json":
+            message = message.replace("not valid JSON", f"not valid JSON{_JSON_HINT}", 1)
+        raise StartupError(f"--config {path}: {message}", USAGE) from None
+    if data is not None and not isinstance(data, dict):
         raise StartupError(f"--config {path}: expected a table of options, got {type(data).__name__}", USAGE)
     try:
         load_config(path)
