@@ -23,6 +23,7 @@ from droneulator.config.sections import (
     CONTROLLERS,
     PX4_ON_LOSS,
     WIND_MODELS,
+    AccessConfig,
     BridgeConfig,
     CameraConfig,
     FlightConfig,
@@ -47,6 +48,7 @@ from droneulator.config.site import SiteConfig
 from droneulator.config.wind import WindConfig
 
 __all__ = [
+    "AccessConfig",
     "BARO_PRESETS",
     "CONTROLLERS",
     "GPS_PRESETS",

@@ -21,7 +21,9 @@ import os
 import re
 import signal
 import socket
+import ssl
 import subprocess
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -343,6 +345,29 @@ def check_run(cfg: SimConfig) -> None:
     check_simulation(cfg)
     check_ports(run_ports(cfg))
     check_egl()
+
+
+def prepare_access(cfg: SimConfig, hosts: list[str], announce: Callable[[str], None] = print) -> None:
+    """Give ``cfg.access`` a token when a server binds one of ``hosts`` beyond loopback without one,
+    announcing it once (the children get it in their configuration); check the TLS files load."""
+    from droneulator.api.access import generate_token, is_loopback, server_ssl_context
+
+    access = cfg.access
+    if access.token is None and not all(is_loopback(h) for h in hosts):
+        access.token = generate_token()
+        beyond = ", ".join(h for h in hosts if not is_loopback(h))
+        announce(
+            f"access token: {access.token} (generated: {beyond} is beyond loopback; clients add "
+            "?token=TOKEN to the WebSocket URL; set access.token to choose it; docs/security.md)"
+        )
+    try:
+        server_ssl_context(access.tls_cert, access.tls_key)
+    except (OSError, ssl.SSLError, ValueError) as exc:
+        raise StartupError(
+            f"access.tls_cert {access.tls_cert} / access.tls_key {access.tls_key}: cannot be loaded "
+            f"({_reason(exc)})",
+            USAGE,
+        ) from None
 
 
 def _reason(exc: BaseException) -> str:

@@ -516,9 +516,29 @@ function onUiMessage(msg) {
   }
 }
 
+// The UI server asks for its access token (docs/security.md): a small prompt; the token is kept in the
+// tab's sessionStorage by the connection, which connects again with it.
+function askForToken(refused, retry) {
+  setConnection("access token needed", false);
+  $("token-why").textContent = refused
+    ? "That access token was refused. Enter the one printed where the simulator was started."
+    : "This simulator asks for its access token (printed where it was started).";
+  const dialog = $("token-dialog");
+  $("token-form").onsubmit = (e) => {
+    e.preventDefault();
+    const token = $("token-input").value.trim();
+    if (!token) return;
+    dialog.close();
+    $("token-input").value = "";
+    retry(token);
+  };
+  if (!dialog.open) dialog.showModal();
+}
+
 const conn = new Connection({
   onOpen: () => setConnection("waiting for the simulator…", false),
   onClose: () => setConnection("UI server unreachable, reconnecting…", false),
+  onUnauthorized: askForToken,
   onImage: (header, bytes) => cams.show(header, bytes),
   onMessage: (msg) => {
     if (msg.type === "state") onState(msg.state);
