@@ -208,6 +208,42 @@ def test_a_flooding_client_is_rate_limited_and_does_not_slow_another(world: Worl
         assert json.loads(flooder.recv(timeout=5.0))["result"]["pong"]
 
 
+@pytest.mark.slow
+def test_a_run_on_every_interface_with_tls_serves_only_its_token(
+    certificate: tuple[str, str], tmp_path: Path
+):
+    """``droneulator run`` with ``runtime.api_host=0.0.0.0`` and a certificate: the token and the TLS
+    files reach the dynamics server's API through the run's configuration, and its rate limit is on."""
+    from droneulator.runtime.launch import launch_run
+
+    cert, key = certificate
+    cfg = load_config(
+        None,
+        ['render.cameras=[{"width": 160, "height": 120}]', "render.shadows=false", "runtime.api_host=0.0.0.0",
+         f"access.tls_cert={cert}", f"access.tls_key={key}"],
+    )  # fmt: skip
+    with launch_run(cfg, ["--realtime"], log=tmp_path / "run.log") as run:
+        token = run.config.access.token
+        assert token is not None and run.url.startswith("wss://127.0.0.1:")
+        with run.client() as c:
+            assert c.scene_info()["name"] == "default"
+        tls = ssl.create_default_context(cafile=cert)
+        with connect(run.url, ssl=tls, close_timeout=1.0) as ws:
+            got = []
+            with pytest.raises(ConnectionClosed):
+                while True:
+                    got.append(json.loads(ws.recv(timeout=10.0)))
+            assert [m["error"]["code"] for m in got] == ["unauthorized"]
+        with connect(with_token(run.url, token), ssl=tls, close_timeout=1.0) as ws:
+            n = 1000  # past the default burst of 400
+            for i in range(n):
+                ws.send(json.dumps({"id": i, "op": "ping"}))
+            codes = [json.loads(ws.recv(timeout=10.0)).get("error", {}).get("code") for _ in range(n)]
+            assert codes.count("rate_limited") >= n - 400 - 200 * 2 and codes.count(None) >= 400
+        assert token not in (tmp_path / "run.log").read_text()
+    assert run.proc.returncode == 0
+
+
 def test_the_docs_describe_token_tls_and_rate_limit():
     doc = (Path(__file__).resolve().parents[1] / "docs" / "security.md").read_text()
     for needle in ("?token=", "access.token", "access.tls_cert", "access.tls_key", "rate_limited",

@@ -150,7 +150,8 @@ class LaunchedRun:
         access = config.access
         if needs_token(host, access.token) and access.token is None:
             access.token = generate_token()  # the run's own, so that this launcher's clients know it
-        self.url = f"{'wss' if access.tls_cert else 'ws'}://{host}:{self.api_port}"
+        reach = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host  # every interface: loopback too
+        self.url = f"{'wss' if access.tls_cert else 'ws'}://{reach}:{self.api_port}"
         self._conf = tempfile.NamedTemporaryFile(  # noqa: SIM115 (kept open until stop())
             "w", suffix=".json", prefix="droneulator-run-"
         )
