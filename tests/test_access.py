@@ -59,7 +59,7 @@ def local(server: ApiServer, scheme: str = "ws") -> str:
     return f"{scheme}://127.0.0.1:{server.port}"
 
 
-def refused_with_nothing_else(ws: Any, server: ApiServer) -> dict[str, Any]:
+def refused_with_nothing_else(ws: Any) -> dict[str, Any]:
     """Every message the connection gets, read until it closes: exactly one, the refusal."""
     got = []
     with pytest.raises(ConnectionClosed) as closed:
@@ -106,7 +106,7 @@ def test_a_client_without_the_token_gets_one_refusal_and_nothing_else(server: Ap
             for i, op in enumerate(("state", "subscribe", "takeoff", "scene_info")):
                 with contextlib.suppress(ConnectionClosed):
                     ws.send(json.dumps({"id": i, "op": op}))
-            refusal = refused_with_nothing_else(ws, server)
+            refusal = refused_with_nothing_else(ws)
         assert refusal["ok"] is False and refusal["id"] is None
         assert refusal["error"]["code"] == "unauthorized" and "token" in refusal["error"]["message"]
     assert server.refused == 2 and server.client_count == 0
@@ -125,6 +125,49 @@ def test_a_client_with_the_token_is_served(server: ApiServer):
     with DroneulatorClient(with_token(local(server), TOKEN), timeout=5.0) as c:
         assert c.ping()["pong"] and TOKEN not in c.url
     assert server.refused == 0
+
+
+def test_the_ui_serves_a_tab_with_the_token_and_relays_to_an_api_that_asks_for_it(world: World):
+    """A UI on every interface in front of an API on every interface, one token for both: a tab with it
+    is relayed to the API (the UI's own link carries the token); a tab without it is refused; a tab
+    flooding the UI is rate-limited there."""
+    from droneulator.config import UIConfig
+    from droneulator.runtime.launch import free_port
+    from droneulator.ui.server import UIServer
+
+    with ApiServer(CommandPath(world, threading.Lock()), host="0.0.0.0", port=0, token=TOKEN) as api:
+        ui = UIServer(
+            f"ws://127.0.0.1:{api.port}",
+            f"tcp/127.0.0.1:{free_port()}",  # no Zenoh router: no images, which this test does not need
+            UIConfig(host="0.0.0.0", port=0),
+            access=AccessConfig(token=TOKEN, rate_hz=20.0, burst=5),
+        )
+        with pytest.raises(ValueError, match="beyond loopback"):
+            UIServer(api.url, config=UIConfig(host="0.0.0.0", port=0))
+        port = int(ui.start_in_thread().rsplit(":", 1)[1])
+        try:
+            with connect(f"ws://127.0.0.1:{port}/ws", close_timeout=1.0) as ws:
+                assert refused_with_nothing_else(ws)["error"]["code"] == "unauthorized"
+            assert ui.refused == 1 and api.refused == 0
+            with connect(f"ws://127.0.0.1:{port}/ws?token={TOKEN}", close_timeout=1.0) as ws:
+                status = json.loads(ws.recv(timeout=10.0))
+                while status.get("type") != "ui" or "api" not in status:
+                    status = json.loads(ws.recv(timeout=10.0))
+                assert status["api"]["connected"] is True, status
+                for i in range(30):  # burst 5: most of these are answered by the UI, not relayed
+                    ws.send(json.dumps({"id": i, "op": "ping"}))
+                replies: dict[int, dict[str, Any]] = {}
+                while len(replies) < 30:
+                    m = json.loads(ws.recv(timeout=10.0))
+                    if "ok" in m:
+                        replies[m["id"]] = m
+                served = [r for r in replies.values() if r["ok"]]
+                assert served and all(r["result"]["pong"] for r in served)
+                limited = [r for r in replies.values() if not r["ok"]]
+                assert len(limited) >= 20 and {r["error"]["code"] for r in limited} == {"rate_limited"}
+            assert api.refused == 0  # the UI's own links to the API carried the token
+        finally:
+            ui.stop()
 
 
 @pytest.fixture(scope="module")
@@ -157,7 +200,7 @@ def test_tls_round_trip_with_a_self_signed_certificate(world: World, certificate
             DroneulatorClient(local(s), timeout=5.0, token=TOKEN)
         # over TLS a client without the token is refused all the same
         with connect(local(s, "wss"), ssl=ssl.create_default_context(cafile=cert)) as ws:
-            assert refused_with_nothing_else(ws, s)["error"]["code"] == "unauthorized"
+            assert refused_with_nothing_else(ws)["error"]["code"] == "unauthorized"
     with pytest.raises(ValueError, match="both"):
         server_ssl_context(cert, None)
 
