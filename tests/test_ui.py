@@ -222,10 +222,12 @@ def test_ui_without_a_simulator_says_so() -> None:
 
 @needs_chromium
 def test_ui_beyond_loopback_asks_for_the_token_and_connects_with_it() -> None:
-    """``droneulator ui --host 0.0.0.0``: a token is generated and printed once; a WebSocket without it
-    gets one ``unauthorized`` reply and a close; the page asks for the token, refuses a wrong one, keeps
-    the right one in sessionStorage and connects with it."""
+    """``droneulator ui --host 0.0.0.0``: a token is generated and printed once; an /api/ route without
+    it is 401 and a WebSocket without it gets one ``unauthorized`` reply and a close; the page asks for
+    the token, refuses a wrong one, keeps the right one in sessionStorage and connects with it."""
     import json
+    import urllib.error
+    import urllib.request
 
     from websockets.exceptions import ConnectionClosed
     from websockets.sync.client import connect
@@ -245,6 +247,11 @@ def test_ui_beyond_loopback_asks_for_the_token_and_connects_with_it() -> None:
         assert line.startswith("access token: ") and "0.0.0.0 is beyond loopback" in line, line
         token = line.split()[2]
         assert proc.stdout.readline().strip() == f"UI: http://0.0.0.0:{port}"
+        with pytest.raises(urllib.error.HTTPError) as refused:
+            urllib.request.urlopen(f"http://127.0.0.1:{port}/api/config", timeout=10)
+        assert refused.value.code == 401
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/config?token={token}", timeout=10) as r:
+            assert json.loads(r.read())["api_url"] == f"ws://127.0.0.1:{dead}"
         with connect(f"ws://127.0.0.1:{port}/ws", close_timeout=1.0) as ws:
             got = []
             with pytest.raises(ConnectionClosed) as closed:
@@ -271,6 +278,14 @@ def test_ui_beyond_loopback_asks_for_the_token_and_connects_with_it() -> None:
             )
             assert not page.is_visible("#token-dialog")
             assert page.evaluate("sessionStorage.getItem('droneulator.token')") == token
+            # the page's set-up, refused too until then, ran again with the token: the level select is built
+            page.wait_for_function(
+                "document.querySelectorAll('#scene-cards .card').length > 0", timeout=20000
+            )
+            preview = page.get_attribute("#scene-cards .card img", "data-src") or page.get_attribute(
+                "#scene-cards .card img", "src"
+            )
+            assert preview is not None and f"token={token}" in preview
             page.click("#btn-takeoff")
             page.wait_for_selector("#errors .error:has-text('not reachable')", timeout=10000)
             # a reload reconnects with the stored token, without asking again

@@ -17,8 +17,8 @@ whose URL carries the token (``/ws?token=...``; the page asks for it once and ke
 sessionStorage): any other gets one ``unauthorized`` reply and is closed (1008), before it gets a state,
 an image or a relayed reply. There each tab's messages pass a token bucket (``access.rate_hz``,
 ``burst``), and the API's link carries the same token. With ``access.tls_cert`` and ``tls_key`` it serves https://
-and wss://. The static page and the scene pictures stay open: they show the registered scenes, not the
-running simulation. HTTP routes::
+and wss://. There the ``/api/`` routes too answer 401 without ``?token=``; only the static page (which
+asks for the token) is served to anyone. HTTP routes::
 
     GET /                      the single-page app (static/index.html)
     GET /static/<file>         its modules and style sheet
@@ -275,6 +275,9 @@ class UIServer:
             if origin is not None and urlsplit(origin).netloc != host:
                 return _error(403, f"cross-origin WebSocket from {origin} refused")
             return None
+        locked = path.startswith("/api/") and self.token is not None
+        if locked and not token_matches(self.token or "", url_token(request.path)):
+            return _error(401, "this UI needs its access token: add ?token=TOKEN")
         try:
             seed = int(parse_qs(url.query).get("seed", ["0"])[0])
         except ValueError:

@@ -1,11 +1,19 @@
 // The page's one WebSocket to the UI server: the simulator's API protocol (docs/api.md) in text frames,
 // camera images in binary frames. Reconnects by itself, every second, whenever the server goes away.
 // A server that asks for an access token (docs/security.md) gets it as the `token` query parameter of
-// the WebSocket URL, from the tab's sessionStorage; it closes a connection without it with code 1008,
-// and then the page asks for the token (onUnauthorized) instead of reconnecting.
+// the WebSocket URL (and of every /api/ route: withToken), from the tab's sessionStorage; it closes a
+// connection without it with code 1008, and then the page asks for the token (onUnauthorized) instead
+// of reconnecting.
 
 export const TOKEN_KEY = "droneulator.token";
 const UNAUTHORIZED = 1008;
+
+// `path` (an /api/ route of the UI server) with the tab's access token, when it has one.
+export function withToken(path) {
+  const token = sessionStorage.getItem(TOKEN_KEY);
+  if (!token) return path;
+  return `${path}${path.includes("?") ? "&" : "?"}token=${encodeURIComponent(token)}`;
+}
 
 export class ApiError extends Error {
   constructor(code, message) {
@@ -37,11 +45,8 @@ export class Connection {
       this.pending.clear();
       this.ws = null;
       if (e.code === UNAUTHORIZED) {
-        // ask for the token (again, if the one stored was refused), then connect with it
-        this.handlers.onUnauthorized(token !== null, (given) => {
-          sessionStorage.setItem(TOKEN_KEY, given);
-          this.open();
-        });
+        // ask for the token (again, if the one stored was refused); it is stored, then connect with it
+        this.handlers.onUnauthorized(token !== null, () => this.open());
         return;
       }
       this.handlers.onClose();
