@@ -116,7 +116,7 @@ def test_a_client_without_the_token_gets_one_refusal_and_nothing_else(server: Ap
     assert err.value.code == "unauthorized"
 
 
-def test_a_client_with_the_token_is_served(server: ApiServer):
+def test_a_client_with_the_token_is_served(server: ApiServer, monkeypatch: pytest.MonkeyPatch):
     with DroneulatorClient(local(server), timeout=5.0, token=TOKEN) as c:
         assert c.ping()["pong"] and c.state()["mode"]
         assert c.subscribe(["state"], rate_hz=10.0)["streams"] == ["state"]
@@ -124,6 +124,11 @@ def test_a_client_with_the_token_is_served(server: ApiServer):
     # the token in the URL works the same; the client's own URL does not show it
     with DroneulatorClient(with_token(local(server), TOKEN), timeout=5.0) as c:
         assert c.ping()["pong"] and TOKEN not in c.url
+    assert server.refused == 0
+    # ... and so does the environment (what the workflows that connect by URL rely on)
+    monkeypatch.setenv("DRONEULATOR_TOKEN", TOKEN)
+    with DroneulatorClient(local(server), timeout=5.0) as c:
+        assert c.ping()["pong"]
     assert server.refused == 0
 
 

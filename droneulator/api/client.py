@@ -7,7 +7,9 @@ should use a client; open a second client to stream and command from different t
 
 A server bound beyond loopback asks for its token (``token=``, sent as the URL's ``token`` query
 parameter) and may speak ``wss://`` (``cafile=``: a certificate to trust besides the system's, e.g. a
-self-signed one); see docs/security.md.
+self-signed one); see docs/security.md. Left unset, they come from the environment variables
+``DRONEULATOR_TOKEN`` and ``DRONEULATOR_TLS_CA``, so that every workflow connecting by URL (capture,
+plan, the RL remote backend) reaches such a server without an option of its own.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from __future__ import annotations
 import itertools
 import json
 import logging
+import os
 import threading
 import time
 from collections import deque
@@ -31,6 +34,10 @@ from droneulator.api.protocol import ApiError
 log = logging.getLogger(__name__)
 
 __all__ = ["ApiError", "ConnectionLostError", "DroneulatorClient"]
+
+#: environment variables a client takes its token and its trusted certificate from, when not given
+TOKEN_ENV = "DRONEULATOR_TOKEN"
+TLS_CA_ENV = "DRONEULATOR_TLS_CA"
 
 
 class ConnectionLostError(ApiError):
@@ -65,6 +72,8 @@ class DroneulatorClient:
         token: str | None = None,
         cafile: str | None = None,
     ) -> None:
+        token = token if token is not None else os.environ.get(TOKEN_ENV) or None
+        cafile = cafile if cafile is not None else os.environ.get(TLS_CA_ENV) or None
         self.url = without_token(url)
         self.timeout = timeout
         self.max_buffer = max_buffer
