@@ -210,6 +210,17 @@ def test_bad_set_value(override: str, needles: tuple[str, ...]) -> None:
     assert_one_line_error(out, 2, *needles)
 
 
+def test_tls_files_that_cannot_be_loaded_are_a_one_line_error(tmp_path: Path) -> None:
+    bad = tmp_path / "cert.pem"
+    bad.write_text("not a certificate\n")
+    tls = ["--set", f"access.tls_cert={bad}", "--set", f"access.tls_key={bad}"]
+    out = droneulator("run", *FREE_PORTS, *tls)
+    assert_one_line_error(out, 2, "access.tls_cert", str(bad), "cannot be loaded")
+    assert "access token" not in out.stdout  # on loopback: no token generated
+    out = droneulator("run", *FREE_PORTS, "--set", "access.tls_cert=cert.pem")
+    assert_one_line_error(out, 2, "access.tls_cert and access.tls_key go together")
+
+
 def test_a_px4_vehicle_without_a_magnetometer_is_caught_before_the_children() -> None:
     out = droneulator("run", *FREE_PORTS, "--px4", "--set", 'vehicle.sensors=["imu", "baro", "gps"]')
     assert_one_line_error(out, 2, "vehicle.sensors", "PX4 needs imu, mag, baro", "mag missing")

@@ -353,6 +353,14 @@ def prepare_access(cfg: SimConfig, hosts: list[str], announce: Callable[[str], N
     from droneulator.api.access import generate_token, is_loopback, server_ssl_context
 
     access = cfg.access
+    try:
+        server_ssl_context(access.tls_cert, access.tls_key)
+    except (OSError, ssl.SSLError, ValueError) as exc:
+        raise StartupError(
+            f"access.tls_cert {access.tls_cert} / access.tls_key {access.tls_key}: cannot be loaded "
+            f"({_reason(exc)}; expected PEM files: a certificate chain and its private key)",
+            USAGE,
+        ) from None
     if access.token is None and not all(is_loopback(h) for h in hosts):
         access.token = generate_token()
         beyond = ", ".join(h for h in hosts if not is_loopback(h))
@@ -360,14 +368,6 @@ def prepare_access(cfg: SimConfig, hosts: list[str], announce: Callable[[str], N
             f"access token: {access.token} (generated: {beyond} is beyond loopback; clients add "
             "?token=TOKEN to the WebSocket URL; set access.token to choose it; docs/security.md)"
         )
-    try:
-        server_ssl_context(access.tls_cert, access.tls_key)
-    except (OSError, ssl.SSLError, ValueError) as exc:
-        raise StartupError(
-            f"access.tls_cert {access.tls_cert} / access.tls_key {access.tls_key}: cannot be loaded "
-            f"({_reason(exc)})",
-            USAGE,
-        ) from None
 
 
 def _reason(exc: BaseException) -> str:
