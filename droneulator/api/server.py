@@ -364,14 +364,14 @@ class ApiServer:
         return seq, out
 
     # ------------------------------------------------------------------ connections
-    async def _refuse(self, ws: ServerConnection) -> None:
+    async def _refuse(self, ws: ServerConnection, given: str | None) -> None:
         """One ``unauthorized`` reply, then close: a client without the token learns nothing else."""
         self.refused += 1
         addr = ws.remote_address
         log.warning(
             "client %s: refused, %s token",
             f"{addr[0]}:{addr[1]}" if addr else "?",
-            "no" if url_token(ws.request.path if ws.request else "") is None else "a wrong",
+            "no" if given is None else "a wrong",
         )
         message = "this server needs its access token: connect to ws[s]://host:port/?token=TOKEN"
         with contextlib.suppress(ConnectionClosed):
@@ -379,10 +379,9 @@ class ApiServer:
             await ws.close(UNAUTHORIZED_CLOSE, "unauthorized")
 
     async def _handle(self, ws: ServerConnection) -> None:
-        if self.token is not None and not token_matches(
-            self.token, url_token(ws.request.path if ws.request else "")
-        ):
-            await self._refuse(ws)
+        given = url_token(ws.request.path) if ws.request is not None else None
+        if self.token is not None and not token_matches(self.token, given):
+            await self._refuse(ws, given)
             return
         bucket = TokenBucket(self.rate_hz, self.burst) if self.rate_hz is not None else None
         session = _Session(ws, bucket)

@@ -418,7 +418,8 @@ class UIServer:
 
     # ------------------------------------------------------------------ browser tabs
     async def _browser(self, ws: ServerConnection) -> None:
-        if self.token is not None and not token_matches(self.token, url_token(ws.request.path)):
+        given = url_token(ws.request.path) if ws.request is not None else None
+        if self.token is not None and not token_matches(self.token, given):
             self.refused += 1
             log.warning("ui: a tab at %s refused: no or a wrong token", ws.remote_address)
             message = "this UI needs its access token: reload the page and enter it"
