@@ -12,13 +12,14 @@ vehicle until it does). The server learns the vehicles and their image topics fr
 When the simulator goes away (a restart), the server tells the tab and reconnects every second; the
 tab in turn reconnects to this server if it goes away.
 
-Access (docs/security.md): served beyond loopback (or given ``access.token``), ``/ws`` serves only a tab
-whose URL carries the token (``/ws?token=...``; the page asks for it once and keeps it in the tab's
-sessionStorage): any other gets one ``unauthorized`` reply and is closed (1008), before it gets a state,
-an image or a relayed reply. There each tab's messages pass a token bucket (``access.rate_hz``,
-``burst``), and the API's link carries the same token. With ``access.tls_cert`` and ``tls_key`` it serves https://
-and wss://. There the ``/api/`` routes too answer 401 without ``?token=``; only the static page (which
-asks for the token) is served to anyone. HTTP routes::
+Access (docs/security.md): served beyond loopback (or given ``access.token``), the server asks for the
+token: ``/ws`` serves only a tab whose URL carries it (``/ws?token=...``; the page asks for it once and
+keeps it in the tab's sessionStorage), any other gets one ``unauthorized`` reply and is closed (1008)
+before it gets a state, an image or a relayed reply; the ``/api/`` routes answer 401 without
+``?token=``; only the static page, which asks for the token, is served to anyone. There each tab's
+messages also pass a token bucket (``access.rate_hz``, ``burst``). The server's own links to the API
+carry the same token. With ``access.tls_cert`` and ``tls_key`` it serves https:// and wss://.
+HTTP routes::
 
     GET /                      the single-page app (static/index.html)
     GET /static/<file>         its modules and style sheet
@@ -142,8 +143,8 @@ class UIServer:
         self.token = self.access.token
         self._ssl = server_ssl_context(self.access.tls_cert, self.access.tls_key)
         #: how this server reaches the API: with the token, over TLS trusting ``tls_ca`` (or the cert)
-        self._api_connect_url = with_token(api_url, self.access.token)
-        self._api_ssl = client_ssl_context(api_url, self.access.tls_ca or self.access.tls_cert)
+        self.api_connect_url = with_token(api_url, self.access.token)
+        self.api_ssl = client_ssl_context(api_url, self.access.tls_ca or self.access.tls_cert)
         #: tabs refused for a missing or wrong token
         self.refused = 0
         bridge = bridge or BridgeConfig()
@@ -383,7 +384,7 @@ class UIServer:
         async with self._learning:
             try:
                 async with connect(
-                    self._api_connect_url, open_timeout=5.0, max_size=16 << 20, ssl=self._api_ssl
+                    self.api_connect_url, open_timeout=5.0, max_size=16 << 20, ssl=self.api_ssl
                 ) as api:
                     await api.send(json.dumps({"id": 1, "op": "scene_info"}))
                     async with asyncio.timeout(10.0):
@@ -538,11 +539,11 @@ class BrowserSession:
         while True:
             try:
                 async with connect(
-                    self.server._api_connect_url,
+                    self.server.api_connect_url,
                     open_timeout=5.0,
                     max_size=16 << 20,
                     compression=None,
-                    ssl=self.server._api_ssl,
+                    ssl=self.server.api_ssl,
                 ) as upstream:
                     self.upstream = upstream
                     await self.server.learn_vehicles()
