@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import re
 import shutil
 import ssl
 import subprocess
@@ -144,7 +145,7 @@ def test_the_ui_serves_a_tab_with_the_token_and_relays_to_an_api_that_asks_for_i
         ui = UIServer(
             f"ws://127.0.0.1:{api.port}",
             f"tcp/127.0.0.1:{free_port()}",  # no Zenoh router: no images, which this test does not need
-            UIConfig(host="0.0.0.0", port=0),
+            UIConfig(host="0.0.0.0", port=0, nice=0),  # not niced: a loaded machine would starve it
             access=AccessConfig(token=TOKEN, rate_hz=20.0, burst=5),
         )
         with pytest.raises(ValueError, match="beyond loopback"):
@@ -201,13 +202,56 @@ def test_tls_round_trip_with_a_self_signed_certificate(world: World, certificate
         # without the certificate trusted, the handshake fails; plain ws:// is not spoken
         with pytest.raises(ssl.SSLCertVerificationError):
             DroneulatorClient(local(s, "wss"), timeout=5.0, token=TOKEN)
-        with pytest.raises((InvalidMessage, ConnectionError, EOFError)):
+        with pytest.raises((InvalidMessage, ConnectionError, EOFError, TimeoutError)):
             DroneulatorClient(local(s), timeout=5.0, token=TOKEN)
         # over TLS a client without the token is refused all the same
         with connect(local(s, "wss"), ssl=ssl.create_default_context(cafile=cert)) as ws:
             assert refused_with_nothing_else(ws)["error"]["code"] == "unauthorized"
     with pytest.raises(ValueError, match="both"):
         server_ssl_context(cert, None)
+
+
+def test_the_ui_over_tls_relays_to_an_api_over_tls(world: World, certificate: tuple[str, str]):
+    """One certificate for both: the UI serves https:// and wss://, and reaches the wss:// API trusting
+    that certificate (``access.tls_cert`` doubles as the CA of its own links)."""
+    import urllib.request
+
+    from droneulator.config import UIConfig
+    from droneulator.runtime.launch import free_port
+    from droneulator.ui.server import UIServer
+
+    cert, key = certificate
+    access = AccessConfig(token=TOKEN, tls_cert=cert, tls_key=key)
+    ctx = server_ssl_context(cert, key)
+    with ApiServer(CommandPath(world), host="0.0.0.0", port=0, token=TOKEN, ssl_context=ctx) as api:
+        ui = UIServer(
+            f"wss://127.0.0.1:{api.port}",
+            f"tcp/127.0.0.1:{free_port()}",
+            UIConfig(host="0.0.0.0", port=0, nice=0),  # not niced: a loaded machine would starve it
+            access=access,
+        )
+        url = ui.start_in_thread()
+        port = int(url.rsplit(":", 1)[1])
+        try:
+            assert url.startswith("https://")
+            trust = ssl.create_default_context(cafile=cert)
+            with urllib.request.urlopen(
+                f"https://127.0.0.1:{port}/api/config?token={TOKEN}", context=trust, timeout=10
+            ) as r:
+                assert json.loads(r.read())["api_url"] == f"wss://127.0.0.1:{api.port}"
+            with connect(f"wss://127.0.0.1:{port}/ws?token={TOKEN}", ssl=trust, close_timeout=1.0) as ws:
+                status: dict[str, Any] = {}
+                while "api" not in status:
+                    status = json.loads(ws.recv(timeout=10.0))
+                assert status["api"]["connected"] is True, status
+                ws.send(json.dumps({"id": 1, "op": "ping"}))
+                reply: dict[str, Any] = {}
+                while reply.get("id") != 1:
+                    reply = json.loads(ws.recv(timeout=10.0))
+                assert reply["ok"] and reply["result"]["pong"]
+            assert api.refused == 0
+        finally:
+            ui.stop()
 
 
 def test_a_flooding_client_is_rate_limited_and_does_not_slow_another(world: World):
@@ -292,8 +336,13 @@ def test_a_run_on_every_interface_with_tls_serves_only_its_token(
     assert run.proc.returncode == 0
 
 
-def test_the_docs_describe_token_tls_and_rate_limit():
+def test_the_docs_describe_token_tls_and_rate_limit(tmp_path: Path):
     doc = (Path(__file__).resolve().parents[1] / "docs" / "security.md").read_text()
+    # its example configuration loads
+    (example,) = [b for b in re.findall(r"^```yaml\n(.*?)^```", doc, flags=re.S | re.M) if "access:" in b]
+    (tmp_path / "access.yaml").write_text(example)
+    cfg = load_config(tmp_path / "access.yaml")
+    assert cfg.runtime.api_host == cfg.ui.host == "0.0.0.0" and cfg.access.tls_cert and cfg.access.token
     for needle in ("?token=", "access.token", "access.tls_cert", "access.tls_key", "rate_limited",
                    "unauthorized", "sessionStorage", "0.0.0.0"):  # fmt: skip
         assert needle in doc, needle
