@@ -223,6 +223,8 @@ class RuntimeConfig:
     #: otherwise spends a whole core on the physics while its clients think (a triggered capture between
     #: views)
     max_speed: float | None = None
+    #: loopback by default; any other address needs ``access.token`` (generated when unset; see
+    #: :class:`AccessConfig`)
     api_host: str = "127.0.0.1"
     api_port: int = 8765
     api_max_message_bytes: int = 65536
