@@ -173,6 +173,7 @@ BAD_FILES = {
     "missing": ("missing.json", None, "no such file"),
     "json": ("bad.json", '{"runtime": {"api_port": 1,}}', "not valid JSON"),
     "toml": ("bad.toml", "[runtime\napi_port = 1\n", "not valid TOML"),
+    "yaml": ("bad.yaml", "runtime:\n  api_port: [1\n", "not valid YAML"),
     "unknown key": ("unknown.toml", "[render]\nshadowz = false\n", "render.shadowz"),
     "wrong type": ("type.json", '{"runtime": {"api_port": [8765]}}', "runtime.api_port"),
     "not a table": ("list.json", "[1, 2]", "expected a table"),
@@ -207,6 +208,17 @@ def test_bad_config_file(command: str, kind: str, tmp_path: Path) -> None:
 def test_bad_set_value(override: str, needles: tuple[str, ...]) -> None:
     out = droneulator("run", *FREE_PORTS, "--set", override)
     assert_one_line_error(out, 2, *needles)
+
+
+def test_tls_files_that_cannot_be_loaded_are_a_one_line_error(tmp_path: Path) -> None:
+    bad = tmp_path / "cert.pem"
+    bad.write_text("not a certificate\n")
+    tls = ["--set", f"access.tls_cert={bad}", "--set", f"access.tls_key={bad}"]
+    out = droneulator("run", *FREE_PORTS, *tls)
+    assert_one_line_error(out, 2, "access.tls_cert", str(bad), "cannot be loaded")
+    assert "access token" not in out.stdout  # on loopback: no token generated
+    out = droneulator("run", *FREE_PORTS, "--set", "access.tls_cert=cert.pem")
+    assert_one_line_error(out, 2, "access.tls_cert and access.tls_key go together")
 
 
 def test_a_px4_vehicle_without_a_magnetometer_is_caught_before_the_children() -> None:

@@ -1,6 +1,8 @@
 """Typed configuration: defaults, files, overrides and errors."""
 
 import json
+import re
+from pathlib import Path
 
 import pytest
 
@@ -85,3 +87,53 @@ def test_workflow_sections_keep_their_keys_in_files_and_overrides(tmp_path):
         load_config(None, ["capture.nonsense=1"])
     with pytest.raises(ValueError, match="rl.heading"):
         load_config(None, ["rl.heading=sideways"])
+
+
+def test_yaml_file(tmp_path):
+    f = tmp_path / "c.yml"
+    f.write_text("# a ROS-style file\nscene: vineyard\nflight:\n  takeoff_altitude: 3.5\n")
+    f.write_text(f.read_text() + "render: {shadows: off}\n")
+    cfg = load_config(f)
+    assert cfg.scene == "vineyard" and cfg.flight.takeoff_altitude == 3.5 and cfg.render.shadows is False
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("# nothing set yet\n")
+    assert load_config(empty) == load_config()
+
+
+def _doc_block(doc: Path, lang: str, first_line: str) -> str:
+    """The fenced ``lang`` block of ``doc`` whose first line starts with ``first_line``."""
+    blocks = re.findall(rf"^```{lang}\n(.*?)^```", doc.read_text(), flags=re.S | re.M)
+    found = [b for b in blocks if b.startswith(first_line)]
+    assert len(found) == 1, f"{doc} has {len(found)} {lang} blocks starting {first_line!r}"
+    return found[0]
+
+
+def test_the_px4_docs_fleet_example_loads(tmp_path):
+    doc = Path(__file__).resolve().parents[1] / "docs" / "px4.md"
+    f = tmp_path / "fleet.yaml"
+    f.write_text(_doc_block(doc, "yaml", "# fleet.yaml"))
+    cfg = load_config(f)
+    assert cfg.vehicle.control_hz == 250
+    assert [(v.name, v.controlled_by) for v in cfg.vehicles] == [
+        ("uav0", "internal"), ("uav1", "internal"), ("uav2", "px4")
+    ]  # fmt: skip
+    assert main(["config", "--config", str(f)]) == 0
+
+
+@pytest.mark.parametrize(
+    ("text", "needles"),
+    [
+        ("vehicle: {control_hz: 250\nvehicles: []\n", ("not valid YAML", "flow mapping", "line 2 column 9")),
+        ("scene: vineyard\n  seed: 3\n", ("not valid YAML", "mapping values are not allowed", "line 2")),
+        ("- 1\n- 2\n", ("expected a table of options, got list",)),
+        ("render:\n  shadowz: false\n", ("render.shadowz",)),
+    ],
+)
+def test_a_bad_yaml_file_is_a_one_line_error_naming_the_file_and_line(tmp_path, capsys, text, needles):
+    f = tmp_path / "bad.yaml"
+    f.write_text(text)
+    assert main(["config", "--config", str(f)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and str(f) in err and all(n in err for n in needles), err
+    with pytest.raises(ValueError, match=re.escape(needles[0])):
+        load_config(f)

@@ -517,7 +517,7 @@ def test_sparse_filter_drops_points_that_break_its_rules_and_keeps_the_others(tm
         rec,
         opts.filter_max_reproj_error_px,
         opts.filter_min_tri_angle_deg,
-        opts.filter_min_track_length,
+        3,  # what views 20 degrees apart (an 18-view ring) are asked for
     )
     assert result["before"] == {"points": 6, "observations": 19}
     assert result["removed_points"] == {
@@ -537,6 +537,45 @@ def test_sparse_filter_drops_points_that_break_its_rules_and_keeps_the_others(tm
     assert result["removed_points"]["triangulation_angle"] == 1 and result["after"]["observations"] == 16
     with pytest.raises(ValueError, match="filter_min_track_length"):
         ReconstructOptions(filter_min_track_length=1)
+
+
+@pytest.mark.parametrize(
+    ("views", "altitudes", "arc_deg", "spacing", "track"),
+    [
+        (12, [4.5], 360.0, 30.0, 2),  # the 12-view capture whose 3-view rule kept 24 of 1,238 points
+        (16, [4.5], 360.0, 22.5, 3),
+        (18, [4.5], 360.0, 20.0, 3),
+        (36, [3.5, 5.5], 360.0, 10.0, 3),  # two staggered rings: the nearest view is on the other ring
+        (8, [4.5], 90.0, 90.0 / 7, 3),  # a partial arc
+        (6, [4.5], 360.0, 60.0, 2),
+    ],
+)
+def test_the_track_rule_follows_the_spacing_of_the_views(
+    views: int, altitudes: list[float], arc_deg: float, spacing: float, track: int
+):
+    from droneulator.workflows.photogrammetry.reconstruct import (
+        ReconstructOptions,
+        auto_min_track_length,
+        sparse_views_warning,
+        view_spacing_deg,
+    )
+
+    plan = plan_viewpoints([0.0, 0.0], 6.0, altitudes, views, arc_deg)
+    # level cameras (the mount's pitch narrows the angle between axes by its cosine: 7 degrees, < 1 %)
+    T = {
+        f"{v.index:04d}.jpg": look_at(np.array(v.position), np.array([0.0, 0.0, v.position[2]])) for v in plan
+    }
+    measured = view_spacing_deg(T)
+    assert measured == pytest.approx(spacing, abs=1e-6)
+    assert auto_min_track_length(measured) == track
+    warning = sparse_views_warning(measured)
+    assert (warning is None) == (spacing <= 45.0)
+    if warning is not None:
+        assert "60 degrees apart" in warning and "capture more views" in warning
+    # a few tenths of a degree of pose noise does not move an 18-view ring off three-view tracks
+    assert auto_min_track_length(20.4) == 3 and auto_min_track_length(29.7) == 2
+    assert auto_min_track_length(5.0, most=4) == 4
+    assert ReconstructOptions().filter_min_track_length is None  # by default, from the spacing
 
 
 # --------------------------------------------------------------------------- end to end
@@ -651,3 +690,34 @@ def test_two_vehicles_capture_mirrored_halves_at_once_from_straight_transits(tmp
     first, last = ({n: m[i]["stamp_ns"] for n, m in by.items()} for i in (0, -1))
     assert first["uav0"] < last["uav1"] and first["uav1"] < last["uav0"]
     assert meta["tracking"]["max_altitude_error_m"] < 0.05
+
+
+@pytest.mark.slow
+def test_a_12_view_ring_keeps_its_points_with_two_view_tracks(tmp_path: Path):
+    """Views 30 degrees apart: almost no leaf is matched in three of them, so the track rule asks for two
+    (the three-view rule kept 24 of 1,238 points of such a capture at 1024x768)."""
+    pycolmap = pytest.importorskip("pycolmap")
+    from droneulator.scenes import get_scene
+    from droneulator.workflows.photogrammetry.capture import capture
+    from droneulator.workflows.photogrammetry.reconstruct import ReconstructOptions, reconstruct
+
+    out = tmp_path / "ds"
+    overrides = ["capture.views=12", "capture.width=640", "capture.height=480", "render.shadow_map_size=1024"]
+    cfg = load_config(None, overrides, scene="tree_inspection")
+    scene = get_scene(cfg.scene, cfg.seed)  # the aim from the scene's landmarks: no probe run
+    cfg.capture.pitch_deg = aim_pitch(
+        cfg.capture, {"landmarks": {k: v.tolist() for k, v in scene.landmarks.items()}}
+    )
+    assert capture(cfg, out, progress=False)["complete"]
+    opts = ReconstructOptions(max_features=4096, dense=False, score=False)
+    report = reconstruct(out, opts, log=lambda line: None)
+    rules = report["sparse_filter"]["rules"]
+    assert rules["min_track_length"] == 2 and 29.0 < rules["view_spacing_deg"] < 31.0
+    assert rules["min_track_length_from"].startswith("view spacing") and report["warnings"] == []
+    assert report["sparse_filter"]["removed_points"]["short_track"] == 0
+    kept = pycolmap.Reconstruction(out / "sparse")
+    three = sum(p.track.length() >= 3 for p in kept.points3D.values())
+    # 262 points kept, 9 of them in three views or more (measured): what the three-view rule would keep
+    assert report["sparse_points"] == kept.num_points3D() > 100 and three < 0.2 * report["sparse_points"]
+    assert report["mean_reprojection_error_px"] < 1.0
+    assert "views 29." in (out / "report.md").read_text() or "views 30." in (out / "report.md").read_text()

@@ -220,6 +220,87 @@ def test_ui_without_a_simulator_says_so() -> None:
         assert proc.wait(15) == 0  # SIGTERM ends it cleanly, even while a preview renders
 
 
+@needs_chromium
+def test_ui_beyond_loopback_asks_for_the_token_and_connects_with_it() -> None:
+    """``droneulator ui --host 0.0.0.0``: a token is generated and printed once; an /api/ route without
+    it is 401 and a WebSocket without it gets one ``unauthorized`` reply and a close; the page asks for
+    the token, refuses a wrong one, keeps the right one in sessionStorage and connects with it."""
+    import json
+    import urllib.error
+    import urllib.request
+
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    port = free_port()
+    dead = free_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "droneulator.cli", "ui", "--host", "0.0.0.0", "--port", str(port),
+         "--url", f"ws://127.0.0.1:{dead}", "--zenoh", f"tcp/127.0.0.1:{dead}"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )  # fmt: skip
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline().strip()
+        assert line.startswith("access token: ") and "0.0.0.0 is beyond loopback" in line, line
+        token = line.split()[2]
+        assert proc.stdout.readline().strip() == f"UI: http://0.0.0.0:{port}"
+        with pytest.raises(urllib.error.HTTPError) as refused:
+            urllib.request.urlopen(f"http://127.0.0.1:{port}/api/config", timeout=10)
+        assert refused.value.code == 401
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/api/config?token={token}", timeout=10) as r:
+            assert json.loads(r.read())["api_url"] == f"ws://127.0.0.1:{dead}"
+        with connect(f"ws://127.0.0.1:{port}/ws", close_timeout=1.0) as ws:
+            got = []
+            with pytest.raises(ConnectionClosed) as closed:
+                while True:
+                    got.append(json.loads(ws.recv(timeout=10.0)))
+            assert closed.value.rcvd is not None and closed.value.rcvd.code == 1008
+            assert [m["error"]["code"] for m in got] == ["unauthorized"]
+        with playwright.sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
+            page = browser.new_page()
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.goto(f"http://127.0.0.1:{port}/#fly")
+            page.wait_for_selector("#token-dialog[open]", timeout=20000)
+            assert "access token needed" in page.inner_text("#conn")
+            page.fill("#token-input", "wrong-token-wrong-token")
+            page.click("#token-submit")
+            page.wait_for_selector("#token-dialog[open] #token-why:has-text('refused')", timeout=20000)
+            page.fill("#token-input", token)
+            page.click("#token-submit")
+            # connected to the UI server: it reports the simulator (not running here) as unreachable
+            page.wait_for_function(
+                "document.getElementById('conn').textContent.includes('simulator unreachable')", timeout=20000
+            )
+            assert not page.is_visible("#token-dialog")
+            assert page.evaluate("sessionStorage.getItem('droneulator.token')") == token
+            # the page's set-up, refused too until then, ran again with the token: the level select is built
+            page.wait_for_function(
+                "document.querySelectorAll('#scene-cards .card').length > 0", timeout=20000
+            )
+            preview = page.get_attribute("#scene-cards .card img", "data-src") or page.get_attribute(
+                "#scene-cards .card img", "src"
+            )
+            assert preview is not None and f"token={token}" in preview
+            page.click("#btn-takeoff")
+            page.wait_for_selector("#errors .error:has-text('not reachable')", timeout=10000)
+            # a reload reconnects with the stored token, without asking again
+            page.reload()
+            page.wait_for_function(
+                "document.getElementById('conn').textContent.includes('simulator unreachable')", timeout=20000
+            )
+            assert not page.is_visible("#token-dialog")
+            assert not errors, errors
+            browser.close()
+    finally:
+        proc.terminate()
+        assert proc.wait(15) == 0
+
+
 # ----------------------------------------------------------------------------------------------- the run
 @pytest.mark.slow
 def test_level_select_lists_every_scene_with_a_preview(stack: Stack) -> None:

@@ -4,6 +4,12 @@ Replies and pushed stream messages share one socket: a reply carries ``id`` and 
 message carries ``type``. Requests go out one at a time; pushed messages that arrive while a reply
 is awaited are buffered, in order, for :meth:`DroneulatorClient.next_message`. One thread at a time
 should use a client; open a second client to stream and command from different threads.
+
+A server bound beyond loopback asks for its token (``token=``, sent as the URL's ``token`` query
+parameter) and may speak ``wss://`` (``cafile=``: a certificate to trust besides the system's, e.g. a
+self-signed one); see docs/security.md. Left unset, they come from the environment variables
+``DRONEULATOR_TOKEN`` and ``DRONEULATOR_TLS_CA``, so that every workflow connecting by URL (capture,
+plan, the RL remote backend) reaches such a server without an option of its own.
 """
 
 from __future__ import annotations
@@ -11,6 +17,7 @@ from __future__ import annotations
 import itertools
 import json
 import logging
+import os
 import threading
 import time
 from collections import deque
@@ -21,11 +28,16 @@ from typing import Any
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
+from droneulator.api.access import client_ssl_context, with_token, without_token
 from droneulator.api.protocol import ApiError
 
 log = logging.getLogger(__name__)
 
 __all__ = ["ApiError", "ConnectionLostError", "DroneulatorClient"]
+
+#: environment variables a client takes its token and its trusted certificate from, when not given
+TOKEN_ENV = "DRONEULATOR_TOKEN"
+TLS_CA_ENV = "DRONEULATOR_TLS_CA"
 
 
 class ConnectionLostError(ApiError):
@@ -47,18 +59,33 @@ class DroneulatorClient:
     Every op method returns the reply's ``result`` object and raises :class:`ApiError` (with the
     server's ``code`` and ``message``) when the reply has ``ok: false``, :class:`TimeoutError` when no
     reply comes within ``timeout`` seconds and :class:`ConnectionLostError` when the connection is gone.
-    Arguments left as None are omitted, so the server applies its defaults.
+    Arguments left as None are omitted, so the server applies its defaults. A server that wants a
+    token and did not get ``token`` answers the first request with :class:`ApiError` ``unauthorized``
+    and closes the connection.
     """
 
     def __init__(
-        self, url: str = "ws://127.0.0.1:8765", timeout: float = 10.0, max_buffer: int = 10_000
+        self,
+        url: str = "ws://127.0.0.1:8765",
+        timeout: float = 10.0,
+        max_buffer: int = 10_000,
+        token: str | None = None,
+        cafile: str | None = None,
     ) -> None:
-        self.url = url
+        token = token if token is not None else os.environ.get(TOKEN_ENV) or None
+        cafile = cafile if cafile is not None else os.environ.get(TLS_CA_ENV) or None
+        self.url = without_token(url)
         self.timeout = timeout
         self.max_buffer = max_buffer
         self._exit = ExitStack()  # connect() as a context manager works across websockets versions
         self._ws = self._exit.enter_context(
-            connect(url, open_timeout=timeout, close_timeout=2.0, max_size=16 << 20)
+            connect(
+                with_token(url, token),
+                open_timeout=timeout,
+                close_timeout=2.0,
+                max_size=16 << 20,
+                ssl=client_ssl_context(url, cafile),
+            )
         )
         self._ids = itertools.count(1)
         self._buffer: deque[dict[str, Any]] = deque()
@@ -103,12 +130,26 @@ class DroneulatorClient:
             except ConnectionClosed as e:
                 raise ConnectionLostError(str(e)) from None
 
+    def _last_word(self) -> ApiError | None:
+        """The error a server sent before closing (``unauthorized``), once the connection is gone."""
+        while True:
+            try:
+                msg = self._recv(0)
+            except (ConnectionLostError, TimeoutError):
+                return None
+            if msg.get("ok") is False and msg.get("id") is None:
+                err = msg.get("error") or {}
+                return ApiError(str(err.get("code", "unknown")), str(err.get("message", "")))
+
     def request(self, op: str, **args: Any) -> dict[str, Any]:
         """Send ``op`` with ``args`` (None values omitted) and return the reply's ``result``."""
         with self._lock:
             rid = next(self._ids)
             payload = {"id": rid, "op": op, **{k: v for k, v in args.items() if v is not None}}
-            self.send_raw(json.dumps(payload, default=_json_default))
+            try:
+                self.send_raw(json.dumps(payload, default=_json_default))
+            except ConnectionLostError as lost:
+                raise self._last_word() or lost from None
             deadline = time.monotonic() + self.timeout
             while True:
                 remaining = deadline - time.monotonic()

@@ -14,6 +14,13 @@ answered with ``message_too_large``; the connection stays usable. Past the trans
 stops reading and closes that connection with code 1009 (message too big): a protocol-level limit
 cannot skip the rest of a frame, and it bounds the memory a client can make the server hold. The
 server and the other connections carry on either way.
+
+Access (:mod:`droneulator.api.access`, docs/security.md): bound beyond loopback, or given a token, the
+server serves only connections whose URL carries ``?token=...``; any other gets one ``unauthorized``
+reply and is closed (1008) before it is registered, so it never sees a state, an event or a reply.
+With a rate limit (``droneulator run`` sets one wherever a token is asked for) every connection's
+messages pass a token bucket: past it each is answered ``rate_limited``, unrun.
+With an SSL context the server speaks ``wss://``.
 """
 
 from __future__ import annotations
@@ -21,7 +28,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import functools
+import json
 import logging
+import ssl
 import threading
 from collections import deque
 from collections.abc import Callable, Coroutine, Mapping
@@ -31,6 +40,13 @@ from websockets.asyncio.server import ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
 from websockets.frames import CloseCode
 
+from droneulator.api.access import (
+    UNAUTHORIZED_CLOSE,
+    TokenBucket,
+    is_loopback,
+    token_matches,
+    url_token,
+)
 from droneulator.api.protocol import (
     ALL_VEHICLES,
     OPS,
@@ -64,8 +80,9 @@ def _resolve(fut: asyncio.Future[Any]) -> None:
 class _Session:
     """Per-connection subscription state; one stream task writes its pushed messages."""
 
-    def __init__(self, ws: ServerConnection) -> None:
+    def __init__(self, ws: ServerConnection, bucket: TokenBucket | None) -> None:
         self.ws = ws
+        self.bucket = bucket
         addr = ws.remote_address
         self.peer = f"{addr[0]}:{addr[1]}" if addr else "?"
         self.state_period: float | None = None  # None: no state stream
@@ -92,6 +109,10 @@ class ApiServer:
     request fields (minus ``id`` and ``op``, NaN/Infinity already rejected) and may raise
     :class:`~droneulator.api.protocol.ApiError` or ``CommandError`` to answer with an error. They
     must not call :meth:`stop` themselves (its reply could not be sent): signal the owner instead.
+
+    ``token`` (required when ``host`` is not a loopback address), ``ssl_context`` (wss://), ``rate_hz``
+    and ``burst`` (each connection's message rate limit; None: no limit, as on loopback by default): see
+    the module docstring.
     """
 
     def __init__(
@@ -104,7 +125,18 @@ class ApiServer:
         extra_ops: Mapping[str, ExtraOp] | None = None,
         max_event_backlog: int = 10_000,
         stop_timeout: float = 5.0,
+        token: str | None = None,
+        ssl_context: ssl.SSLContext | None = None,
+        rate_hz: float | None = None,
+        burst: int = 400,
     ) -> None:
+        if token is None and not is_loopback(host):
+            raise ValueError(
+                f"the API bound to {host!r} (beyond loopback) needs a token: set access.token "
+                "(droneulator run generates one when it is unset)"
+            )
+        if rate_hz is not None:
+            TokenBucket(rate_hz, burst)  # a bad rate limit fails here, not at the first connection
         if max_message_bytes < 256:
             raise ValueError("max_message_bytes must be at least 256")
         lo, hi = next(a.bounds for a in OPS["subscribe"].args if a.name == "rate_hz") or (0.0, 0.0)
@@ -118,6 +150,13 @@ class ApiServer:
         self.state_rate_hz = state_rate_hz
         self.max_event_backlog = max_event_backlog
         self.stop_timeout = stop_timeout
+        #: the token a client must give (None: none asked, on loopback without one)
+        self.token = token
+        self.ssl_context = ssl_context
+        self.rate_hz = rate_hz
+        self.burst = burst
+        #: connections refused for a missing or wrong token (for monitoring and tests)
+        self.refused = 0
         self._extra_ops: dict[str, ExtraOp] = {}
         for name, fn in (extra_ops or {}).items():
             self.add_op(name, fn)
@@ -145,7 +184,7 @@ class ApiServer:
     # ------------------------------------------------------------------ configuration
     @property
     def url(self) -> str:
-        return f"ws://{self.host}:{self.port}"
+        return f"{'wss' if self.ssl_context is not None else 'ws'}://{self.host}:{self.port}"
 
     @property
     def client_count(self) -> int:
@@ -221,6 +260,7 @@ class ApiServer:
                 max_size=self.transport_limit,
                 max_queue=8,
                 close_timeout=2.0,
+                ssl=self.ssl_context,
             )
         except OSError as e:
             self._start_error = e
@@ -324,13 +364,35 @@ class ApiServer:
         return seq, out
 
     # ------------------------------------------------------------------ connections
+    async def _refuse(self, ws: ServerConnection, given: str | None) -> None:
+        """One ``unauthorized`` reply, then close: a client without the token learns nothing else."""
+        self.refused += 1
+        addr = ws.remote_address
+        log.warning(
+            "client %s: refused, %s token",
+            f"{addr[0]}:{addr[1]}" if addr else "?",
+            "no" if given is None else "a wrong",
+        )
+        message = "this server needs its access token: connect to ws[s]://host:port/?token=TOKEN"
+        with contextlib.suppress(ConnectionClosed):
+            await ws.send(encode(error_reply(None, "unauthorized", message)))
+            await ws.close(UNAUTHORIZED_CLOSE, "unauthorized")
+
     async def _handle(self, ws: ServerConnection) -> None:
-        session = _Session(ws)
+        given = url_token(ws.request.path) if ws.request is not None else None
+        if self.token is not None and not token_matches(self.token, given):
+            await self._refuse(ws, given)
+            return
+        bucket = TokenBucket(self.rate_hz, self.burst) if self.rate_hz is not None else None
+        session = _Session(ws, bucket)
         self._sessions.add(session)
         log.info("client %s connected (%d open)", session.peer, len(self._sessions))
         try:
             while True:
                 raw = await ws.recv(decode=False)
+                if session.bucket is not None and not session.bucket.take():
+                    await self._rate_limited(session, raw)
+                    continue
                 reply, activate = await self._respond(session, raw)
                 if reply is None:  # stopping
                     return
@@ -348,6 +410,26 @@ class ApiServer:
             if session.task is not None:
                 session.task.cancel()
                 await asyncio.gather(session.task, return_exceptions=True)
+
+    async def _rate_limited(self, s: _Session, raw: bytes) -> None:
+        """Answer a message past the connection's rate limit with ``rate_limited``, without running it."""
+        assert s.bucket is not None and self.rate_hz is not None
+        if s.bucket.refused == 1 or s.bucket.refused % 1000 == 0:
+            log.warning(
+                "client %s: over its rate limit (%g messages/s), %d refused so far",
+                s.peer,
+                self.rate_hz,
+                s.bucket.refused,
+            )
+        rid = None
+        if len(raw) <= self.max_message_bytes:
+            with contextlib.suppress(ValueError):
+                msg = json.loads(raw)
+                if isinstance(msg, dict) and isinstance(msg.get("id"), int | str):
+                    rid = msg["id"]
+        message = f"over the rate limit of {self.rate_hz:g} messages/s (burst {self.burst}); not run"
+        async with s.send_lock:
+            await s.ws.send(encode(error_reply(rid, "rate_limited", message)))
 
     def _encode_reply(self, reply: dict[str, Any]) -> str:
         try:

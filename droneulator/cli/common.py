@@ -16,7 +16,7 @@ DEFAULT_ZENOH = "tcp/127.0.0.1:7448"
 
 def add_file_args(p: argparse.ArgumentParser, example: str) -> None:
     """``--config FILE`` and repeatable ``--set KEY=VALUE`` (applied in that order over the defaults)."""
-    p.add_argument("--config", default=None, help="JSON or TOML file with SimConfig fields")
+    p.add_argument("--config", default=None, help="JSON, TOML or YAML file with SimConfig fields")
     p.add_argument(
         "--set",
         dest="overrides",

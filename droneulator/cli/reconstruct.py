@@ -50,9 +50,10 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument(
         "--filter-min-track",
         type=int,
-        default=3,
-        help="... then points seen in fewer images (default 3; COLMAP's own default, 2, keeps two-view "
-        "points, which the tree's mismatches are)",
+        default=None,
+        help="... then points seen in fewer images (default: 3 where three views lie within 45 degrees, "
+        "as on rings of 16 views or more, else 2; COLMAP's own default, 2, keeps two-view points, which "
+        "the tree's mismatches are)",
     )
     p.add_argument("--no-dense", action="store_true", help="skip dense reconstruction")
     p.add_argument(

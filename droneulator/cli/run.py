@@ -101,6 +101,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                 cfg.bridge.namespace = f"{defaults.bridge.namespace}{n}"
     if args.ui_port is not None:
         cfg.ui.port = args.ui_port
+    with_ui = args.ui or args.ui_port is not None
+    preflight.prepare_access(cfg, [cfg.runtime.api_host, *([cfg.ui.host] if with_ui else [])])
     preflight.check_run(cfg)
     if args.demo:
         preflight.check_output_dir(args.out)
@@ -127,7 +129,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             recorder.close()
         raise StartupError(str(exc)) from None
     ui = None
-    if args.ui or args.ui_port is not None:
+    if with_ui:
         ui = _start_ui(cfg, sup)
     if args.demo:
         from droneulator.workflows.demo_client import run_demo_client
@@ -161,11 +163,12 @@ def _start_ui(cfg: SimConfig, sup: Supervisor) -> UIServer:
 
     host = cfg.runtime.api_host if cfg.runtime.api_host not in ("0.0.0.0", "::") else "127.0.0.1"
     server = UIServer(
-        f"ws://{host}:{cfg.runtime.api_port}",
+        f"{'wss' if cfg.access.tls_cert else 'ws'}://{host}:{cfg.runtime.api_port}",
         _ui_zenoh_endpoint(cfg),
         cfg.ui,
         cfg.bridge,
         px4=bool(cfg.px4_instances()),
+        access=cfg.access,
     )
     try:
         url = server.start_in_thread()

@@ -33,9 +33,12 @@ def cmd_ui(args: argparse.Namespace) -> int:
     if args.port is not None:
         cfg.ui.port = args.port
     cfg.ui.__post_init__()
+    preflight.prepare_access(cfg, [cfg.ui.host], lambda line: print(line, flush=True))
     from droneulator.ui.server import UIServer, run_ui
 
-    server = UIServer(args.url, args.zenoh, cfg.ui, cfg.bridge, namespace=args.namespace, px4=args.px4)
+    server = UIServer(
+        args.url, args.zenoh, cfg.ui, cfg.bridge, namespace=args.namespace, px4=args.px4, access=cfg.access
+    )
     try:
         return run_ui(server, lambda line: print(line, flush=True))
     except OSError as exc:

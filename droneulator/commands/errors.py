@@ -31,6 +31,12 @@ ERROR_CODES: dict[str, str] = {
     "flight goes on",
     "no_spray_system": "a spray op for a vehicle without a spray system (no `spray` section, or not "
     "running with spraying on)",
+    "unauthorized": "the server asks for its access token (it is bound beyond loopback, or given one) "
+    "and the connection's URL did not carry it (`?token=...`, docs/security.md): this is the only "
+    "message the connection gets, `id` null, then it is closed (code 1008)",
+    "rate_limited": "the connection sent more messages than the server's rate limit "
+    "(`access.rate_hz` a second, `access.burst` at once); the message was not run, and the connection "
+    "stays usable",
     "internal_error": "an unexpected failure inside the server; the message says what, the server "
     "keeps running and the traceback is logged",
 }

@@ -3,7 +3,7 @@
 Every option is a dataclass field of :class:`SimConfig`, one section per concern
 (:mod:`~droneulator.config.sections`; the capture and learning workflows' sections in
 :mod:`~droneulator.config.capture` and :mod:`~droneulator.config.rl`). A config is built from the
-defaults, then a JSON or TOML file (``--config FILE``), then ``--set section.key=value`` overrides
+defaults, then a JSON, TOML or YAML file (``--config FILE``), then ``--set section.key=value`` overrides
 from the command line, in that order (:mod:`~droneulator.config.loading`).
 """
 
@@ -23,6 +23,7 @@ from droneulator.config.sections import (
     CONTROLLERS,
     PX4_ON_LOSS,
     WIND_MODELS,
+    AccessConfig,
     BridgeConfig,
     CameraConfig,
     FlightConfig,
@@ -48,6 +49,7 @@ from droneulator.config.spray import NozzleConfig, SprayConfig, WeatherConfig
 from droneulator.config.wind import WindConfig
 
 __all__ = [
+    "AccessConfig",
     "BARO_PRESETS",
     "CONTROLLERS",
     "GPS_PRESETS",

@@ -1,5 +1,9 @@
-"""Loading a configuration: defaults, then a JSON or TOML file, then ``--set`` overrides, each value
+"""Loading a configuration: defaults, then a JSON, TOML or YAML file, then ``--set`` overrides, each value
 checked against its field's type (a bad value is a :class:`ConfigError` naming the dotted key).
+
+The file's format follows its name: ``*.toml`` is TOML, ``*.yaml`` and ``*.yml`` YAML (what ROS users
+write; read with PyYAML's safe loader), anything else JSON. A file that does not parse is a one-line
+:class:`ConfigError` naming the format and the line.
 
 A renamed key (:data:`~droneulator.config.site.RENAMED`, e.g. ``px4.home_lat_deg``) still loads from a
 file, a ``--set`` or a dict given to :func:`from_dict`: it lands on its new key with a
@@ -125,12 +129,54 @@ def to_dict(cfg: Any) -> dict[str, Any]:
     return dataclasses.asdict(cfg)
 
 
+YAML_SUFFIXES = (".yaml", ".yml")
+
+
+def file_format(path: str | Path) -> str:
+    """``"toml"``, ``"yaml"`` or ``"json"``: the format a configuration file is read as, by its name."""
+    suffix = Path(path).suffix.lower()
+    return "toml" if suffix == ".toml" else "yaml" if suffix in YAML_SUFFIXES else "json"
+
+
+def parse_text(text: str, fmt: str) -> Any:
+    """``text`` parsed as ``fmt`` (:func:`file_format`); a syntax error is a one-line :class:`ConfigError`
+    ("not valid YAML: ... at line L column C") without the file's name, which the caller adds."""
+    if fmt == "toml":
+        try:
+            return tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"not valid TOML: {exc}") from None
+    if fmt == "yaml":
+        import yaml  # here, not at the top: only YAML files pay for its import (``droneulator --help``)
+
+        try:
+            return yaml.safe_load(text)
+        except yaml.MarkedYAMLError as exc:
+            mark = exc.problem_mark or exc.context_mark
+            where = f" at line {mark.line + 1} column {mark.column + 1}" if mark is not None else ""
+            what = "; ".join(str(p) for p in (exc.context, exc.problem) if p)
+            raise ConfigError(f"not valid YAML: {what}{where}") from None
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"not valid YAML: {' '.join(str(exc).split())}") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
+
+
 def load_file(path: str | Path) -> dict[str, Any]:
+    """The options in the JSON, TOML or YAML file ``path`` (:func:`file_format`); a syntax error or a
+    file that is not a table of options is a :class:`ConfigError` naming the file."""
     path = Path(path)
-    text = path.read_text()
-    if path.suffix == ".toml":
-        return tomllib.loads(text)
-    return json.loads(text)
+    try:
+        data = parse_text(path.read_text(), file_format(path))
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+    if data is None:  # an empty YAML file (or one with only comments): no options
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a table of options, got {type(data).__name__}")
+    return data
 
 
 def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:

@@ -224,6 +224,8 @@ class RuntimeConfig:
     #: otherwise spends a whole core on the physics while its clients think (a triggered capture between
     #: views)
     max_speed: float | None = None
+    #: loopback by default; any other address needs ``access.token`` (generated when unset; see
+    #: :class:`AccessConfig`)
     api_host: str = "127.0.0.1"
     api_port: int = 8765
     api_max_message_bytes: int = 65536
@@ -459,7 +461,8 @@ class PX4Config:
 class UIConfig:
     """The browser UI (``droneulator ui``, ``droneulator run --ui``; see docs/ui.md)."""
 
-    #: loopback only by default, like the API: there is no authentication
+    #: loopback only by default, like the API; any other address needs ``access.token`` (generated when
+    #: unset; see :class:`AccessConfig`)
     host: str = "127.0.0.1"
     port: int = 8080
     #: the most images per second forwarded to a browser, per camera stream (the newest wins)
@@ -483,6 +486,39 @@ class UIConfig:
             raise ValueError("ui.jpeg_quality must lie in [1, 100]")
         if not self.depth_max_m > 0:
             raise ValueError("ui.depth_max_m must be positive")
+
+
+@dataclass
+class AccessConfig:
+    """Who may use the WebSocket API and the UI's WebSocket, over what, how fast (docs/security.md)."""
+
+    #: the shared secret clients send as the ``token`` query parameter of the WebSocket URL
+    #: (``ws://host:8765/?token=T``). A server bound beyond loopback (``runtime.api_host``, ``ui.host``
+    #: not 127.0.0.1/::1/localhost) always asks for it: unset there, ``droneulator run``/``ui`` generate
+    #: one and print it once. On loopback it is asked for only when set
+    token: str | None = None
+    #: PEM certificate (chain) and private key: with both, the API serves wss:// and the UI https://
+    tls_cert: str | None = None
+    tls_key: str | None = None
+    #: a CA file (PEM) clients of this process trust besides the system's (the UI's link to a wss:// API
+    #: with a self-signed certificate)
+    tls_ca: str | None = None
+    #: messages per second one connection may send, sustained; past it (and ``burst`` at once) each is
+    #: answered ``rate_limited`` and not run. Applied wherever a token is asked for (loopback without a
+    #: token stays unlimited)
+    rate_hz: float = 200.0
+    burst: int = 400
+
+    def __post_init__(self) -> None:
+        token = self.token
+        if token is not None and (len(token) < 16 or not token.isprintable() or " " in token):
+            raise ValueError("access.token must be at least 16 printable characters without spaces")
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ValueError("access.tls_cert and access.tls_key go together: give both or neither")
+        if not self.rate_hz > 0:
+            raise ValueError(f"access.rate_hz must be positive, got {self.rate_hz}")
+        if self.burst < 1:
+            raise ValueError(f"access.burst must be at least 1, got {self.burst}")
 
 
 #: who flies a vehicle (``VehicleSpec.controlled_by``): the simulator's own flight controller (driven by
@@ -547,6 +583,8 @@ class SimConfig:
     capture: CaptureConfig = field(default_factory=CaptureConfig)
     rl: RLConfig = field(default_factory=RLConfig)
     ui: UIConfig = field(default_factory=UIConfig)
+    #: the API's and the UI's token, TLS and rate limit (docs/security.md)
+    access: AccessConfig = field(default_factory=AccessConfig)
     #: where on Earth the world origin lies and its clock (GPS, barometer, magnetic field, PX4, the sun)
     site: SiteConfig = field(default_factory=SiteConfig)
     #: time of day, clouds and haze of the rendered scene (RGB only; see docs/light.md)

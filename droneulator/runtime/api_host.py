@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from typing import TYPE_CHECKING
 
+from droneulator.api.access import server_ssl_context
 from droneulator.api.server import ApiServer
 from droneulator.commands import CommandPath
 from droneulator.config import SimConfig
@@ -27,13 +28,18 @@ class ApiHost:
     def __init__(self, commands: CommandPath, cfg: SimConfig) -> None:
         self.cfg = cfg
         self.world = commands.sim
-        rt = cfg.runtime
+        rt, access = cfg.runtime, cfg.access
         self.server = ApiServer(
             commands,
             host=rt.api_host,
             port=rt.api_port,
             max_message_bytes=rt.api_max_message_bytes,
             state_rate_hz=rt.state_hz,
+            token=access.token,
+            ssl_context=server_ssl_context(access.tls_cert, access.tls_key),
+            # limited wherever a token is asked for (``droneulator run`` gives one beyond loopback)
+            rate_hz=access.rate_hz if access.token is not None else None,
+            burst=access.burst,
         )
 
     @property

@@ -299,11 +299,10 @@ class DynamicsServer:
         self.listener = Listener(self._hub_address, family="AF_UNIX", authkey=self._authkey)
         threading.Thread(target=self._accept_loop, name="hub-accept", daemon=True).start()
         log.info(
-            "dynamics server ready: scene %s, %s mode, API ws://%s:%d",
+            "dynamics server ready: scene %s, %s mode, API %s",
             self.cfg.scene,
             self.cfg.runtime.mode,
-            self.cfg.runtime.api_host,
-            self.api.port,
+            self.api.server.url,
         )
         realtime = self.cfg.runtime.mode == "realtime"
         limit = self.cfg.runtime.max_speed

@@ -35,6 +35,7 @@ from typing import IO
 
 from websockets.exceptions import WebSocketException
 
+from droneulator.api.access import generate_token, needs_token
 from droneulator.api.client import DroneulatorClient
 from droneulator.config import SimConfig, load_config, to_dict
 from droneulator.runtime.spawn import cli_command
@@ -146,7 +147,11 @@ class LaunchedRun:
         self.zenoh_endpoint = f"tcp/127.0.0.1:{free_port()}"
         config.runtime.api_port = self.api_port
         config.bridge.listen = [self.zenoh_endpoint]
-        self.url = f"ws://{host}:{self.api_port}"
+        access = config.access
+        if needs_token(host, access.token) and access.token is None:
+            access.token = generate_token()  # the run's own, so that this launcher's clients know it
+        reach = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host  # every interface: loopback too
+        self.url = f"{'wss' if access.tls_cert else 'ws'}://{reach}:{self.api_port}"
         self._conf = tempfile.NamedTemporaryFile(  # noqa: SIM115 (kept open until stop())
             "w", suffix=".json", prefix="droneulator-run-"
         )
@@ -190,7 +195,10 @@ class LaunchedRun:
 
     def client(self, timeout: float = 30.0) -> DroneulatorClient:
         """A new WebSocket client of this run (close it when done)."""
-        return DroneulatorClient(self.url, timeout=timeout)
+        access = self.config.access
+        return DroneulatorClient(
+            self.url, timeout=timeout, token=access.token, cafile=access.tls_ca or access.tls_cert
+        )
 
     def wait_ready(self, timeout: float) -> None:
         """Return once the API answers ``ping``; :class:`LaunchError` if the run exits or ``timeout``
@@ -201,7 +209,7 @@ class LaunchedRun:
             if self.proc.poll() is not None:
                 raise LaunchError(self._failure(f"exited with code {self.proc.returncode} while starting"))
             try:
-                with DroneulatorClient(self.url, timeout=min(10.0, max(1.0, timeout))) as c:
+                with self.client(timeout=min(10.0, max(1.0, timeout))) as c:
                     c.ping()
                 return
             except (OSError, WebSocketException) as exc:  # refused, reset or a half-done handshake

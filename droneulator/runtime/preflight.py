@@ -21,13 +21,15 @@ import os
 import re
 import signal
 import socket
+import ssl
 import subprocess
-import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from droneulator.config import SimConfig, from_dict, load_config, to_dict
+from droneulator.config.loading import ConfigError, file_format, parse_text
 from droneulator.runtime.spawn import code_command
 
 #: exit status for usage and configuration errors (as argparse uses), and for everything else
@@ -80,26 +82,27 @@ def load(path: str | Path | None, overrides: list[str] | None = None, **top: Any
         raise StartupError(f"--set: {exc}" if overrides else str(exc), USAGE) from exc
 
 
+_JSON_HINT = " (files not named *.toml, *.yaml or *.yml are read as JSON)"
+
+
 def _check_config_file(path: Path) -> None:
     try:
         text = path.read_text()
     except FileNotFoundError:
         raise StartupError(f"--config {path}: no such file", USAGE) from None
     except IsADirectoryError:
-        raise StartupError(f"--config {path}: is a folder, not a JSON or TOML file", USAGE) from None
+        raise StartupError(f"--config {path}: is a folder, not a JSON, TOML or YAML file", USAGE) from None
     except (OSError, UnicodeDecodeError) as exc:
         raise StartupError(f"--config {path}: cannot be read ({_reason(exc)})", USAGE) from None
+    fmt = file_format(path)
     try:
-        data = tomllib.loads(text) if path.suffix == ".toml" else json.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise StartupError(f"--config {path}: not valid TOML: {exc}", USAGE) from None
-    except json.JSONDecodeError as exc:
-        hint = "" if path.suffix == ".json" else " (files not named *.toml are read as JSON)"
-        raise StartupError(
-            f"--config {path}: not valid JSON{hint}: {exc.msg} at line {exc.lineno} column {exc.colno}",
-            USAGE,
-        ) from None
-    if not isinstance(data, dict):
+        data = parse_text(text, fmt)
+    except ConfigError as exc:
+        message = str(exc)
+        if fmt == "json" and path.suffix != ".json":
+            message = message.replace("not valid JSON", f"not valid JSON{_JSON_HINT}", 1)
+        raise StartupError(f"--config {path}: {message}", USAGE) from None
+    if data is not None and not isinstance(data, dict):
         raise StartupError(f"--config {path}: expected a table of options, got {type(data).__name__}", USAGE)
     try:
         load_config(path)
@@ -342,6 +345,29 @@ def check_run(cfg: SimConfig) -> None:
     check_simulation(cfg)
     check_ports(run_ports(cfg))
     check_egl()
+
+
+def prepare_access(cfg: SimConfig, hosts: list[str], announce: Callable[[str], None] = print) -> None:
+    """Give ``cfg.access`` a token when a server binds one of ``hosts`` beyond loopback without one,
+    announcing it once (the children get it in their configuration); check the TLS files load."""
+    from droneulator.api.access import generate_token, is_loopback, server_ssl_context
+
+    access = cfg.access
+    try:
+        server_ssl_context(access.tls_cert, access.tls_key)
+    except (OSError, ssl.SSLError, ValueError) as exc:
+        raise StartupError(
+            f"access.tls_cert {access.tls_cert} / access.tls_key {access.tls_key}: cannot be loaded "
+            f"({_reason(exc)}; expected PEM files: a certificate chain and its private key)",
+            USAGE,
+        ) from None
+    if access.token is None and not all(is_loopback(h) for h in hosts):
+        access.token = generate_token()
+        beyond = ", ".join(h for h in hosts if not is_loopback(h))
+        announce(
+            f"access token: {access.token} (generated: {beyond} is beyond loopback; clients add "
+            "?token=TOKEN to the WebSocket URL; set access.token to choose it; docs/security.md)"
+        )
 
 
 def _reason(exc: BaseException) -> str:

@@ -10,7 +10,16 @@ vehicle until it does). The server learns the vehicles and their image topics fr
 ``scene_info`` each time a tab's API connection opens.
 
 When the simulator goes away (a restart), the server tells the tab and reconnects every second; the
-tab in turn reconnects to this server if it goes away. HTTP routes::
+tab in turn reconnects to this server if it goes away.
+
+Access (docs/security.md): served beyond loopback (or given ``access.token``), the server asks for the
+token: ``/ws`` serves only a tab whose URL carries it (``/ws?token=...``; the page asks for it once and
+keeps it in the tab's sessionStorage), any other gets one ``unauthorized`` reply and is closed (1008)
+before it gets a state, an image or a relayed reply; the ``/api/`` routes answer 401 without
+``?token=``; only the static page, which asks for the token, is served to anyone. There each tab's
+messages also pass a token bucket (``access.rate_hz``, ``burst``). The server's own links to the API
+carry the same token. With ``access.tls_cert`` and ``tls_key`` it serves https:// and wss://.
+HTTP routes::
 
     GET /                      the single-page app (static/index.html)
     GET /static/<file>         its modules and style sheet
@@ -46,7 +55,17 @@ from websockets.datastructures import Headers
 from websockets.exceptions import ConnectionClosed, InvalidHandshake, InvalidURI
 from websockets.http11 import Request, Response
 
-from droneulator.config import BridgeConfig, UIConfig
+from droneulator.api.access import (
+    UNAUTHORIZED_CLOSE,
+    TokenBucket,
+    client_ssl_context,
+    is_loopback,
+    server_ssl_context,
+    token_matches,
+    url_token,
+    with_token,
+)
+from droneulator.config import AccessConfig, BridgeConfig, UIConfig
 from droneulator.imaging import depth_to_rgb
 from droneulator.scenes.base import SEGMENTATION_PALETTE
 from droneulator.threads import DaemonWorker, lower_priority
@@ -108,11 +127,26 @@ class UIServer:
         bridge: BridgeConfig | None = None,
         namespace: str | None = None,
         px4: bool = False,
+        access: AccessConfig | None = None,
     ) -> None:
         if not api_url.startswith(("ws://", "wss://")):
             raise ValueError(f"the API URL must start with ws:// or wss://, got {api_url!r}")
         self.api_url = api_url
         self.config = config or UIConfig()
+        self.access = access or AccessConfig()
+        if self.access.token is None and not is_loopback(self.config.host):
+            raise ValueError(
+                f"the UI served on {self.config.host!r} (beyond loopback) needs a token: set access.token "
+                "(droneulator ui and run generate one when it is unset)"
+            )
+        #: the token a tab must give (None: none asked, on loopback without access.token)
+        self.token = self.access.token
+        self._ssl = server_ssl_context(self.access.tls_cert, self.access.tls_key)
+        #: how this server reaches the API: with the token, over TLS trusting ``tls_ca`` (or the cert)
+        self.api_connect_url = with_token(api_url, self.access.token)
+        self.api_ssl = client_ssl_context(api_url, self.access.tls_ca or self.access.tls_cert)
+        #: tabs refused for a missing or wrong token
+        self.refused = 0
         bridge = bridge or BridgeConfig()
         self.px4 = px4
         self.hub = ImageHub(
@@ -145,7 +179,7 @@ class UIServer:
         if self._server is None:
             raise RuntimeError("the UI server is not running")
         port = self._server.sockets[0].getsockname()[1]
-        return f"http://{self.config.host}:{port}"
+        return f"{'https' if self._ssl is not None else 'http'}://{self.config.host}:{port}"
 
     # ------------------------------------------------------------------ lifetime
     async def start(self) -> None:
@@ -161,6 +195,7 @@ class UIServer:
             # a first preview or map is rendered while the request waits: several seconds, one at a time
             open_timeout=300,
             compression=None,  # images are compressed already; deflate would only cost CPU
+            ssl=self._ssl,
         )
         self._pump = asyncio.create_task(self._pump_images())
 
@@ -241,6 +276,9 @@ class UIServer:
             if origin is not None and urlsplit(origin).netloc != host:
                 return _error(403, f"cross-origin WebSocket from {origin} refused")
             return None
+        locked = path.startswith("/api/") and self.token is not None
+        if locked and not token_matches(self.token or "", url_token(request.path)):
+            return _error(401, "this UI needs its access token: add ?token=TOKEN")
         try:
             seed = int(parse_qs(url.query).get("seed", ["0"])[0])
         except ValueError:
@@ -345,7 +383,9 @@ class UIServer:
         assert self._learning is not None
         async with self._learning:
             try:
-                async with connect(self.api_url, open_timeout=5.0, max_size=16 << 20) as api:
+                async with connect(
+                    self.api_connect_url, open_timeout=5.0, max_size=16 << 20, ssl=self.api_ssl
+                ) as api:
                     await api.send(json.dumps({"id": 1, "op": "scene_info"}))
                     async with asyncio.timeout(10.0):
                         reply = json.loads(await api.recv())
@@ -379,6 +419,16 @@ class UIServer:
 
     # ------------------------------------------------------------------ browser tabs
     async def _browser(self, ws: ServerConnection) -> None:
+        given = url_token(ws.request.path) if ws.request is not None else None
+        if self.token is not None and not token_matches(self.token, given):
+            self.refused += 1
+            log.warning("ui: a tab at %s refused: no or a wrong token", ws.remote_address)
+            message = "this UI needs its access token: reload the page and enter it"
+            reply = {"id": None, "ok": False, "error": {"code": "unauthorized", "message": message}}
+            with contextlib.suppress(ConnectionClosed):
+                await ws.send(json.dumps(reply))
+                await ws.close(UNAUTHORIZED_CLOSE, "unauthorized")
+            return
         session = BrowserSession(self, ws)
         self.sessions.add(session)
         try:
@@ -399,6 +449,8 @@ class BrowserSession:
         self.sent = 0
         self.skipped = 0
         self._sent_seq: dict[tuple[str, str, str], int] = {}
+        #: the tab's rate limit, wherever a token is asked for
+        self.bucket = TokenBucket(server.access.rate_hz, server.access.burst) if server.token else None
         #: the vehicle whose cameras the tab shows (None: the default vehicle)
         self.vehicle: str | None = None
 
@@ -417,6 +469,9 @@ class BrowserSession:
             async for raw in self.ws:
                 if isinstance(raw, bytes):
                     raw = raw.decode("utf-8", "replace")
+                if self.bucket is not None and not self.bucket.take():
+                    await self._rate_limited(raw)
+                    continue
                 if '"ui"' in raw and await self._ui_message(raw):
                     continue
                 await self._forward(raw)
@@ -449,6 +504,16 @@ class BrowserSession:
         message = f"the simulator's API at {self.server.api_url} is not reachable; reconnecting"
         await self._send({"id": rid, "ok": False, "error": {"code": "not_connected", "message": message}})
 
+    async def _rate_limited(self, raw: str) -> None:
+        """Answer a message past the tab's rate limit with ``rate_limited``, without relaying it."""
+        try:
+            rid = json.loads(raw).get("id")
+        except (ValueError, AttributeError):
+            rid = None
+        access = self.server.access
+        message = f"over the rate limit of {access.rate_hz:g} messages/s (burst {access.burst}); not sent"
+        await self._send({"id": rid, "ok": False, "error": {"code": "rate_limited", "message": message}})
+
     async def _ui_message(self, raw: str) -> bool:
         """Handle a ``{"type": "ui", ...}`` message from the tab; False for anything else."""
         try:
@@ -474,7 +539,11 @@ class BrowserSession:
         while True:
             try:
                 async with connect(
-                    self.server.api_url, open_timeout=5.0, max_size=16 << 20, compression=None
+                    self.server.api_connect_url,
+                    open_timeout=5.0,
+                    max_size=16 << 20,
+                    compression=None,
+                    ssl=self.server.api_ssl,
                 ) as upstream:
                     self.upstream = upstream
                     await self.server.learn_vehicles()

@@ -62,11 +62,13 @@ class FrameSaver:
         Image.fromarray(segmentation_to_rgb(seg)).save(stem.parent / f"{stem.name}_seg.png")
 
 
-def _connect(url: str, stop: threading.Event, timeout: float = 60.0) -> DroneulatorClient:
+def _connect(cfg: SimConfig, stop: threading.Event, timeout: float = 60.0) -> DroneulatorClient:
+    access = cfg.access
+    url = f"{'wss' if access.tls_cert else 'ws'}://{cfg.runtime.api_host}:{cfg.runtime.api_port}"
     deadline = time.monotonic() + timeout
     while True:
         try:
-            return DroneulatorClient(url, timeout=30.0)
+            return DroneulatorClient(url, 30.0, token=access.token, cafile=access.tls_ca or access.tls_cert)
         except OSError:
             if stop.is_set() or time.monotonic() > deadline:
                 raise
@@ -83,7 +85,7 @@ def run_demo_client(cfg: SimConfig, out: Path, stop: threading.Event) -> None:
 
 def _fly(cfg: SimConfig, out: Path, stop: threading.Event) -> None:
     out.mkdir(parents=True, exist_ok=True)
-    client = _connect(f"ws://{cfg.runtime.api_host}:{cfg.runtime.api_port}", stop)
+    client = _connect(cfg, stop)
     cam = cfg.render.cameras[0].name
     saver = FrameSaver(out)
     names = topic_names(cfg.bridge.namespace, cam)

@@ -3,7 +3,7 @@
 // world of several vehicles the flight controls, map clicks, telemetry and camera views follow the
 // selected vehicle (docs/ui.md); the map shows them all.
 
-import { ApiError, Connection } from "./connection.js";
+import { ApiError, Connection, TOKEN_KEY, withToken } from "./connection.js";
 import { CameraViews } from "./cameras.js";
 import { FLEET_COLOURS, MapView } from "./map.js";
 import { painter } from "./painter.js";
@@ -166,7 +166,7 @@ function loadPreviews() {
 }
 
 async function buildLevels() {
-  const res = await fetch("/api/scenes");
+  const res = await fetch(withToken("/api/scenes"));
   const { scenes } = await res.json();
   const cards = $("scene-cards");
   cards.replaceChildren();
@@ -177,7 +177,7 @@ async function buildLevels() {
     card.innerHTML = `<img alt="${s.name} preview"><h3></h3><p></p>`;
     card.querySelector("h3").textContent = s.name.replaceAll("_", " ");
     card.querySelector("p").textContent = s.description;
-    card.querySelector("img").dataset.src = `/api/preview/${encodeURIComponent(s.name)}`;
+    card.querySelector("img").dataset.src = withToken(`/api/preview/${encodeURIComponent(s.name)}`);
     card.onclick = () => chooseScene(s.name);
     cards.append(card);
   }
@@ -516,9 +516,32 @@ function onUiMessage(msg) {
   }
 }
 
+// The UI server asks for its access token (docs/security.md): a small prompt; the token is kept in the
+// tab's sessionStorage, then whatever was refused (the connection, the page's set-up) tries again.
+const tokenRetries = [];
+function askForToken(refused, retry) {
+  setConnection("access token needed", false);
+  $("token-why").textContent = refused
+    ? "That access token was refused. Enter the one printed where the simulator was started."
+    : "This simulator asks for its access token (printed where it was started).";
+  tokenRetries.push(retry);
+  const dialog = $("token-dialog");
+  $("token-form").onsubmit = (e) => {
+    e.preventDefault();
+    const token = $("token-input").value.trim();
+    if (!token) return;
+    sessionStorage.setItem(TOKEN_KEY, token);
+    dialog.close();
+    $("token-input").value = "";
+    for (const again of tokenRetries.splice(0)) again();
+  };
+  if (!dialog.open) dialog.showModal();
+}
+
 const conn = new Connection({
   onOpen: () => setConnection("waiting for the simulator…", false),
   onClose: () => setConnection("UI server unreachable, reconnecting…", false),
+  onUnauthorized: askForToken,
   onImage: (header, bytes) => cams.show(header, bytes),
   onMessage: (msg) => {
     if (msg.type === "state") onState(msg.state);
@@ -534,7 +557,11 @@ const cams = new CameraViews($("cameras"), { depth_max_m: 20, legend: [] });
 ui.cameras = cams;
 
 async function init() {
-  const res = await fetch("/api/config");
+  const res = await fetch(withToken("/api/config"));
+  if (res.status === 401) {
+    askForToken(sessionStorage.getItem(TOKEN_KEY) !== null, () => init().catch(startFailed));
+    return;
+  }
   ui.config = await res.json();
   cams.config = ui.config;
   if (ui.config.px4) $("px4").hidden = false;
@@ -564,5 +591,9 @@ async function init() {
   await buildLevels();
 }
 
-init().catch((err) => showError(`the page could not start: ${describe(err)}`));
+function startFailed(err) {
+  showError(`the page could not start: ${describe(err)}`);
+}
+
+init().catch(startFailed);
 setInterval(() => painter.add("telemetry", renderTelemetry), 1000); // with the next paint

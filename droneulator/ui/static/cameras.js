@@ -8,6 +8,7 @@
 // and the image is decoded again to paint it; on a machine whose cores the simulation needs, that CPU
 // is the simulation's (docs/ui.md). Browsers without ImageDecoder decode through createImageBitmap.
 
+import { withToken } from "./connection.js";
 import { painter } from "./painter.js";
 
 const KIND_TITLES = { rgb: "RGB", depth: "Depth", seg: "Segmentation" };
@@ -61,7 +62,7 @@ export class CameraViews {
     if (kind === "depth") {
       const scale = document.createElement("div");
       scale.className = "scale";
-      scale.innerHTML = `<img src="/api/depth_scale.png" alt="depth scale"><span>0 m</span>` +
+      scale.innerHTML = `<img src="${withToken("/api/depth_scale.png")}" alt="depth scale"><span>0 m</span>` +
         `<span>${(this.config.depth_max_m / 2).toFixed(0)} m</span><span>${this.config.depth_max_m.toFixed(0)} m+</span>`;
       fig.append(scale);
     }

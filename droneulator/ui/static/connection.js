@@ -1,5 +1,19 @@
 // The page's one WebSocket to the UI server: the simulator's API protocol (docs/api.md) in text frames,
 // camera images in binary frames. Reconnects by itself, every second, whenever the server goes away.
+// A server that asks for an access token (docs/security.md) gets it as the `token` query parameter of
+// the WebSocket URL (and of every /api/ route: withToken), from the tab's sessionStorage; it closes a
+// connection without it with code 1008, and then the page asks for the token (onUnauthorized) instead
+// of reconnecting.
+
+export const TOKEN_KEY = "droneulator.token";
+const UNAUTHORIZED = 1008;
+
+// `path` (an /api/ route of the UI server) with the tab's access token, when it has one.
+export function withToken(path) {
+  const token = sessionStorage.getItem(TOKEN_KEY);
+  if (!token) return path;
+  return `${path}${path.includes("?") ? "&" : "?"}token=${encodeURIComponent(token)}`;
+}
 
 export class ApiError extends Error {
   constructor(code, message) {
@@ -9,8 +23,8 @@ export class ApiError extends Error {
 }
 
 export class Connection {
-  constructor({ onMessage, onImage, onOpen, onClose }) {
-    this.handlers = { onMessage, onImage, onOpen, onClose };
+  constructor({ onMessage, onImage, onOpen, onClose, onUnauthorized }) {
+    this.handlers = { onMessage, onImage, onOpen, onClose, onUnauthorized };
     this.pending = new Map();
     this.nextId = 1;
     this.ws = null;
@@ -18,16 +32,23 @@ export class Connection {
   }
 
   open() {
-    const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`);
+    const token = sessionStorage.getItem(TOKEN_KEY);
+    const query = token ? `?token=${encodeURIComponent(token)}` : "";
+    const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws${query}`);
     ws.binaryType = "arraybuffer";
     ws.onopen = () => this.handlers.onOpen();
     ws.onmessage = (e) => this.receive(e.data);
-    ws.onclose = () => {
+    ws.onclose = (e) => {
       for (const { reject } of this.pending.values()) {
         reject(new ApiError("connection_closed", "the connection to the UI server closed"));
       }
       this.pending.clear();
       this.ws = null;
+      if (e.code === UNAUTHORIZED) {
+        // ask for the token (again, if the one stored was refused); it is stored, then connect with it
+        this.handlers.onUnauthorized(token !== null, () => this.open());
+        return;
+      }
       this.handlers.onClose();
       setTimeout(() => this.open(), 1000);
     };

@@ -2,6 +2,7 @@
 // with its heading (in a fleet: each in its own colour, with its name), their trails and active goals.
 // A click reports the world x, y under the pointer, and the vehicle drawn there if any.
 
+import { withToken } from "./connection.js";
 import { painter } from "./painter.js";
 
 const TRAIL_POINTS = 600;
@@ -78,11 +79,11 @@ export class MapView {
   }
 
   async load(scene, seed) {
-    const res = await fetch(`/api/map/${encodeURIComponent(scene)}?seed=${seed}`);
+    const res = await fetch(withToken(`/api/map/${encodeURIComponent(scene)}?seed=${seed}`));
     const meta = await res.json();
     if (!res.ok) throw new Error(meta.error || `map of ${scene}: HTTP ${res.status}`);
     const img = new Image();
-    img.src = meta.image;
+    img.src = withToken(meta.image);
     await img.decode();
     const [x0, y0, x1, y1] = meta.extent;
     // one canvas pixel per screen pixel: the compositor then copies the map instead of resampling it
