@@ -42,6 +42,7 @@ import numpy as np
 from droneulator.commands.errors import CommandError
 from droneulator.config import LightConfig, SimConfig, load_config
 from droneulator.controllers.flight import Event, Mode
+from droneulator.controllers.inner import SETPOINT_SIZE
 from droneulator.controllers.velocity import VCMD, VREF_SIZE, start_reference, velocity_limits
 from droneulator.frames import yaw_of
 from droneulator.scenes import get_scene
@@ -52,7 +53,7 @@ from droneulator.vehicles.vehicle import Vehicle, VehicleState
 from droneulator.wind.field import WindField
 from droneulator.world import step as kernel
 from droneulator.world.downwash import WakeModel, wakes
-from droneulator.world.step import FLAT, ROTORS, VELOCITY, SdfStack
+from droneulator.world.step import ATTITUDE, FLAT, RATES, ROTORS, VELOCITY, SdfStack
 
 if TYPE_CHECKING:
     from droneulator.render.pipeline import CameraPipeline
@@ -60,6 +61,9 @@ if TYPE_CHECKING:
 NS = 1_000_000_000
 
 log = logging.getLogger("droneulator.sim")
+
+#: the compiled step's mode for the flight modes whose reference is an inner-loop setpoint, not a flat output
+_INNER_MODES = {Mode.RATES: RATES, Mode.ATTITUDE: ATTITUDE}
 
 
 @dataclass
@@ -141,7 +145,7 @@ class World:
         self._impact_speed = cfg.vehicle.impact_speed
         self._wake = WakeModel.of(vs)
         # the rows' commands, flags and scratch for the compiled step (:mod:`droneulator.world.step`)
-        #: how each row gets its rotor command: FLAT, VELOCITY or ROTORS
+        #: how each row gets its rotor command: FLAT, VELOCITY, ROTORS, RATES or ATTITUDE
         self.mode = np.full((W, n), FLAT, dtype=np.int64)
         self._flats = np.zeros((W, n, FLAT_SIZE))
         self._cmds = np.zeros((W, n, 4))
@@ -400,10 +404,16 @@ class World:
                 for e in events:
                     e.vehicle = v.name
                 out.events.extend(events)
-                v._reference = ref
-                if cmd is None:
+                inner = _INNER_MODES.get(v.flight.mode)
+                v._reference = None if inner is not None else ref
+                if cmd is None and inner is None:
                     flats[i] = ref
                     self.mode[0, i] = FLAT
+                elif cmd is None:  # the row keeps the rate loop's integral after the setpoint
+                    if self.mode[0, i] != inner:
+                        flats[i] = 0.0
+                    flats[i, :SETPOINT_SIZE] = ref[:SETPOINT_SIZE]
+                    self.mode[0, i] = inner
                 else:
                     cmds[i] = cmd
                     self.mode[0, i] = ROTORS
