@@ -40,7 +40,7 @@ def test_the_world_and_its_vehicles_are_what_the_command_path_drives(world):
     [
         (CommandedWorld, World, {"vehicle", "reset", "trigger", "set_wind"}),
         (CommandedVehicle, Vehicle, {"takeoff", "land", "goto", "velocity", "track", "hold", "motors_off",
-                                     "describe"}),  # fmt: skip
+                                     "describe", "rotors", "rates", "attitude"}),  # fmt: skip
     ],
 )
 def test_every_method_the_command_path_calls_takes_the_same_arguments(protocol, cls, methods):

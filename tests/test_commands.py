@@ -59,6 +59,8 @@ class Rig:
         self.cmd_vel = self.peer.declare_publisher("droneulator/cmd_vel")
         self.goal_pose = self.peer.declare_publisher("droneulator/goal_pose")
         self.position_cmd = self.peer.declare_publisher("droneulator/position_cmd")
+        self.attitude = self.peer.declare_publisher("droneulator/setpoint_raw/attitude")
+        self.motor_speed = self.peer.declare_publisher("droneulator/command/motor_speed")
         deadline = time.monotonic() + 10
         while not self.cmd_vel.matching_status.matching:
             assert time.monotonic() < deadline, "the command subscriptions never matched"
@@ -203,6 +205,60 @@ def test_position_commands_follow_the_api_rules_and_the_flight_lock(rig, caplog)
         ref = rig.sim.vehicle().state.reference
     assert ref[0:3].tolist() == [0.5, 0.25, 2.0] and ref[3:6].tolist() == [0.2, 0.0, 0.0]
     assert ref[6:9].tolist() == [0.0, 0.0, 0.1] and (ref[9], ref[10]) == (0.5, 0.1)
+
+
+def test_attitude_targets_and_motor_speeds_fly_rates_attitude_and_rotors(rig, caplog):
+    """MAVROS's AttitudeTarget and Gazebo's Actuators over Zenoh reach the three ops below the SE(3)
+    controller, with their rules and the flight lock."""
+    caplog.set_level(logging.WARNING, logger="droneulator.commands")
+    uav = rig.sim.vehicle()
+    with rig.commands.lock:
+        rig.sim.reset(position=[0.0, 0.0, 3.0])
+    hover_share = uav.thrust / uav.max_thrust  # hovering at rest: the thrust balances the weight
+
+    def put(pub, msg) -> None:
+        pub.put(bytes(M.serialize(msg)))
+
+    put(rig.attitude, M.attitude_target(0, "", hover_share, body_rate=(0.1, 0.2, 1.0), type_mask=128 | 1))
+    wait(lambda: uav.mode.value == "rates", "the body rates to be taken")
+    assert uav.flight._inner[0] == pytest.approx(uav.thrust, rel=1e-6)  # normalised (float32) to N
+    assert uav.flight._inner[1:4].tolist() == pytest.approx([0.0, 0.2, 1.0])  # roll rate ignored: 0
+
+    q = M.attitude_target(0, "", hover_share, (0.0, 0.0, math.sin(0.25), math.cos(0.25)))
+    put(rig.attitude, q)
+    wait(lambda: uav.mode.value == "attitude", "the attitude to be taken")
+    assert uav.flight._inner[1:5].tolist() == pytest.approx([0.0, 0.0, math.sin(0.25), math.cos(0.25)])
+
+    put(rig.motor_speed, M.actuators(0, velocity=[400.0, 410.0, 420.0, 430.0]))
+    wait(lambda: uav.mode.value == "rotors", "the rotor speeds to be taken")
+    assert uav.flight._rotors.tolist() == [400.0, 410.0, 420.0, 430.0]
+    put(rig.motor_speed, M.actuators(0, normalized=[0.25, 0.25, 0.25, 1.0]))
+    wait(lambda: uav.flight._rotors[3] == 1500.0, "the normalised thrusts to be taken")
+    assert uav.flight._rotors.tolist() == [750.0, 750.0, 750.0, 1500.0]
+
+    caplog.clear()
+    put(rig.motor_speed, M.actuators(0, velocity=[400.0] * 4, normalized=[0.5] * 4))
+    wait(lambda: rejections(caplog), "speeds and thrusts at once to be refused")
+    put(rig.motor_speed, M.actuators(0, velocity=[400.0] * 4))  # taken: the burst of rejections ends
+    wait(lambda: uav.flight._rotors[3] == 400.0, "the rotor speeds to be taken")
+    put(rig.motor_speed, M.actuators(0, velocity=[400.0] * 3))
+    put(rig.attitude, M.attitude_target(0, "", 0.5, type_mask=64))
+    put(rig.attitude, M.attitude_target(0, "", 1.5, type_mask=128))
+    wait(lambda: len(rejections(caplog)) >= 4, "the four bad commands to be refused")
+    msgs = "\n".join(rejections(caplog))
+    assert "command/motor_speed rotors command rejected (invalid_argument): `rotor_speeds` must be" in msgs
+    assert "rejected (invalid_argument): four rotor speeds in velocity" in msgs
+    assert "attitude command rejected (invalid_argument): a setpoint without thrust" in msgs
+    assert "rates command rejected (out_of_range)" in msgs
+
+    rig.commands.refuse_flight("PX4 SITL is in control")
+    caplog.clear()
+    put(rig.attitude, M.attitude_target(0, "", 0.2, type_mask=128))
+    put(rig.motor_speed, M.actuators(0, velocity=[400.0] * 4))
+    wait(lambda: len(rejections(caplog)) >= 2, "the locked commands to be refused")
+    assert all("(flight_locked): PX4 SITL is in control" in m for m in rejections(caplog))
+    assert uav.flight._rotors[3] == 400.0  # nothing ran
+    rig.commands.allow_flight()
 
 
 def test_commands_never_interleave_with_a_step():

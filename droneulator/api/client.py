@@ -194,6 +194,48 @@ class DroneulatorClient:
         """Velocity mode: ``forward`` m/s along body x, ``yaw_rate`` rad/s, constant altitude."""
         return self.request("velocity", forward=forward, yaw_rate=yaw_rate, vehicle=vehicle)
 
+    def rotors(
+        self, rotor_speeds: Sequence[float] | Any, normalized: bool | None = None, vehicle: str | None = None
+    ) -> dict[str, Any]:
+        """One rotors command of a stream: four speeds, rad/s (thrusts in [0, 1] with ``normalized``)."""
+        return self.request("rotors", rotor_speeds=rotor_speeds, normalized=normalized, vehicle=vehicle)
+
+    def rates(
+        self,
+        thrust: float,
+        body_rates: Sequence[float] | Any,
+        normalized: bool | None = None,
+        vehicle: str | None = None,
+    ) -> dict[str, Any]:
+        """One rates command of a stream: collective ``thrust`` N (a share with ``normalized``), body rates
+        rad/s."""
+        return self.request(
+            "rates", thrust=thrust, body_rates=body_rates, normalized=normalized, vehicle=vehicle
+        )
+
+    def attitude(
+        self,
+        thrust: float,
+        quaternion: Sequence[float] | Any = None,
+        roll: float | None = None,
+        pitch: float | None = None,
+        yaw: float | None = None,
+        normalized: bool | None = None,
+        vehicle: str | None = None,
+    ) -> dict[str, Any]:
+        """One attitude command of a stream: collective ``thrust`` and a ``quaternion`` [x, y, z, w] or
+        ``roll``, ``pitch``, ``yaw`` (rad)."""
+        return self.request(
+            "attitude",
+            thrust=thrust,
+            quaternion=quaternion,
+            roll=roll,
+            pitch=pitch,
+            yaw=yaw,
+            normalized=normalized,
+            vehicle=vehicle,
+        )
+
     def hold(self, vehicle: str | None = None) -> dict[str, Any]:
         return self.request("hold", vehicle=vehicle)
 

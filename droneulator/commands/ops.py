@@ -53,6 +53,7 @@ TYPES: dict[str, str] = {
     "string": "JSON string",
     "vec3": "array of 3 finite numbers",
     "strings": "non-empty array of JSON strings",
+    "vec4": "array of 4 finite numbers",
     "streams": 'non-empty array of `"state"` and/or `"events"`',
     "light": "JSON object of light settings (the config's `light` section, docs/light.md): "
     "`time_of_day_h`, `latitude_deg`, `longitude_deg`, `utc_offset_h`, `cloud_cover`, `visibility_m` "
@@ -121,6 +122,22 @@ def _track(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
     _vehicle(sim, a).track(
         a["position"], a.get("velocity"), a.get("acceleration"), a.get("yaw"), a.get("yaw_rate", 0.0)
     )
+    return _when(sim)
+
+
+def _rotors(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
+    _vehicle(sim, a).rotors(a["rotor_speeds"], a.get("normalized", False))
+    return _when(sim)
+
+
+def _rates(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
+    _vehicle(sim, a).rates(a["thrust"], a["body_rates"], a.get("normalized", False))
+    return _when(sim)
+
+
+def _attitude(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
+    angles = (a.get("roll"), a.get("pitch"), a.get("yaw"))
+    _vehicle(sim, a).attitude(a["thrust"], a.get("quaternion"), *angles, a.get("normalized", False))
     return _when(sim)
 
 
@@ -265,6 +282,21 @@ _VEHICLE = Arg(
     "vehicle", "string", "the vehicle to command, by name (see `scene_info.vehicles`; default: the first)"
 )
 
+#: what the three commands below the SE(3) controller share (docs/control.md)
+_STREAM = (
+    "Send them at 20 Hz or more: after 0.5 s of sim time without one the vehicle holds where it is (on "
+    "the ground: stops its motors) and a `{op}_timeout` event follows. Accepted on the ground too; the "
+    "limits are the vehicle's, in `scene_info` (`vehicles[].limits`); docs/control.md."
+)
+_THRUST = Arg(
+    "thrust",
+    "number",
+    "collective thrust, N, in [0, `limits.max_thrust`] (every rotor at full speed); with `normalized` a "
+    "share of it in [0, 1]",
+    True,
+)
+_NORMALIZED = Arg("normalized", "boolean", "thrusts as shares in [0, 1] of the largest (default false)")
+
 _T = (
     "sim time (s) when the command was accepted; `stamp_ns`: the same instant on the ROS clock (integer ns), "
     "so a client can wait for the first image stamped after it"
@@ -344,6 +376,57 @@ OPS: dict[str, Op] = {
             flight=True,
         ),
         Op(
+            "rotors",
+            "Set the four rotor speeds directly, no controller in the loop (RotorPy's rotor order; the "
+            "motors follow with the airframe's lag). A speed outside the airframe's range "
+            "(`limits.rotor_speed`) is refused; normalised thrusts `u` give `rotor_speed_max * sqrt(u)`, "
+            "raised to `rotor_speed_min`. " + _STREAM.format(op="rotors"),
+            f"`t`: {_T}",
+            (
+                Arg("rotor_speeds", "vec4", "rad/s, each in `limits.rotor_speed`; with `normalized` each "
+                    "rotor's thrust as a share in [0, 1] of its largest", True),  # fmt: skip
+                _NORMALIZED,
+            ),
+            _rotors,
+            flight=True,
+        ),
+        Op(
+            "rates",
+            "Collective thrust and body rates (CTBR, as an autopilot's acro mode): the body-rate loop "
+            "(proportional and integral, its gains `limits.rate_gain` per airframe or `flight.rate_gain`) "
+            "turns them into rotor speeds every control period, yaw given up first when a rotor saturates, "
+            "rotor speeds clipped to their range. " + _STREAM.format(op="rates"),
+            f"`t`: {_T}",
+            (
+                _THRUST,
+                Arg("body_rates", "vec3", "roll, pitch, yaw rates, rad/s, body FLU, each within "
+                    "`limits.max_body_rate` (720, 720, 540 deg/s: "
+                    "`flight.max_body_rate_deg_s`)", True),  # fmt: skip
+                _NORMALIZED,
+            ),
+            _rates,
+            flight=True,
+        ),
+        Op(
+            "attitude",
+            "Collective thrust and attitude: the SE(3) controller's attitude loop (RotorPy's `cmd_ctatt`, "
+            "the airframe's attitude gains) turns them into rotor speeds every control period. The attitude "
+            "is a `quaternion` or `roll`, `pitch`, `yaw`, tilted at most `limits.max_attitude_tilt_deg` (60 "
+            "deg: `flight.max_attitude_tilt_deg`) from level. " + _STREAM.format(op="attitude"),
+            f"`t`: {_T}",
+            (
+                _THRUST,
+                Arg("quaternion", "vec4", "[x, y, z, w], body FLU to world ENU, norm 1 within 1 % "
+                    "(normalised); not with roll, pitch, yaw"),  # fmt: skip
+                Arg("roll", "number", "rad, Z-Y-X Euler angles (default 0)"),
+                Arg("pitch", "number", "rad (default 0)"),
+                Arg("yaw", "number", "heading, rad about +z, 0 = +x, CCW positive (default: the current)"),
+                _NORMALIZED,
+            ),
+            _attitude,
+            flight=True,
+        ),
+        Op(
             "hold",
             "Hover at the current position and heading.",
             f"`t`: {_T}",
@@ -393,7 +476,8 @@ OPS: dict[str, Op] = {
             "(equal to `t_ns` before the first reset); `position` [x, y, z] (m, world); "
             "`velocity` (m/s, world); `quaternion` [x, y, z, w] (body FLU to world); `angular_velocity` "
             "(rad/s, body); `yaw` (rad); `mode` (`idle`, `takeoff`, `goto`, `hold`, `velocity`, `track`, "
-            '`land`, `collided`, `external`); `vehicle`: its name; `wind` [x, y, z] (m/s, world): the wind '
+            '`land`, `collided`, `external`, `rotors`, `rates`, `attitude`); `vehicle`: its name; `wind` '
+            "[x, y, z] (m/s, world): the wind "
             "at the vehicle, rotor wakes of vehicles above included. With `vehicle` `\"*\"`: `t`, `stamp_ns` "
             "and `vehicles` (name -> that state) for every vehicle",
             (
@@ -474,8 +558,11 @@ OPS: dict[str, Op] = {
             "`landmarks` (name -> nested lists); `scenes` (loadable names); `limits` (`max_speed`, "
             "`max_yaw_rate`, `default_speed`, `takeoff_altitude`, `goto_duration` range); `vehicles`: "
             "one entry per vehicle, first the default: `name`, `params` (airframe), `controlled_by` "
-            "(`internal` or `px4`), `cameras` (names), and where it is reached when a runtime serves it: "
-            "`namespace` and `topics` (its ROS 2 topic names), `tf_prefix`, `px4_port` (PX4 vehicles); "
+            "(`internal` or `px4`), `cameras` (names), `limits` (what `rotors`, `rates` and `attitude` "
+            "accept: `rotor_speed` [min, max] rad/s, `max_thrust` N, `thrust_to_weight`, `max_body_rate` "
+            "rad/s, `max_attitude_tilt_deg`, `rate_gain` 1/s, `stream_timeout` s), and where it is reached "
+            "when a runtime serves it: `namespace` and `topics` (its ROS 2 topic names), `tf_prefix`, "
+            "`px4_port` (PX4 vehicles); "
             "`light`: the light settings (the config's `light` section as it is now; see `reset`); "
             "`vegetation`: the scene's vegetation density; `camera_trigger`: `rate` (cameras shoot at "
             "`render.camera_hz`) or `command` (only at `trigger`)",
@@ -611,6 +698,10 @@ def _validate(arg: Arg, value: Any) -> Any:
         if not isinstance(value, list) or not value or not all(isinstance(v, str) for v in value):
             raise CommandError("invalid_argument", f"{what} must be a non-empty array of strings")
         out = list(value)
+    elif arg.type == "vec4":
+        if not isinstance(value, list) or len(value) != 4:
+            raise CommandError("invalid_argument", f"{what} must be an array of 4 numbers")
+        out = [_number(v, f"{what}[{i}]") for i, v in enumerate(value)]
     elif arg.type == "streams":
         if not isinstance(value, list) or not value or any(s not in STREAMS for s in value):
             streams = " and/or ".join(f'"{s}"' for s in STREAMS)

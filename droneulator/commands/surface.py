@@ -69,6 +69,26 @@ class CommandedVehicle(Protocol):
         """Track one setpoint with feed-forward."""
         ...
 
+    def rotors(self, rotor_speeds: Sequence[float], normalized: bool = False) -> None:
+        """Set the four rotor speeds (rad/s, or thrusts in [0, 1] with ``normalized``)."""
+        ...
+
+    def rates(self, thrust: float, body_rates: Vec3, normalized: bool = False) -> None:
+        """Fly a collective thrust (N, or a share of the largest) and body rates (rad/s)."""
+        ...
+
+    def attitude(
+        self,
+        thrust: float,
+        quaternion: Sequence[float] | None = None,
+        roll: float | None = None,
+        pitch: float | None = None,
+        yaw: float | None = None,
+        normalized: bool = False,
+    ) -> None:
+        """Fly a collective thrust and an attitude (a quaternion or roll, pitch, yaw)."""
+        ...
+
     def hold(self) -> None: ...
 
     def motors_off(self) -> None: ...

@@ -197,8 +197,27 @@ class FlightConfig:
     #: away and lifts it when the heading is far off
     max_tilt_deg: float | None = 45.0
     min_lift: float = 0.2
+    #: the body-rate loop's gain per axis (1/s, roll, pitch, yaw) for ``rates`` commands (docs/control.md);
+    #: null: the airframe's, 0.4 / its motor time constant, at most 25
+    rate_gain: tuple[float, float, float] | None = None
+    #: the largest body rates a ``rates`` command may ask for (deg/s: roll, pitch, yaw; PX4's MC_ACRO_*_MAX)
+    max_body_rate_deg_s: tuple[float, float, float] = (720.0, 720.0, 540.0)
+    #: the largest tilt from level an ``attitude`` command may ask for (degrees, in (0, 180])
+    max_attitude_tilt_deg: float = 60.0
 
     def __post_init__(self) -> None:
+        if self.rate_gain is not None and (
+            len(self.rate_gain) != 3 or not all(math.isfinite(k) and k > 0 for k in self.rate_gain)
+        ):
+            raise ValueError(f"flight.rate_gain must be three positive numbers or null, got {self.rate_gain}")
+        if len(self.max_body_rate_deg_s) != 3 or not all(
+            math.isfinite(r) and r > 0 for r in self.max_body_rate_deg_s
+        ):
+            raise ValueError(f"flight.max_body_rate_deg_s must be three positive numbers, got "
+                             f"{self.max_body_rate_deg_s}")  # fmt: skip
+        if not 0.0 < self.max_attitude_tilt_deg <= 180.0:
+            tilt = self.max_attitude_tilt_deg
+            raise ValueError(f"flight.max_attitude_tilt_deg must lie in (0, 180], got {tilt}")
         for name in ("arrive_tolerance", "arrive_speed", "arrive_timeout_s", "acceptance_radius"):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):

@@ -8,7 +8,11 @@
   no setpoint arrives for :data:`TRACK_TIMEOUT` s of sim time the vehicle holds where it is;
 * ``idle``: motors off (rests on the ground);
 * ``collided``: the vehicle stopped against the scene until the next command;
-* ``external``: rotor speeds set directly by an autopilot (PX4 SITL), no controller in the loop.
+* ``external``: rotor speeds set directly by an autopilot (PX4 SITL), no controller in the loop;
+* ``rotors``, ``rates``, ``attitude``: a stream of rotor speeds, of collective thrust and body rates, or of
+  collective thrust and attitude (the inner loops of :mod:`droneulator.controllers.inner`, run by the
+  world's compiled step); like ``track``, after :data:`TRACK_TIMEOUT` s without a command the vehicle
+  holds where it is (or stops its motors on the ground).
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from droneulator.config import FlightConfig
+from droneulator.controllers.inner import SP_INTEGRAL, SP_Q, SP_RATES, SP_THRUST, attitude_into, rates_into
 from droneulator.controllers.se3 import FastSE3Control
 from droneulator.controllers.velocity import VelocityReference
 from droneulator.frames import yaw_of
@@ -31,7 +36,8 @@ from droneulator.trajectories.minsnap import PolyTrajectory, goto_trajectory, ho
 
 LAND_SPEED = 0.6
 TOUCHDOWN_ALTITUDE = 0.03
-#: sim seconds without a ``track`` setpoint after which the vehicle holds (raising ``track_timeout``)
+#: sim seconds without a ``track``, ``rotors``, ``rates`` or ``attitude`` command after which the vehicle
+#: holds (raising ``track_timeout``, ``rotors_timeout``, ...)
 TRACK_TIMEOUT = 0.5
 #: largest ``track`` acceleration feed-forward, m/s^2 (about what the default airframe's thrust margin allows)
 TRACK_MAX_ACCEL = 10.0
@@ -50,6 +56,16 @@ class Mode(StrEnum):
     COLLIDED = "collided"
     #: rotor speeds commanded from outside (PX4 SITL actuator outputs)
     EXTERNAL = "external"
+    #: a stream of rotor speeds (API, ROS, learning)
+    ROTORS = "rotors"
+    #: a stream of collective thrust and body rates
+    RATES = "rates"
+    #: a stream of collective thrust and attitude
+    ATTITUDE = "attitude"
+
+
+#: the modes a stream of commands drives, which hold after :data:`TRACK_TIMEOUT` without one
+STREAMED = (Mode.TRACK, Mode.ROTORS, Mode.RATES, Mode.ATTITUDE)
 
 
 @dataclass
@@ -74,7 +90,7 @@ class FlightController:
 
     def __init__(self, quad_params: dict[str, Any], cfg: FlightConfig) -> None:
         self.cfg = cfg
-        self.se3 = FastSE3Control(quad_params, cfg.max_tilt_deg, cfg.min_lift)
+        self.se3 = FastSE3Control(quad_params, cfg.max_tilt_deg, cfg.min_lift, cfg.rate_gain)
         self.mode = Mode.IDLE
         self.trajectory: PolyTrajectory | None = None
         self.velocity_ref: VelocityReference | None = None
@@ -85,6 +101,10 @@ class FlightController:
         self._setpoint = np.zeros(FLAT_SIZE)  # the latest track setpoint, packed like a flat output
         self._setpoint_t = 0.0
         self._track_flat = np.zeros(FLAT_SIZE)
+        #: the latest rotors command, and the latest thrust and rates or attitude setpoint, packed
+        #: (:mod:`droneulator.controllers.inner`; the rate loop's integral after it)
+        self._rotors = np.zeros(4)
+        self._inner = np.zeros(SP_INTEGRAL + 3)
         #: land on arriving at the current goto's target (:meth:`land_at`)
         self._then_land = False
         #: called on every command taken: a world skipping :attr:`steady` vehicles hears when one arrives
@@ -92,7 +112,8 @@ class FlightController:
 
     @property
     def airborne_modes(self) -> tuple[Mode, ...]:
-        return (Mode.TAKEOFF, Mode.GOTO, Mode.HOLD, Mode.VELOCITY, Mode.TRACK, Mode.LAND, Mode.COLLIDED)
+        return (Mode.TAKEOFF, Mode.GOTO, Mode.HOLD, Mode.VELOCITY, Mode.TRACK, Mode.LAND, Mode.COLLIDED,
+                Mode.ROTORS, Mode.RATES, Mode.ATTITUDE)  # fmt: skip
 
     # ------------------------------------------------------------------ commands
     def _commanded(self) -> None:
@@ -225,6 +246,34 @@ class FlightController:
         self._then_land = False
         self.mode, self.trajectory, self.velocity_ref, self.target = Mode.EXTERNAL, None, None, None
 
+    def _stream(self, t: float, mode: Mode) -> None:
+        """Enter (or stay in) streamed mode ``mode`` with a command received at sim time ``t``."""
+        self._commanded()
+        if self.mode != mode:
+            self._inner[SP_INTEGRAL:] = 0.0  # the rate loop starts afresh
+        self._setpoint_t = float(t)
+        self._then_land = False
+        self.mode, self.trajectory, self.velocity_ref, self.target = mode, None, None, None
+
+    def rotors(self, t: float, rotor_speeds: np.ndarray) -> None:
+        """Take rotor speeds (rad/s, RotorPy order, within the airframe's range) received at sim time ``t``;
+        they stand until the next command or :data:`TRACK_TIMEOUT`."""
+        self._rotors[:] = rotor_speeds
+        self._stream(t, Mode.ROTORS)
+
+    def rates(self, t: float, thrust: float, body_rates: np.ndarray) -> None:
+        """Take a collective thrust (N) and body rates (rad/s, FLU) received at sim time ``t``."""
+        self._inner[SP_THRUST] = thrust
+        self._inner[SP_RATES : SP_RATES + 3] = body_rates
+        self._stream(t, Mode.RATES)
+
+    def attitude(self, t: float, thrust: float, quaternion: np.ndarray) -> None:
+        """Take a collective thrust (N) and attitude (unit quaternion ``[x, y, z, w]``, body FLU to world)
+        received at sim time ``t``."""
+        self._inner[SP_THRUST] = thrust
+        self._inner[SP_Q : SP_Q + 4] = quaternion
+        self._stream(t, Mode.ATTITUDE)
+
     def collided(self) -> None:
         self._commanded()
         self._then_land = False
@@ -241,19 +290,31 @@ class FlightController:
         self, s: np.ndarray, t: float, dt: float
     ) -> tuple[np.ndarray | None, np.ndarray | None, list[Event]]:
         """For the coming ``dt``: ``(rotor speeds, None, events)`` where the rotors are set directly (motors
-        off, an autopilot), or ``(None, flat reference, events)`` for the SE(3) controller to track (the
-        world runs it for every vehicle at once; :meth:`command` here for one)."""
+        off, an autopilot, ``rotors``), or ``(None, reference, events)``: a flat reference for the SE(3)
+        controller to track or, in ``rates`` and ``attitude``, the packed inner-loop setpoint
+        (:mod:`droneulator.controllers.inner`); the world runs the controllers for every vehicle at once,
+        :meth:`command` here for one."""
         events: list[Event] = []
         if self.mode in (Mode.IDLE, Mode.COLLIDED):
             return self._zero, None, events
         if self.mode == Mode.EXTERNAL:
             return self._external, None, events
-        if self.mode == Mode.TRACK and t - self._setpoint_t > TRACK_TIMEOUT:
-            age = t - self._setpoint_t
-            self.hold(s, t)
-            log.warning("no track setpoint for %.2f s of sim time: holding at %s", age,
-                        np.round(s[STATE.x], 3).tolist())
-            events.append(Event("track_timeout", t, {"position": s[STATE.x].tolist(), "age": age}))
+        if self.mode in STREAMED and t - self._setpoint_t > TRACK_TIMEOUT:
+            age, stream = t - self._setpoint_t, self.mode.value
+            on_ground = s[STATE.x][2] < TOUCHDOWN_ALTITUDE
+            if on_ground and self.mode != Mode.TRACK:
+                self.motors_off()
+            else:
+                self.hold(s, t)
+            log.warning("no %s command for %.2f s of sim time: %s at %s", stream, age, self.mode.value,
+                        np.round(s[STATE.x], 3).tolist())  # fmt: skip
+            events.append(Event(f"{stream}_timeout", t, {"position": s[STATE.x].tolist(), "age": age}))
+            if self.mode == Mode.IDLE:
+                return self._zero, None, events
+        if self.mode == Mode.ROTORS:
+            return self._rotors, None, events
+        if self.mode in (Mode.RATES, Mode.ATTITUDE):
+            return None, self._inner, events
         if self.mode == Mode.VELOCITY:
             assert self.velocity_ref is not None
             flat = self.velocity_ref.update(dt, s[STATE.x])
@@ -282,9 +343,18 @@ class FlightController:
     def command(
         self, s: np.ndarray, t: float, dt: float
     ) -> tuple[np.ndarray, np.ndarray | None, list[Event]]:
-        """:meth:`update` with the SE(3) controller run here: rotor speeds, the reference, events."""
+        """:meth:`update` with the controller run here: rotor speeds, the reference, events."""
         cmd, flat, events = self.update(s, t, dt)
-        return (self.se3.motor_speeds(s, flat) if cmd is None else cmd), flat, events
+        if cmd is not None or flat is None:
+            return cmd, flat, events
+        out = np.empty(4)
+        if self.mode == Mode.RATES:
+            rates_into(s, flat, self.se3.gains(), out, dt)
+        elif self.mode == Mode.ATTITUDE:
+            attitude_into(s, flat, self.se3.gains(), out, np.empty((3, 3)))
+        else:
+            out = self.se3.motor_speeds(s, flat)
+        return out, flat, events
 
     def _arrival(self, s: np.ndarray, t: float) -> bool | None:
         """Whether the vehicle, its reference ended, has arrived: True when settled (within

@@ -29,10 +29,11 @@ from droneulator.frames_numba import quat_to_matrix_into
 from droneulator.state import STATE
 
 # Layout of a packed gain vector (:meth:`FastSE3Control.gains`): what the kernel needs of one airframe.
-_G_MASS, _G_J, _G_KP, _G_KD, _G_KPATT, _G_KDATT, _G_TM, _G_KETA, _G_TAN, _G_LIFT, _G_FMIN, _G_FMAX = (
-    0, 1, 10, 13, 16, 17, 18, 34, 35, 36, 37, 38,
+# The body-rate gains (``_G_KW``, 3) are the rate loop's (:mod:`droneulator.controllers.inner`).
+_G_MASS, _G_J, _G_KP, _G_KD, _G_KPATT, _G_KDATT, _G_TM, _G_KETA, _G_TAN, _G_LIFT, _G_FMIN, _G_FMAX, _G_KW = (
+    0, 1, 10, 13, 16, 17, 18, 34, 35, 36, 37, 38, 39,
 )  # fmt: skip
-GAINS_SIZE = 39
+GAINS_SIZE = 42
 #: where the attitude quaternion starts in the packed state (the kernel indexes the state directly)
 _Q = STATE.q.start
 
@@ -95,6 +96,14 @@ def se3_into(s: np.ndarray, flat: np.ndarray, k: np.ndarray, out: np.ndarray, R:
     u20 = k[J] * a0 + k[J + 1] * a1 + k[J + 2] * a2 + (wy * Jw2 - wz * Jw1)
     u21 = k[J + 3] * a0 + k[J + 4] * a1 + k[J + 5] * a2 + (wz * Jw0 - wx * Jw2)
     u22 = k[J + 6] * a0 + k[J + 7] * a1 + k[J + 8] * a2 + (wx * Jw1 - wy * Jw0)
+    allocate_into(k, u1, u20, u21, u22, out)
+
+
+@numba.njit(cache=True)
+def allocate_into(k: np.ndarray, u1: float, u20: float, u21: float, u22: float, out: np.ndarray) -> None:
+    """Write the rotor speeds (rad/s, unclipped) for collective thrust ``u1`` (N) and body moments ``u2``
+    (N m) into ``out`` through the airframe's allocation matrix (packed gains ``k``), giving up yaw moment
+    first when a rotor would leave its speed range (with the thrust bounds on, ``f_max > f_min``)."""
     T = _G_TM
     for i in range(4):
         out[i] = k[T + 4 * i] * u1 + k[T + 4 * i + 1] * u20 + k[T + 4 * i + 2] * u21 + k[T + 4 * i + 3] * u22
@@ -123,6 +132,23 @@ KD_POS = (4.0, 4.0, 9.0)
 KP_ATT = 310.0
 KD_ATT = 57.0
 
+#: the default body-rate gain is this many times the airframe's motor bandwidth (1 / tau_m): slower than
+#: the motors it acts through, so the loop settles without ringing
+RATE_GAIN_PER_MOTOR_BANDWIDTH = 0.4
+#: and at most this (1/s): a loop sampled at the control rate (100 Hz by default) stays well damped
+RATE_GAIN_MAX = 25.0
+
+
+def rate_gains(quad_params: dict[str, Any], override: tuple[float, float, float] | None = None) -> np.ndarray:
+    """The body-rate loop's gains (1/s, roll, pitch, yaw) for an airframe: ``override`` (the vehicle's
+    ``flight.rate_gain``) or :data:`RATE_GAIN_PER_MOTOR_BANDWIDTH` / ``tau_m``, at most
+    :data:`RATE_GAIN_MAX`. (RotorPy's own ``k_w`` values are not flyable at a 100 Hz control rate: 1/s for
+    the Hummingbird is a one-second response, 200/s for the Crazyflie oscillates.)"""
+    if override is not None:
+        return np.asarray(override, dtype=float)
+    k = min(RATE_GAIN_PER_MOTOR_BANDWIDTH / float(quad_params["tau_m"]), RATE_GAIN_MAX)
+    return np.full(3, k)
+
 
 def allocation(quad_params: dict[str, Any]) -> np.ndarray:
     """RotorPy's control allocation: the matrix from (thrust, roll, pitch, yaw moments) to the rotor forces,
@@ -139,10 +165,16 @@ class FastSE3Control:
 
     ``max_tilt_deg`` (in (0, 90); None: no bounds, RotorPy's exact controller) and ``min_lift`` (share of
     the weight, in [0, 1)) bound the desired thrust vector; with them the yaw moment is also given up
-    before thrust when a rotor would leave its speed range (see the module docstring)."""
+    before thrust when a rotor would leave its speed range (see the module docstring). ``rate_gain``
+    (1/s per body axis; None: the airframe's, :func:`rate_gains`) is the
+    body-rate loop's, packed with the rest for the compiled inner loops."""
 
     def __init__(
-        self, quad_params: dict[str, Any], max_tilt_deg: float | None = None, min_lift: float = 0.0
+        self,
+        quad_params: dict[str, Any],
+        max_tilt_deg: float | None = None,
+        min_lift: float = 0.0,
+        rate_gain: tuple[float, float, float] | None = None,
     ) -> None:
         if max_tilt_deg is not None and not 0.0 < max_tilt_deg < 90.0:
             raise ValueError(f"max_tilt_deg must lie in (0, 90) degrees, got {max_tilt_deg}")
@@ -164,6 +196,7 @@ class FastSE3Control:
         self.kd_pos = np.array(KD_POS)
         self.kp_att = float(q.get("kp_att", KP_ATT))
         self.kd_att = float(q.get("kd_att", KD_ATT))
+        self.k_w = rate_gains(q, rate_gain)
         self.TM_to_f = np.ascontiguousarray(allocation(q))
         self.k_eta = float(q["k_eta"])
         self._gains = self.gains()
@@ -189,6 +222,7 @@ class FastSE3Control:
         k[_G_TM : _G_TM + 16] = self.TM_to_f.ravel()
         k[_G_KETA], k[_G_TAN], k[_G_LIFT] = self.k_eta, self.tan_max_tilt, self.min_lift
         k[_G_FMIN], k[_G_FMAX] = self.f_min, self.f_max
+        k[_G_KW : _G_KW + 3] = self.k_w
         return k
 
     def motor_speeds(self, s: np.ndarray, flat: np.ndarray) -> np.ndarray:

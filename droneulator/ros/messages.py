@@ -31,8 +31,14 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from droneulator.frames import yaw_of
 
 __all__ = [
+    "ACTUATORS",
+    "ACTUATORS_MSG",
+    "ATTITUDE_TARGET",
+    "ATTITUDE_TARGET_MSG",
     "POSITION_COMMAND",
     "POSITION_COMMAND_MSG",
+    "actuators",
+    "attitude_target",
     "TYPESTORE",
     "CdrBytes",
     "SerdeError",
@@ -98,6 +104,39 @@ uint8 trajectory_flag
 # exactly as rosidl does (REP 2011: fields and nested types, no constants or comments).
 TYPESTORE.register(get_types_from_msg(POSITION_COMMAND_MSG, POSITION_COMMAND))
 
+#: ``mavros_msgs/msg/AttitudeTarget``, MAVROS's ``setpoint_raw/attitude`` (MAVLink SET_ATTITUDE_TARGET),
+#: field for field as in mavlink/mavros ``mavros_msgs/msg/AttitudeTarget.msg``: the orientation (ENU world,
+#: FLU body, as MAVROS takes it), body rates (FLU, rad/s) and a thrust normalised to [0, 1]
+ATTITUDE_TARGET = "mavros_msgs/msg/AttitudeTarget"
+ATTITUDE_TARGET_MSG = """\
+std_msgs/Header header
+
+uint8 type_mask
+uint8 IGNORE_ROLL_RATE = 1
+uint8 IGNORE_PITCH_RATE = 2
+uint8 IGNORE_YAW_RATE = 4
+uint8 IGNORE_THRUST = 64
+uint8 IGNORE_ATTITUDE = 128
+
+geometry_msgs/Quaternion orientation
+geometry_msgs/Vector3 body_rate
+float32 thrust
+"""
+TYPESTORE.register(get_types_from_msg(ATTITUDE_TARGET_MSG, ATTITUDE_TARGET))
+
+#: ``actuator_msgs/msg/Actuators`` (ROS 2 Jazzy's actuator_msgs, the message ros_gz bridges to Gazebo's
+#: multicopter motor model): per actuator a position, a velocity (rad/s for a rotor) or a normalised
+#: command
+ACTUATORS = "actuator_msgs/msg/Actuators"
+ACTUATORS_MSG = """\
+std_msgs/Header header
+
+float64[] position
+float64[] velocity
+float64[] normalized
+"""
+TYPESTORE.register(get_types_from_msg(ACTUATORS_MSG, ACTUATORS))
+
 #: a serialised sample: ``bytes`` or the ``bytearray`` rosbags serialised into (Zenoh takes both)
 CdrBytes = bytes | bytearray
 
@@ -123,6 +162,8 @@ _Image = _T["sensor_msgs/msg/Image"]
 _PoseStamped = _T["geometry_msgs/msg/PoseStamped"]
 _Vector3Stamped = _T["geometry_msgs/msg/Vector3Stamped"]
 _PositionCommand = _T[POSITION_COMMAND]
+_AttitudeTarget = _T[ATTITUDE_TARGET]
+_Actuators = _T[ACTUATORS]
 _Imu = _T["sensor_msgs/msg/Imu"]
 _MagneticField = _T["sensor_msgs/msg/MagneticField"]
 _FluidPressure = _T["sensor_msgs/msg/FluidPressure"]
@@ -321,6 +362,38 @@ def position_command(
         kv=np.array(_vec3(kv, "kv"), dtype=np.float64),
         trajectory_id=int(trajectory_id),
         trajectory_flag=int(trajectory_flag),
+    )
+
+
+def attitude_target(
+    t_ns: int,
+    frame_id: str,
+    thrust: float,
+    quat_xyzw: ArrayLike = (0.0, 0.0, 0.0, 1.0),
+    body_rate: ArrayLike = (0.0, 0.0, 0.0),
+    type_mask: int = 0,
+) -> Any:
+    """mavros_msgs/AttitudeTarget: a normalised ``thrust`` with an attitude or body rates (``type_mask``
+    says which fields to ignore: 128 the orientation, 1, 2, 4 the body rates, 64 the thrust)."""
+    rx, ry, rz = _vec3(body_rate, "body_rate")
+    return _AttitudeTarget(
+        header=header(t_ns, frame_id),
+        type_mask=int(type_mask),
+        orientation=_quat(quat_xyzw),
+        body_rate=_Vector3(x=rx, y=ry, z=rz),
+        thrust=np.float32(thrust),
+    )
+
+
+def actuators(
+    t_ns: int, velocity: ArrayLike = (), normalized: ArrayLike = (), position: ArrayLike = ()
+) -> Any:
+    """actuator_msgs/Actuators: per actuator commands (rotor speeds in ``velocity``, rad/s)."""
+    return _Actuators(
+        header=header(t_ns, ""),
+        position=np.asarray(position, dtype=np.float64),
+        velocity=np.asarray(velocity, dtype=np.float64),
+        normalized=np.asarray(normalized, dtype=np.float64),
     )
 
 

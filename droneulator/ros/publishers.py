@@ -8,8 +8,9 @@ single-vehicle names; a fleet gets ``/<ns>/<vehicle>/...`` and prefixed or names
   sensor models). It runs in the process that owns the vehicle state (the dynamics server), right after
   the physics step that produced the state, so odometry never waits for another process.
 * :class:`FramePublisher`: every camera's images, camera_info and optical-frame pose (the bridge process).
-* :func:`subscribe_commands`: ``/<ns>/cmd_vel``, ``/<ns>/goal_pose`` and ``/<ns>/position_cmd`` into the
-  one :class:`~droneulator.commands.path.CommandPath`, with the WebSocket API's validation and flight lock.
+* :func:`subscribe_commands`: ``/<ns>/cmd_vel``, ``/<ns>/goal_pose``, ``/<ns>/position_cmd``,
+  ``/<ns>/setpoint_raw/attitude`` and ``/<ns>/command/motor_speed`` into the one
+  :class:`~droneulator.commands.path.CommandPath`, with the WebSocket API's validation and flight lock.
 
 Everything is stamped with the simulator's monotonic clock (:attr:`VehicleState.stamp_ns`), which
 never runs backwards, not even across a reset.
@@ -340,9 +341,23 @@ class FramePublisher:
                 pubs["seg"].publish(M.serialize(M.compressed_image(t, frame_id, "png", png)), t)
 
 
+#: mavros_msgs/AttitudeTarget's type_mask bits for the orientation and the thrust
+ATTITUDE_IGNORE_ORIENTATION, ATTITUDE_IGNORE_THRUST = 128, 64
+
+
 def subscribe_commands(node: RosZenohNode, cfg: SimConfig, commands: CommandPath) -> None:
-    """Every vehicle's ``cmd_vel`` -> ``velocity``, ``goal_pose`` -> ``goto`` and ``position_cmd`` ->
-    ``track``, through the one command path, each commanding its own vehicle.
+    """Every vehicle's ``cmd_vel`` -> ``velocity``, ``goal_pose`` -> ``goto``, ``position_cmd`` ->
+    ``track``, ``setpoint_raw/attitude`` -> ``rates`` or ``attitude`` and ``command/motor_speed`` ->
+    ``rotors``, through the one command path, each commanding its own vehicle.
+
+    An AttitudeTarget is MAVROS's ``setpoint_raw/attitude`` (ENU world, FLU body, thrust normalised to
+    [0, 1] of the largest): with ``IGNORE_ATTITUDE`` (128) in its ``type_mask`` its body rates (those not
+    ignored; an ignored one is 0) go to ``rates``, else its orientation goes to ``attitude`` (its body
+    rates unused); one with ``IGNORE_THRUST`` (64) is refused, the simulator needs a thrust. An
+    Actuators message carries four rotor speeds in ``velocity`` (rad/s) or four thrusts in ``normalized``
+    ([0, 1] of a rotor's largest), not both. (Actuators rather than a Float64MultiArray: it names the unit
+    by its field, carries a stamp, and is what ros_gz bridges to Gazebo's multicopter motor model, so a
+    controller written for Gazebo's multicopters speaks it already.)
 
     A PositionCommand's ``kx``/``kv`` gains, ``trajectory_id`` and ``trajectory_flag`` are not used: the
     simulator's SE(3) gains apply. Its frame may be ``world`` (EGO-Planner's name for it), ``map``,
@@ -360,6 +375,7 @@ def _subscribe_vehicle(node: RosZenohNode, names: VehicleNames, vehicle: str, co
     topics = names.topics()
     src_vel, src_goal = f"ROS {topics['cmd_vel']}", f"ROS {topics['goal_pose']}"
     src_track = f"ROS {topics['position_cmd']}"
+    src_att, src_motor = f"ROS {topics['attitude_target']}", f"ROS {topics['motor_speed']}"
     goal_frames = ("", MAP_FRAME, names.odom_frame)
     setpoint_frames = ("world", *goal_frames)  # "world": EGO-Planner's name for it
 
@@ -398,6 +414,35 @@ def _subscribe_vehicle(node: RosZenohNode, names: VehicleNames, vehicle: str, co
         }
         commands.submit(src_track, "track", args)
 
+    def on_attitude_target(msg: Any) -> None:
+        mask = int(msg.type_mask)
+        thrust = float(msg.thrust)
+        if mask & ATTITUDE_IGNORE_THRUST:
+            op = "rates" if mask & ATTITUDE_IGNORE_ORIENTATION else "attitude"
+            commands.reject(src_att, op, "invalid_argument", "a setpoint without thrust (IGNORE_THRUST)")
+        elif mask & ATTITUDE_IGNORE_ORIENTATION:
+            r = msg.body_rate
+            axes = zip((1, 2, 4), (r.x, r.y, r.z), strict=True)
+            rates = [0.0 if mask & bit else float(v) for bit, v in axes]
+            args = {"thrust": thrust, "body_rates": rates, "normalized": True, "vehicle": vehicle}
+            commands.submit(src_att, "rates", args)
+        else:
+            q = msg.orientation
+            quat = [float(q.x), float(q.y), float(q.z), float(q.w)]
+            args = {"thrust": thrust, "quaternion": quat, "normalized": True, "vehicle": vehicle}
+            commands.submit(src_att, "attitude", args)
+
+    def on_motor_speed(msg: Any) -> None:
+        speeds, shares = list(msg.velocity), list(msg.normalized)
+        if bool(speeds) == bool(shares):
+            why = "four rotor speeds in velocity (rad/s) or four thrusts in normalized, one of them"
+            commands.reject(src_motor, "rotors", "invalid_argument", why)
+            return
+        args = {"rotor_speeds": [float(v) for v in speeds or shares], "normalized": bool(shares)}
+        commands.submit(src_motor, "rotors", {**args, "vehicle": vehicle})
+
     node.subscribe(topics["cmd_vel"], TYPES["cmd_vel"], on_cmd_vel)
     node.subscribe(topics["goal_pose"], TYPES["goal_pose"], on_goal_pose)
     node.subscribe(topics["position_cmd"], TYPES["position_cmd"], on_position_cmd)
+    node.subscribe(topics["attitude_target"], TYPES["attitude_target"], on_attitude_target)
+    node.subscribe(topics["motor_speed"], TYPES["motor_speed"], on_motor_speed)

@@ -19,6 +19,8 @@ client, the benchmarks) finds them here instead of spelling them out itself::
                                                      ground deposit, log scale, in map; docs/spray.md)
     /<ns>/cmd_vel, /<ns>/goal_pose       (in)        geometry_msgs/Twist, geometry_msgs/PoseStamped
     /<ns>/position_cmd                   (in)        quadrotor_msgs/PositionCommand (EGO-Planner's)
+    /<ns>/setpoint_raw/attitude          (in)        mavros_msgs/AttitudeTarget (MAVROS's: CTBR, attitude)
+    /<ns>/command/motor_speed            (in)        actuator_msgs/Actuators (rotor speeds, Gazebo's)
     /<ns>/<cam>/pose                                 geometry_msgs/PoseStamped (optical frame in odom)
     /<ns>/<cam>/{color,depth,segmentation}/camera_info   sensor_msgs/CameraInfo
     /<ns>/<cam>/color/image_raw/compressed           sensor_msgs/CompressedImage (jpeg)
@@ -76,6 +78,8 @@ TYPES: dict[str, str] = {
     "cmd_vel": "geometry_msgs/msg/Twist",
     "goal_pose": "geometry_msgs/msg/PoseStamped",
     "position_cmd": "quadrotor_msgs/msg/PositionCommand",
+    "attitude_target": "mavros_msgs/msg/AttitudeTarget",
+    "motor_speed": "actuator_msgs/msg/Actuators",
     "pose": "geometry_msgs/msg/PoseStamped",
     "rgb": "sensor_msgs/msg/CompressedImage",
     "depth": "sensor_msgs/msg/Image",
@@ -156,6 +160,8 @@ def vehicle_topics(ns: str) -> dict[str, str]:
         "cmd_vel": f"/{ns}/cmd_vel",
         "goal_pose": f"/{ns}/goal_pose",
         "position_cmd": f"/{ns}/position_cmd",
+        "attitude_target": f"/{ns}/setpoint_raw/attitude",
+        "motor_speed": f"/{ns}/command/motor_speed",
     }
 
 

@@ -18,8 +18,8 @@ import numpy as np
 
 from droneulator.commands.errors import CommandError
 from droneulator.config import CameraConfig, FlightConfig, SimConfig, VehicleSpec
-from droneulator.controllers.flight import TRACK_MAX_ACCEL, Event, FlightController, Mode
-from droneulator.frames import quat_from_yaw, transform_from_pose, yaw_of
+from droneulator.controllers.flight import TRACK_MAX_ACCEL, TRACK_TIMEOUT, Event, FlightController, Mode
+from droneulator.frames import quat_from_euler, quat_from_yaw, quat_to_matrix, transform_from_pose, yaw_of
 from droneulator.frames_numba import world_to_body
 from droneulator.scenes.base import Scene
 from droneulator.scenes.collision import sdf_lookup_many
@@ -174,7 +174,24 @@ class Vehicle:
             "params": self.spec.params,
             "controlled_by": self.spec.controlled_by,
             "cameras": [c.name for c in self.cameras],
+            "limits": self.control_limits(),
             **self.endpoints,
+        }
+
+    def control_limits(self) -> dict[str, Any]:
+        """What the ``rotors``, ``rates`` and ``attitude`` commands accept for this vehicle (docs/control.md):
+        the airframe's rotor speed range (rad/s) and largest collective thrust (N, every rotor at full speed)
+        with its thrust-to-weight ratio, the largest body rates (rad/s), the largest attitude tilt (deg), the
+        body-rate loop's gains (1/s) and the seconds a command stream may pause before the vehicle holds."""
+        q = self.quad_params
+        return {
+            "rotor_speed": [float(q["rotor_speed_min"]), float(q["rotor_speed_max"])],
+            "max_thrust": self.max_thrust,
+            "thrust_to_weight": self.max_thrust / (float(q["mass"]) * GRAVITY),
+            "max_body_rate": np.radians(self.flight_config.max_body_rate_deg_s).tolist(),
+            "max_attitude_tilt_deg": float(self.flight_config.max_attitude_tilt_deg),
+            "rate_gain": self.flight.se3.k_w.tolist(),
+            "stream_timeout": TRACK_TIMEOUT,
         }
 
     # ------------------------------------------------------------------ state
@@ -237,6 +254,11 @@ class Vehicle:
         """Total rotor thrust now (N): the strength of the wake below the vehicle."""
         w = self.s[STATE.rotor_speeds]
         return float(self.quad_params["k_eta"] * np.dot(w, w))
+
+    @property
+    def max_thrust(self) -> float:
+        """The largest collective thrust (N): every rotor at ``rotor_speed_max``."""
+        return float(4.0 * self.quad_params["k_eta"] * float(self.quad_params["rotor_speed_max"]) ** 2)
 
     @property
     def disk_area(self) -> float:
@@ -438,6 +460,86 @@ class Vehicle:
         self.flight.external(
             np.clip(w, self.quad_params["rotor_speed_min"], self.quad_params["rotor_speed_max"])
         )
+
+    # ------------------------------------------------------------------ commands below the SE(3) controller
+    def _vector(self, name: str, value: Any, n: int) -> np.ndarray:
+        try:
+            a = np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            raise CommandError("invalid_argument", f"{name} must be {n} numbers") from None
+        if a.shape != (n,) or not np.all(np.isfinite(a)):
+            raise CommandError("invalid_argument", f"{name} must be {n} finite numbers, got {value!r}")
+        return a
+
+    def _thrust(self, thrust: float, normalized: bool) -> float:
+        """A collective thrust in N, checked: ``thrust`` in [0, max_thrust] N, or in [0, 1] of it."""
+        self._finite("thrust", thrust)
+        top = 1.0 if normalized else self.max_thrust
+        if not 0.0 <= thrust <= top:
+            unit = "(a share of the largest thrust)" if normalized else "N"
+            raise CommandError("out_of_range", f"thrust {thrust:g} must lie in [0, {top:g}] {unit}")
+        return float(thrust) * (self.max_thrust if normalized else 1.0)
+
+    def rotors(self, rotor_speeds: Any, normalized: bool = False) -> None:
+        """Command the four rotors (RotorPy's order) for one control stream: speeds in rad/s within the
+        airframe's ``[rotor_speed_min, rotor_speed_max]``, or with ``normalized`` thrusts in [0, 1] of a
+        rotor's largest (speed ``rotor_speed_max * sqrt(u)``, raised to ``rotor_speed_min``). A value
+        outside is refused (``out_of_range``). The motors follow with the airframe's lag; after
+        :data:`~droneulator.controllers.flight.TRACK_TIMEOUT` s without a command the vehicle holds."""
+        w = self._vector("rotor_speeds", rotor_speeds, 4)
+        lo, hi = float(self.quad_params["rotor_speed_min"]), float(self.quad_params["rotor_speed_max"])
+        if normalized:
+            if np.any(w < 0.0) or np.any(w > 1.0):
+                raise CommandError("out_of_range", f"normalised thrusts must lie in [0, 1], got {w.tolist()}")
+            w = np.maximum(hi * np.sqrt(w), lo)
+        elif np.any(w < lo) or np.any(w > hi):
+            raise CommandError("out_of_range", f"rotor speeds must lie in [{lo:g}, {hi:g}] rad/s: {w}")
+        self.flight.rotors(self.t, w)
+
+    def rates(self, thrust: float, body_rates: Any, normalized: bool = False) -> None:
+        """Collective thrust (N, or with ``normalized`` a share in [0, 1] of :attr:`max_thrust`) and body
+        rates (rad/s, body FLU, each within ``flight.max_body_rate_deg_s``) for the body-rate loop; after
+        :data:`~droneulator.controllers.flight.TRACK_TIMEOUT` s without a command the vehicle holds."""
+        f = self._thrust(thrust, normalized)
+        w = self._vector("body_rates", body_rates, 3)
+        most = np.radians(self.flight_config.max_body_rate_deg_s)
+        if np.any(np.abs(w) > most):
+            got, top = np.round(w, 3).tolist(), np.round(most, 3).tolist()
+            raise CommandError("out_of_range", f"body rates {got} exceed {top} rad/s")
+        self.flight.rates(self.t, f, w)
+
+    def attitude(
+        self,
+        thrust: float,
+        quaternion: Any = None,
+        roll: float | None = None,
+        pitch: float | None = None,
+        yaw: float | None = None,
+        normalized: bool = False,
+    ) -> None:
+        """Collective thrust (as :meth:`rates`) and attitude for the attitude loop: a unit quaternion
+        ``[x, y, z, w]`` (body FLU to world ENU; normalised, refused when its norm is off 1 by more than 1 %)
+        or roll, pitch, yaw (rad, Z-Y-X; 0 for roll and pitch, the current heading for yaw when left out),
+        tilted at most ``flight.max_attitude_tilt_deg`` from level; after
+        :data:`~droneulator.controllers.flight.TRACK_TIMEOUT` s without a command the vehicle holds."""
+        f = self._thrust(thrust, normalized)
+        if quaternion is not None:
+            if roll is not None or pitch is not None or yaw is not None:
+                raise CommandError("invalid_argument", "give either a quaternion or roll/pitch/yaw, not both")
+            q = self._vector("quaternion", quaternion, 4)
+            norm = float(np.linalg.norm(q))
+            if abs(norm - 1.0) > 0.01:
+                raise CommandError("invalid_argument", f"quaternion must have norm 1, got {norm:g}")
+            q = q / norm
+        else:
+            self._finite("roll/pitch/yaw", roll, pitch, yaw)
+            heading = yaw_of(self.s[STATE.q]) if yaw is None else float(yaw)
+            q = quat_from_euler(float(roll or 0.0), float(pitch or 0.0), heading)
+        tilt = math.degrees(math.acos(min(1.0, max(-1.0, float(quat_to_matrix(q)[2, 2])))))
+        most = self.flight_config.max_attitude_tilt_deg
+        if tilt > most + 1e-9:
+            raise CommandError("out_of_range", f"attitude tilt {tilt:.1f} deg exceeds {most:g} deg")
+        self.flight.attitude(self.t, f, q)
 
     # ------------------------------------------------------------------ the world's hooks
     def on_collision(self, with_: str | None = None, t: float | None = None) -> Event:

@@ -8,7 +8,9 @@ rows: its vehicles' Python flight controllers (one world, every flight mode) or 
    vehicles above it included, :mod:`droneulator.world.downwash`), the period's start state, and its
    rotor command: given (``ROTORS``), or the SE(3) controller's tracking a flat output that is given
    (``FLAT``: hold, goto, trajectories) or advanced here by the compiled velocity reference
-   (``VELOCITY``);
+   (``VELOCITY``), or an inner loop's (:mod:`droneulator.controllers.inner`) flying the collective thrust
+   and body rates (``RATES``) or the collective thrust and attitude (``ATTITUDE``) given in the row's
+   reference;
 2. (:func:`run_period_serial`, once per stretch between camera instants) RK4 with the scene's collisions
    (a row that touches its world's scene stops there, level, and is integrated no further);
 3. :func:`end_period`: vehicles of one world whose bodies overlap stop where they were at the start of
@@ -28,6 +30,7 @@ import math
 import numba
 import numpy as np
 
+from droneulator.controllers.inner import attitude_into, rates_into
 from droneulator.controllers.se3 import se3_into
 from droneulator.controllers.velocity import velocity_flat
 from droneulator.frames_numba import set_quat_from_yaw, yaw_of
@@ -39,7 +42,7 @@ from droneulator.world.downwash import _downwash
 
 NS = 1_000_000_000
 #: how a row gets its rotor command each period (see the module docstring)
-FLAT, VELOCITY, ROTORS = 0, 1, 2
+FLAT, VELOCITY, ROTORS, RATES, ATTITUDE = 0, 1, 2, 3, 4
 _Q = STATE.q.start
 _WIND = STATE.wind.start
 
@@ -83,7 +86,11 @@ def _begin_row(k, go, states, mode, flats, cmds, vref, dt, lim, gains, R):  # fm
     m = mode[w, n]
     if m == VELOCITY:
         velocity_flat(vref[w, n], dt, s, lim[n], flats[w, n])
-    if m != ROTORS:
+    if m == RATES:
+        rates_into(s, flats[w, n], gains[n], cmds[w, n], dt)
+    elif m == ATTITUDE:
+        attitude_into(s, flats[w, n], gains[n], cmds[w, n], R[w, n])
+    elif m != ROTORS:
         se3_into(s, flats[w, n], gains[n], cmds[w, n], R[w, n])
 
 

@@ -42,8 +42,9 @@ import numpy as np
 from droneulator.commands.errors import CommandError
 from droneulator.config import LightConfig, SimConfig, load_config
 from droneulator.controllers.flight import Event, Mode
+from droneulator.controllers.inner import SETPOINT_SIZE
 from droneulator.controllers.velocity import VCMD, VREF_SIZE, start_reference, velocity_limits
-from droneulator.frames import yaw_of
+from droneulator.frames import quat_to_matrix, yaw_of
 from droneulator.scenes import get_scene
 from droneulator.scenes.base import Scene
 from droneulator.state import FLAT_SIZE, STATE, STATE_SIZE
@@ -61,7 +62,7 @@ from droneulator.vehicles.vehicle import Vehicle, VehicleState
 from droneulator.wind.field import WindField
 from droneulator.world import step as kernel
 from droneulator.world.downwash import WakeModel, wakes
-from droneulator.world.step import FLAT, ROTORS, VELOCITY, SdfStack
+from droneulator.world.step import ATTITUDE, FLAT, RATES, ROTORS, VELOCITY, SdfStack
 
 if TYPE_CHECKING:
     from droneulator.render.pipeline import CameraPipeline
@@ -70,6 +71,9 @@ if TYPE_CHECKING:
 NS = 1_000_000_000
 
 log = logging.getLogger("droneulator.sim")
+
+#: the compiled step's mode for the flight modes whose reference is an inner-loop setpoint, not a flat output
+_INNER_MODES = {Mode.RATES: RATES, Mode.ATTITUDE: ATTITUDE}
 
 
 @dataclass
@@ -148,10 +152,16 @@ class World:
         self._hover = np.array([v.hover_speed for v in vs])
         self._lim = np.stack([velocity_limits(v.flight_config) for v in vs])
         self._max_speed = np.array([v.flight_config.max_speed for v in vs])
+        #: what the rows' commands below the SE(3) controller may ask for (:meth:`rotors_rows` ...)
+        self._rotor_range = np.array([[v.quad_params["rotor_speed_min"], v.quad_params["rotor_speed_max"]]
+                                      for v in vs], dtype=float)  # fmt: skip
+        self._max_thrust = np.array([v.max_thrust for v in vs])
+        self._max_rate = np.radians([v.flight_config.max_body_rate_deg_s for v in vs])
+        self._min_cos_tilt = np.cos(np.radians([v.flight_config.max_attitude_tilt_deg for v in vs]))
         self._impact_speed = cfg.vehicle.impact_speed
         self._wake = WakeModel.of(vs)
         # the rows' commands, flags and scratch for the compiled step (:mod:`droneulator.world.step`)
-        #: how each row gets its rotor command: FLAT, VELOCITY or ROTORS
+        #: how each row gets its rotor command: FLAT, VELOCITY, ROTORS, RATES or ATTITUDE
         self.mode = np.full((W, n), FLAT, dtype=np.int64)
         self._flats = np.zeros((W, n, FLAT_SIZE))
         self._cmds = np.zeros((W, n, 4))
@@ -440,10 +450,16 @@ class World:
                 for e in events:
                     e.vehicle = v.name
                 out.events.extend(events)
-                v._reference = ref
-                if cmd is None:
+                inner = _INNER_MODES.get(v.flight.mode)
+                v._reference = None if inner is not None else ref
+                if cmd is None and inner is None:
                     flats[i] = ref
                     self.mode[0, i] = FLAT
+                elif cmd is None:  # the row keeps the rate loop's integral after the setpoint
+                    if self.mode[0, i] != inner:
+                        flats[i] = 0.0
+                    flats[i, :SETPOINT_SIZE] = ref[:SETPOINT_SIZE]
+                    self.mode[0, i] = inner
                 else:
                     cmds[i] = cmd
                     self.mode[0, i] = ROTORS
@@ -592,6 +608,69 @@ class World:
             self.mode[b, i] = VELOCITY
         self._vref[w, v, VCMD] = f
         self._vref[w, v, VCMD + 1] = r
+
+    def _inner_rows(self, w: np.ndarray, v: np.ndarray, mode: int, values: np.ndarray) -> None:
+        """Put rows ``(w[j], v[j])`` in compiled-step mode ``mode`` with the setpoints ``values[j]``; a row
+        entering RATES starts its rate loop's integral at zero."""
+        if not self.active[w, v].all():
+            raise ValueError("a collided or retired vehicle takes no command until it is placed again")
+        entering = self.mode[w, v] != mode
+        self._flats[w[entering], v[entering]] = 0.0
+        self.mode[w, v] = mode
+        if mode == ROTORS:
+            self._cmds[w, v] = values
+        else:
+            self._flats[w, v, : values.shape[1]] = values
+
+    def _thrusts(self, v: np.ndarray, thrust: Any) -> np.ndarray:
+        f = np.asarray(thrust, dtype=float).reshape(len(v))
+        if not np.all(np.isfinite(f)):
+            raise ValueError("thrust must be finite numbers")
+        if np.any(f < 0.0) or np.any(f > self._max_thrust[v]):
+            raise ValueError(f"thrust must lie in [0, max_thrust] N ({self._max_thrust.min():g} N or more)")
+        return f
+
+    def rotors_rows(self, worlds: Any, vehicles: Any, rotor_speeds: Any) -> None:
+        """Rotor speeds (rad/s, ``(k, 4)``, each in its airframe's range) for vehicle ``vehicles[j]`` of
+        world ``worlds[j]``, as ``Vehicle.rotors`` (docs/control.md); they stand until the next command
+        (the batched rows have no stream timeout: a learning agent commands every frame). ValueError for
+        a value out of range."""
+        w, v = self._pairs(worlds, vehicles)
+        speeds = np.asarray(rotor_speeds, dtype=float).reshape(len(w), 4)
+        if not np.all(np.isfinite(speeds)):
+            raise ValueError("rotor speeds must be finite numbers")
+        lo, hi = self._rotor_range[v, 0:1], self._rotor_range[v, 1:2]
+        if np.any(speeds < lo) or np.any(speeds > hi):
+            raise ValueError("rotor speeds must lie in each airframe's [rotor_speed_min, rotor_speed_max]")
+        self._inner_rows(w, v, ROTORS, speeds)
+
+    def rates_rows(self, worlds: Any, vehicles: Any, thrust: Any, body_rates: Any) -> None:
+        """Collective thrust (N, ``(k,)``) and body rates (rad/s, body FLU, ``(k, 3)``) for rows, as
+        ``Vehicle.rates``, flown by the compiled rate loop; they stand until the next command."""
+        w, v = self._pairs(worlds, vehicles)
+        f = self._thrusts(v, thrust)
+        rates = np.asarray(body_rates, dtype=float).reshape(len(w), 3)
+        if not np.all(np.isfinite(rates)):
+            raise ValueError("body rates must be finite numbers")
+        if np.any(np.abs(rates) > self._max_rate[v]):
+            raise ValueError("body rates must lie within flight.max_body_rate_deg_s")
+        self._inner_rows(w, v, RATES, np.column_stack([f, rates]))
+
+    def attitude_rows(self, worlds: Any, vehicles: Any, thrust: Any, quaternions: Any) -> None:
+        """Collective thrust (N, ``(k,)``) and attitudes (unit quaternions ``[x, y, z, w]``, ``(k, 4)``,
+        normalised; tilted at most ``flight.max_attitude_tilt_deg``) for rows, as ``Vehicle.attitude``,
+        flown by the compiled attitude loop; they stand until the next command."""
+        w, v = self._pairs(worlds, vehicles)
+        f = self._thrusts(v, thrust)
+        q = np.asarray(quaternions, dtype=float).reshape(len(w), 4)
+        norm = np.linalg.norm(q, axis=1)
+        if not np.all(np.isfinite(q)) or np.any(np.abs(norm - 1.0) > 0.01):
+            raise ValueError("quaternions must be finite unit quaternions [x, y, z, w] (norm 1 within 1 %)")
+        q = q / norm[:, None]
+        up = np.array([quat_to_matrix(x)[2, 2] for x in q])
+        if np.any(up < self._min_cos_tilt[v] - 1e-12):
+            raise ValueError("attitudes must be tilted at most flight.max_attitude_tilt_deg from level")
+        self._inner_rows(w, v, ATTITUDE, np.column_stack([f, q]))
 
     def retire(self, worlds: Any, vehicles: Any) -> None:
         """Take vehicle rows out of their worlds until the world is placed again: the rows ``(worlds[j],
