@@ -83,7 +83,7 @@ LAYERS: dict[str, int] = {
     "scenes": 1, "wind": 1, "trajectories": 1, "sensors": 1, "commands": 1,
     "controllers": 2,
     "vehicles": 3,
-    "world": 4, "render": 4, "imaging": 4,
+    "world": 4, "render": 4, "imaging": 4, "spray": 4,
     "api": 5, "ros": 5, "px4": 5, "recording": 5,
     "runtime": 6, "ui": 6,
     "workflows": 7,

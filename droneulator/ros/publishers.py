@@ -44,6 +44,7 @@ from droneulator.ros.topics import (
     TYPES,
     VehicleNames,
     spray_deposit_topic,
+    spray_state_topic,
     vehicle_names,
 )
 from droneulator.sensors.camera import Camera
@@ -161,7 +162,7 @@ class StatePublisher:
                 pub(t["wind"], "wind"),
             )
             if cfg.spray.enabled:
-                out.spray = pub(t["spray"], "spray")
+                out.spray = pub(spray_state_topic(names.namespace), "spray")
             for kind in spec.sensors or ():
                 if kind in SENSOR_TOPICS:
                     key = SENSOR_TOPICS[kind]

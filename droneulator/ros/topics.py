@@ -131,6 +131,12 @@ SPRAY_FIELDS = ("rate", "level_l", "tank_l", "flow_l_min", "sprayed_l")
 DEPOSIT_LOG_RANGE = (-4.0, 1.0)
 
 
+def spray_state_topic(ns: str) -> str:
+    """A vehicle's spray state (``spray.enabled``), under its namespace ``ns``."""
+    _check_name("namespace", ns)
+    return f"/{ns}/spray/state"
+
+
 def spray_deposit_topic(namespace: str) -> str:
     """The world's ground-deposit grid, under the run's namespace (one for the whole fleet)."""
     _check_name("namespace", namespace)
@@ -156,7 +162,6 @@ def vehicle_topics(ns: str) -> dict[str, str]:
         "gps_fix": f"/{ns}/gps/fix",
         "air_pressure": f"/{ns}/air_pressure",
         "magnetic_field": f"/{ns}/magnetic_field",
-        "spray": f"/{ns}/spray/state",
         "cmd_vel": f"/{ns}/cmd_vel",
         "goal_pose": f"/{ns}/goal_pose",
         "position_cmd": f"/{ns}/position_cmd",

@@ -87,6 +87,8 @@ class SpraySystem:
         out = {n.name: self.rate * n.flow_l_min * share for n in self.config.nozzles if n.name in self.open}
         self.level_l = max(self.level_l - total, 0.0)
         self.sprayed_l += total
+        if self.level_l <= 0.0:  # run dry: the pump stops (a refill does not start it again)
+            self.rate = 0.0
         return out
 
     def state(self) -> dict[str, object]:
