@@ -124,7 +124,10 @@ def _collect(into: list, typename: str):
 
 
 @pytest.mark.slow
-def test_a_run_publishes_the_spray_state_and_the_deposit_on_ros():
+def test_a_run_publishes_the_spray_state_and_the_deposit_on_ros(tmp_path):
+    from mcap.reader import make_reader
+
+    from droneulator.recording.recorder import Recorder, RecorderConfig
     from droneulator.runtime.launch import launch_run
 
     cfg = load_config(overrides=[*OVERRIDES, "render.camera_hz=2"])
@@ -139,6 +142,9 @@ def test_a_run_publishes_the_spray_state_and_the_deposit_on_ros():
     keys = {"state": "droneulator/spray/state", "deposit": spray_deposit_topic("droneulator").lstrip("/")}
     types = {"state": "std_msgs/msg/Float64MultiArray", "deposit": "nav_msgs/msg/OccupancyGrid"}
     subs = [session.declare_subscriber(keys[k], _collect(got[k], types[k])) for k in keys]
+    recorder = Recorder(tmp_path / "spray.mcap", RecorderConfig(connect=(launched.zenoh_endpoint,)))
+    recorder.start()
+    stats = None
     try:
         with launched.client() as c:
             c.request("takeoff", altitude=2.5)
@@ -167,7 +173,15 @@ def test_a_run_publishes_the_spray_state_and_the_deposit_on_ros():
             y = grid.info.origin.position.y + (iy + 0.5) * grid.info.resolution
             assert np.hypot(x, y) < 2.0
             assert values.max() <= 100 and DEPOSIT_LOG_RANGE[0] < DEPOSIT_LOG_RANGE[1]
+        stats = recorder.close()
+        assert stats.written.get("/droneulator/spray/state", 0) > 0
+        assert stats.written.get("/droneulator/spray/deposit", 0) > 0
+        with open(tmp_path / "spray.mcap", "rb") as f:
+            channels = {c.topic: c for c in make_reader(f).get_summary().channels.values()}
+        assert {"/droneulator/spray/state", "/droneulator/spray/deposit"} <= set(channels)
     finally:
+        if stats is None:
+            recorder.close()
         for s in subs:
             s.undeclare()
         session.close()

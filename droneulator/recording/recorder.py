@@ -35,7 +35,7 @@ import zenoh
 
 from droneulator.recording.bag import BagWriter, Compression, read_stamp, stamp_reader
 from droneulator.ros import messages
-from droneulator.ros.topics import TYPES, topic_names, vehicle_topics
+from droneulator.ros.topics import TYPES, spray_deposit_topic, spray_state_topic, topic_names, vehicle_topics
 from droneulator.ros.zenoh_node import KeyMode, QosProfile, RosZenohNode, ZenohNodeConfig, default_qos
 
 __all__ = ["Recorder", "RecorderConfig", "RecordingStats", "run_recorder_config", "topic_of_key"]
@@ -113,6 +113,8 @@ def topic_of_key(key: str, cfg: RecorderConfig) -> tuple[str, str | None] | None
 def _known_types(namespace: str) -> tuple[dict[str, str], dict[str, str]]:
     """The simulator's topics: exact names (vehicle and global topics) and per-camera name suffixes."""
     exact = {name: TYPES[k] for k, name in vehicle_topics(namespace).items()}
+    exact[spray_state_topic(namespace)] = TYPES["spray"]
+    exact[spray_deposit_topic(namespace)] = TYPES["spray_deposit"]
     marker = "CAMERA"
     suffixes = {
         name.split(f"/{marker}/", 1)[1]: TYPES[k] for k, name in topic_names(namespace, marker).items()
@@ -398,4 +400,3 @@ def run_recorder_config(
         zenoh_config=(bridge.zenoh_config or None) if external else None,
         compression=compression,
     )
-
