@@ -31,7 +31,6 @@ def parcel_steps(parcels: int, steps: int) -> dict[str, Any]:
 
     from droneulator.config import SprayConfig, WeatherConfig, WindConfig, from_dict
     from droneulator.scenes import get_scene
-    from droneulator.spray import kernel
     from droneulator.spray.cloud import Domain, SprayCloud
     from droneulator.spray.spraying import shelter_grid
     from droneulator.spray.targets import SprayTargets
@@ -56,47 +55,22 @@ def parcel_steps(parcels: int, steps: int) -> dict[str, Any]:
     for _ in range(50):  # half a second of spraying: the cloud
         cloud.step([frame.emitter(pos, np.zeros(3), wv, [(n, 1e-5) for n in spray.nozzles])])
     quiet = [frame.emitter(pos, np.zeros(3), wv, [])]
-    rotors = cloud.rotor_rows(quiet)
-    state = [a.copy() for a in (cloud.x, cloud.v, cloud.turb, cloud.d, cloud.n)]
+    rotors, vortices = cloud.rotor_rows(quiet), cloud.vortex_rows(quiet)
+    names = ("x", "v", "turb", "d", "n", "ids")
+    state = [getattr(cloud, a).copy() for a in names]
+    count = cloud.count
 
     def run(threads: int) -> float:
-        for a, s in zip((cloud.x, cloud.v, cloud.turb, cloud.d, cloud.n), state, strict=True):
-            a[:] = s
+        for a, s in zip(names, state, strict=True):
+            setattr(cloud, a, s.copy())
+        cloud.count = count
         numba.set_num_threads(threads)
-        tg = targets
-        grids = [a.ravel() for a in (cloud.shelter, tg.leaf, tg.wood, tg.plant, tg.third, tg.wood_class)]
-        args = lambda k: (  # noqa: E731
-            cloud.x,
-            cloud.v,
-            cloud.turb,
-            cloud.d,
-            cloud.n,
-            cloud.ids,
-            cloud.count,
-            cloud.dt,
-            k,
-            0,
-            cloud._air,
-            cloud._wind,
-            cloud._turbulence,
-            rotors,
-            *grids,
-            cloud._dims,
-            tg.origin,
-            tg.cell,
-            cloud.ground_origin,
-            cloud.ground_cell,
-            cloud._domain,
-            cloud.ledger,
-            cloud.dose,
-            cloud.ground,
-        )
-        kernel.step_parcels(*args(0))  # compiled
+        cloud.advance(rotors, vortices)  # compiled
         alive = 0
         t0 = time.perf_counter()
-        for k in range(steps):
+        for _ in range(steps):
             alive += int(np.count_nonzero(cloud.n[: cloud.count] > 0))
-            kernel.step_parcels(*args(k))
+            cloud.advance(rotors, vortices)
         return alive / (time.perf_counter() - t0)
 
     threads = numba.get_num_threads()

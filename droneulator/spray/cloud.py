@@ -247,25 +247,63 @@ class SprayCloud:
         out[:, 7] = np.sqrt(area / math.pi)
         probe = np.empty(kernel.AIR_SIZE)
         nothing = np.zeros((0, kernel.ROTOR_SIZE))
+        novortex = np.zeros((0, kernel.VORTEX_SIZE))
         k = 0
         for e in emitters:
             for _ in range(len(e.rotors)):
-                kernel.air_velocity(out[k, 0], out[k, 1], out[k, 2], self._wind, nothing, probe)
+                kernel.air_velocity(out[k, 0], out[k, 1], out[k, 2], self._wind, nothing, novortex, probe)
                 out[k, 8] = probe[0] - e.velocity[0]
                 out[k, 9] = probe[1] - e.velocity[1]
                 k += 1
         out[:, 10] = kernel.reach(out)
+        # the share of each vehicle's wake still a jet: the rest is its trailing vortex pair
+        k = 0
+        for e, v in zip(emitters, self._vortices(emitters, out), strict=True):
+            n = len(e.rotors)
+            out[k : k + n, 11] = 1.0 if v is None else 1.0 - v[13]
+            k += n
         return out
+
+    def _vortices(self, emitters: list[Emitter], rows: np.ndarray | None = None) -> list[np.ndarray | None]:
+        """Each vehicle's trailing vortex pair (None when slow), from its thrust, span and airspeed."""
+        out: list[np.ndarray | None] = []
+        probe = np.empty(kernel.AIR_SIZE)
+        none = np.zeros((0, kernel.ROTOR_SIZE))
+        nov = np.zeros((0, kernel.VORTEX_SIZE))
+        for e in emitters:
+            if not len(e.rotors):
+                out.append(None)
+                continue
+            p = np.asarray(e.position, float)
+            kernel.air_velocity(p[0], p[1], p[2], self._wind, none, nov, probe)
+            air = np.asarray(e.velocity, float)[:2] - probe[:2]
+            speed = float(np.hypot(*air))
+            r = np.asarray(e.rotors, float)
+            across = np.array([-air[1], air[0]]) / max(speed, 1e-9)
+            radius = math.sqrt(float(r[0, 7]) / math.pi)
+            lateral = (r[:, 0:2] - p[:2]) @ across
+            span = float(lateral.max() - lateral.min()) + 2.0 * radius
+            out.append(kernel.vortex_row(p, air, float(r[:, 6].sum()), span, float(r[:, 7].sum()),
+                                         float(r[:, 2].mean())))  # fmt: skip
+        return out
+
+    def vortex_rows(self, emitters: list[Emitter]) -> np.ndarray:
+        rows = [v for v in self._vortices(emitters) if v is not None]
+        return np.array(rows) if rows else np.zeros((0, kernel.VORTEX_SIZE))
 
     def step(self, emitters: list[Emitter]) -> None:
         """One step: release what every vehicle sprays, then move every parcel."""
         for e in emitters:
             self.release(e, self.dt)
-        rotors = self.rotor_rows(emitters)
+        self.advance(self.rotor_rows(emitters), self.vortex_rows(emitters))
+
+    def advance(self, rotors: np.ndarray, vortices: np.ndarray) -> None:
+        """Move every parcel one step through the air of these rotor and vortex rows (the kernel's)."""
         tg = self.targets
         kernel.step_parcels(
             self.x, self.v, self.turb, self.d, self.n, self.ids, self.count, self.dt, self.steps,
-            self.seed, self._air, self._wind, self._turbulence, rotors, self.shelter.ravel(),
+            self.seed, self._air, self._wind, self._turbulence, rotors, vortices,
+            self.shelter.ravel(),
             tg.leaf.ravel(), tg.wood.ravel(), tg.plant.ravel(), tg.third.ravel(), tg.wood_class.ravel(),
             self._dims, tg.origin, tg.cell,
             self.ground_origin, self.ground_cell, self._domain, self.ledger, self.dose, self.ground,

@@ -12,7 +12,9 @@ Per parcel (``n`` droplets of diameter ``d`` at ``x`` moving at ``v``), per step
    (:func:`droneulator.world.downwash.wake_speed`, one actuator disk per rotor so that the near field
    under each rotor is resolved; rotors' wakes combine as their momentum fluxes add, by root sum of
    squares; each wake is skewed by the air's horizontal motion relative to the rotor, and turns into a
-   radial wall jet where it meets the ground).
+   radial wall jet where it meets the ground); in forward flight the wake rolls up into a trailing vortex
+   pair (:func:`vortex_row`) that takes over from the jets as the airspeed grows past the induced
+   velocity, and that sinks and spreads apart beside the ground, carrying droplets out to the sides.
 2. **Drag and gravity**, integrated exactly for the step with the relaxation time ``tau`` frozen at its
    start (:mod:`droneulator.spray.droplets`): ``v' = v_eq + (v - v_eq) e^{-dt/tau}``,
    ``x' = x + v_eq dt + (v - v_eq) tau (1 - e^{-dt/tau})`` with ``v_eq = u + g' tau``. Stable at any step
@@ -40,16 +42,22 @@ import numba
 import numpy as np
 
 from droneulator.spray.droplets import EVAPORATION_UM2_S_C, VENTILATION, drag_factor
-from droneulator.world.downwash import SPREAD, Z_MAX, disk_wake_speed
+from droneulator.world.downwash import RHO, SPREAD, Z_MAX, disk_wake_speed
 
 #: the ledger's columns (volumes, m^3): leaves; trunks, branches, posts, wires; ground on the grid; ground
 #: beyond it; evaporated; left the domain (drift, airborne)
 CANOPY, TRUNKS, BRANCHES, POSTS, WIRES, GROUND, GROUND_OFF, EVAPORATED, LEFT = range(9)
 LEDGER = ("canopy", "trunks", "branches", "posts", "wires", "ground", "ground_off_grid", "evaporated", "left")
 #: a rotor row: position (3), thrust axis (3, unit, world), its induced velocity at the disk (m/s), its
-#: radius (m), the horizontal velocity of the air relative to the rotor (2, m/s) that skews its wake, and
-#: the horizontal distance (m) beyond which neither its wake nor its wall jet reaches (:func:`reach`)
-ROTOR_SIZE = 11
+#: radius (m), the horizontal velocity of the air relative to the rotor (2, m/s) that skews its wake, the
+#: horizontal distance (m) beyond which neither its wake nor its wall jet reaches (:func:`reach`), and the
+#: share of the vehicle's wake still a jet (the rest has rolled up into its trailing vortex pair)
+ROTOR_SIZE = 12
+#: a vehicle's trailing vortex pair: its position (x, y), the unit direction it moves through the air
+#: (2), its airspeed (m/s), the pair's starting height (m), circulation (m^2/s), half separation (m),
+#: descent speed (m/s), lowest height (m) and the constant C of its path beside the ground, decay rate
+#: (1/s), core radius (m), the share of the wake it carries, and how long it is followed (s)
+VORTEX_SIZE = 15
 #: what :func:`air_velocity` writes: mean wind (3), wakes (3), the wake's speed and width
 AIR_SIZE = 8
 #: the collection efficiency's constant (Langmuir & Blodgett's cylinder fit, squared form)
@@ -92,6 +100,39 @@ def _lookup(dims: np.ndarray, origin: np.ndarray, cell: float, x: float, y: floa
     return (i * ny + j) * nz + k
 
 
+#: the trailing vortices' core radius, as a share of their separation, and the turbulence velocity (m/s)
+#: that decays them (AGDISP's decay law, dGamma/dt = -0.45 q Gamma / b)
+VORTEX_CORE = 0.1
+VORTEX_Q = 0.5
+#: how long (s) a vortex pair is followed behind its vehicle
+VORTEX_AGE = 20.0
+
+
+def vortex_row(
+    position: np.ndarray, air_velocity_xy: np.ndarray, thrust: float, span: float, disk_area: float,
+    height: float,
+) -> np.ndarray | None:
+    """A vehicle's trailing vortex pair (a :data:`VORTEX_SIZE` row; None below 0.5 m/s of airspeed): a
+    lifting system of span ``span`` (m) carrying ``thrust`` (N) at airspeed ``|air_velocity_xy|`` sheds an
+    elliptically loaded wing's pair, ``b = pi/4 span`` apart with circulation ``Gamma = T / (rho V b)``,
+    sinking at ``Gamma / (2 pi b)``. It carries the share ``mu^2 / (1 + mu^2)`` of the wake, ``mu`` the
+    airspeed over the hover induced velocity: a jet in hover, a vortex pair in fast flight."""
+    speed = float(np.hypot(*air_velocity_xy))
+    if speed < 0.5 or thrust <= 0.0 or height <= 0.0:
+        return None
+    b = math.pi / 4.0 * span
+    gamma = thrust / (RHO * speed * b)
+    y0, z0 = b / 2.0, float(height)
+    c = 1.0 / y0**2 + 1.0 / z0**2
+    vh = math.sqrt(thrust / (2.0 * RHO * disk_area))
+    mu2 = (speed / vh) ** 2
+    d = np.asarray(air_velocity_xy, float) / speed
+    return np.array([
+        position[0], position[1], d[0], d[1], speed, z0, gamma, y0, gamma / (2.0 * math.pi * b),
+        1.0 / math.sqrt(c), c, 0.45 * VORTEX_Q / b, VORTEX_CORE * b, mu2 / (1.0 + mu2), VORTEX_AGE,
+    ])  # fmt: skip
+
+
 def reach(rows: np.ndarray) -> np.ndarray:
     """Each rotor row's horizontal reach (m): the widest its skewed wake (3 widths at the deepest it is
     followed, moved by the skew) or its wall jet (:data:`WALL_JET_REACH` widths round the impingement
@@ -112,6 +153,7 @@ def air_velocity(
     z: float,
     wind: np.ndarray,
     rotors: np.ndarray,
+    vortices: np.ndarray,
     out: np.ndarray,
 ) -> None:
     """At a point: the mean wind (``wind`` = heading x, heading y, W20, z0, log profile 1/0) into
@@ -151,6 +193,7 @@ def air_velocity(
         py = ry + depth * ay - rotors[r, 9] * lag
         pz = rz + depth * az
         w = disk_wake_speed(vh, r0, depth, math.sqrt(px * px + py * py + pz * pz))
+        w *= rotors[r, 11]
         if w > 0.0:
             out[7] = max(out[7], r0 / math.sqrt(2.0) + SPREAD * depth)
         # the ground: where the wake's axis meets it, the jet stops and spreads out as a wall jet
@@ -166,7 +209,7 @@ def air_velocity(
             ex, ey = x - gx, y - gy
             rg = math.sqrt(ex * ex + ey * ey)
             if fade > 0.0 and rg > 1e-6 and rg < WALL_JET_REACH * b_g:
-                ug = disk_wake_speed(vh, r0, reach, 0.0) * fade
+                ug = disk_wake_speed(vh, r0, reach, 0.0) * fade * rotors[r, 11]
                 ug *= rg / b_g if rg < b_g else b_g / rg
                 out[3] += ug * ex / rg
                 out[4] += ug * ey / rg
@@ -185,6 +228,41 @@ def air_velocity(
             out[4] += dy_ * s
             out[5] += dz_ * s
         out[6] = max(out[6], math.sqrt(sq))
+    for k in range(vortices.shape[0]):
+        _vortex_pair(x, y, h, vortices[k], out)
+
+
+@numba.njit(cache=True, fastmath=True)
+def _vortex_pair(x: float, y: float, h: float, v: np.ndarray, out: np.ndarray) -> None:
+    """The velocity a vehicle's trailing vortex pair (row ``v``, :data:`VORTEX_SIZE`) induces at (x, y) at
+    height ``h``, added to ``out[3:6]``: two line vortices left and right of the track behind it, with
+    their images below the ground, sinking at their mutual induction and spreading apart beside the ground
+    on Lamb's hyperbola ``1/y^2 + 1/z^2 = C``, decaying in time (Rankine cores)."""
+    rx, ry = x - v[0], y - v[1]
+    dx, dy, speed = v[2], v[3], v[4]
+    along = -(rx * dx + ry * dy)  # behind the vehicle, along its track through the air
+    if along <= 0.0 or along > speed * v[14]:
+        return
+    t = along / speed
+    lat = -rx * dy + ry * dx  # to the left of the track
+    z0, zinf, c = v[5], v[9], v[10]
+    zv = z0
+    if z0 > zinf:
+        zv = zinf + (z0 - zinf) * math.exp(-v[8] * t / (z0 - zinf))
+    yv = 1.0 / math.sqrt(max(c - 1.0 / (zv * zv), 1e-12))
+    g = v[6] * math.exp(-v[11] * t) * v[13] / (2.0 * math.pi)
+    rc2 = v[12] * v[12]
+    vl = 0.0
+    vz = 0.0
+    # (position across the track, height, circulation sign): the pair, and its images in the ground
+    for sy, sz, sign in ((1.0, 1.0, -1.0), (-1.0, 1.0, 1.0), (1.0, -1.0, 1.0), (-1.0, -1.0, -1.0)):
+        py, pz = lat - sy * yv, h - sz * zv
+        q = sign * g / (py * py + pz * pz + rc2)
+        vl -= q * pz
+        vz += q * py
+    out[3] += -vl * dy
+    out[4] += vl * dx
+    out[5] += vz
 
 
 @numba.njit(cache=True, fastmath=True)
@@ -205,6 +283,7 @@ def _chunk(
     wind: np.ndarray,
     turbulence: np.ndarray,
     rotors: np.ndarray,
+    vortices: np.ndarray,
     shelter: np.ndarray,
     leaf: np.ndarray,
     wood: np.ndarray,
@@ -233,7 +312,7 @@ def _chunk(
         if n[i] <= 0.0:
             continue
         x0, y0, z0 = x[i, 0], x[i, 1], x[i, 2]
-        air_velocity(x0, y0, z0, wind, rotors, u)
+        air_velocity(x0, y0, z0, wind, rotors, vortices, u)
         # the canopy shelters the mean wind and its turbulence
         s = 1.0
         k = _lookup(dims, grid_origin, cell, x0, y0, z0)
@@ -350,6 +429,7 @@ def _serial(
     wind,
     turbulence,
     rotors,
+    vortices,
     shelter,
     leaf,
     wood,
@@ -385,6 +465,7 @@ def _serial(
             wind,
             turbulence,
             rotors,
+            vortices,
             shelter,
             leaf,
             wood,
@@ -419,6 +500,7 @@ def _parallel(
     wind,
     turbulence,
     rotors,
+    vortices,
     shelter,
     leaf,
     wood,
@@ -454,6 +536,7 @@ def _parallel(
             wind,
             turbulence,
             rotors,
+            vortices,
             shelter,
             leaf,
             wood,
