@@ -293,3 +293,59 @@ def test_bad_spray_config_is_a_clear_error():
         WeatherConfig(relative_humidity=60.0)
     with pytest.raises(ValueError, match="at least one nozzle"):
         SprayConfig(nozzles=[])
+
+
+def test_spray_conditions_are_drawn_and_applied():
+    from droneulator.config import RandomizeConfig
+
+    r = RandomizeConfig(enabled=True, droplet_scale=(0.5, 0.5), temperature_c=(30.0, 30.0))
+    draw = r.draw(np.random.default_rng(3))
+    before = RandomizeConfig(enabled=True).draw(np.random.default_rng(3))
+    assert draw.wind == before.wind and draw.vegetation == before.vegetation  # earlier draws unchanged
+    cfg = r.apply(load_config(), draw)
+    assert cfg.spray.droplet_scale == 0.5 and cfg.weather.temperature_c == 30.0
+    nozzle = _mono(200.0)
+    cloud = SprayCloud(
+        dataclasses.replace(SprayConfig(nozzles=[nozzle]), droplet_scale=cfg.spray.droplet_scale),
+        cfg.weather, WindConfig(), Domain(-5, 5, -5, 5, 10),
+    )  # fmt: skip
+    cloud.release(Emitter(np.array([0.0, 0.0, 2.0]), np.array([0, 0, 0, 1.0]), np.zeros(3), np.zeros((0, 8)),
+                          [(nozzle, 1e-6)]), 0.01)  # fmt: skip
+    assert np.allclose(cloud.d[: cloud.count], 100e-6, rtol=2e-3)
+    with pytest.raises(ValueError, match="droplet_scale"):
+        RandomizeConfig(droplet_scale=(2.0, 1.0))
+
+
+def test_the_spray_reward_pays_for_the_canopy_and_charges_drift():
+    from droneulator.scenes import get_scene
+    from droneulator.spray.reward import SprayReward
+
+    scene = get_scene("vineyard", 0)
+    targets = SprayTargets.of(scene)
+    row = float(scene.landmarks["row_y"][2])
+    target = (-15.0, 15.0, row - 1.65, row + 1.65)
+
+    def episode(wind: float, y: float) -> float:
+        nozzle = _mono(150.0, 5.0)
+        cloud = SprayCloud(SprayConfig(nozzles=[nozzle], parcels_per_s=2000.0), STD_AIR,
+                           WindConfig(speed_m_s=wind, direction_deg=180.0), Domain(-40, 40, -40, 40, 20),
+                           targets)  # fmt: skip
+        reward = SprayReward(target=target)
+        reward.reset(cloud)
+        total = 0.0
+        for k in range(100):
+            pos = np.array([-10.0 + 0.2 * k, y, 2.4])
+            cloud.release(Emitter(pos, np.array([0, 0, 0, 1.0]), np.zeros(3), np.zeros((0, 8)),
+                                  [(nozzle, 1e-4)]), 0.01)  # fmt: skip
+            cloud.step([])
+            total += reward(cloud)
+        cloud.settle([], limit_s=60.0)
+        total += reward(cloud)
+        t = reward.totals(cloud)
+        assert sum(t[:4]) == pytest.approx(t[4], rel=1e-6)  # every litre scored once
+        return total / t[4]
+
+    over_the_row = episode(0.0, row)
+    # north of the last row, the wind blowing north: nothing below but the ground off the target
+    beside_in_wind = episode(5.0, float(scene.landmarks["row_y"][-1]) + 4.0)
+    assert over_the_row > 0.0 > beside_in_wind

@@ -48,6 +48,10 @@ class Draw:
     #: the scene's layout seed (None: the config's) and vegetation density (``SimConfig.vegetation``)
     scene_seed: int | None = None
     vegetation: float = 1.0
+    #: spraying: every nozzle's droplet sizes x this, and the weather (C, relative humidity 0-1)
+    droplet_scale: float = 1.0
+    temperature_c: float = 20.0
+    relative_humidity: float = 0.6
 
     def describe(self) -> str:
         """One line for a log."""
@@ -94,6 +98,11 @@ class RandomizeConfig:
     cloud_cover: tuple[float, float] = (0.0, 1.0)
     haze_prob: float = 0.2
     visibility_m: tuple[float, float] = (150.0, 2000.0)
+    #: spraying (docs/spray.md): a factor on every nozzle's droplet sizes (Dv0.1, Dv0.5, Dv0.9), and the
+    #: weather's temperature (C) and relative humidity (the droplets' evaporation)
+    droplet_scale: tuple[float, float] = (0.7, 1.4)
+    temperature_c: tuple[float, float] = (10.0, 35.0)
+    relative_humidity: tuple[float, float] = (0.3, 0.9)
 
     def __post_init__(self) -> None:
         self.wind_speed_m_s = _range("wind_speed_m_s", self.wind_speed_m_s, 0.0, 40.0)
@@ -106,6 +115,9 @@ class RandomizeConfig:
         self.depth_noise_scale = _range("depth_noise_scale", self.depth_noise_scale, 0.0, 10.0)
         self.depth_dropout_scale = _range("depth_dropout_scale", self.depth_dropout_scale, 0.0, 10.0)
         self.vegetation = _range("vegetation", self.vegetation, *VEGETATION_RANGE)
+        self.droplet_scale = _range("droplet_scale", self.droplet_scale, 0.1, 10.0)
+        self.temperature_c = _range("temperature_c", self.temperature_c, -20.0, 50.0)
+        self.relative_humidity = _range("relative_humidity", self.relative_humidity, 0.05, 1.0)
         if self.scene_seed is not None:
             lo, hi = _range("scene_seed", self.scene_seed, 0, 2**32 - 1)
             if lo != int(lo) or hi != int(hi):
@@ -160,6 +172,11 @@ class RandomizeConfig:
         dropout = float(rng.uniform(*self.depth_dropout_scale))
         seeds = self.scene_seed
         scene_seed = None if seeds is None else int(rng.integers(seeds[0], seeds[1] + 1))
+        vegetation = float(rng.uniform(*self.vegetation))
+        # drawn after the others, so that adding them left every earlier draw as it was
+        droplets = float(rng.uniform(*self.droplet_scale))
+        temperature = float(rng.uniform(*self.temperature_c))
+        humidity = float(rng.uniform(*self.relative_humidity))
         return Draw(
             wind=drawn_wind,
             depth_model=depth,
@@ -169,13 +186,17 @@ class RandomizeConfig:
             depth_noise_scale=noise,
             depth_dropout_scale=dropout,
             scene_seed=scene_seed,
-            vegetation=float(rng.uniform(*self.vegetation)),
+            vegetation=vegetation,
+            droplet_scale=droplets,
+            temperature_c=temperature,
+            relative_humidity=humidity,
         )
 
     def apply(self, cfg: Any, draw: Draw) -> Any:
         """A copy of ``cfg`` (a :class:`~droneulator.config.SimConfig`) in the conditions of ``draw``: its
-        wind, its light's time of day, clouds and haze, every camera's depth model, and its scene's seed
-        and vegetation (for a workflow that draws once, e.g. a capture)."""
+        wind, its light's time of day, clouds and haze, every camera's depth model, its scene's seed and
+        vegetation (for a workflow that draws once, e.g. a capture), and its weather and nozzles' droplet
+        sizes."""
         out = copy.deepcopy(cfg)
         out.wind = draw.wind
         if draw.scene_seed is not None:
@@ -192,6 +213,10 @@ class RandomizeConfig:
             "depth_noise_scale": draw.depth_noise_scale,
             "depth_dropout_scale": draw.depth_dropout_scale,
         }
+        out.weather = dataclasses.replace(
+            out.weather, temperature_c=draw.temperature_c, relative_humidity=draw.relative_humidity
+        )
+        out.spray = dataclasses.replace(out.spray, droplet_scale=draw.droplet_scale)
         out.render.cameras = [dataclasses.replace(c, **depth) for c in out.render.cameras]
         for v in out.vehicles:
             if v.cameras is not None:

@@ -109,6 +109,8 @@ class SprayConfig:
     #: the droplet solver's step (s): drag is integrated exactly for the step's frozen relaxation time,
     #: so any step is stable; accuracy wants it below the wake's time scales
     dt_s: float = 0.01
+    #: a factor on every nozzle's droplet sizes (a finer or coarser spray; ``randomize.droplet_scale``)
+    droplet_scale: float = 1.0
     #: droplets smaller than this (um) have evaporated (their liquid counts as evaporated)
     min_diameter_um: float = 5.0
     #: the deposit grid's cell (m) and how far parcels are followed: the sprayed area plus this margin
@@ -123,7 +125,8 @@ class SprayConfig:
     wood_size_m: float = 0.05
 
     def __post_init__(self) -> None:
-        for name in ("tank_l", "liquid_density", "parcels_per_s", "dt_s", "min_diameter_um", "grid_cell_m"):
+        for name in ("tank_l", "liquid_density", "parcels_per_s", "dt_s", "min_diameter_um", "grid_cell_m",
+                     "droplet_scale"):  # fmt: skip
             _positive("spray", name, getattr(self, name))
         for name in ("margin_m", "ceiling_m", "leaf_projection", "leaf_size_m", "wood_size_m"):
             _positive("spray", name, getattr(self, name))

@@ -193,9 +193,11 @@ class SprayCloud:
         self.count = k
 
     def _spectrum(self, nozzle: NozzleConfig) -> Spectrum:
+        """The nozzle's spectrum, its sizes x ``spray.droplet_scale``."""
         key = nozzle.diameters_um
         if key not in self._spectra:
-            self._spectra[key] = Spectrum.of(nozzle)
+            s = Spectrum.of(nozzle)
+            self._spectra[key] = Spectrum(s.median * self.config.droplet_scale, s.sigma)
         return self._spectra[key]
 
     def release(self, emitter: Emitter, dt: float) -> float:
