@@ -126,7 +126,10 @@ class Spraying:
         self.domain = domain or Domain.around(
             scene.bounds_min, scene.bounds_max, self.config.margin_m, self.config.ceiling_m
         )
-        shelter = shelter_grid(scene, self.targets, wind)
+        key = (id(scene), id(self.targets), dataclasses.astuple(wind))
+        if getattr(self, "_shelter_key", None) != key:  # the shelter grid costs a second: kept while valid
+            self._shelter, self._shelter_key = shelter_grid(scene, self.targets, wind), key
+        shelter = self._shelter
         self.cloud = SprayCloud(
             self.config, self.weather, wind, self.domain, self.targets, shelter, seed=cfg.seed, dt=self.dt
         )
