@@ -103,6 +103,7 @@ class Spraying:
         self._given = (domain, targets)
         self._scene: Scene | None = None
         self._payload: dict[str, float] = {}
+        self._shelter_key: tuple[Any, ...] | None = None
         # the cloud steps ``substeps`` times a control period, or once every ``every`` periods when its
         # step is the longer
         period = world.control_period_ns / 1e9
@@ -127,7 +128,7 @@ class Spraying:
             scene.bounds_min, scene.bounds_max, self.config.margin_m, self.config.ceiling_m
         )
         key = (id(scene), id(self.targets), dataclasses.astuple(wind))
-        if getattr(self, "_shelter_key", None) != key:  # the shelter grid costs a second: kept while valid
+        if self._shelter_key != key:  # the shelter grid costs a second: kept while valid
             self._shelter, self._shelter_key = shelter_grid(scene, self.targets, wind), key
         shelter = self._shelter
         self.cloud = SprayCloud(
