@@ -10,6 +10,8 @@ from droneulator.runtime import preflight
 
 AIRFRAMES = ("sprayer10", "sprayer40")
 TRIALS = ("hover", "pass")
+#: parcels a nozzle releases a second here, unless ``spray.parcels_per_s`` is set (a run's default is 250)
+PARCELS_PER_S = 3000.0
 
 
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -62,6 +64,7 @@ def cmd_spray(args: argparse.Namespace) -> int:
     for item in args.overrides:
         if item.startswith("spray."):
             data = apply_override(data, item)
+    data["spray"].setdefault("parcels_per_s", PARCELS_PER_S)  # a finer cloud than a live run's
     cfg.spray = from_dict(SprayConfig, data["spray"], "spray")
     for name, value in (("height", args.height), ("speed", args.speed), ("duration", args.duration)):
         if value is not None and not value > 0:

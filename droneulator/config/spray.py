@@ -104,8 +104,9 @@ class SprayConfig:
     #: the liquid's density (kg/m^3): the tank's mass and the droplets' inertia
     liquid_density: float = 1000.0
     nozzles: list[NozzleConfig] = field(default_factory=_two_nozzles)
-    #: Lagrangian parcels released per second by each nozzle (each carries an equal share of its flow)
-    parcels_per_s: float = 4000.0
+    #: Lagrangian parcels released per second by each nozzle (each carries an equal share of its flow): a
+    #: live run's deposit map needs few; ``droneulator spray`` takes 3000 unless this is set
+    parcels_per_s: float = 250.0
     #: the droplet solver's step (s): drag is integrated exactly for the step's frozen relaxation time,
     #: so any step is stable; accuracy wants it below the wake's time scales
     dt_s: float = 0.01
