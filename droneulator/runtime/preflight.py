@@ -153,6 +153,8 @@ def check_vehicle(cfg: SimConfig) -> None:
             raise StartupError(
                 f"{where}: PX4 needs {', '.join(PX4_SENSORS)}; {', '.join(missing)} missing", USAGE
             )
+        if spec.controlled_by == "ardupilot" and "imu" not in spec.sensors:
+            raise StartupError(f"{where}: ArduPilot's JSON interface needs an imu", USAGE)
     if cfg.vehicle.wind == "dryden" and importlib.util.find_spec("torch") is None:
         raise StartupError(
             "vehicle.wind=dryden needs torch: pip install 'droneulator[rl]', or choose another wind model "
