@@ -4,8 +4,10 @@
 waits for the state after that frame (:mod:`.protocol`). The link answers each *new* frame by applying
 its motor PWMs (:mod:`.mixing`), stepping the world once (one control period) and sending the vehicle's
 state back, so ArduPilot and the world advance together: without a packet the world's clock stops. The
-reply's timestamp is the world time since ArduPilot connected (plus one step), so a restarted ArduPilot
-boots from zero whatever the world time; ArduPilot's clock follows the timestamps.
+reply's timestamp counts the world time since ArduPilot connected (the first reply is one step), so a
+restarted ArduPilot boots from zero whatever the world time; ArduPilot's clock follows the timestamps. It
+never runs backwards: should the world be reset under a connected ArduPilot (in-process; the API's reset
+is refused meanwhile), the next reply is one step later.
 
 Frames, as SIM_JSON.cpp counts them (``frame_count`` moves on only once ArduPilot has parsed a reply):
 
@@ -117,8 +119,9 @@ class ArduPilotLink:
         self._armed = False
         self._rate_warned = False
         self._handover = Handover()
-        #: world time (ns) the reply timestamps count from on this connection
-        self.clock_origin_ns = 0
+        #: the last reply's timestamp (ns of ArduPilot's clock) and the world time (ns) it was taken at
+        self.clock_ns = 0
+        self._world_ns = 0
         self.frames = 0
         self.resent = 0
 
@@ -256,8 +259,8 @@ class ArduPilotLink:
         self._last_rx = now
         if pkt.frame_count == self._frame:
             if self._pending is None and self._reply is not None:
-                self._send(self._reply)  # ArduPilot did not get (or parse) the answer: the same again
                 self.resent += 1
+                self._send(self._reply)  # ArduPilot did not get (or parse) the answer: the same again
             return
         if self._frame is not None and pkt.frame_count > self._frame + 1:
             self._errors.warning(
@@ -307,14 +310,14 @@ class ArduPilotLink:
             self._handover.connect(on_ground(self.vehicle))
             if self.on_change is not None:
                 self.on_change()
-            self.clock_origin_ns = self.world.t_ns
+            self._world_ns = self.world.t_ns
         holding = self._handover.holding
         log.info(
             "ArduPilot connected from %s:%d to %s at t=%.3f s%s",
             addr[0],
             addr[1],
             self.vehicle.name,
-            self.clock_origin_ns / NS,
+            self._world_ns / NS,
             ": the vehicle is in the air, the simulator flies it; ArduPilot gets the rotors once it is on "
             "the ground"
             if holding
@@ -385,8 +388,10 @@ class ArduPilotLink:
         """Send the state after the step (the vehicle's IMU sample, the truth) for the pending frame."""
         accel, gyro = self.sensors.imu(truth)
         airspeed = self.sensors.airspeed(truth)[0] if "airspeed" in self.sensors else None
-        timestamp = (truth.t_ns - self.clock_origin_ns) / NS
-        self._reply = FdmState.from_truth(timestamp, truth, accel, gyro, airspeed).encode()
+        step = truth.t_ns - self._world_ns
+        self.clock_ns += step if step > 0 else self.world.control_period_ns
+        self._world_ns = truth.t_ns
+        self._reply = FdmState.from_truth(self.clock_ns / NS, truth, accel, gyro, airspeed).encode()
         self._pending = None
         self.frames += 1
         self._send(self._reply)

@@ -609,7 +609,7 @@ class SimConfig:
         if twice:
             raise ValueError(f"vehicle names must be unique: {', '.join(twice)} given more than once")
         kinds = {v.controlled_by for v in self.vehicle_specs()} & set(AUTOPILOTS)
-        if len(kinds) > 1:
+        if len(kinds) > 1 or (self.px4.enabled and self.ardupilot.enabled):
             raise ValueError(
                 "PX4 and ArduPilot cannot fly vehicles of one world together (each steps the world in its "
                 "own lockstep): hand every autopilot vehicle to one of them"
