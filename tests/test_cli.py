@@ -219,6 +219,15 @@ def test_px4_instance_out_of_range_is_caught_before_the_children() -> None:
     assert_one_line_error(out, 2, "px4.instance")
 
 
+def test_ardupilot_with_px4_or_out_of_range_or_without_an_imu_is_caught_before_the_children() -> None:
+    out = droneulator("run", *FREE_PORTS, "--px4", "--ardupilot")
+    assert_one_line_error(out, 2, "--px4 and --ardupilot")
+    out = droneulator("run", *FREE_PORTS, "--ardupilot-instance", "7000")
+    assert_one_line_error(out, 2, "ardupilot.instance")
+    out = droneulator("run", *FREE_PORTS, "--ardupilot", "--set", 'vehicle.sensors=["baro", "gps"]')
+    assert_one_line_error(out, 2, "vehicle.sensors", "ArduPilot's JSON interface needs an imu")
+
+
 # --------------------------------------------------------------------------- EGL
 def test_egl_probe_succeeds_here() -> None:
     """The no-EGL tests below are meaningful only if EGL works without the sabotage."""

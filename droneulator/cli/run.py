@@ -100,7 +100,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         cfg.px4.instance = args.px4_instance or 0
     if args.ardupilot or args.ardupilot_instance is not None:
         if cfg.px4.enabled:
-            raise StartupError("--px4 and --ardupilot: one autopilot flies a run's vehicles, choose one")
+            raise StartupError(
+                "--px4 and --ardupilot: one autopilot flies a run's vehicles, choose one", preflight.USAGE
+            )
         cfg.ardupilot.enabled = True
         cfg.ardupilot.instance = args.ardupilot_instance or 0
     if cfg.ardupilot_instances():
