@@ -429,8 +429,9 @@ OPS: dict[str, Op] = {
             "`landmarks` (name -> nested lists); `scenes` (loadable names); `limits` (`max_speed`, "
             "`max_yaw_rate`, `default_speed`, `takeoff_altitude`, `goto_duration` range); `vehicles`: "
             "one entry per vehicle, first the default: `name`, `params` (airframe), `controlled_by` "
-            "(`internal` or `px4`), `cameras` (names), and where it is reached when a runtime serves it: "
-            "`namespace` and `topics` (its ROS 2 topic names), `tf_prefix`, `px4_port` (PX4 vehicles); "
+            "(`internal`, `px4` or `ardupilot`), `cameras` (names), and where it is reached when a "
+            "runtime serves it: `namespace` and `topics` (its ROS 2 topic names), `tf_prefix`, `px4_port` "
+            "(PX4 vehicles), `ardupilot_port` (ArduPilot vehicles); "
             "`light`: the light settings (the config's `light` section as it is now; see `reset`); "
             "`vegetation`: the scene's vegetation density; `camera_trigger`: `rate` (cameras shoot at "
             "`render.camera_hz`) or `command` (only at `trigger`)",
