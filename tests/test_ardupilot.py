@@ -249,13 +249,19 @@ def test_each_new_frame_steps_the_world_once_and_is_answered_at_rest(served, wor
         peer.close()
 
 
-def test_a_repeated_frame_gets_the_same_reply_and_no_step_and_a_reset_count_reconnects(served, world):
+def test_a_repeated_frame_gets_the_same_reply_and_no_step_and_a_reset_count_reconnects(
+    served, world, monkeypatch
+):
     """SIM_JSON repeats a frame whose reply it lost (after 1 s): the same bytes come back and the world does
-    not step. A frame count that goes back is a restarted SITL: lost, connected anew, clock from zero."""
+    not step; a repeat sooner than RESEND_AFTER_S crossed the reply and is not answered. A frame count
+    that goes back is a restarted SITL: lost, connected anew, clock from zero."""
     peer = served.peer()
     try:
         for _ in range(5):
             peer.step([1000] * 4)
+        peer.send_frame(frame_count=peer.frame_counter - 1)  # at once: it crossed the reply
+        assert peer.quiet(0.2) and served.link.resent == 0
+        monkeypatch.setattr(link_module, "RESEND_AFTER_S", 0.0)
         raw: list[bytes] = []
         for _ in range(3):
             with served.lock:

@@ -12,8 +12,11 @@ is refused meanwhile), the next reply is one step later.
 Frames, as SIM_JSON.cpp counts them (``frame_count`` moves on only once ArduPilot has parsed a reply):
 
 * the next frame: applied, stepped, answered;
-* the frame just answered, again: ArduPilot lost or could not parse the reply and sent the frame
-  again after a second: the same reply is sent again, the world does not step;
+* the frame just answered, again, at least :data:`RESEND_AFTER_S` after the reply left: ArduPilot lost
+  (or could not parse) the reply and repeated the frame after waiting its second: the same reply is
+  sent again, the world does not step. A repeat that comes sooner crossed a late reply on its way
+  (ArduPilot will read that one): answering it again would leave a stale reply in ArduPilot's socket,
+  which it would read for its next frame, and it would run one reply behind from then on;
 * the frame waiting for its step, again (a fleet waits for a slower instance): nothing to do;
 * a lower count from the same address: ArduPilot restarted; the old one is lost (``on_loss``) and the
   new one connects.
@@ -56,6 +59,8 @@ log = logging.getLogger(__name__)
 NS = 1_000_000_000
 #: wall time after which a connected ArduPilot that sent nothing is lost (it repeats a frame every 1 s)
 LINK_SILENCE_S = 2.0
+#: a repeated frame is answered again only this long (wall s) after its reply left (ArduPilot waits 1 s)
+RESEND_AFTER_S = 0.5
 #: the largest datagram read (a servo packet is 40 or 72 bytes)
 MAX_DATAGRAM = 2048
 
@@ -116,6 +121,7 @@ class ArduPilotLink:
         self._frame: int | None = None
         self._pending: ServoPacket | None = None
         self._reply: bytes | None = None
+        self._reply_at = 0.0
         self._armed = False
         self._rate_warned = False
         self._handover = Handover()
@@ -258,8 +264,10 @@ class ArduPilotLink:
             self._connect(addr, guard)
         self._last_rx = now
         if pkt.frame_count == self._frame:
-            if self._pending is None and self._reply is not None:
+            late = now - self._reply_at >= RESEND_AFTER_S
+            if self._pending is None and self._reply is not None and late:
                 self.resent += 1
+                self._reply_at = now
                 self._send(self._reply)  # ArduPilot did not get (or parse) the answer: the same again
             return
         if self._frame is not None and pkt.frame_count > self._frame + 1:
@@ -394,6 +402,7 @@ class ArduPilotLink:
         self._reply = FdmState.from_truth(self.clock_ns / NS, truth, accel, gyro, airspeed).encode()
         self._pending = None
         self.frames += 1
+        self._reply_at = time.monotonic()
         self._send(self._reply)
 
     def _send(self, data: bytes) -> None:
