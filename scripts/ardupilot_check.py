@@ -1,14 +1,16 @@
 """Fly a real ArduCopter SITL on Droneulator's ArduPilot link and report what it did (docs/ardupilot.md).
 
     python scripts/ardupilot_check.py --arducopter $AP_WORK/src/build/sitl/bin/arducopter \\
-        --defaults $AP_WORK/src/Tools/autotest/default_params [--alt 5] [--no-fly]
+        --defaults $AP_WORK/src/Tools/autotest/default_params [--alt 5] [--no-fly] [--run] [--out FILE]
 
-Runs a world (no renderer) with its first vehicle on an ArduPilotLink (UDP 9002 + 10 I), starts
-``arducopter --model JSON`` in a fresh working directory with ``--home`` at the site origin, and over
-MAVLink (TCP 5760 + 10 I, pymavlink): waits until ArduPilot reports itself armable, collecting every
-``PreArm:`` text; then (unless ``--no-fly``) GUIDED, arm, take off to ``--alt`` m, hold 5 s, LAND, wait
-for the disarm, comparing ArduPilot's EKF position (LOCAL_POSITION_NED, from the EKF origin) with the
-truth (the vehicle's position from where it armed). Prints one JSON report.
+Without ``--run``: a world in this process (no renderer) with its first vehicle on an ArduPilotLink
+(UDP 9002 + 10 I). With ``--run``: ``droneulator run --ardupilot`` (renderer, bridge, API; the truth is
+read over the WebSocket API). Then starts ``arducopter --model JSON`` in a fresh working directory with
+``--home`` at the site origin and, over MAVLink (TCP 5760 + 10 I, pymavlink), waits until ArduPilot's
+pre-arm checks pass and its EKF uses GPS, collecting every ``PreArm:`` text; then (unless
+``--no-fly``) GUIDED, arm, take off to ``--alt`` m, hold 5 s, LAND, wait for the disarm, comparing
+ArduPilot's EKF position (LOCAL_POSITION_NED, from the EKF origin) with the truth (the vehicle's
+position from where it armed). Prints (or writes to ``--out``) one JSON report.
 """
 
 from __future__ import annotations
@@ -28,13 +30,13 @@ import numpy as np
 from pymavlink import mavutil
 
 from droneulator.ardupilot import ArduPilotLink
-from droneulator.config import load_config
+from droneulator.config import SimConfig, load_config
 from droneulator.frames import enu_to_ned
 from droneulator.world import World
 
 
 class Served:
-    """The link served on a thread; without ArduPilot the world runs on its own (as the runtime does)."""
+    """The link served on a thread of this process; the world steps only on ArduPilot's frames."""
 
     def __init__(self, world: World, instance: int) -> None:
         self.world, self.lock = world, threading.Lock()
@@ -54,6 +56,38 @@ class Served:
         with self.lock:
             return enu_to_ned(self.world.vehicle().state.position)
 
+    def stats(self) -> dict[str, Any]:
+        return {"frames": self.link.frames, "resent": self.link.resent}
+
+    def close(self) -> list[str]:
+        self.stop.set()
+        self.thread.join(5)
+        self.link.close()
+        self.world.close()
+        return [e.type for e in self.events]
+
+
+class ThroughRun:
+    """``droneulator run --ardupilot``; the truth from the WebSocket API's state."""
+
+    def __init__(self, cfg: SimConfig, instance: int) -> None:
+        from droneulator.runtime.launch import launch_run
+
+        self.run = launch_run(cfg, ["--ardupilot-instance", str(instance)], start_timeout=180)
+        self.client = self.run.client()
+
+    def truth_ned(self) -> np.ndarray:
+        return enu_to_ned(np.array(self.client.state()["position"], dtype=float))
+
+    def stats(self) -> dict[str, Any]:
+        return {"t_s": self.client.state()["t_ns"] / 1e9}
+
+    def close(self) -> list[str]:
+        lines = [line for line in self.run.log.lines() if "ArduPilot" in line]
+        self.client.close()
+        self.run.stop()
+        return lines
+
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -64,11 +98,15 @@ def main() -> int:
     ap.add_argument("--boot-timeout", type=float, default=120.0, help="wall s to become armable")
     ap.add_argument("--no-fly", action="store_true")
     ap.add_argument("--log", default=None, help="write ArduPilot's console here")
+    ap.add_argument("--run", action="store_true", help="through droneulator run --ardupilot (renderer, API)")
+    ap.add_argument("--out", default=None, help="write the JSON report here")
     args = ap.parse_args()
 
     cfg = load_config(overrides=["vehicle.control_hz=1200", "vehicle.params=px4_quadx"])
-    world = World(cfg, scene="default", render=False)
-    served = Served(world, args.instance)
+    if args.run:
+        sim: Served | ThroughRun = ThroughRun(cfg, args.instance)
+    else:
+        sim = Served(World(cfg, scene="default", render=False), args.instance)
     lat, lon, alt = cfg.site.geodetic
     workdir = tempfile.mkdtemp(prefix="arducopter-")
     defaults = ",".join(str(Path(args.defaults) / f) for f in ("copter.parm", "copter-X.parm"))
@@ -93,31 +131,32 @@ def main() -> int:
                 continue
             if msg.get_type() == "STATUSTEXT":
                 texts.append(msg.text)
-            elif msg.onboard_control_sensors_health & mavutil.mavlink.MAV_SYS_STATUS_PREARM_CHECK:
+            elif msg.onboard_control_sensors_health & mavutil.mavlink.MAV_SYS_STATUS_PREARM_CHECK and any(
+                "is using GPS" in t for t in texts
+            ):  # pre-arm checks pass and the EKF has a position (GUIDED needs one)
                 armable = time.monotonic() - t0
                 break
         report.update(
             armable_after_wall_s=None if armable is None else round(armable, 1),
             prearm_texts=sorted({t for t in texts if "PreArm" in t}),
             texts=texts[:40],
-            frames=served.link.frames,
-            resent=served.link.resent,
+            **sim.stats(),
         )
         if armable is not None and not args.no_fly:
-            report["flight"] = fly(mav, served, args.alt)
+            report["flight"] = fly(mav, sim, args.alt)
     finally:
         proc.terminate()
         proc.wait(10)
-        served.stop.set()
-        served.thread.join(5)
-        served.link.close()
-        world.close()
-    report["events"] = [e.type for e in served.events]
-    print(json.dumps(report, indent=1))
+        report["events"] = sim.close()
+    text = json.dumps(report, indent=1)
+    if args.out:
+        Path(args.out).write_text(text + "\n")
+    else:
+        print(text)
     return 0
 
 
-def fly(mav: Any, served: Served, alt: float) -> dict[str, Any]:
+def fly(mav: Any, served: Served | ThroughRun, alt: float) -> dict[str, Any]:
     """GUIDED takeoff to ``alt``, 5 s hold, LAND; EKF (LOCAL_POSITION_NED) against the truth."""
     out: dict[str, Any] = {}
     mav.set_mode("GUIDED")
