@@ -23,48 +23,64 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from pymavlink import mavutil
 
-from droneulator.ardupilot import ArduPilotLink
-from droneulator.config import SimConfig, load_config
+from droneulator.ardupilot import ArduPilotFleet
+from droneulator.config import SimConfig, VehicleSpec, load_config
 from droneulator.frames import enu_to_ned
 from droneulator.world import World
 
 
 class Served:
-    """The link served on a thread of this process; the world steps only on ArduPilot's frames."""
+    """The links of a world's ArduPilot vehicles served on a thread of this process; the world steps on
+    ArduPilot's frames and, while none is connected, on its own in real time (as the runtime does)."""
 
-    def __init__(self, world: World, instance: int) -> None:
+    def __init__(self, world: World) -> None:
         self.world, self.lock = world, threading.Lock()
-        self.link = ArduPilotLink(world, instance=instance)
-        self.link.start()
+        self.fleet = ArduPilotFleet.of(world)
+        self.fleet.start()
         self.stop = threading.Event()
         self.events: list[Any] = []
+        self.sim_events: list[Any] = []
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
 
     def _run(self) -> None:
+        n = max(1, round(0.01 * self.world.config.vehicle.control_hz))
         while not self.stop.is_set():
-            self.link.serve_once(0.01, self.lock)
-            self.events.extend(self.link.take_events())
+            res = self.fleet.serve_once(0.01, self.lock)
+            if res is None and not self.fleet.connected:
+                with self.lock:
+                    res = self.world.step(n)
+            if res is not None:
+                self.sim_events.extend(res.events)
+            self.events.extend(self.fleet.take_events())
 
-    def truth_ned(self) -> np.ndarray:
+    def truth_ned(self, k: int = 0) -> np.ndarray:
         with self.lock:
-            return enu_to_ned(self.world.vehicle().state.position)
+            return enu_to_ned(self.world.vehicle_list[k].state.position)
+
+    def mode(self, k: int = 0) -> str:
+        with self.lock:
+            return self.world.vehicle_list[k].mode.value
 
     def stats(self) -> dict[str, Any]:
-        return {"frames": self.link.frames, "resent": self.link.resent}
+        return {
+            "frames": [link.frames for link in self.fleet.links],
+            "resent": [link.resent for link in self.fleet.links],
+        }
 
     def close(self) -> list[str]:
         self.stop.set()
         self.thread.join(5)
-        self.link.close()
+        self.fleet.close()
         self.world.close()
-        return [e.type for e in self.events]
+        return [f"{e.vehicle} {e.type} {e.data}" if e.data else f"{e.vehicle} {e.type}" for e in self.events]
 
 
 class ThroughRun:
@@ -76,7 +92,7 @@ class ThroughRun:
         self.run = launch_run(cfg, ["--ardupilot-instance", str(instance)], start_timeout=180)
         self.client = self.run.client()
 
-    def truth_ned(self) -> np.ndarray:
+    def truth_ned(self, k: int = 0) -> np.ndarray:
         return enu_to_ned(np.array(self.client.state()["position"], dtype=float))
 
     def stats(self) -> dict[str, Any]:
@@ -89,15 +105,74 @@ class ThroughRun:
         return lines
 
 
+class ArduCopter:
+    """One ``arducopter --model JSON -I k`` in its own working directory; its MAVLink on TCP 5760 + 10 k."""
+
+    def __init__(self, args: argparse.Namespace, k: int, site: tuple[float, float, float]) -> None:
+        lat, lon, alt = site
+        defaults = ",".join(str(Path(args.defaults) / f) for f in ("copter.parm", "copter-X.parm"))
+        self.cmd = [
+            os.path.abspath(args.arducopter), "--model", "JSON:127.0.0.1", "--speedup", "1", "-I", str(k),
+            "--sysid", str(k + 1), "-w", "--serial0", "tcp:0", "--home", f"{lat},{lon},{alt},0",
+            "--defaults", defaults,
+        ]  # fmt: skip
+        log = open(f"{args.log}.{k}" if args.log else os.devnull, "a")  # noqa: SIM115 - the process's
+        self.proc = subprocess.Popen(
+            self.cmd, cwd=tempfile.mkdtemp(prefix=f"arducopter{k}-"), stdout=log, stderr=log
+        )
+        self.mav = mavutil.mavlink_connection(f"tcp:127.0.0.1:{5760 + 10 * k}", source_system=255)
+        self.mav.wait_heartbeat(timeout=60)
+        self.mav.mav.request_data_stream_send(self.mav.target_system, self.mav.target_component, 0, 10, 1)
+
+    def wait_armable(self, timeout: float) -> dict[str, Any]:
+        """Until the pre-arm checks pass and the EKF uses GPS (GUIDED needs a position)."""
+        t0 = time.monotonic()
+        texts: list[str] = []
+        armable = None
+        while time.monotonic() - t0 < timeout:
+            msg = self.mav.recv_match(type=["STATUSTEXT", "SYS_STATUS"], blocking=True, timeout=1)
+            if msg is None:
+                continue
+            if msg.get_type() == "STATUSTEXT":
+                texts.append(msg.text)
+            elif msg.onboard_control_sensors_health & mavutil.mavlink.MAV_SYS_STATUS_PREARM_CHECK and any(
+                "is using GPS" in t for t in texts
+            ):
+                armable = time.monotonic() - t0
+                break
+        return {
+            "armable_after_wall_s": None if armable is None else round(armable, 1),
+            "prearm_texts": sorted({t for t in texts if "PreArm" in t}),
+            "texts": texts[:40],
+        }
+
+    def kill(self) -> None:
+        self.proc.kill()
+        self.proc.wait(10)
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            self.proc.wait(10)
+        self.mav.close()
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--arducopter", required=True, help="build/sitl/bin/arducopter")
     ap.add_argument("--defaults", required=True, help="the folder of copter.parm and copter-X.parm")
-    ap.add_argument("--instance", type=int, default=0)
+    ap.add_argument("--instance", type=int, default=0, help="with --run: the ArduPilot instance")
+    ap.add_argument("--vehicles", type=int, default=1, help="in-process: this many vehicles, instance k each")
     ap.add_argument("--alt", type=float, default=5.0)
     ap.add_argument("--boot-timeout", type=float, default=120.0, help="wall s to become armable")
     ap.add_argument("--no-fly", action="store_true")
-    ap.add_argument("--log", default=None, help="write ArduPilot's console here")
+    ap.add_argument(
+        "--kill-in-air",
+        action="store_true",
+        help="in-process: kill instance 0 in its hover instead of landing, watch ardupilot.on_loss, then "
+        "start a new ArduCopter over the vehicle and watch the hand-over",
+    )
+    ap.add_argument("--log", default=None, help="append ArduPilot k's console to LOG.k")
     ap.add_argument("--run", action="store_true", help="through droneulator run --ardupilot (renderer, API)")
     ap.add_argument("--out", default=None, help="write the JSON report here")
     args = ap.parse_args()
@@ -105,48 +180,37 @@ def main() -> int:
     cfg = load_config(overrides=["vehicle.control_hz=1200", "vehicle.params=px4_quadx"])
     if args.run:
         sim: Served | ThroughRun = ThroughRun(cfg, args.instance)
+        instances = [args.instance]
     else:
-        sim = Served(World(cfg, scene="default", render=False), args.instance)
-    lat, lon, alt = cfg.site.geodetic
-    workdir = tempfile.mkdtemp(prefix="arducopter-")
-    defaults = ",".join(str(Path(args.defaults) / f) for f in ("copter.parm", "copter-X.parm"))
-    cmd = [
-        os.path.abspath(args.arducopter), "--model", "JSON:127.0.0.1", "--speedup", "1",
-        "-I", str(args.instance), "-w", "--serial0", "tcp:0", "--home", f"{lat},{lon},{alt},0",
-        "--defaults", defaults,
-    ]  # fmt: skip
-    console = open(args.log or os.devnull, "w")  # noqa: SIM115 - lives as long as the process
-    proc = subprocess.Popen(cmd, cwd=workdir, stdout=console, stderr=subprocess.STDOUT)
-    report: dict[str, Any] = {"command": " ".join(cmd)}
+        cfg.vehicles = [VehicleSpec(name=f"uav{k}", controlled_by="ardupilot") for k in range(args.vehicles)]
+        sim = Served(World(cfg, scene="default", render=False))
+        instances = list(range(args.vehicles))
+    copters: list[ArduCopter] = []
+    report: dict[str, Any] = {}
     try:
-        mav = mavutil.mavlink_connection(f"tcp:127.0.0.1:{5760 + 10 * args.instance}", source_system=255)
-        mav.wait_heartbeat(timeout=60)
-        mav.mav.request_data_stream_send(mav.target_system, mav.target_component, 0, 10, 1)
-        t0 = time.monotonic()
-        texts: list[str] = []
-        armable = None
-        while time.monotonic() - t0 < args.boot_timeout:
-            msg = mav.recv_match(type=["STATUSTEXT", "SYS_STATUS"], blocking=True, timeout=1)
-            if msg is None:
-                continue
-            if msg.get_type() == "STATUSTEXT":
-                texts.append(msg.text)
-            elif msg.onboard_control_sensors_health & mavutil.mavlink.MAV_SYS_STATUS_PREARM_CHECK and any(
-                "is using GPS" in t for t in texts
-            ):  # pre-arm checks pass and the EKF has a position (GUIDED needs one)
-                armable = time.monotonic() - t0
-                break
-        report.update(
-            armable_after_wall_s=None if armable is None else round(armable, 1),
-            prearm_texts=sorted({t for t in texts if "PreArm" in t}),
-            texts=texts[:40],
-            **sim.stats(),
-        )
-        if armable is not None and not args.no_fly:
-            report["flight"] = fly(mav, sim, args.alt)
+        copters = [ArduCopter(args, k, cfg.site.geodetic) for k in instances]
+        report["command"] = " ".join(copters[0].cmd)
+        boots = [c.wait_armable(args.boot_timeout) for c in copters]
+        report["boot"] = boots
+        report.update(sim.stats())
+        if all(b["armable_after_wall_s"] is not None for b in boots) and not args.no_fly:
+            flights: list[dict[str, Any]] = [{} for _ in copters]
+
+            def one(k: int) -> None:
+                kill = copters[k].kill if args.kill_in_air and k == 0 else None
+                flights[k] = fly(copters[k].mav, lambda: sim.truth_ned(k), args.alt, kill)
+
+            threads = [threading.Thread(target=one, args=(k,)) for k in range(len(copters))]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
+            report["flight"] = flights
+            if args.kill_in_air and isinstance(sim, Served):
+                report["loss"] = after_kill(args, sim, copters, cfg)
     finally:
-        proc.terminate()
-        proc.wait(10)
+        for c in copters:
+            c.close()
         report["events"] = sim.close()
     text = json.dumps(report, indent=1)
     if args.out:
@@ -156,11 +220,45 @@ def main() -> int:
     return 0
 
 
-def fly(mav: Any, served: Served | ThroughRun, alt: float) -> dict[str, Any]:
-    """GUIDED takeoff to ``alt``, 5 s hold, LAND; EKF (LOCAL_POSITION_NED) against the truth."""
+def after_kill(
+    args: argparse.Namespace, sim: Served, copters: list[ArduCopter], cfg: SimConfig
+) -> dict[str, Any]:
+    """Instance 0 was killed in its hover: the loss rule lands the vehicle; a new ArduCopter started at
+    once connects over it in the air (held), and gets the rotors once the vehicle is down."""
+    out: dict[str, Any] = {}
+    t0 = time.monotonic()
+    killed_alt = float(-sim.truth_ned(0)[2])
+    out["killed_at_alt_m"] = round(killed_alt, 3)
+    while time.monotonic() - t0 < 10 and not any("ardupilot_lost" in e.type for e in sim.events):
+        time.sleep(0.05)
+    lost = [e for e in sim.events if e.type == "ardupilot_lost"]
+    out["lost_after_wall_s"] = round(time.monotonic() - t0, 2)
+    out["lost_event"] = lost[0].data if lost else None
+    out["mode_after_loss"] = sim.mode(0)
+    copters[0] = ArduCopter(args, 0, cfg.site.geodetic)  # restarted: boots over the vehicle in the air
+    link = sim.fleet.links[0]
+    out["restarted_connected_holding"] = link.holding
+    while time.monotonic() - t0 < 120 and not (sim.mode(0) == "idle" and -sim.truth_ned(0)[2] < 0.05):
+        time.sleep(0.1)
+    out["landed_by_simulator_after_wall_s"] = round(time.monotonic() - t0, 1)
+    out["landed_alt_truth_m"] = round(float(-sim.truth_ned(0)[2]), 3)
+    end = time.monotonic() + 10
+    while time.monotonic() < end and not link.in_control:
+        time.sleep(0.1)
+    out["new_ardupilot_in_control_on_the_ground"] = link.in_control
+    out["impacts"] = [
+        e.data for e in sim.sim_events if e.type in ("impact", "collision") and e.vehicle == "uav0"
+    ]
+    return out
+
+
+def fly(
+    mav: Any, truth_ned: Callable[[], np.ndarray], alt: float, kill: Callable[[], None] | None
+) -> dict[str, Any]:
+    """GUIDED takeoff to ``alt``, 5 s hold, LAND (or ``kill``); EKF (LOCAL_POSITION_NED) against the truth."""
     out: dict[str, Any] = {}
     mav.set_mode("GUIDED")
-    home = served.truth_ned()
+    home = truth_ned()
     mav.arducopter_arm()
     end = time.monotonic() + 20
     while not mav.motors_armed():
@@ -183,7 +281,7 @@ def fly(mav: Any, served: Served | ThroughRun, alt: float) -> dict[str, Any]:
             out.setdefault("texts", []).append(msg.text)
             continue
         ekf = np.array([msg.x, msg.y, msg.z])
-        truth = served.truth_ned() - home
+        truth = truth_ned() - home
         samples.append((time.monotonic() - t0, ekf, truth))
         if phase == "climb" and -truth[2] > alt - 0.3:
             phase, hold_until = "hold", time.monotonic() + 5.0
@@ -194,6 +292,10 @@ def fly(mav: Any, served: Served | ThroughRun, alt: float) -> dict[str, Any]:
             out["hold_alt_truth_m"] = round(float(np.mean([-t[2] for _, t in hold])), 3)
             out["hold_alt_ekf_m"] = round(float(np.mean([-e[2] for e, _ in hold])), 3)
             out["ekf_vs_truth_m"] = {"mean": round(float(errs.mean()), 3), "max": round(float(errs.max()), 3)}
+            if kill is not None:
+                kill()
+                phase = "killed"
+                break
             mav.set_mode("LAND")
             phase = "land"
         elif phase == "land" and not mav.motors_armed():
