@@ -146,6 +146,18 @@ def test_run_px4_port_taken(taken_port: int) -> None:
     assert_one_line_error(out, 1, f"PX4 SITL port {taken_port}", "px4.instance 2", "already in use")
 
 
+def test_run_ardupilot_udp_port_taken() -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+        # instance N answers on base_port + 10 N
+        base = f"ardupilot.base_port={port - 10}"
+        out = droneulator("run", *FREE_PORTS, "--ardupilot-instance", "1", "--set", base)
+        assert_one_line_error(
+            out, 1, f"ArduPilot SITL port {port}", "already in use", "--ardupilot-instance", "base_port"
+        )
+
+
 def test_run_port_free_without_px4_is_not_checked(taken_port: int) -> None:
     cfg = load_config(None, [f"px4.base_port={taken_port}", 'bridge.listen=["tcp/127.0.0.1:0"]'])
     assert [p.what for p in preflight.run_ports(cfg)] == ["API", "Zenoh"]
