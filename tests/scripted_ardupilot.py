@@ -196,3 +196,117 @@ class ScriptedArduPilot:
 def rpy_factors(angle_deg: float, yaw_factor: float) -> tuple[float, float, float]:
     """``AP_MotorsMatrix::add_motor``'s roll, pitch and yaw factors of a motor at ``angle_deg``."""
     return math.cos(math.radians(angle_deg + 90.0)), math.cos(math.radians(angle_deg)), yaw_factor
+
+
+class ScriptedArduCopterMavlink:
+    """ArduCopter SITL's MAVLink side for a GUIDED client, on TCP ``port`` (as ``--serial0 tcp:0``):
+    HEARTBEAT (``MAV_AUTOPILOT_ARDUPILOTMEGA``, custom mode, armed flag), COMMAND_ACKs for
+    SET_MESSAGE_INTERVAL, REQUEST_MESSAGE (GPS_GLOBAL_ORIGIN), DO_SET_MODE, COMPONENT_ARM_DISARM and
+    NAV_TAKEOFF (refused unless GUIDED and armed, as ArduCopter does), and a point vehicle that flies
+    toward the newest position target at 3 m/s, reported as LOCAL_POSITION_NED and ATTITUDE at 20 Hz."""
+
+    GUIDED, LAND = 4, 9
+
+    def __init__(self, origin_geo: tuple[float, float, float]) -> None:
+        from pymavlink.dialects.v20 import common as mavlink
+
+        self.m = mavlink
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.port = self.server.getsockname()[1]
+        self.origin_geo = origin_geo
+        self.mode, self.armed = 0, False
+        self.pos, self.yaw = np.zeros(3), 0.0
+        self.target: np.ndarray | None = None
+        self.targets: list[Any] = []
+        self.commands: list[int] = []
+        self._tx = mavlink.MAVLink(None, 1, 1)
+        self._rx = mavlink.MAVLink(None)
+        self._stop = False
+        import threading
+
+        self._lock = threading.Lock()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _send(self, conn: socket.socket, msg: Any) -> None:
+        with self._lock:
+            conn.sendall(msg.pack(self._tx))
+
+    def _run(self) -> None:
+        self.server.settimeout(10.0)
+        try:
+            conn, _ = self.server.accept()
+        except OSError:
+            return
+        conn.settimeout(0.05)
+        last = time.monotonic()
+        while not self._stop:
+            try:
+                data = conn.recv(65536)
+                if not data:
+                    return
+                for msg in self._rx.parse_buffer(data) or []:
+                    self._handle(conn, msg)
+            except TimeoutError:
+                pass
+            except OSError:
+                return
+            now = time.monotonic()
+            dt, last = now - last, now
+            self._fly(dt)
+            m = self.m
+            base = m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (m.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
+            try:
+                self._send(
+                    conn,
+                    self._tx.heartbeat_encode(
+                        m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, base, self.mode, 4
+                    ),
+                )
+                self._send(conn, self._tx.local_position_ned_encode(0, *self.pos, 0.0, 0.0, 0.0))
+                self._send(conn, self._tx.attitude_encode(0, 0.0, 0.0, self.yaw, 0.0, 0.0, 0.0))
+            except OSError:
+                return
+
+    def _fly(self, dt: float) -> None:
+        if self.mode == self.LAND and self.target is not None:
+            self.target = np.array([self.pos[0], self.pos[1], 0.0])
+        if not self.armed or self.target is None:
+            return
+        d = self.target - self.pos
+        dist = float(np.linalg.norm(d))
+        self.pos = self.target.copy() if dist < 3.0 * dt else self.pos + d / dist * 3.0 * dt
+
+    def _handle(self, conn: socket.socket, msg: Any) -> None:
+        m = self.m
+        kind = msg.get_type()
+        if kind == "SET_POSITION_TARGET_LOCAL_NED":
+            self.targets.append(msg)
+            if self.mode == self.GUIDED and self.armed and not msg.type_mask & 7:
+                self.target = np.array([msg.x, msg.y, msg.z])
+                self.yaw = msg.yaw
+            return
+        if kind != "COMMAND_LONG":
+            return
+        self.commands.append(msg.command)
+        result = m.MAV_RESULT_ACCEPTED
+        if msg.command == m.MAV_CMD_REQUEST_MESSAGE and int(msg.param1) == m.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN:
+            lat, lon, alt = self.origin_geo
+            self._send(
+                conn, self._tx.gps_global_origin_encode(round(lat * 1e7), round(lon * 1e7), round(alt * 1000))
+            )
+        elif msg.command == m.MAV_CMD_DO_SET_MODE:
+            self.mode = int(msg.param2)
+        elif msg.command == m.MAV_CMD_COMPONENT_ARM_DISARM:
+            self.armed = msg.param1 == 1
+        elif msg.command == m.MAV_CMD_NAV_TAKEOFF:
+            if self.mode == self.GUIDED and self.armed:
+                self.target = np.array([self.pos[0], self.pos[1], -msg.param7])
+            else:
+                result = m.MAV_RESULT_FAILED
+        self._send(conn, self._tx.command_ack_encode(msg.command, result))
+
+    def close(self) -> None:
+        self._stop = True
+        self.thread.join(2.0)
+        self.server.close()

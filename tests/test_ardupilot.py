@@ -15,6 +15,7 @@ import pytest
 from scripted_ardupilot import (
     KEYTABLE,
     RecvBuffer,
+    ScriptedArduCopterMavlink,
     ScriptedArduPilot,
     parse_sensors,
     rpy_factors,
@@ -34,11 +35,12 @@ from droneulator.ardupilot.protocol import (
     decode_servo,
 )
 from droneulator.commands import CommandPath, make_request
-from droneulator.config import ArduPilotConfig, VehicleSpec, load_config
+from droneulator.config import ArduPilotConfig, SiteConfig, VehicleSpec, load_config
 from droneulator.px4.flight_lock import PX4FlightLock
 from droneulator.px4.mixing import PX4_QUAD_X
 from droneulator.sensors import Truth
 from droneulator.vehicles.params import get_params
+from droneulator.workflows.planning.guided import GuidedConfig, GuidedLink
 from droneulator.world import World
 
 HZ = 400  # the tests' world and peer rate (ArduCopter's own default is 1200)
@@ -532,3 +534,47 @@ def test_config_hands_vehicles_to_ardupilot_and_refuses_two_autopilot_kinds():
         ArduPilotConfig(on_loss="crash")
     with pytest.raises(ValueError, match="MOT_SPIN_MIN"):
         ArduPilotConfig(spin_min=0.9, spin_max=0.5)
+
+
+# --------------------------------------------------------------------------- plan --ardupilot: GUIDED
+def test_guided_link_flies_planner_setpoints_in_guided_through_the_ekf_origin():
+    """``plan --ardupilot``'s autopilot against a scripted ArduCopter MAVLink: GUIDED, arm, take off, then
+    the planner's ENU samples as NED targets from the EKF origin (GPS_GLOBAL_ORIGIN, 10 m north of the
+    site and 1 m up); stale samples hold the last position; on close, LAND."""
+    site = SiteConfig()
+    lat0, lon0, alt0 = site.geodetic
+    # 10 m north and 1 m up, in GPS_GLOBAL_ORIGIN's 1e-7 degree steps
+    origin_geo = (round((lat0 + 10.0 / 111_195.0) * 1e7) * 1e-7, lon0, alt0 + 1.0)
+    origin = F.geodetic_to_enu(*origin_geo, *site.geodetic)
+    peer = ScriptedArduCopterMavlink(origin_geo)
+    link = GuidedLink(GuidedConfig(base_port=peer.port, takeoff_alt_m=2.0, on_stop="land", stale_s=0.3))
+    try:
+        assert link.estimate() is None
+        link.engage()
+        wait_until(link.engaged.is_set, 15.0)
+        assert link.failed is None and link.mode == "GUIDED" and peer.armed
+        m = peer.m
+        flow = [c for c in peer.commands if c in (m.MAV_CMD_DO_SET_MODE, 400, m.MAV_CMD_NAV_TAKEOFF)]
+        assert flow == [m.MAV_CMD_DO_SET_MODE, m.MAV_CMD_COMPONENT_ARM_DISARM, m.MAV_CMD_NAV_TAKEOFF]
+        est = link.estimate()
+        assert est is not None
+        np.testing.assert_allclose(origin, [0.0, 10.0, 1.0], atol=0.01)
+        np.testing.assert_allclose(est.position, origin + [0.0, 0.0, 2.0], atol=0.35)
+        goal = origin + np.array([3.0, 2.0, 4.0])
+        end = time.monotonic() + 3.0
+        while time.monotonic() < end:
+            link.setpoint(0.0, goal, np.array([0.5, 0.0, 0.0]), np.zeros(3), 0.0, 0.0)
+            time.sleep(0.02)
+        last = peer.targets[-1]
+        assert (last.x, last.y, last.z) == pytest.approx((2.0, 3.0, -4.0), abs=1e-4)  # north, east, down
+        assert (last.vx, last.vy, last.vz) == pytest.approx((0.0, 0.5, 0.0))
+        assert last.yaw == pytest.approx(math.pi / 2) and last.coordinate_frame == m.MAV_FRAME_LOCAL_NED
+        est = link.estimate()
+        assert est is not None and np.linalg.norm(est.position - goal) < 0.05
+        time.sleep(0.8)  # no sample for stale_s: position-only holds at the last one
+        held = peer.targets[-1]
+        assert held.type_mask & 0b111111000 == 0b111111000 and (held.x, held.y) == pytest.approx((2.0, 3.0))
+    finally:
+        link.close()
+        assert peer.mode == ScriptedArduCopterMavlink.LAND
+        peer.close()
