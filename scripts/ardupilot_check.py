@@ -172,6 +172,12 @@ def main() -> int:
         help="in-process: kill instance 0 in its hover instead of landing, watch ardupilot.on_loss, then "
         "start a new ArduCopter over the vehicle and watch the hand-over",
     )
+    ap.add_argument(
+        "--guided",
+        action="store_true",
+        help="fly with plan --ardupilot's GuidedLink instead: engage (GUIDED, arm, take off to --alt), a "
+        "setpoint 3 m east, 2 m north, 1 m up, then hold, then LAND on close",
+    )
     ap.add_argument("--log", default=None, help="append ArduPilot k's console to LOG.k")
     ap.add_argument("--run", action="store_true", help="through droneulator run --ardupilot (renderer, API)")
     ap.add_argument("--out", default=None, help="write the JSON report here")
@@ -193,7 +199,10 @@ def main() -> int:
         boots = [c.wait_armable(args.boot_timeout) for c in copters]
         report["boot"] = boots
         report.update(sim.stats())
-        if all(b["armable_after_wall_s"] is not None for b in boots) and not args.no_fly:
+        if args.guided and boots[0]["armable_after_wall_s"] is not None:
+            copters[0].mav.close()
+            report["guided"] = guided(sim, cfg, copters[0], args.alt)
+        elif all(b["armable_after_wall_s"] is not None for b in boots) and not args.no_fly:
             flights: list[dict[str, Any]] = [{} for _ in copters]
 
             def one(k: int) -> None:
@@ -249,6 +258,44 @@ def after_kill(
     out["impacts"] = [
         e.data for e in sim.sim_events if e.type in ("impact", "collision") and e.vehicle == "uav0"
     ]
+    return out
+
+
+def guided(sim: Served | ThroughRun, cfg: SimConfig, copter: ArduCopter, alt: float) -> dict[str, Any]:
+    """``plan --ardupilot``'s link on a real ArduCopter: engage, one setpoint, hold, land on close."""
+    from droneulator.frames import ned_to_enu
+    from droneulator.workflows.planning.guided import GuidedConfig, GuidedLink
+
+    lat, lon, home_alt = cfg.site.geodetic
+    g = GuidedLink(GuidedConfig(takeoff_alt_m=alt, on_stop="land", home_lat_deg=lat, home_lon_deg=lon,
+                                home_alt_m=home_alt))  # fmt: skip
+    out: dict[str, Any] = {}
+    t0 = time.monotonic()
+    g.engage()
+    while not g.engaged.is_set() and g.failed is None and time.monotonic() - t0 < 90:
+        time.sleep(0.2)
+    out["engaged_after_wall_s"], out["failed"] = round(time.monotonic() - t0, 1), g.failed
+    if g.failed is None and g.origin_enu is not None:
+        truth = lambda: ned_to_enu(sim.truth_ned())  # noqa: E731
+        out["origin_enu"] = np.round(g.origin_enu, 3).tolist()
+        out["engaged_truth_enu"] = np.round(truth(), 3).tolist()
+        goal = truth() + np.array([3.0, 2.0, 1.0])
+        t1 = time.monotonic()
+        while time.monotonic() - t1 < 30:
+            g.setpoint(0.0, goal, np.zeros(3), np.zeros(3), 0.5, 0.0)
+            time.sleep(0.05)
+            if time.monotonic() - t1 > 3 and np.linalg.norm(truth() - goal) < 0.15:
+                break
+        est = g.estimate()
+        out["goal_enu"] = np.round(goal, 3).tolist()
+        out["reached_after_wall_s"] = round(time.monotonic() - t1, 1)
+        out["truth_enu"] = np.round(truth(), 3).tolist()
+        out["estimate_enu"] = None if est is None else np.round(est.position, 3).tolist()
+        time.sleep(2.0)  # no setpoints: the link holds the last one
+        out["truth_after_2s_stale_enu"] = np.round(truth(), 3).tolist()
+    g.close()
+    time.sleep(5.0)
+    out["truth_5s_after_close_land_enu"] = np.round(ned_to_enu(sim.truth_ned()), 3).tolist()
     return out
 
 

@@ -578,3 +578,27 @@ def test_guided_link_flies_planner_setpoints_in_guided_through_the_ekf_origin():
         link.close()
         assert peer.mode == ScriptedArduCopterMavlink.LAND
         peer.close()
+
+
+def test_plan_takes_the_ardupilot_instance_from_the_config(tmp_path):
+    """`droneulator plan --vehicle NAME --ardupilot`: vehicle k is ArduPilot instance ardupilot.instance + k,
+    reached on MAVLink TCP 5760 + 10 (instance); a vehicle ArduPilot does not fly is refused."""
+    from droneulator.cli import build_parser
+    from droneulator.cli.plan import _guided_link, resolve_vehicle
+    from droneulator.config import to_dict
+    from droneulator.runtime.preflight import StartupError
+
+    cfg = load_config(scene="planning")
+    cfg.ardupilot.instance = 1
+    cfg.vehicles = [VehicleSpec("uav0"), VehicleSpec("uav1", controlled_by="ardupilot")]
+    path = tmp_path / "run.json"
+    path.write_text(json.dumps(to_dict(cfg)))
+    parse = build_parser().parse_args
+    args = parse(["plan", "--config", str(path), "--vehicle", "uav1", "--ardupilot"])
+    vehicle, run_cfg = resolve_vehicle(args)
+    assert vehicle.ardupilot() == 2
+    with pytest.raises(StartupError, match=r"no ArduCopter MAVLink on tcp://127.0.0.1:5780"):
+        _guided_link(args, vehicle, run_cfg)
+    args = parse(["plan", "--config", str(path), "--vehicle", "uav0", "--ardupilot"])
+    with pytest.raises(StartupError, match="ArduPilot does not fly vehicle 'uav0'"):
+        _guided_link(args, resolve_vehicle(args)[0], run_cfg)
