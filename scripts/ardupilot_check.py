@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -89,7 +90,7 @@ class ThroughRun:
     def __init__(self, cfg: SimConfig, instance: int) -> None:
         from droneulator.runtime.launch import launch_run
 
-        self.run = launch_run(cfg, ["--ardupilot-instance", str(instance)], start_timeout=180)
+        self.run = launch_run(cfg, ["--ardupilot-instance", str(instance)], start_timeout=240)
         self.client = self.run.client()
 
     def truth_ned(self, k: int = 0) -> np.ndarray:
@@ -178,12 +179,24 @@ def main() -> int:
         help="fly with plan --ardupilot's GuidedLink instead: engage (GUIDED, arm, take off to --alt), a "
         "setpoint 3 m east, 2 m north, 1 m up, then hold, then LAND on close",
     )
+    ap.add_argument(
+        "--plan",
+        type=float,
+        nargs=3,
+        default=None,
+        metavar=("X", "Y", "Z"),
+        help="through droneulator run --ardupilot on the planning scene: droneulator plan --ardupilot flies "
+        "to this goal (the benchmark's ceiling 4 m, floor 1.5 m, margin 0.6 m, take-off to 2.5 m)",
+    )
     ap.add_argument("--log", default=None, help="append ArduPilot k's console to LOG.k")
     ap.add_argument("--run", action="store_true", help="through droneulator run --ardupilot (renderer, API)")
     ap.add_argument("--out", default=None, help="write the JSON report here")
     args = ap.parse_args()
 
     cfg = load_config(overrides=["vehicle.control_hz=1200", "vehicle.params=px4_quadx"])
+    if args.plan is not None:
+        cfg = load_config(scene="planning")
+        args.run = True
     if args.run:
         sim: Served | ThroughRun = ThroughRun(cfg, args.instance)
         instances = [args.instance]
@@ -199,7 +212,10 @@ def main() -> int:
         boots = [c.wait_armable(args.boot_timeout) for c in copters]
         report["boot"] = boots
         report.update(sim.stats())
-        if args.guided and boots[0]["armable_after_wall_s"] is not None:
+        if args.plan is not None and isinstance(sim, ThroughRun) and boots[0]["armable_after_wall_s"]:
+            copters[0].mav.close()  # SITL's TCP serial port serves one client: the planner's link
+            report["plan"] = plan_flight(sim, args.instance, np.array(args.plan))
+        elif args.guided and boots[0]["armable_after_wall_s"] is not None:
             copters[0].mav.close()
             report["guided"] = guided(sim, cfg, copters[0], args.alt)
         elif all(b["armable_after_wall_s"] is not None for b in boots) and not args.no_fly:
@@ -258,6 +274,47 @@ def after_kill(
     out["impacts"] = [
         e.data for e in sim.sim_events if e.type in ("impact", "collision") and e.vehicle == "uav0"
     ]
+    return out
+
+
+def plan_flight(sim: ThroughRun, instance: int, goal: np.ndarray) -> dict[str, Any]:
+    """``droneulator plan --ardupilot`` to ``goal``; the truth (ENU) from the run's API."""
+    from droneulator.frames import ned_to_enu
+
+    cmd = [
+        sys.executable, "-m", "droneulator.cli", "plan", "--url", sim.run.url,
+        "--zenoh", sim.run.zenoh_endpoint, "--ardupilot-instance", str(instance),
+        "--ardupilot-takeoff", "2.5", "--ceiling", "4.0", "--floor", "1.5", "--margin", "0.6",
+        "--goal", *(str(float(g)) for g in goal),
+    ]  # fmt: skip
+    log = tempfile.NamedTemporaryFile("w+", suffix=".log", delete=False)  # noqa: SIM115 - the planner's
+    planner = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
+    out: dict[str, Any] = {"goal": goal.tolist(), "planner_log": log.name}
+    path: list[np.ndarray] = []
+    t0 = time.monotonic()
+    try:
+        while time.monotonic() - t0 < 300:
+            path.append(ned_to_enu(sim.truth_ned()))
+            if np.linalg.norm(path[-1] - goal) < 0.3:
+                break
+            time.sleep(0.25)
+        out["within_0.3_m_after_wall_s"] = round(time.monotonic() - t0, 1)
+        time.sleep(8.0)
+        final = ned_to_enu(sim.truth_ned())
+        out["truth_8s_later"] = np.round(final, 3).tolist()
+        out["true_goal_error_m"] = round(float(np.linalg.norm(final - goal)), 3)
+        pts = np.array(path)
+        out["path_length_m"] = round(float(np.sum(np.linalg.norm(np.diff(pts, axis=0), axis=1))), 2)
+        out["max_z_m"] = round(float(pts[:, 2].max()), 2)
+        out["mode"] = sim.client.state()["mode"]
+    finally:
+        planner.send_signal(signal.SIGTERM)
+        try:
+            planner.wait(15)
+        except subprocess.TimeoutExpired:
+            planner.kill()
+    log.seek(0)
+    out["planner_said"] = [ln.split(" ", 3)[-1].strip() for ln in log if "reached" in ln or "ERROR" in ln]
     return out
 
 

@@ -306,7 +306,8 @@ class GuidedLink:
         c = self.cfg
         if not self._wait(lambda: self._target is not None, c.connect_timeout_s):
             return self._fail(
-                f"no ArduCopter HEARTBEAT on tcp://{c.host}:{c.port} within {c.connect_timeout_s:g} s"
+                f"no ArduCopter HEARTBEAT on tcp://{c.host}:{c.port} within {c.connect_timeout_s:g} s (SITL "
+                "serves one client per TCP port: is another connected there? give it SERIAL1, 5762 + 10 N)"
             )
         interval = int(1e6 / c.stream_hz)
         for msg_id in (mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mavlink.MAVLINK_MSG_ID_ATTITUDE):
