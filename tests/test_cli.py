@@ -146,6 +146,18 @@ def test_run_px4_port_taken(taken_port: int) -> None:
     assert_one_line_error(out, 1, f"PX4 SITL port {taken_port}", "px4.instance 2", "already in use")
 
 
+def test_run_ardupilot_udp_port_taken() -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+        # instance N answers on base_port + 10 N
+        base = f"ardupilot.base_port={port - 10}"
+        out = droneulator("run", *FREE_PORTS, "--ardupilot-instance", "1", "--set", base)
+        assert_one_line_error(
+            out, 1, f"ArduPilot SITL port {port}", "already in use", "--ardupilot-instance", "base_port"
+        )
+
+
 def test_run_port_free_without_px4_is_not_checked(taken_port: int) -> None:
     cfg = load_config(None, [f"px4.base_port={taken_port}", 'bridge.listen=["tcp/127.0.0.1:0"]'])
     assert [p.what for p in preflight.run_ports(cfg)] == ["API", "Zenoh"]
@@ -229,6 +241,15 @@ def test_a_px4_vehicle_without_a_magnetometer_is_caught_before_the_children() ->
 def test_px4_instance_out_of_range_is_caught_before_the_children() -> None:
     out = droneulator("run", *FREE_PORTS, "--px4-instance", "300")
     assert_one_line_error(out, 2, "px4.instance")
+
+
+def test_ardupilot_with_px4_or_out_of_range_or_without_an_imu_is_caught_before_the_children() -> None:
+    out = droneulator("run", *FREE_PORTS, "--px4", "--ardupilot")
+    assert_one_line_error(out, 2, "--px4 and --ardupilot")
+    out = droneulator("run", *FREE_PORTS, "--ardupilot-instance", "7000")
+    assert_one_line_error(out, 2, "ardupilot.instance")
+    out = droneulator("run", *FREE_PORTS, "--ardupilot", "--set", 'vehicle.sensors=["baro", "gps"]')
+    assert_one_line_error(out, 2, "vehicle.sensors", "ArduPilot's JSON interface needs an imu")
 
 
 # --------------------------------------------------------------------------- EGL

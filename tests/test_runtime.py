@@ -579,6 +579,50 @@ def test_px4_drives_the_clock_and_websocket_flight_is_refused():
         r.close()
 
 
+def test_ardupilot_drives_the_clock_and_websocket_flight_is_refused():
+    """``run --ardupilot`` with a scripted ArduCopter (SIM_JSON's packets and parser): each servo packet
+    steps the clock once at ArduCopter's 1200 Hz, cameras keep flowing, WebSocket flight commands answer
+    flight_locked, scene_info names the vehicle's JSON port; ArduPilot gone, the simulator flies again."""
+    import socket
+
+    from scripted_ardupilot import ScriptedArduPilot, thrust_to_pwm
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    r = Run("default", extra=("--ardupilot", "--set", f"ardupilot.base_port={port}"))
+    try:
+        c = r.client
+        info = c.scene_info()["vehicles"][0]
+        assert info["controlled_by"] == "ardupilot" and info["ardupilot_port"] == port
+        peer = ScriptedArduPilot(port, rate_hz=1200)
+        first = peer.step([1000] * 4, timeout=10)
+        assert first["timestamp"] == pytest.approx(1 / 1200)
+        with pytest.raises(ApiError) as e:
+            c.takeoff(altitude=2.0)
+        assert e.value.code == "flight_locked" and "ArduPilot" in e.value.message
+        t0 = c.state()["t_ns"]
+        time.sleep(0.3)
+        assert c.state()["t_ns"] == t0  # no servo packet, no time
+        n_frames = len(r.msgs["droneulator/front/color/image_raw/compressed"])
+        for _ in range(1200):
+            peer.step([1000] * 4)
+        r.wait_for(lambda: c.state()["t_ns"] == t0 + 1200 * 833_333, 10, "exactly 1200 steps of 1/1200 s")
+        r.wait_for(
+            lambda: len(r.msgs["droneulator/front/color/image_raw/compressed"]) >= n_frames + 20,
+            10,
+            "camera frames for the 1 s ArduPilot stepped",
+        )
+        for _ in range(600):
+            state = peer.step([thrust_to_pwm(0.7)] * 4)
+        assert c.state()["mode"] == "external" and -state["position"][2] > 0.3  # it climbs
+        peer.close()  # ArduPilot goes away mid-flight: after 2 s of silence the simulator lands the vehicle
+        r.wait_for(lambda: c.state()["mode"] == "land", 15, "the vehicle to land after ArduPilot left")
+        c.goto([1.0, 1.0, 2.0])
+    finally:
+        r.close()
+
+
 def _steps_until(peer: Any, c: Any, u: Any, armed: bool, mode: str, limit: int = 4000) -> int:
     """Step PX4 (lockstep) with outputs ``u`` until the API reports ``mode``; returns the steps taken."""
     for k in range(1, limit + 1):

@@ -126,6 +126,35 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         default="hold",
         help="when setpoints stop: keep streaming the last position (hold) or switch PX4 to AUTO.LOITER/LAND",
     )
+    p.add_argument(
+        "--ardupilot",
+        action="store_true",
+        help="fly ArduCopter SITL in GUIDED (SET_POSITION_TARGET_LOCAL_NED over its MAVLink, TCP 5760+10N) "
+        "instead of publishing PositionCommand: a goal puts it in GUIDED (arming and taking off if it is on "
+        "the ground), then the planner plans on its EKF's estimate; see docs/ardupilot.md",
+    )
+    p.add_argument(
+        "--ardupilot-instance",
+        type=int,
+        default=None,
+        metavar="N",
+        help="ArduPilot instance (implies --ardupilot; default: the vehicle's, from scene_info or --config, "
+        "else 0)",
+    )
+    p.add_argument("--ardupilot-host", default="127.0.0.1", help="where ArduCopter's MAVLink TCP port is")
+    p.add_argument(
+        "--ardupilot-takeoff",
+        type=float,
+        default=2.0,
+        metavar="M",
+        help="take off to this height when a goal comes with ArduCopter on the ground (default 2 m)",
+    )
+    p.add_argument(
+        "--ardupilot-on-stop",
+        choices=("hold", "loiter", "land"),
+        default="hold",
+        help="on exit: stay in GUIDED holding the last position, or switch ArduCopter to LOITER or LAND",
+    )
     p.set_defaults(func=cmd_plan)
 
 
@@ -212,6 +241,13 @@ def cmd_plan(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, lambda *_: done.set())
     with contextlib.ExitStack() as stack:
         autopilot = None
+        ardupilot = args.ardupilot or args.ardupilot_instance is not None
+        if ardupilot and (args.px4 or args.px4_instance is not None):
+            raise StartupError(
+                "--px4 and --ardupilot: one autopilot flies the vehicle, choose one", preflight.USAGE
+            )
+        if ardupilot:
+            autopilot = stack.enter_context(_guided_link(args, vehicle, run_cfg))
         if args.px4 or args.px4_instance is not None:
             from droneulator.workflows.planning.offboard import OffboardConfig, OffboardLink
 
@@ -244,6 +280,39 @@ def cmd_plan(args: argparse.Namespace) -> int:
     if args.stats:
         Path(args.stats).write_text(json.dumps(node.stats(), indent=1))
     return 0
+
+
+def _guided_link(args: argparse.Namespace, vehicle: PlannedVehicle, run_cfg: SimConfig | None) -> Any:
+    """ArduCopter's GUIDED link for ``--ardupilot``: its instance (``--ardupilot-instance``, else the
+    run's for the vehicle, else 0) and the run's site as home."""
+    from droneulator.workflows.planning.guided import GuidedConfig, GuidedLink
+
+    instance = args.ardupilot_instance
+    if instance is None and vehicle.source != "defaults":
+        try:
+            instance = vehicle.ardupilot()
+        except ValueError as exc:
+            raise StartupError(f"--ardupilot: {exc}", preflight.USAGE) from None
+    home = {}
+    if run_cfg is not None:
+        home = dict(zip(("home_lat_deg", "home_lon_deg", "home_alt_m"), run_cfg.site.geodetic, strict=True))
+    try:
+        cfg = GuidedConfig(
+            host=args.ardupilot_host,
+            instance=instance or 0,
+            takeoff_alt_m=args.ardupilot_takeoff,
+            on_stop=args.ardupilot_on_stop,
+            **home,
+        )
+        return GuidedLink(cfg)
+    except ValueError as exc:
+        raise StartupError(f"--ardupilot: {exc}", preflight.USAGE) from None
+    except OSError as exc:
+        where = f"tcp://{args.ardupilot_host}:{5760 + 10 * (instance or 0)}"
+        raise StartupError(
+            f"--ardupilot: no ArduCopter MAVLink on {where} ({exc.strerror or exc}); start arducopter with "
+            "--serial0 tcp:0 (docs/ardupilot.md)"
+        ) from None
 
 
 def _px4_instance(args: argparse.Namespace, vehicle: PlannedVehicle) -> int:

@@ -1,5 +1,6 @@
 """``droneulator run``: the dynamics server, render server and bridge as child processes (flown by PX4
-SITL with ``--px4``); the recorder, the browser UI and the demo client run in this process."""
+SITL with ``--px4``, by ArduPilot SITL with ``--ardupilot``); the recorder, the browser UI and the demo
+client run in this process."""
 
 from __future__ import annotations
 
@@ -49,6 +50,21 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="N",
         help="PX4 instance N: listen on TCP 4560+N (implies --px4)",
     )
+    p.add_argument(
+        "--ardupilot",
+        action="store_true",
+        help="fly the first vehicle from ArduPilot SITL (arducopter --model JSON): answer its servo packets "
+        "on UDP 9002; in a fleet, vehicles with controlled_by: ardupilot in the config are flown by "
+        "ArduPilot instance k (their index, arducopter -I k) on 9002+10k without this flag "
+        "(see docs/ardupilot.md)",
+    )
+    p.add_argument(
+        "--ardupilot-instance",
+        type=int,
+        default=None,
+        metavar="N",
+        help="ArduPilot instance N (arducopter -I N): answer on UDP 9002+10N (implies --ardupilot)",
+    )
     p.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
     p.add_argument(
         "--demo",
@@ -82,6 +98,15 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.px4 or args.px4_instance is not None:
         cfg.px4.enabled = True
         cfg.px4.instance = args.px4_instance or 0
+    if args.ardupilot or args.ardupilot_instance is not None:
+        if cfg.px4.enabled:
+            raise StartupError(
+                "--px4 and --ardupilot: one autopilot flies a run's vehicles, choose one", preflight.USAGE
+            )
+        cfg.ardupilot.enabled = True
+        cfg.ardupilot.instance = args.ardupilot_instance or 0
+    if cfg.ardupilot_instances():
+        _ardupilot_defaults(cfg, defaults, args.api_port is None)
     if cfg.px4_instances():
         # PX4's lockstep runs at 250 Hz; its SIH quad-X parameters suit PX4's default gains
         if cfg.vehicle.control_hz == defaults.vehicle.control_hz:
@@ -147,6 +172,27 @@ def cmd_run(args: argparse.Namespace) -> int:
     if sup.failure:
         print(f"droneulator: {sup.failure}", file=sys.stderr)
     return code
+
+
+def _ardupilot_defaults(cfg: SimConfig, defaults: SimConfig, api_port_default: bool) -> None:
+    """What an ArduPilot run changes unless set: the world steps at ArduCopter SITL's frame rate
+    (SIM_RATE_HZ 1200: one step per servo packet), its vehicles are the quad-X ``px4_quadx`` airframe, and
+    instance N keeps its API port, Zenoh endpoint and ROS namespace apart from instance 0's."""
+    if cfg.vehicle.control_hz == defaults.vehicle.control_hz:
+        cfg.vehicle.control_hz = 1200.0
+    if not cfg.vehicles and cfg.vehicle.params == defaults.vehicle.params:
+        cfg.vehicle.params = "px4_quadx"
+    for spec in cfg.vehicles:
+        if spec.controlled_by == "ardupilot" and spec.params is None:
+            spec.params = "px4_quadx"
+    n = cfg.ardupilot.instance
+    if n:
+        if api_port_default:
+            cfg.runtime.api_port += n
+        if cfg.bridge.listen == defaults.bridge.listen:
+            cfg.bridge.listen = [f"tcp/127.0.0.1:{7448 + n}"]
+        if cfg.bridge.namespace == defaults.bridge.namespace:
+            cfg.bridge.namespace = f"{defaults.bridge.namespace}{n}"
 
 
 def _ui_zenoh_endpoint(cfg: SimConfig) -> str:

@@ -477,6 +477,46 @@ class PX4Config:
 
 
 @dataclass
+class ArduPilotConfig:
+    """ArduPilot SITL's JSON physics interface (``droneulator run --ardupilot``; docs/ardupilot.md).
+
+    ``arducopter --model JSON -I N`` sends its servo packets to UDP ``base_port + 10 N`` and waits for one
+    JSON state per packet; the motor settings mirror ArduCopter's ``MOT_*`` parameters, so keep them equal
+    to the ones the autopilot runs with. Sensor noise comes from the vehicle's sensor rig (the ``px4``
+    section's presets); ArduPilot derives its GPS, barometer and compass from the state itself."""
+
+    enabled: bool = False
+    #: ArduPilot instance N (``-I N``) sends to UDP port base_port + 10 N
+    instance: int = 0
+    host: str = "127.0.0.1"
+    base_port: int = 9002
+    #: MOT_PWM_MIN / MOT_PWM_MAX: the PWM range of the motor outputs (us)
+    pwm_min: int = 1000
+    pwm_max: int = 2000
+    #: MOT_SPIN_MIN / MOT_SPIN_MAX: the output fractions of zero and of full thrust
+    spin_min: float = 0.15
+    spin_max: float = 0.95
+    #: MOT_THST_EXPO: thrust fraction (1 - e) r + e r^2 of throttle ratio r (ArduCopter's default 0.65)
+    thrust_expo: float = 0.65
+    #: ArduPilot lost while it flies the vehicle in the air: "land", "hold" or "fall" (as ``px4.on_loss``)
+    on_loss: str = "land"
+
+    def __post_init__(self) -> None:
+        if self.on_loss not in PX4_ON_LOSS:
+            raise ValueError(
+                f"ardupilot.on_loss must be one of {', '.join(PX4_ON_LOSS)}, got {self.on_loss!r}"
+            )
+        if not 0 <= self.instance <= 255 or not 0 <= self.base_port + 10 * self.instance <= 65535:
+            raise ValueError("ardupilot.instance and ardupilot.base_port must give a UDP port in [0, 65535]")
+        if not 0 < self.pwm_min < self.pwm_max <= 65535:
+            raise ValueError("ardupilot.pwm_min and pwm_max (MOT_PWM_MIN/MAX) need 0 < pwm_min < pwm_max")
+        if not 0.0 <= self.spin_min < self.spin_max <= 1.0:
+            raise ValueError("ardupilot.spin_min and spin_max (MOT_SPIN_MIN/MAX) need 0 <= min < max <= 1")
+        if not -1.0 <= self.thrust_expo <= 1.0:
+            raise ValueError("ardupilot.thrust_expo (MOT_THST_EXPO) must lie in [-1, 1]")
+
+
+@dataclass
 class UIConfig:
     """The browser UI (``droneulator ui``, ``droneulator run --ui``; see docs/ui.md)."""
 
@@ -541,8 +581,11 @@ class AccessConfig:
 
 
 #: who flies a vehicle (``VehicleSpec.controlled_by``): the simulator's own flight controller (driven by
-#: the API, ROS topics and the workflows) or a PX4 SITL instance over its simulator link
-CONTROLLERS = ("internal", "px4")
+#: the API, ROS topics and the workflows), a PX4 SITL instance over its simulator link, or an ArduPilot
+#: SITL instance over its JSON interface
+CONTROLLERS = ("internal", "px4", "ardupilot")
+#: the autopilots a vehicle can be handed to (one kind per world)
+AUTOPILOTS = ("px4", "ardupilot")
 
 #: a vehicle name is also a ROS namespace and a TF frame prefix
 _VEHICLE_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
@@ -599,6 +642,7 @@ class SimConfig:
     runtime: RuntimeConfig = field(default_factory=RuntimeConfig)
     bridge: BridgeConfig = field(default_factory=BridgeConfig)
     px4: PX4Config = field(default_factory=PX4Config)
+    ardupilot: ArduPilotConfig = field(default_factory=ArduPilotConfig)
     capture: CaptureConfig = field(default_factory=CaptureConfig)
     rl: RLConfig = field(default_factory=RLConfig)
     ui: UIConfig = field(default_factory=UIConfig)
@@ -626,6 +670,12 @@ class SimConfig:
         twice = sorted({n for n in names if names.count(n) > 1})
         if twice:
             raise ValueError(f"vehicle names must be unique: {', '.join(twice)} given more than once")
+        kinds = {v.controlled_by for v in self.vehicle_specs()} & set(AUTOPILOTS)
+        if len(kinds) > 1 or (self.px4.enabled and self.ardupilot.enabled):
+            raise ValueError(
+                "PX4 and ArduPilot cannot fly vehicles of one world together (each steps the world in its "
+                "own lockstep): hand every autopilot vehicle to one of them"
+            )
         if self.vehicle.wind != "none" and not self.wind.calm:
             raise ValueError(
                 f"vehicle.wind={self.vehicle.wind!r} (a RotorPy wind profile) and the wind field "
@@ -635,9 +685,13 @@ class SimConfig:
     def vehicle_specs(self) -> list[VehicleSpec]:
         """Every vehicle with its unset fields filled from the single-vehicle sections (copies).
 
-        ``px4.enabled`` (``--px4``) hands the first vehicle to PX4 when no vehicle names PX4 itself."""
+        ``px4.enabled`` (``--px4``) hands the first vehicle to PX4 when no vehicle names PX4 itself;
+        ``ardupilot.enabled`` (``--ardupilot``) likewise to ArduPilot."""
         specs = self.vehicles or [VehicleSpec()]
-        first_px4 = self.px4.enabled and all(v.controlled_by != "px4" for v in specs)
+        first = "internal"
+        for kind, enabled in (("px4", self.px4.enabled), ("ardupilot", self.ardupilot.enabled)):
+            if enabled and all(v.controlled_by != kind for v in specs):
+                first = kind
         return [
             dataclasses.replace(
                 v,
@@ -645,7 +699,7 @@ class SimConfig:
                 cameras=list(self.render.cameras if v.cameras is None else v.cameras),
                 sensors=list(self.vehicle.sensors if v.sensors is None else v.sensors),
                 flight=v.flight or self.flight,
-                controlled_by="px4" if first_px4 and i == 0 else v.controlled_by,
+                controlled_by=first if first != "internal" and i == 0 else v.controlled_by,
             )
             for i, v in enumerate(specs)
         ]
@@ -660,3 +714,12 @@ class SimConfig:
         instance + 1), as PX4's multi-vehicle SITL numbers them."""
         specs = self.vehicle_specs()
         return {v.name: self.px4.instance + k for k, v in enumerate(specs) if v.controlled_by == "px4"}
+
+    def ardupilot_instances(self) -> dict[str, int]:
+        """ArduPilot SITL instance of each vehicle ArduPilot flies, by name: vehicle k of the list is
+        instance ``ardupilot.instance + k`` (``arducopter -I k``: servo packets to UDP ``ardupilot.base_port
+        + 10 k``, MAVLink on TCP 5760 + 10 k)."""
+        specs = self.vehicle_specs()
+        return {
+            v.name: self.ardupilot.instance + k for k, v in enumerate(specs) if v.controlled_by == "ardupilot"
+        }

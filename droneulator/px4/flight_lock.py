@@ -1,4 +1,6 @@
-"""The flight lock that follows PX4's hold on each vehicle, so the API and ROS never fight PX4.
+"""The flight lock that follows PX4's hold on each vehicle, so the API and ROS never fight PX4 (or
+ArduPilot: its links, :mod:`droneulator.ardupilot.link`, hold vehicles the same way; ``link.autopilot``
+names which in the reasons given).
 
 Per vehicle: while a PX4 is in control of its vehicle, that vehicle's flight commands are refused (the
 others still fly on the API); a PX4 that connected over a vehicle in the air is not in control until the
@@ -15,6 +17,7 @@ from typing import TYPE_CHECKING
 from droneulator.commands import CommandPath
 
 if TYPE_CHECKING:
+    from droneulator.ardupilot.link import ArduPilotFleet, ArduPilotLink
     from droneulator.px4.link import PX4Fleet, PX4Link
 
 log = logging.getLogger(__name__)
@@ -24,7 +27,7 @@ class PX4FlightLock:
     """Keeps ``commands``' flight lock on each vehicle of ``fleet`` in step with its link: at once when a
     link's hold changes under the simulation lock (``on_change``), and at each :meth:`update`."""
 
-    def __init__(self, commands: CommandPath, fleet: PX4Fleet) -> None:
+    def __init__(self, commands: CommandPath, fleet: PX4Fleet | ArduPilotFleet) -> None:
         self.commands = commands
         self.fleet = fleet
         #: vehicle -> what PX4 holds of it: "control" (all flight ops), "connected" (reset), or None
@@ -37,9 +40,10 @@ class PX4FlightLock:
         for link in self.fleet.links:
             self.follow(link)
 
-    def follow(self, link: PX4Link) -> None:
-        """Lock or free ``link``'s vehicle for what its PX4 holds of it now."""
+    def follow(self, link: PX4Link | ArduPilotLink) -> None:
+        """Lock or free ``link``'s vehicle for what its autopilot holds of it now."""
         name = link.vehicle.name
+        who = link.autopilot
         was = self._holds.get(name)
         hold = "control" if link.in_control else "connected" if link.connected else None
         if hold == was:
@@ -47,21 +51,25 @@ class PX4FlightLock:
         self._holds[name] = hold
         if hold == "control":
             self.commands.refuse_flight(
-                f"PX4 SITL is in control of {name}; flight commands come from PX4", vehicle=name
+                f"{who} SITL is in control of {name}; flight commands come from {who}", vehicle=name
             )
-            log.info("PX4 is in control of %s: it flies the vehicle and drives the simulation clock", name)
+            log.info(
+                "%s is in control of %s: it flies the vehicle and drives the simulation clock", who, name
+            )
             return
         if hold == "connected":
-            # a PX4 that is connected but not flying (booting over a held vehicle) keeps the clock
+            # an autopilot that is connected but not flying (booting over a held vehicle) keeps the clock
             self.commands.refuse_flight(
-                "a PX4 is connected: reset would turn its clock back", ops=("reset",), vehicle=name
+                f"{who} is connected: reset would turn its clock back", ops=("reset",), vehicle=name
             )
         else:
             self.commands.allow_flight(name)
-        if was == "control":  # the link applied px4.on_loss (land, hold or fall) under the lock
+        if was == "control":  # the link applied on_loss (land, hold or fall) under the lock
             log.warning(
-                "PX4 is not in control of %s: the simulator flies it (%s); a PX4 gets the rotors once it is "
-                "on the ground",
+                "%s is not in control of %s: the simulator flies it (%s); a new %s gets the rotors once it "
+                "is on the ground",
+                who,
                 name,
                 link.vehicle.mode.value,
+                who,
             )

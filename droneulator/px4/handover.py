@@ -1,4 +1,5 @@
 """Who flies a PX4 vehicle when its PX4 comes and goes: the loss rule and the hand-over to a new PX4.
+The ArduPilot link (:mod:`droneulator.ardupilot.link`) follows the same rules with ``ardupilot.on_loss``.
 
 PX4 lost while its outputs drive the rotors in the air: ``px4.on_loss`` says what the simulator does
 (``land``: its controller lands the vehicle at a spot clear of the scene; ``hold``; ``fall``: rotors
@@ -46,10 +47,13 @@ def loss_action(z: float, on_loss: str) -> LossAction:
     return "hold" if on_loss == "hold" else "land"
 
 
-def take_over(vehicle: Vehicle, on_loss: str) -> tuple[LossAction, dict[str, Any]] | None:
-    """(Under the lock) after PX4 was dropped: apply :func:`loss_action` to ``vehicle`` if PX4's outputs
-    drove its rotors (None otherwise: whatever flies it goes on). Returns the action and the
-    ``px4_lost`` event's data (``position``; ``spot``, the landing spot, for land)."""
+def take_over(
+    vehicle: Vehicle, on_loss: str, autopilot: str = "PX4"
+) -> tuple[LossAction, dict[str, Any]] | None:
+    """(Under the lock) after the autopilot (PX4, or ``autopilot`` as the logs name it) was dropped: apply
+    :func:`loss_action` to ``vehicle`` if its outputs drove the rotors (None otherwise: whatever flies it
+    goes on). Returns the action and the loss event's data (``position``; ``spot``, the landing spot,
+    for land)."""
     if vehicle.mode != Mode.EXTERNAL:
         return None
     position = vehicle.state.position
@@ -57,15 +61,18 @@ def take_over(vehicle: Vehicle, on_loss: str) -> tuple[LossAction, dict[str, Any
     action = loss_action(float(position[2]), on_loss)
     if action in ("rest", "fall"):
         vehicle.motors_off()
-        log.warning("PX4 lost %s: rotors stopped", "on the ground" if action == "rest" else "in the air")
+        log.warning(
+            "%s lost %s: rotors stopped", autopilot, "on the ground" if action == "rest" else "in the air"
+        )
     elif action == "hold":
         vehicle.hold()
-        log.warning("PX4 lost in the air: the simulator holds the vehicle at %s", data["position"])
+        log.warning("%s lost in the air: the simulator holds the vehicle at %s", autopilot, data["position"])
     else:
         spot = vehicle.safe_land()
         data["spot"] = [round(float(v), 3) for v in spot]
         log.warning(
-            "PX4 lost in the air: the simulator lands the vehicle at %s (from %s)",
+            "%s lost in the air: the simulator lands the vehicle at %s (from %s)",
+            autopilot,
             data["spot"],
             data["position"],
         )

@@ -86,6 +86,9 @@ class PX4Link:
     airspeed sensor HIL_STATE_QUATERNION's airspeeds are zero.
     """
 
+    #: the autopilot's name in the flight lock's reasons and the logs
+    autopilot = "PX4"
+
     def __init__(
         self,
         world: World,
@@ -169,6 +172,10 @@ class PX4Link:
     @property
     def port(self) -> int:
         return self._transport.port
+
+    def endpoint(self) -> dict[str, int]:
+        """Where PX4 reaches the vehicle (``scene_info``): its instance and simulator port (bound)."""
+        return {"px4_instance": self.instance, "px4_port": self.port}
 
     @property
     def connected(self) -> bool:
@@ -558,6 +565,10 @@ class PX4Fleet:
     def connected_vehicles(self) -> set[str]:
         """The vehicles with a PX4 connected (each such link samples its vehicle's sensors every step)."""
         return {link.vehicle.name for link in self.links if link.connected}
+
+    def describe(self) -> str:
+        """Where each link listens, for the runtime's log."""
+        return ", ".join(f"tcp://{link.cfg.host}:{link.port} ({link.vehicle.name})" for link in self.links)
 
     def serve_once(self, timeout: float, lock: threading.Lock | None = None) -> StepResult | None:
         return serve_links(self.links, timeout, lock)

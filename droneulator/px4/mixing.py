@@ -24,6 +24,7 @@ Output -> speed
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -36,7 +37,8 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class PX4Motor:
-    """One motor of PX4's quad-X: number, position signs in the FRD body frame, spin seen from above."""
+    """One motor of a quad-X motor table (PX4's, or ArduPilot's in :mod:`droneulator.ardupilot.mixing`):
+    number, position signs in the FRD body frame, spin seen from above."""
 
     number: int
     name: str
@@ -62,14 +64,25 @@ def px4_rotor_order(quad_params: dict[str, Any]) -> tuple[int, ...]:
 
     Raises ValueError when the parameter set is not a quad-X whose quadrants and spins match PX4's.
     """
+    return quad_x_rotor_order(quad_params, PX4_QUAD_X, "PX4")
+
+
+def quad_x_rotor_order(
+    quad_params: dict[str, Any], motors: Sequence[PX4Motor], autopilot: str
+) -> tuple[int, ...]:
+    """Index of the RotorPy rotor driven by each motor of ``autopilot``'s quad-X table ``motors`` (in
+    the table's order): the rotor in the motor's quadrant whose spin agrees.
+
+    Raises ValueError when the parameter set is not a quad-X whose quadrants and spins match the table.
+    """
     names = list(quad_params["rotor_pos"])
     pos = np.array([quad_params["rotor_pos"][k] for k in names], dtype=float)
     dirs = np.asarray(quad_params["rotor_directions"], dtype=float)
     if len(names) != 4 or dirs.shape != (4,):
-        raise ValueError(f"PX4 quad-X needs 4 rotors, this parameter set has {len(names)}")
+        raise ValueError(f"{autopilot} quad-X needs 4 rotors, this parameter set has {len(names)}")
     arm = float(np.max(np.linalg.norm(pos[:, :2], axis=1)))
     order: list[int] = []
-    for m in PX4_QUAD_X:
+    for m in motors:
         # FRD forward = FLU x, FRD right = -FLU y
         hits = [
             i
@@ -81,33 +94,48 @@ def px4_rotor_order(quad_params: dict[str, Any]) -> tuple[int, ...]:
         if len(hits) != 1:
             layout = {k: np.round(p, 3).tolist() for k, p in zip(names, pos, strict=True)}
             raise ValueError(
-                f"PX4 quad-X motor {m.number} sits {m.name}, but this parameter set has {len(hits)} rotors "
-                f"there (rotor_pos, body FLU: {layout}); it is not an X frame"
+                f"{autopilot} quad-X motor {m.number} sits {m.name}, but this parameter set has {len(hits)} "
+                f"rotors there (rotor_pos, body FLU: {layout}); it is not an X frame"
             )
         i = hits[0]
         if dirs[i] == 0 or _spin(dirs[i]) != m.spin:
             raise ValueError(
-                f"rotor {names[i]!r} ({m.name}) spins {_spin(dirs[i]) if dirs[i] else 'nowhere'} but PX4 "
-                f"quad-X motor {m.number} ({m.name}) spins {m.spin}: PX4 would yaw this vehicle the "
-                "wrong way; use a parameter set with front-right/rear-left CCW, front-left/rear-right CW"
+                f"rotor {names[i]!r} ({m.name}) spins {_spin(dirs[i]) if dirs[i] else 'nowhere'} but "
+                f"{autopilot} quad-X motor {m.number} ({m.name}) spins {m.spin}: {autopilot} would yaw this "
+                "vehicle the wrong way; use a parameter set with front-right/rear-left CCW, "
+                "front-left/rear-right CW"
             )
         order.append(i)
     return tuple(order)
 
 
 class MotorMap:
-    """PX4 quad-X outputs in [0, 1] (motor 1..4) -> rotor speeds in RotorPy order (rad/s)."""
+    """Quad-X motor outputs in [0, 1] (motor 1..4 of ``motors``, PX4's table by default) -> rotor speeds
+    in RotorPy order (rad/s). ``thrust_model_factor`` is the ``k`` of the thrust fraction
+    ``(1 - k) u + k u^2`` (PX4's THR_MDL_FAC in [0, 1]; ArduPilot's MOT_THST_EXPO, in [-1, 1])."""
 
-    def __init__(self, quad_params: dict[str, Any], thrust_model_factor: float = 0.0) -> None:
-        if not 0.0 <= thrust_model_factor <= 1.0:
-            raise ValueError("thrust_model_factor (PX4's THR_MDL_FAC) must lie in [0, 1]")
+    def __init__(
+        self,
+        quad_params: dict[str, Any],
+        thrust_model_factor: float = 0.0,
+        motors: Sequence[PX4Motor] = PX4_QUAD_X,
+        autopilot: str = "PX4",
+    ) -> None:
+        if not -1.0 <= thrust_model_factor <= 1.0:
+            raise ValueError(
+                "thrust_model_factor (PX4's THR_MDL_FAC, ArduPilot's MOT_THST_EXPO) must lie in [-1, 1]"
+            )
         self.k = float(thrust_model_factor)
-        self.order = px4_rotor_order(quad_params)
+        self.motors = tuple(motors)
+        self.autopilot = autopilot
+        self.order = quad_x_rotor_order(quad_params, self.motors, autopilot)
         self.rotor_names = list(quad_params["rotor_pos"])
         self.w_min = float(quad_params["rotor_speed_min"])
         self.w_max = float(quad_params["rotor_speed_max"])
         if not self.w_max > self.w_min >= 0.0:
-            raise ValueError("need 0 <= rotor_speed_min < rotor_speed_max to map PX4 outputs to rotor speeds")
+            raise ValueError(
+                f"need 0 <= rotor_speed_min < rotor_speed_max to map {autopilot} outputs to rotor speeds"
+            )
         self._last_valid = np.zeros(4)
         self._errors = LogThrottle(log, period=1.0)
 
@@ -117,7 +145,7 @@ class MotorMap:
         return self.w_min + (self.w_max - self.w_min) * np.sqrt((1.0 - self.k) * u + self.k * u * u)
 
     def speed_to_output(self, w: Any) -> np.ndarray:
-        """Inverse of :meth:`output_to_speed`: the output PX4 must command for rotor speed ``w``."""
+        """Inverse of :meth:`output_to_speed`: the output the autopilot must command for rotor speed ``w``."""
         f = ((np.asarray(w, dtype=float) - self.w_min) / (self.w_max - self.w_min)) ** 2
         if self.k == 0.0:
             return f
@@ -128,32 +156,37 @@ class MotorMap:
         ones replaced by that motor's last valid output, with a (rate-limited) logged error."""
         u = np.asarray(outputs, dtype=float).reshape(-1)[:4]
         if u.shape != (4,):
-            self._errors.error("short", "PX4 sent %d motor outputs, need 4: holding the last outputs", u.size)
+            self._errors.error(
+                "short", "%s sent %d motor outputs, need 4: holding the last outputs", self.autopilot, u.size
+            )
             return self._last_valid.copy()
         bad = ~np.isfinite(u)
         if bad.any():
             self._errors.error(
                 "nonfinite",
-                "PX4 motor outputs %s are not finite: motors %s keep their last valid output",
+                "%s motor outputs %s are not finite: motors %s keep their last valid output",
+                self.autopilot,
                 u.tolist(),
-                [PX4_QUAD_X[i].number for i in np.flatnonzero(bad)],
+                [self.motors[i].number for i in np.flatnonzero(bad)],
             )
             u = np.where(bad, self._last_valid, u)
         if np.any(u < 0.0) or np.any(u > 1.0):
-            self._errors.error("range", "PX4 motor outputs %s outside [0, 1]: clipped", u.tolist())
+            self._errors.error(
+                "range", "%s motor outputs %s outside [0, 1]: clipped", self.autopilot, u.tolist()
+            )
             u = np.clip(u, 0.0, 1.0)
         self._last_valid = u.copy()
         return u
 
     def rotor_speeds(self, outputs: Any) -> np.ndarray:
-        """Rotor speeds (rad/s) in RotorPy order for PX4 motor outputs (validated by :meth:`sanitize`)."""
+        """Rotor speeds (rad/s) in RotorPy order for motor outputs (validated by :meth:`sanitize`)."""
         w = np.zeros(4)
         w[list(self.order)] = self.output_to_speed(self.sanitize(outputs))
         return w
 
     def table(self) -> list[tuple[int, str, str, str]]:
-        """(PX4 motor, position, spin, RotorPy rotor) rows, for logs and docs."""
+        """(motor, position, spin, RotorPy rotor) rows, for logs and docs."""
         return [
             (m.number, m.name, m.spin, self.rotor_names[i])
-            for m, i in zip(PX4_QUAD_X, self.order, strict=True)
+            for m, i in zip(self.motors, self.order, strict=True)
         ]

@@ -19,6 +19,7 @@ from droneulator.ros.publishers import fleet_names
 from droneulator.vehicles.vehicle import VehicleState
 
 if TYPE_CHECKING:
+    from droneulator.ardupilot.link import ArduPilotFleet
     from droneulator.px4.link import PX4Fleet
 
 
@@ -46,7 +47,7 @@ class ApiHost:
     def port(self) -> int:
         return self.server.port
 
-    def start(self, px4: PX4Fleet | None) -> None:
+    def start(self, px4: PX4Fleet | ArduPilotFleet | None) -> None:
         """Say where each vehicle is reached (its PX4 port bound already), then serve."""
         self._describe_vehicles(px4)
         self.server.start()
@@ -61,12 +62,13 @@ class ApiHost:
         for e in events:
             self.server.publish_event(e.to_dict())
 
-    def _describe_vehicles(self, px4: PX4Fleet | None) -> None:
-        """Tell each vehicle where it is reached (``scene_info.vehicles``): ROS names, PX4 port (bound)."""
+    def _describe_vehicles(self, px4: PX4Fleet | ArduPilotFleet | None) -> None:
+        """Tell each vehicle where it is reached (``scene_info.vehicles``): ROS names, its autopilot's port
+        (bound)."""
         ports = {}
         if px4 is not None:
             for link in px4.links:
-                ports[link.vehicle.name] = {"px4_instance": link.instance, "px4_port": link.port}
+                ports[link.vehicle.name] = link.endpoint()
         for name, names in fleet_names(self.cfg).items():
             v = self.world.vehicles[name]
             v.endpoints = {**names.describe([c.name for c in v.cameras]), **ports.get(name, {})}

@@ -50,8 +50,9 @@ def open_bridge_node(cfg: SimConfig, hub_endpoint: str | None) -> RosZenohNode:
 
 
 def images_policy(cfg: SimConfig) -> zenoh.CongestionControl:
-    """``BLOCK`` in lockstep (no image lost), ``DROP`` in real time (never stall the simulation)."""
-    lockstep = cfg.runtime.mode == "lockstep" or bool(cfg.px4_instances())
+    """``BLOCK`` in lockstep (no image lost; an autopilot's lockstep too), ``DROP`` in real time (never
+    stall the simulation)."""
+    lockstep = cfg.runtime.mode == "lockstep" or bool(cfg.px4_instances() or cfg.ardupilot_instances())
     return zenoh.CongestionControl.BLOCK if lockstep else zenoh.CongestionControl.DROP
 
 

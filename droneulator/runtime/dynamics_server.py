@@ -1,8 +1,8 @@
 """The dynamics server: owns the world (its clock and every vehicle's flight) and is the hub the render
 server and the bridge connect to. Each camera instant goes to the render server as every vehicle's state
 at once. It composes what else runs on the clock: the WebSocket API (:mod:`.api_host`), the ROS 2 state
-and sensor topics (:mod:`.publishing`), the latency log (:mod:`.latency`), and the PX4 links with their
-flight lock (:mod:`droneulator.px4`).
+and sensor topics (:mod:`.publishing`), the latency log (:mod:`.latency`), and the autopilot links with
+their flight lock: PX4's (:mod:`droneulator.px4`) or ArduPilot's (:mod:`droneulator.ardupilot`).
 
 Lockstep: a control step is taken only while fewer than ``frame_slots - 1`` frames are in flight
 (requested from the render server and not yet published by the bridge), so sim time advances
@@ -63,6 +63,7 @@ from droneulator.world import World
 from droneulator.world.world import StepResult
 
 if TYPE_CHECKING:
+    from droneulator.ardupilot.link import ArduPilotFleet
     from droneulator.px4.flight_lock import PX4FlightLock
     from droneulator.px4.link import PX4Fleet
 
@@ -124,13 +125,20 @@ class DynamicsServer:
         self.stopping = threading.Event()
         self.dropped_frames = 0
         self.frames_published = 0
-        self.px4: PX4Fleet | None = None
+        #: the autopilot links (PX4's or ArduPilot's: one kind per world) and their flight lock
+        self.px4: PX4Fleet | ArduPilotFleet | None = None
         self.flight_lock: PX4FlightLock | None = None
-        if cfg.px4_instances():
+        if cfg.px4_instances() or cfg.ardupilot_instances():
             from droneulator.px4.flight_lock import PX4FlightLock
-            from droneulator.px4.link import PX4Fleet
 
-            self.px4 = PX4Fleet.of(self.world)
+            if cfg.px4_instances():
+                from droneulator.px4.link import PX4Fleet
+
+                self.px4 = PX4Fleet.of(self.world)
+            else:
+                from droneulator.ardupilot.link import ArduPilotFleet
+
+                self.px4 = ArduPilotFleet.of(self.world)
             self.flight_lock = PX4FlightLock(self.commands, self.px4)
 
     # ------------------------------------------------------------------ peers
@@ -270,10 +278,10 @@ class DynamicsServer:
         return peers and first
 
     def _px4_turn(self) -> bool:
-        """While a PX4 is connected its actuator messages drive the clock (lockstep with every PX4 and
-        with every consumer); True then. The flight lock follows each link (:class:`PX4FlightLock`); the
-        links' events (connection, loss, arming, hand-over) are published as API events, naming their
-        vehicle."""
+        """While an autopilot is connected its messages drive the clock (PX4's actuator messages,
+        ArduPilot's servo packets: lockstep with every instance and with every consumer); True then. The
+        flight lock follows each link (:class:`PX4FlightLock`); the links' events (connection, loss,
+        arming, hand-over) are published as API events, naming their vehicle."""
         assert self.px4 is not None and self.flight_lock is not None
         connected = self.px4.connected
         ready = all(r in self.peers for r in ROLES) and lockstep_may_step(self.in_flight, self.window)
@@ -317,10 +325,10 @@ class DynamicsServer:
             if self.px4 is not None and not self.px4.listening and self._pipeline_warm():
                 self.px4.start()
                 log.info(
-                    "waiting for PX4 SITL on tcp://%s port %s (renderer and bridge warm: the first frame "
-                    "was published at t=%.3f s)",
-                    self.cfg.px4.host,
-                    ", ".join(f"{link.port} ({link.vehicle.name})" for link in self.px4.links),
+                    "waiting for %s SITL on %s (renderer and bridge warm: the first frame was published "
+                    "at t=%.3f s)",
+                    self.px4.links[0].autopilot,
+                    self.px4.describe(),
                     self.world.t,
                 )
             if self.px4 is not None and self.px4.listening and self._px4_turn():

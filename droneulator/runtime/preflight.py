@@ -52,9 +52,9 @@ class StartupError(Exception):
 
 @dataclass(frozen=True)
 class Listen:
-    """A TCP port a server will listen on, and how the user chooses another."""
+    """A TCP (or UDP) port a server will listen on, and how the user chooses another."""
 
-    #: the server: "API", "Zenoh", "PX4 SITL"
+    #: the server: "API", "Zenoh", "PX4 SITL", "ArduPilot SITL"
     what: str
     host: str
     port: int
@@ -64,6 +64,8 @@ class Listen:
     host_option: str
     #: where the port comes from when that is not obvious, e.g. "bridge.listen tcp/127.0.0.1:7448"
     source: str = ""
+    #: "TCP", or "UDP" (ArduPilot's JSON physics port)
+    protocol: str = "TCP"
 
     @property
     def label(self) -> str:
@@ -156,6 +158,8 @@ def check_vehicle(cfg: SimConfig) -> None:
             raise StartupError(
                 f"{where}: PX4 needs {', '.join(PX4_SENSORS)}; {', '.join(missing)} missing", USAGE
             )
+        if spec.controlled_by == "ardupilot" and "imu" not in spec.sensors:
+            raise StartupError(f"{where}: ArduPilot's JSON interface needs an imu", USAGE)
     if cfg.vehicle.wind == "dryden" and importlib.util.find_spec("torch") is None:
         raise StartupError(
             "vehicle.wind=dryden needs torch: pip install 'droneulator[rl]', or choose another wind model "
@@ -181,8 +185,9 @@ def _writable(path: Path) -> bool:
 
 # --------------------------------------------------------------------------- ports
 def run_ports(cfg: SimConfig) -> list[Listen]:
-    """The TCP ports ``droneulator run`` will listen on: the WebSocket API, each ``tcp/`` Zenoh listen
-    endpoint (other schemes are not checked) and, with PX4 on, the PX4 SITL port."""
+    """The ports ``droneulator run`` will listen on: the WebSocket API, each ``tcp/`` Zenoh listen
+    endpoint (other schemes are not checked) and, with PX4 on, the PX4 SITL port; with ArduPilot on, the
+    UDP port of its JSON physics."""
     rt, px4 = cfg.runtime, cfg.px4
     ports = [
         Listen(
@@ -208,6 +213,19 @@ def run_ports(cfg: SimConfig) -> list[Listen]:
                 "--set px4.host=HOST",
                 f"px4.base_port {px4.base_port} + px4.instance {px4.instance}"
                 + (f" + vehicle index {instance - px4.instance}" if instance != px4.instance else ""),
+            )
+        )
+    ap = cfg.ardupilot
+    for vehicle, instance in cfg.ardupilot_instances().items():
+        ports.append(
+            Listen(
+                f"ArduPilot SITL ({vehicle})" if len(cfg.vehicle_specs()) > 1 else "ArduPilot SITL",
+                ap.host,
+                0 if ap.base_port == 0 else ap.base_port + 10 * instance,
+                f"--ardupilot-instance N (port {ap.base_port}+10N) or --set ardupilot.base_port=N",
+                "--set ardupilot.host=HOST",
+                f"ardupilot.base_port {ap.base_port} + 10 x instance {instance}",
+                protocol="UDP",
             )
         )
     return ports
@@ -259,11 +277,12 @@ def check_ports(ports: list[Listen]) -> None:
     for i, p in enumerate(ports):
         if not 0 <= p.port <= 65535:
             raise StartupError(
-                f"{p.label} is not a TCP port (0-65535); choose another with {p.port_option}",
+                f"{p.label} is not a {p.protocol} port (0-65535); choose another with {p.port_option}",
                 USAGE,
             )
         for q in ports[:i]:
-            if p.port and p.port == q.port and (p.host == q.host or _wildcard(p.host) or _wildcard(q.host)):
+            same_host = p.host == q.host or _wildcard(p.host) or _wildcard(q.host)
+            if p.port and p.port == q.port and p.protocol == q.protocol and same_host:
                 raise StartupError(
                     f"{q.label} and {p.label} are the same port; change one with {q.port_option} "
                     f"or {p.port_option}",
@@ -278,12 +297,14 @@ def _wildcard(host: str) -> bool:
 
 
 def check_port(p: Listen) -> None:
-    """Bind ``p.host:p.port`` as its server will (``SO_REUSEADDR``; every address the host resolves to)
-    and release it at once. Port 0 (any free port) always succeeds."""
+    """Bind ``p.host:p.port`` as its server will (TCP with ``SO_REUSEADDR``, UDP without; every address
+    the host resolves to) and release it at once. Port 0 (any free port) always succeeds."""
     if p.port == 0:
         return
+    udp = p.protocol == "UDP"
+    kind = socket.SOCK_DGRAM if udp else socket.SOCK_STREAM
     try:
-        infos = socket.getaddrinfo(p.host or None, p.port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+        infos = socket.getaddrinfo(p.host or None, p.port, type=kind, flags=socket.AI_PASSIVE)
     except socket.gaierror as exc:
         raise StartupError(
             f"{p.what} host {p.host!r} does not resolve ({exc.strerror}); choose another with "
@@ -292,7 +313,8 @@ def check_port(p: Listen) -> None:
         ) from None
     for family, kind, proto, _, address in dict.fromkeys(infos):
         with socket.socket(family, kind, proto) as sock:
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            if not udp:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             if family == socket.AF_INET6:
                 sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
             try:

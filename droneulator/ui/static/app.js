@@ -103,11 +103,13 @@ function buildVehicleList() {
     const b = document.createElement("button");
     b.dataset.vehicle = v.name;
     b.setAttribute("role", "radio");
-    b.title = `${v.name}: ${v.params}, flown by ${v.controlled_by === "px4" ? "PX4 SITL" : "the simulator"}`;
+    const pilot = { px4: "PX4 SITL", ardupilot: "ArduPilot SITL" }[v.controlled_by] ?? "the simulator";
+    b.title = `${v.name}: ${v.params}, flown by ${pilot}`;
     b.innerHTML = `<i style="background: ${FLEET_COLOURS[i % FLEET_COLOURS.length]}"></i><b></b>` +
       `<span class="mode"></span>`;
     b.querySelector("b").textContent = v.name;
     if (v.controlled_by === "px4") b.insertAdjacentHTML("beforeend", `<span class="tag">PX4</span>`);
+    if (v.controlled_by === "ardupilot") b.insertAdjacentHTML("beforeend", `<span class="tag">ArduPilot</span>`);
     b.insertAdjacentHTML("beforeend", `<span class="tag locked" hidden>locked</span>`);
     b.onclick = () => select(v.name);
     list.append(b);

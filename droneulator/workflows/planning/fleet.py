@@ -26,6 +26,8 @@ class PlannedVehicle:
     cameras: list[str] | None = None
     #: the PX4 SITL instance flying it (``px4 -i N``); None: PX4 does not fly it in this run
     px4_instance: int | None = None
+    #: the ArduPilot SITL instance flying it (``arducopter -I N``); None: ArduPilot does not fly it
+    ardupilot_instance: int | None = None
     #: where the names came from, for messages
     source: str = "defaults"
 
@@ -47,6 +49,15 @@ class PlannedVehicle:
                 "(`droneulator run --px4` hands PX4 the first vehicle), or give --px4-instance"
             )
         return self.px4_instance
+
+    def ardupilot(self) -> int:
+        """Its ArduPilot instance; ValueError if ArduPilot does not fly it."""
+        if self.ardupilot_instance is None:
+            raise ValueError(
+                f"ArduPilot does not fly vehicle {self.name!r} ({self.source}); run it with "
+                "controlled_by='ardupilot' (`droneulator run --ardupilot`), or give --ardupilot-instance"
+            )
+        return self.ardupilot_instance
 
 
 def single_vehicle(namespace: str = "droneulator", name: str = "uav0") -> PlannedVehicle:
@@ -84,6 +95,7 @@ def from_scene_info(info: dict[str, Any], vehicle: str | None = None) -> Planned
         names,
         cameras=list(entry.get("cameras", cameras)),
         px4_instance=entry.get("px4_instance"),
+        ardupilot_instance=entry.get("ardupilot_instance"),
         source="the run's scene_info",
     )
 
@@ -99,5 +111,6 @@ def from_config(cfg: SimConfig, vehicle: str | None = None) -> PlannedVehicle:
         every[name],
         cameras=[c.name for c in cfg.camera_rigs()[name]],
         px4_instance=cfg.px4_instances().get(name),
+        ardupilot_instance=cfg.ardupilot_instances().get(name),
         source="the configuration",
     )
