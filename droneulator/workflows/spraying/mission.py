@@ -2,9 +2,9 @@
 
 The vehicle (the config's first, flown by the internal controller) takes off, flies each leg of the
 plan with :meth:`~droneulator.vehicles.vehicle.Vehicle.goto` at the leg's speed, and sprays over the
-target area of spraying legs; after the last leg it lands while the cloud settles. The report holds
-the mass balance, each plant's dose by third of its height, the ground deposit inside the target area
-and off it, and the drift curve downwind of the target area.
+target area of spraying legs, its flow following its ground speed; after the last leg it lands while
+the cloud settles. The report holds the mass balance, each plant's dose by third of its height, the
+ground deposit inside the target area and off it, and the drift curve downwind of the target area.
 """
 
 from __future__ import annotations
@@ -44,13 +44,17 @@ def fly_plan(
     total = sum(np.linalg.norm(leg.end - leg.start) / leg.speed for leg in plan.legs) + 10.0
     done = 0.0
 
-    def run(seconds: float, spray_leg: bool) -> None:
+    def run(seconds: float, spray_leg: bool, speed: float = 1.0) -> None:
         nonlocal done
         for _ in range(max(1, round(seconds / (world.control_period_ns / 1e9)))):
-            p = v.state.position
+            st = v.state
+            p = st.position
             inside = x0 <= p[0] <= x1 and y0 <= p[1] <= y1
-            want = 1.0 if (spray_leg and inside and system.level_l > 0) else 0.0
-            if want != system.rate:
+            # the flow follows the ground speed (as spray drones' rate control does), so the dose per
+            # metre stays as planned where the vehicle speeds up and slows down at a row's ends
+            ground = float(np.hypot(st.velocity[0], st.velocity[1]))
+            want = min(1.0, ground / speed) if (spray_leg and inside and system.level_l > 0) else 0.0
+            if abs(want - system.rate) > 0.02 or (want == 0.0) != (system.rate == 0.0):
                 system.set(want)
             world.step()
             spraying.step()
@@ -62,10 +66,10 @@ def fly_plan(
     run(v.goto(plan.legs[0].start, yaw=_yaw(plan.legs[0]), speed=2.0) + 2.0, False)
     for leg in plan.legs:
         duration = v.goto(leg.end, yaw=_yaw(leg), speed=leg.speed)
-        run(duration + 0.5, leg.spray)
+        run(duration + 0.5, leg.spray, leg.speed)
         slack = 0.0
         while np.linalg.norm(v.state.position - leg.end) > 0.5 and slack < LEG_SLACK_S:
-            run(0.5, leg.spray)
+            run(0.5, leg.spray, leg.speed)
             slack += 0.5
     system.set(0.0)
     run(v.land() + 1.0, False)
