@@ -1,0 +1,77 @@
+"""``droneulator spray``: a trial written as JSON and a figure, its refusals, and a short coverage mission
+whose report balances and doses the row it flew over."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from droneulator.cli import main
+from droneulator.config import load_config
+from droneulator.scenes import get_scene
+from droneulator.workflows.spraying.coverage import CoveragePlan, Leg, coverage_plan
+from droneulator.workflows.spraying.mission import fly_plan
+
+
+def test_a_hover_trial_writes_its_json_and_figure(tmp_path, capsys):
+    out = tmp_path / "hover"
+    code = main(["spray", "--trial", "hover", "--duration", "1", "--out", str(out),
+                 "--set", "spray.parcels_per_s=300", "--set", "wind.speed_m_s=2"])  # fmt: skip
+    assert code == 0
+    data = json.loads((out / "trial_hover.json").read_text())
+    assert data["setup"]["wind_m_s"] == 2.0 and data["sprayed_l"] == pytest.approx(1.8 / 60.0, rel=1e-6)
+    assert abs(sum(data["ledger"].values()) - 1.0) < 1e-9
+    assert max(data["share_of_peak"]) == 1.0 and len(data["collectors_m"]) == len(data["deposit_ul_cm2"])
+    assert (out / "trial_hover.png").stat().st_size > 10_000
+    assert "hover trial" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--height", "-1"], "--height must be > 0"),
+        (["--airframe", "hummingbird"], "invalid choice"),
+        (["--set", "spray.nozzles=[]"], "at least one nozzle"),
+        (["--set", "weather.relative_humidity=60"], "relative_humidity"),
+    ],
+)
+def test_bad_input_is_one_clear_error(tmp_path, capsys, args, message):
+    try:
+        code = main(["spray", "--trial", "hover", "--out", str(tmp_path / "x"), *args])
+    except SystemExit as e:  # argparse's own refusals
+        code = e.code
+    assert code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_the_coverage_plan_covers_the_rows():
+    scene = get_scene("vineyard", 0)
+    plan = coverage_plan(scene, height=1.5, speed=3.0)
+    rows = scene.landmarks["row_y"]
+    spraying = [leg for leg in plan.legs if leg.spray]
+    assert [float(leg.start[1]) for leg in spraying] == pytest.approx(list(rows))
+    assert plan.altitude == pytest.approx(max(scene.landmarks["canopy_z"]) + 1.5)
+    assert all(leg.start[0] != spraying[0].start[0] for leg in spraying[1::2])  # back and forth
+    with pytest.raises(ValueError, match="height and speed"):
+        coverage_plan(scene, height=0.0)
+
+
+def test_a_short_mission_balances_and_doses_the_row_it_flew():
+    cfg = load_config(overrides=["vehicle.params=sprayer10", "scene=vineyard", "spray.parcels_per_s=300"])
+    scene = get_scene("vineyard", 0)
+    row = float(scene.landmarks["row_y"][2])
+    z = max(scene.landmarks["canopy_z"]) + 1.5
+    plan = CoveragePlan([Leg(np.array([-17.0, row, z]), np.array([17.0, row, z]), 3.0, True)],
+                        (-15.5, 15.5, row - 1.65, row + 1.65), z)  # fmt: skip
+    report, spraying = fly_plan(cfg, plan)
+    assert report["mass_balance_error"] < 1e-9
+    # the row is 31 m of target at 3 m/s with 1.8 L/min (less where it speeds up and slows down)
+    assert 0.7 * 0.31 < report["sprayed_l"] <= 0.32
+    assert 0.05 < report["canopy_share"] < 0.9
+    dose = np.asarray(report["plants"]["dose_ul"]).sum(1)
+    plants = np.asarray(report["plants"]["positions"])
+    on_row = np.abs(plants[:, 1] - row) < 0.5
+    assert dose[on_row].min() > 0.0 and dose[on_row].sum() > 5 * dose[~on_row].sum()
+    assert report["tank"]["level_l"] == pytest.approx(10.0 - report["sprayed_l"], abs=1e-9)
