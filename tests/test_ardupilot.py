@@ -97,6 +97,8 @@ class Served:
 @pytest.fixture(scope="module")
 def world():
     w = make_world()
+    w.step()  # compiles the step (seconds on a fresh clone) before any peer's frame waits on it
+    w.reset()
     yield w
     w.close()
 

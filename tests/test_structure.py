@@ -84,7 +84,7 @@ LAYERS: dict[str, int] = {
     "controllers": 2,
     "vehicles": 3,
     "world": 4, "render": 4, "imaging": 4, "spray": 4,
-    "api": 5, "ros": 5, "px4": 5, "recording": 5,
+    "api": 5, "ros": 5, "px4": 5, "ardupilot": 5, "recording": 5,
     "runtime": 6, "ui": 6,
     "workflows": 7,
     "cli": 8, "": 8,
