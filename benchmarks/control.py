@@ -229,9 +229,9 @@ def latency_trial(
 ) -> dict[str, Any]:
     """Command ``level`` once from hover; the sim and wall time to the first motion and to half-way."""
     client.reset(position=[0.0, 0.0, ALTITUDE], yaw=0.0)
-    time.sleep(0.3)
     with rig.lock:
         start = len(rig.log)
+    time.sleep(0.3)
     if level == "velocity":
         send, target = (lambda: client.velocity(1.0, 0.0)), 1.0
     elif level == "rates":
@@ -266,14 +266,14 @@ def latency_trial(
     first, mid = moved[0], half[0]
     return {
         "level": level,
-        "first_motion_sim_s": (stamps[first] - reply["stamp_ns"]) / 1e9,
-        "first_motion_wall_s": walls[first] - accepted_wall,
-        "half_way_sim_s": (stamps[mid] - reply["stamp_ns"]) / 1e9,
-        "half_way_wall_s": walls[mid] - accepted_wall,
+        "first_motion_sim_s": float(stamps[first] - reply["stamp_ns"]) / 1e9,
+        "first_motion_wall_s": float(walls[first] - accepted_wall),
+        "half_way_sim_s": float(stamps[mid] - reply["stamp_ns"]) / 1e9,
+        "half_way_wall_s": float(walls[mid] - accepted_wall),
         "trace": [
-            ((stamps[i] - reply["stamp_ns"]) / 1e9, (_measure(states[i], level) - q0) / (target - q0))
+            (float(stamps[i] - reply["stamp_ns"]) / 1e9, (_measure(states[i], level) - q0) / (target - q0))
             for i in range(max(0, before[-1] - 2), len(log))
-        ],  # fmt: skip
+        ],
     }
 
 
@@ -307,7 +307,7 @@ def plot(figures: list[dict[str, Any]], lat: dict[str, Any] | None, headline: tu
     import matplotlib.pyplot as plt
 
     panels = 3 if lat else 2
-    fig, axes = plt.subplots(1, panels, figsize=(5.2 * panels, 4.4))
+    fig, axes = plt.subplots(1, panels, figsize=(5.2 * panels, 5.0))
     half_width, period = headline
     ref = np.array([figure_eight(period + k * period / 400, half_width, period)[0][:2] for k in range(401)])
     names = {"se3": "SE(3), 45 deg bound", "se3_unbounded": "SE(3), unbounded", "ctbr": "CTBR, flat"}
@@ -324,7 +324,7 @@ def plot(figures: list[dict[str, Any]], lat: dict[str, Any] | None, headline: tu
         ax.set_xlabel("x (m)")
         ax.set_ylabel("y (m)")
         ax.set_aspect("equal")
-        ax.legend(fontsize=7, loc="lower center")
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16))
     if lat:
         ax = axes[2]
         for level, row in lat.items():
