@@ -18,8 +18,11 @@ acceptance to the first motion at each level.
      the reference's acceleration and jerk, with the SE(3) controller's position feedback (RotorPy's
      gains) and an attitude correction of ``0.8 k_w`` (the airframe's body-rate gain).
 
-   Each with RotorPy's aerodynamics (rotor and parasitic drag, the default) and without
-   (``vehicle.aero=false``, the drag-free model the flat feed-forward is exact for). A controller **cannot
+   Each with RotorPy's aerodynamics (rotor and parasitic drag, translational lift, the default) and without
+   (``vehicle.aero=false``, the drag-free model the flat feed-forward is exact for). With them, on an
+   airframe with rotor drag (``k_d`` > 0: the Hummingbird, not the PX4 quad), the unbounded SE(3) and CTBR
+   fly once more (``+drag``) with the rotor drag at the reference velocity added to the reference's
+   acceleration (:func:`rotor_drag`), the same for both. A controller **cannot
    hold** a figure when its largest position error over the laps exceeds :data:`HOLD_MAX_ERROR` (0.25 m, a
    twelfth of the 3 m half-width): beyond that it flies a different figure.
 2. **Latency.** A real :class:`~droneulator.api.ApiServer` over a world stepped in real time (one 10 ms
@@ -53,8 +56,9 @@ from droneulator.api import ApiServer, DroneulatorClient
 from droneulator.commands import CommandPath
 from droneulator.config import load_config
 from droneulator.controllers.flatness import CTBRTracker
-from droneulator.frames import quat_to_euler, world_to_body
+from droneulator.frames import quat_to_euler, quat_to_matrix, world_to_body
 from droneulator.state import STATE
+from droneulator.vehicles.params import get_params
 from droneulator.world import World
 
 #: largest position error (m) over the laps of a figure that a controller holds
@@ -92,6 +96,17 @@ def figure_eight(t: float, half_width: float, period: float) -> Reference:
     return f0, f1 * d1, f2 * d1**2 + f1 * d2, f3 * d1**3 + 3.0 * f2 * d1 * d2 + f1 * d3
 
 
+def rotor_drag(quad_params: dict[str, Any], s: np.ndarray, velocity: np.ndarray) -> np.ndarray:
+    """The acceleration (m/s^2, world) RotorPy's rotor drag takes from a vehicle in state ``s`` flying at
+    ``velocity`` in still air: ``k_d`` times the sum of the rotor speeds times the airspeed in the rotor
+    plane, over the mass (the first-order drag of Faessler et al. 2018; parasitic drag, translational lift
+    and induced inflow are left out)."""
+    z = quat_to_matrix(s[STATE.q])[:, 2]
+    in_plane = velocity - float(velocity @ z) * z
+    spin = float(np.sum(s[STATE.rotor_speeds]))
+    return float(quad_params["k_d"]) * spin * in_plane / float(quad_params["mass"])
+
+
 def peak_accel(half_width: float, period: float) -> float:
     """The figure's largest acceleration (m/s^2) once at full speed."""
     return float(
@@ -102,10 +117,11 @@ def peak_accel(half_width: float, period: float) -> float:
 def fly_figure(
     airframe: str, controller: str, half_width: float, period: float, aero: bool, laps: int
 ) -> dict[str, Any]:
-    """Fly the figure with ``controller`` (``se3``, ``se3_unbounded`` or ``ctbr``); the errors over the laps
-    after the ramp and the path flown."""
+    """Fly the figure with ``controller`` (``se3``, ``se3_unbounded`` or ``ctbr``, each with ``+drag``: the
+    reference's acceleration raised by the rotor drag, :func:`rotor_drag`); the errors over the laps after the
+    ramp and the path flown."""
     overrides = [f"vehicle.params={airframe}", f"vehicle.aero={str(aero).lower()}", "flight.max_speed=50"]
-    if controller == "se3_unbounded":
+    if controller.startswith("se3_unbounded"):
         overrides.append("flight.max_tilt_deg=null")
     world = World(load_config(overrides=overrides), scene="default", render=False)
     world.reset(position=[0.0, 0.0, ALTITUDE], yaw=0.0)
@@ -126,7 +142,9 @@ def fly_figure(
     for _ in range(round((laps + 1) * period / dt)):
         t = world.t
         p, v, a, j = figure_eight(t, half_width, period)
-        if controller == "ctbr":
+        if controller.endswith("+drag"):
+            a = a + rotor_drag(uav.quad_params, uav.s, v)
+        if controller.startswith("ctbr"):
             s = uav.s
             thrust, rates = tracker.command(s[STATE.x], s[STATE.v], s[STATE.q], (p, v, a, j, 0.0, 0.0))
             uav.rates(thrust, rates)
@@ -310,11 +328,13 @@ def plot(figures: list[dict[str, Any]], lat: dict[str, Any] | None, headline: tu
     fig, axes = plt.subplots(1, panels, figsize=(5.2 * panels, 5.0))
     half_width, period = headline
     ref = np.array([figure_eight(period + k * period / 400, half_width, period)[0][:2] for k in range(401)])
-    names = {"se3": "SE(3), 45 deg bound", "se3_unbounded": "SE(3), unbounded", "ctbr": "CTBR, flat"}
+    names = {"se3": "SE(3), 45 deg bound", "se3_unbounded": "SE(3), unbounded", "ctbr": "CTBR, flat",
+             "ctbr+drag": "CTBR, flat + rotor drag"}  # fmt: skip
     for ax, aero in zip(axes[:2], (True, False), strict=True):
         ax.plot(ref[:, 0], ref[:, 1], "k--", lw=1.0, label="reference")
         for r in figures:
-            if r["airframe"] == "hummingbird" and r["aero"] == aero and r["period_s"] == period:
+            shown = r["controller"] in names and r["airframe"] == "hummingbird"
+            if shown and r["aero"] == aero and r["period_s"] == period:
                 xy = np.array(r["path_xy"])[round(period / 0.01) :]
                 rms, top = r["rms_error_m"], r["max_error_m"]
                 label = f"{names[r['controller']]}: RMS {rms:.2f} m, max {top:.2f} m"
@@ -324,7 +344,7 @@ def plot(figures: list[dict[str, Any]], lat: dict[str, Any] | None, headline: tu
         ax.set_xlabel("x (m)")
         ax.set_ylabel("y (m)")
         ax.set_aspect("equal")
-        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16))
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2))
     if lat:
         ax = axes[2]
         for level, row in lat.items():
@@ -352,17 +372,18 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
 
     figures = []
-    print(f"{'airframe':12} {'drag':5} {'A m':>4} {'T s':>4} {'a max':>6} {'controller':14} {'RMS m':>6} "
+    print(f"{'airframe':12} {'drag':5} {'A m':>4} {'T s':>4} {'a max':>6} {'controller':18} {'RMS m':>6} "
           f"{'max m':>6} {'along m':>7} {'holds':>5} {'rotor stop':>10}")  # fmt: skip
     for airframe in args.airframes:
         half_width, periods = FIGURES[airframe]
         for aero in (True, False):
             for period in periods:
-                for controller in ("se3", "se3_unbounded", "ctbr"):
+                drag = ("se3_unbounded+drag", "ctbr+drag") if aero and get_params(airframe).get("k_d") else ()
+                for controller in ("se3", "se3_unbounded", "ctbr", *drag):
                     r = fly_figure(airframe, controller, half_width, period, aero, args.laps)
                     figures.append(r)
                     print(f"{airframe:12} {str(aero):5} {half_width:4.1f} {period:4.1f} "
-                          f"{r['peak_accel_m_s2']:6.1f} {controller:14} {r['rms_error_m']:6.3f} "
+                          f"{r['peak_accel_m_s2']:6.1f} {controller:18} {r['rms_error_m']:6.3f} "
                           f"{r['max_error_m']:6.3f} {r['mean_along_track_error_m']:7.3f} {r['holds']!s:>5} "
                           f"{r['share_of_periods_a_rotor_near_stop']:10.2f}", flush=True)  # fmt: skip
     lat = None
