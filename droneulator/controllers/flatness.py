@@ -27,8 +27,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from droneulator.frames import quat_to_matrix
-from droneulator.vehicles.dynamics import GRAVITY
 
+#: m/s^2, RotorPy's (and the SE(3) controller's, :mod:`~droneulator.controllers.se3`)
+GRAVITY = 9.81
 _EZ = np.array([0.0, 0.0, 1.0])
 
 
