@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from droneulator.controllers.se3 import KD_POS, KP_POS
 from droneulator.frames import quat_to_matrix
 
 #: m/s^2, RotorPy's (and the SE(3) controller's, :mod:`~droneulator.controllers.se3`)
@@ -78,7 +79,8 @@ class CTBRTracker:
     (``kp``, ``kd``: RotorPy's gains by default) on the reference's acceleration gives the thrust vector;
     the thrust is its part along the current body z axis, as in the SE(3) controller; the body rates are
     the flat feed-forward (from the reference's jerk and yaw rate) turned into the current body frame, plus
-    ``k_att`` (1/s) times the attitude error. Thrust and rates are clipped to the vehicle's limits
+    ``k_att`` (1/s) times the attitude error (below the body-rate loop's gain: ``benchmarks/control.py``
+    flies ``0.8 k_w``). Thrust and rates are clipped to the vehicle's limits
     (``max_thrust``, N; ``max_rates``, rad/s per axis) so that a command is never refused."""
 
     def __init__(
@@ -86,8 +88,8 @@ class CTBRTracker:
         mass: float,
         max_thrust: float,
         max_rates: np.ndarray,
-        kp: tuple[float, float, float] = (6.5, 6.5, 15.0),
-        kd: tuple[float, float, float] = (4.0, 4.0, 9.0),
+        kp: tuple[float, float, float] = KP_POS,
+        kd: tuple[float, float, float] = KD_POS,
         k_att: float = 10.0,
     ) -> None:
         self.mass = float(mass)
