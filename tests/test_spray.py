@@ -349,3 +349,22 @@ def test_the_spray_reward_pays_for_the_canopy_and_charges_drift():
     # north of the last row, the wind blowing north: nothing below but the ground off the target
     beside_in_wind = episode(5.0, float(scene.landmarks["row_y"][-1]) + 4.0)
     assert over_the_row > 0.0 > beside_in_wind
+
+
+def test_a_trailing_vortex_pair_blows_down_between_its_cores_and_out_beside_them():
+    row = kernel.vortex_row(np.zeros(3), np.array([5.0, 0.0]), 255.0, 1.9, 2.2, 2.5)
+    assert row is not None and 0.0 < row[13] < 1.0  # it shares the wake with the jets at 5 m/s
+    out = np.zeros(kernel.AIR_SIZE)
+    none = np.zeros((0, kernel.ROTOR_SIZE))
+    wind = np.array([1.0, 0.0, 0.0, 0.05, 0.0])
+
+    def at(x: float, y: float, z: float) -> np.ndarray:
+        kernel.air_velocity(x, y, z, wind, none, row[None, :], out)
+        return out[3:6].copy()
+
+    assert at(-3.0, 0.0, 2.0)[2] < -0.5  # behind the vehicle, down between the cores
+    assert np.allclose(at(3.0, 0.0, 2.0), 0.0)  # nothing ahead of it
+    half = row[7]
+    left, right = at(-3.0, 2.0 * half, 0.3), at(-3.0, -2.0 * half, 0.3)
+    assert left[1] > 0.0 > right[1]  # beside the cores near the ground, out to either side
+    assert left[1] == pytest.approx(-right[1])

@@ -254,8 +254,9 @@ def _vortex_pair(x: float, y: float, h: float, v: np.ndarray, out: np.ndarray) -
     rc2 = v[12] * v[12]
     vl = 0.0
     vz = 0.0
-    # (position across the track, height, circulation sign): the pair, and its images in the ground
-    for sy, sz, sign in ((1.0, 1.0, -1.0), (-1.0, 1.0, 1.0), (1.0, -1.0, 1.0), (-1.0, -1.0, -1.0)):
+    # (position across the track, height, circulation sign): the pair, turning down between the cores,
+    # and its images in the ground
+    for sy, sz, sign in ((1.0, 1.0, 1.0), (-1.0, 1.0, -1.0), (1.0, -1.0, -1.0), (-1.0, -1.0, 1.0)):
         py, pz = lat - sy * yv, h - sz * zv
         q = sign * g / (py * py + pz * pz + rc2)
         vl -= q * pz
