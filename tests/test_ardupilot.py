@@ -299,6 +299,8 @@ def test_a_frame_waiting_for_its_step_is_not_answered_twice_and_32_channels_work
     ]
     c.ardupilot = ArduPilotConfig(base_port=0)
     with World(c, scene="default", render=False) as w:
+        w.step()  # compiles a two-vehicle world's step before a peer's frame waits on it
+        w.reset()
         fleet = ArduPilotFleet.of(w)
         assert [(link.vehicle.name, link.instance) for link in fleet.links] == [("uav0", 0), ("uav1", 1)]
         fleet.start()
