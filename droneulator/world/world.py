@@ -48,10 +48,12 @@ from droneulator.frames import quat_to_matrix, yaw_of
 from droneulator.scenes import get_scene
 from droneulator.scenes.base import Scene
 from droneulator.state import FLAT_SIZE, STATE, STATE_SIZE
+from droneulator.vehicles.battery import Battery
 from droneulator.vehicles.dynamics import (
     OUTPUT,
     OUTPUT_SIZE,
     PARALLEL_ROWS,
+    PARAM_WMAX,
     ParamTable,
     hover_speed,
     pack_params,
@@ -208,6 +210,13 @@ class World:
         self.wind = WindField(cfg.wind, W * n, self.control_period_ns / NS, cfg.seed)
         #: the vehicles' spray systems and their droplets (``spray.enabled``; the first world's)
         self.spraying: Spraying | None = None
+        #: each vehicle's battery (its ``battery.enabled``), drained in :meth:`step` (the first world's)
+        self.batteries: dict[str, Battery] = {}
+        for i, v in enumerate(vs):
+            bat = v.spec.battery
+            if bat is not None and bat.enabled:
+                self.batteries[v.name] = Battery(bat, str(v.spec.params))
+                self._own_row(i, "battery")
         self._load_scene(cfg.scene, cfg.seed, cfg.vegetation)
         self.reset()
         if cfg.spray.enabled:
@@ -273,6 +282,42 @@ class World:
         v.flight.se3.set_mass(q)
         self._gains[i] = v.flight.se3.gains()
         self._hover[i] = v.hover_speed
+
+    def _own_row(self, i: int, why: str) -> None:
+        """Give vehicle ``i`` a parameter row of its own (a copy of the one it shares with others), so that
+        what changes its row (its battery) changes no other vehicle."""
+        t, row = self.table, int(self._pidx[i])
+        if np.count_nonzero(self._pidx == row) < 2:
+            return
+        v = self.vehicle_list[i]
+        packed = (t.params[row].copy(), t.geometry[row].copy(), t.directions[row].copy())
+        own = t.add((v.spec.params, v.name, why), packed)
+        for arr, value in zip((t.params, t.geometry, t.directions), packed, strict=True):
+            arr[own] = value
+        self._pidx[i] = own
+
+    def _drain(self, vs: list[Vehicle], dt: float, events: list[Event]) -> None:
+        """Each battery over the period just stepped (docs/battery.md): the rotors' electrical power at the
+        period's end (momentum theory, thrust ``k_eta w^2``, climbing along the thrust axis) drawn for
+        ``dt``, and the vehicle's top rotor speed from the sagged voltage; a ``battery_empty`` event when a
+        pack is spent."""
+        rows, params = self._rows, self.table.params
+        for i, v in enumerate(vs):
+            bat = self.batteries.get(v.name)
+            if bat is None:
+                continue
+            s = rows[i].tolist()  # floats: cheaper than numpy for these few numbers
+            k_eta = v.quad_params["k_eta"]
+            thrusts = [k_eta * w * w for w in s[STATE.rotor_speeds]]
+            qx, qy, qz, qw = s[STATE.q]
+            ax, ay, az = (a - b for a, b in zip(s[STATE.v], s[STATE.wind], strict=True))  # airspeed
+            climb = (2.0 * (qx * qz + qw * qy) * ax + 2.0 * (qy * qz - qw * qx) * ay
+                     + (1.0 - 2.0 * (qx * qx + qy * qy)) * az)  # fmt: skip
+            was_empty = bat.empty
+            bat.draw_power(bat.electrical_power(thrusts, v.disk_area / 4.0, climb), dt)
+            if bat.empty and not was_empty:
+                events.append(Event("battery_empty", self.t, {"position": s[STATE.x]}, v.name))
+            params[self._pidx[i], PARAM_WMAX] = bat.speed_scale * float(v.quad_params["rotor_speed_max"])
 
     def spawns(self) -> list[tuple[np.ndarray, float]]:
         """Each vehicle's start (position, yaw): its spec's, or the scene's spawn pattern."""
@@ -343,6 +388,10 @@ class World:
         self._busy.update(range(self.num_vehicles))
         if self.spraying is not None:  # a fresh cloud (the scene's targets if it changed), full tanks
             self.spraying.reset()
+        for i, v in enumerate(self.vehicle_list):  # charged packs, the airframes' top speeds
+            if v.name in self.batteries:
+                self.batteries[v.name].reset()
+                self.table.params[self._pidx[i], PARAM_WMAX] = float(v.quad_params["rotor_speed_max"])
         if self.num_worlds > 1:  # every other world a copy of the first, holding where it is
             self.states[1:] = self._rows
             self._flats[1:] = 0.0
@@ -497,6 +546,8 @@ class World:
             self._finish_period(vs, dt, t_start, out.events)
             if self.spraying is not None:
                 self.spraying.step()
+            if self.batteries:
+                self._drain(vs, dt, out.events)
             if self._shots:
                 self._shoot(out, tuple(name for name in self.vehicles if name in self._shots))
                 self._shots.clear()
