@@ -270,6 +270,10 @@ class BatteryConfig:
     #: a cell's voltage at which the airframe's ``rotor_speed_max`` is reached (the LiPo nominal 3.7 V):
     #: below it the top speed falls in proportion to the terminal voltage
     nominal_cell_v: float = 3.7
+    #: the top rotor speed follows the sagged voltage through a first-order lag of this time constant (s; the
+    #: motors and ESCs do not follow a voltage step at once): it keeps the loop voltage -> top speed ->
+    #: power -> voltage from chattering between control periods when a full-throttle demand overloads a pack
+    speed_time_constant_s: float = 0.1
     #: a cell's open-circuit voltage against state of charge, (SoC, V) rising from SoC 0 to 1; null: LiPo
     ocv_curve: list[tuple[float, float]] | None = None
 
@@ -290,6 +294,7 @@ class BatteryConfig:
         _check_battery_number("air_density", self.air_density, 0.0)
         _check_battery_number("initial_soc", self.initial_soc, 0.0, 1.0)
         _check_battery_number("nominal_cell_v", self.nominal_cell_v, 0.0)
+        _check_battery_number("speed_time_constant_s", self.speed_time_constant_s, 0.0, 10.0)
         if self.ocv_curve is not None:
             curve = [tuple(point) for point in self.ocv_curve]
             if len(curve) < 2 or any(len(p) != 2 for p in curve):

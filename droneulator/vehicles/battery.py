@@ -9,7 +9,8 @@ The model (docs/battery.md gives the numbers and their sources):
   pack can give) when ``P`` asks for more;
 * the charge falls by ``I dt``: ``SoC -= I dt / capacity``;
 * a motor's no-load speed is ``Kv V``, so the top rotor speed is the airframe's ``rotor_speed_max`` times
-  ``V / V_nominal`` below the nominal voltage (``cells x nominal_cell_v``), the airframe's own above it;
+  ``V / V_nominal`` below the nominal voltage (``cells x nominal_cell_v``), the airframe's own above it,
+  followed through a short first-order lag (``speed_time_constant_s``);
 * a spent pack (SoC 0) is cut off, as an ESC's low-voltage cutoff does: no voltage, the rotors stop.
 
 The rotors' power is momentum theory's: a rotor of thrust ``T`` and disk area ``A`` climbing axially at
@@ -97,6 +98,8 @@ class Battery:
         self.power = 0.0
         self.voltage = self.ocv(self.soc)
         self.empty = False
+        #: the share of ``rotor_speed_max`` the motors reach now (:meth:`follow`)
+        self.top_speed = self.speed_scale
 
     def ocv(self, soc: float) -> float:
         """The pack's open-circuit voltage (V) at state of charge ``soc`` (clipped to [0, 1])."""
@@ -153,10 +156,21 @@ class Battery:
             return 0.0
         return min(1.0, self.voltage / self.nominal_v)
 
+    def follow(self, dt: float) -> float:
+        """:attr:`top_speed` after ``dt`` s: :attr:`speed_scale` through the first-order lag of
+        ``speed_time_constant_s`` (at once to 0 when the pack is spent)."""
+        target = self.speed_scale
+        if target == 0.0:
+            self.top_speed = 0.0
+        else:
+            self.top_speed += (target - self.top_speed) * dt / (self.config.speed_time_constant_s + dt)
+        return self.top_speed
+
     def state(self) -> dict[str, Any]:
         """The API's battery object: terminal voltage (V), current (A, discharging positive), electrical
         power (W), state of charge (0..1), remaining and full capacity (mAh), cells, the open-circuit
-        voltage (V) and whether the pack is spent."""
+        voltage (V), whether the pack is spent, and the share of the airframe's top rotor speed the motors
+        reach now."""
         return {
             "voltage": self.voltage,
             "current": self.current,
@@ -167,4 +181,5 @@ class Battery:
             "cells": self.cells,
             "ocv": self.ocv(self.soc),
             "empty": self.empty,
+            "top_speed": self.top_speed,
         }

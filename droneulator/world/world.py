@@ -317,7 +317,7 @@ class World:
             bat.draw_power(bat.electrical_power(thrusts, v.disk_area / 4.0, climb), dt)
             if bat.empty and not was_empty:
                 events.append(Event("battery_empty", self.t, {"position": s[STATE.x]}, v.name))
-            params[self._pidx[i], PARAM_WMAX] = bat.speed_scale * float(v.quad_params["rotor_speed_max"])
+            params[self._pidx[i], PARAM_WMAX] = bat.follow(dt) * float(v.quad_params["rotor_speed_max"])
 
     def spawns(self) -> list[tuple[np.ndarray, float]]:
         """Each vehicle's start (position, yaw): its spec's, or the scene's spawn pattern."""
