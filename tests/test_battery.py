@@ -264,3 +264,19 @@ def test_a_custom_curve_and_pack_from_a_config_file(tmp_path):
     bat = Battery(cfg.battery, "px4_quadx")
     assert (bat.cells, bat.capacity_mah, bat.resistance) == (6, 4000.0, 0.03)
     assert bat.ocv(0.25) == pytest.approx(6 * 3.05) and bat.ocv(1.0) == pytest.approx(6 * 3.4)
+
+
+def test_px4_parameters_resemble_the_pack():
+    """PX4's own simulated battery set from the pack: its cells, capacity, curve ends, resistance, and a
+    linear drain lasting the hover endurance the world measures (capacity over the hover current)."""
+    w = world("vehicle.params=px4_quadx")
+    v = w.vehicle()
+    w.reset(position=[0.0, 0.0, 2.0])
+    w.run(3.0)
+    bat = w.batteries["uav0"]
+    p = bat.px4_params(float(v.quad_params["mass"]) * GRAVITY, v.disk_area)
+    assert {k: p[k] for k in ("BAT1_N_CELLS", "BAT1_CAPACITY", "BAT1_V_CHARGED", "BAT1_V_EMPTY",
+                              "BAT1_R_INTERNAL", "SIM_BAT_MIN_PCT")} == {
+        "BAT1_N_CELLS": 3, "BAT1_CAPACITY": 3000.0, "BAT1_V_CHARGED": 4.2, "BAT1_V_EMPTY": 3.27,
+        "BAT1_R_INTERNAL": 0.03, "SIM_BAT_MIN_PCT": 0.0}  # fmt: skip
+    assert p["SIM_BAT_DRAIN"] == pytest.approx(bat.capacity_as / bat.current, rel=0.01)

@@ -148,6 +148,31 @@ class Battery:
         ideal = rotor_power(thrusts, disk_area, climb, self.config.air_density)
         return ideal / (self.config.figure_of_merit * self.efficiency)
 
+    def hover_endurance_s(self, weight_n: float, disk_area: float) -> float:
+        """Seconds a charged pack hovers a vehicle of ``weight_n`` on four rotors of ``disk_area`` (m^2 in
+        all): the capacity over the hover current at full charge (the current grows a little as the voltage
+        falls, so this is an upper bound of a few percent)."""
+        watts = self.electrical_power([weight_n / 4.0] * 4, disk_area / 4.0, 0.0)
+        ocv = self.ocv(1.0)
+        r = self.resistance
+        amps = watts / ocv if r == 0.0 else (ocv - math.sqrt(max(ocv * ocv - 4.0 * r * watts, 0.0))) / (2 * r)
+        return self.capacity_as / amps
+
+    def px4_params(self, weight_n: float, disk_area: float) -> dict[str, float | int]:
+        """The PX4 parameters that make PX4 SITL's own simulated battery (``battery_simulator``, which
+        Droneulator cannot replace: docs/battery.md) resemble this pack: its cells, capacity, full and empty
+        cell voltages and internal resistance, ``SIM_BAT_DRAIN`` the hover endurance (s) and
+        ``SIM_BAT_MIN_PCT`` 0 so that it drains to empty."""
+        return {
+            "BAT1_N_CELLS": self.cells,
+            "BAT1_CAPACITY": self.capacity_mah,
+            "BAT1_V_CHARGED": self._cell_v[-1],
+            "BAT1_V_EMPTY": self._cell_v[0],
+            "BAT1_R_INTERNAL": self.resistance,
+            "SIM_BAT_DRAIN": round(self.hover_endurance_s(weight_n, disk_area)),
+            "SIM_BAT_MIN_PCT": 0.0,
+        }
+
     @property
     def speed_scale(self) -> float:
         """The share of the airframe's ``rotor_speed_max`` the motors reach now: ``V / V_nominal`` below
