@@ -264,6 +264,12 @@ def test_a_custom_curve_and_pack_from_a_config_file(tmp_path):
     bat = Battery(cfg.battery, "px4_quadx")
     assert (bat.cells, bat.capacity_mah, bat.resistance) == (6, 4000.0, 0.03)
     assert bat.ocv(0.25) == pytest.approx(6 * 3.05) and bat.ocv(1.0) == pytest.approx(6 * 3.4)
+    fleet_file = tmp_path / "fleet.yaml"  # a vehicle of the list with its own pack
+    fleet_file.write_text("vehicles:\n  - name: uav0\n    battery: {capacity_mah: 1000, initial_soc: 0.5}\n"
+                          "  - name: uav1\n")  # fmt: skip
+    specs = load_config(fleet_file).vehicle_specs()
+    assert (specs[0].battery.capacity_mah, specs[0].battery.initial_soc) == (1000.0, 0.5)
+    assert specs[1].battery == BatteryConfig()
 
 
 def test_px4_parameters_resemble_the_pack():
@@ -280,3 +286,8 @@ def test_px4_parameters_resemble_the_pack():
         "BAT1_N_CELLS": 3, "BAT1_CAPACITY": 3000.0, "BAT1_V_CHARGED": 4.2, "BAT1_V_EMPTY": 3.27,
         "BAT1_R_INTERNAL": 0.03, "SIM_BAT_MIN_PCT": 0.0}  # fmt: skip
     assert p["SIM_BAT_DRAIN"] == pytest.approx(bat.capacity_as / bat.current, rel=0.01)
+
+
+def test_the_batched_rows_of_many_worlds_fly_without_a_battery():
+    w = World(load_config(), render=False, worlds=2)
+    assert w.batteries == {} and "battery" not in w.vehicle().state.to_dict()

@@ -210,11 +210,12 @@ class World:
         self.wind = WindField(cfg.wind, W * n, self.control_period_ns / NS, cfg.seed)
         #: the vehicles' spray systems and their droplets (``spray.enabled``; the first world's)
         self.spraying: Spraying | None = None
-        #: each vehicle's battery (its ``battery.enabled``), drained in :meth:`step` (the first world's)
+        #: each vehicle's battery (its ``battery.enabled``), drained in :meth:`step`; the batched rows of many
+        #: worlds (:meth:`step_frame`) fly without one
         self.batteries: dict[str, Battery] = {}
         for i, v in enumerate(vs):
             bat = v.spec.battery
-            if bat is not None and bat.enabled:
+            if bat is not None and bat.enabled and W == 1:
                 self.batteries[v.name] = Battery(bat, str(v.spec.params))
                 self._own_row(i, "battery")
         self._load_scene(cfg.scene, cfg.seed, cfg.vegetation)
