@@ -389,10 +389,12 @@ class World:
         self._busy.update(range(self.num_vehicles))
         if self.spraying is not None:  # a fresh cloud (the scene's targets if it changed), full tanks
             self.spraying.reset()
-        for i, v in enumerate(self.vehicle_list):  # charged packs, the airframes' top speeds
-            if v.name in self.batteries:
-                self.batteries[v.name].reset()
-                self.table.params[self._pidx[i], PARAM_WMAX] = float(v.quad_params["rotor_speed_max"])
+        for i, v in enumerate(self.vehicle_list):  # charged packs (the airframes' top speeds, when full)
+            bat = self.batteries.get(v.name)
+            if bat is not None:
+                bat.reset()
+                top = bat.top_speed * float(v.quad_params["rotor_speed_max"])
+                self.table.params[self._pidx[i], PARAM_WMAX] = top
         if self.num_worlds > 1:  # every other world a copy of the first, holding where it is
             self.states[1:] = self._rows
             self._flats[1:] = 0.0
