@@ -171,6 +171,20 @@ def test_each_vehicle_has_its_own_pack_and_parameter_row():
     assert w.batteries["uav0"].capacity_mah == 1.0 and w.batteries["uav1"].capacity_mah == 2100.0
 
 
+def test_a_payload_change_keeps_the_top_speed_the_battery_leaves():
+    """A spray tank's liquid changes the vehicle's parameter row (World.set_payload): the new row keeps the
+    battery's top speed, not the airframe's."""
+    w = world("vehicle.params=sprayer10", "battery.initial_soc=0.05")
+    v = w.vehicle()
+    w.reset(position=[0.0, 0.0, 2.0])
+    w.run(0.5)
+    bat = w.batteries["uav0"]
+    wmax = float(v.quad_params["rotor_speed_max"])
+    assert bat.top_speed < 0.95
+    w.set_payload("uav0", 6.0)
+    assert top_speed(w) == pytest.approx(bat.top_speed * wmax)
+
+
 # --------------------------------------------------------------------------- state, ROS, config
 def test_the_state_op_carries_the_battery():
     w = world()

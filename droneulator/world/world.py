@@ -266,7 +266,8 @@ class World:
         """Carry ``kg`` of payload (e.g. a spray tank's liquid) at ``offset`` (body FLU, m) on vehicle
         ``name``, in every world: its mass and inertia in the dynamics (and the ground contact's legs),
         and in its SE(3) controller's feed-forward, as :func:`~droneulator.vehicles.dynamics.with_payload`
-        gives them. The vehicle gets a parameter row of its own."""
+        gives them. The vehicle gets a parameter row of its own (with the top rotor speed its battery
+        leaves)."""
         v = self.vehicle(name)
         if not (isinstance(kg, int | float) and math.isfinite(kg) and kg >= 0.0):
             raise ValueError(f"payload must be a finite mass >= 0 kg, got {kg!r}")
@@ -280,6 +281,9 @@ class World:
                               strict=True):  # fmt: skip
             arr[row] = value
         self._pidx[i] = row
+        bat = self.batteries.get(v.name)
+        if bat is not None:  # the new row keeps the top speed the battery leaves
+            self.table.params[row, PARAM_WMAX] = bat.top_speed * float(q["rotor_speed_max"])
         v.flight.se3.set_mass(q)
         self._gains[i] = v.flight.se3.gains()
         self._hover[i] = v.hover_speed
