@@ -75,7 +75,11 @@ def rotor_power(thrusts: Sequence[float], disk_area: float, climb: float, rho: f
     state). Plain floats: a few rotors cost less this way than as numpy arrays, once a control period."""
     half = 0.5 * max(climb, 0.0)
     k = 1.0 / (2.0 * rho * disk_area)
-    return sum(t * (half + math.sqrt(half * half + t * k)) for t in thrusts if t > 0.0)
+    total = 0.0
+    for t in thrusts:
+        if t > 0.0:
+            total += t * (half + math.sqrt(half * half + t * k))
+    return total
 
 
 class Battery:
@@ -89,14 +93,16 @@ class Battery:
         #: the pack voltage at which the airframe reaches its ``rotor_speed_max``
         self.nominal_v = self.cells * cfg.nominal_cell_v
         self.capacity_as = self.capacity_mah * 3.6  # ampere-seconds
+        self._losses = cfg.figure_of_merit * self.efficiency
         self.reset()
 
     def reset(self) -> None:
         """A charged pack (``initial_soc``) at rest."""
         self.soc = float(self.config.initial_soc)
+        self._ocv = self.ocv(self.soc)  # the OCV at ``soc``, kept with it
         self.current = 0.0
         self.power = 0.0
-        self.voltage = self.ocv(self.soc)
+        self.voltage = self._ocv
         self.empty = False
         #: the share of ``rotor_speed_max`` the motors reach now (:meth:`follow`)
         self.top_speed = self.speed_scale
@@ -118,15 +124,16 @@ class Battery:
             self.current = self.power = self.voltage = 0.0
             return
         self.current = float(amps)
-        self.voltage = max(self.ocv(self.soc) - amps * self.resistance, 0.0)
+        self.voltage = max(self._ocv - amps * self.resistance, 0.0)
         self.power = self.voltage * self.current
         self.soc = max(self.soc - amps * dt / self.capacity_as, 0.0)
+        self._ocv = self.ocv(self.soc)
         self.empty = self.soc <= 0.0
 
     def current_for(self, watts: float) -> float:
         """The current (A) that delivers ``watts`` at the terminals now (the constant-power load), at most
         the pack's maximum-power current ``OCV / (2 R)``."""
-        ocv = self.ocv(self.soc)
+        ocv = self._ocv
         if watts <= 0.0:
             return 0.0
         if self.resistance == 0.0:
@@ -145,8 +152,7 @@ class Battery:
     def electrical_power(self, thrusts: Sequence[float], disk_area: float, climb: float) -> float:
         """The electrical power (W) rotors of ``thrusts`` (N each) draw: :func:`rotor_power` divided by the
         figure of merit and the motor and ESC efficiency."""
-        ideal = rotor_power(thrusts, disk_area, climb, self.config.air_density)
-        return ideal / (self.config.figure_of_merit * self.efficiency)
+        return rotor_power(thrusts, disk_area, climb, self.config.air_density) / self._losses
 
     def hover_endurance_s(self, weight_n: float, disk_area: float) -> float:
         """Seconds a charged pack hovers a vehicle of ``weight_n`` on four rotors of ``disk_area`` (m^2 in
@@ -204,7 +210,7 @@ class Battery:
             "remaining_mah": self.soc * self.capacity_mah,
             "capacity_mah": self.capacity_mah,
             "cells": self.cells,
-            "ocv": self.ocv(self.soc),
+            "ocv": self._ocv,
             "empty": self.empty,
             "top_speed": self.top_speed,
         }

@@ -213,10 +213,13 @@ class World:
         #: each vehicle's battery (its ``battery.enabled``), drained in :meth:`step`; the batched rows of many
         #: worlds (:meth:`step_frame`) fly without one
         self.batteries: dict[str, Battery] = {}
+        #: a rotor's disk area (m^2) of each vehicle with a battery
+        self._rotor_area: dict[str, float] = {}
         for i, v in enumerate(vs):
             bat = v.spec.battery
             if bat is not None and bat.enabled and W == 1:
                 self.batteries[v.name] = Battery(bat, str(v.spec.params))
+                self._rotor_area[v.name] = v.disk_area / 4.0
                 self._own_row(i, "battery")
         self._load_scene(cfg.scene, cfg.seed, cfg.vegetation)
         self.reset()
@@ -319,7 +322,7 @@ class World:
             climb = (2.0 * (qx * qz + qw * qy) * ax + 2.0 * (qy * qz - qw * qx) * ay
                      + (1.0 - 2.0 * (qx * qx + qy * qy)) * az)  # fmt: skip
             was_empty = bat.empty
-            bat.draw_power(bat.electrical_power(thrusts, v.disk_area / 4.0, climb), dt)
+            bat.draw_power(bat.electrical_power(thrusts, self._rotor_area[v.name], climb), dt)
             if bat.empty and not was_empty:
                 events.append(Event("battery_empty", self.t, {"position": s[STATE.x]}, v.name))
             params[self._pidx[i], PARAM_WMAX] = bat.follow(dt) * float(v.quad_params["rotor_speed_max"])
