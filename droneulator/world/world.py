@@ -15,7 +15,9 @@ control period, its vehicles driven by their flight controllers:
    collisions per row;
 4. vehicles whose bodies overlap collide (:mod:`droneulator.world.contact`): one ``collision`` event
    names both, and both stop where they were at the start of the period;
-5. each vehicle's IMU means and hard touchdowns;
+5. each vehicle's IMU means and hard touchdowns; the spray systems (``spray.enabled``); each vehicle's
+   battery (``battery.enabled``, docs/battery.md): drained by its rotors' power, its sagged voltage setting
+   the top rotor speed of the next period in the vehicle's parameter row;
 6. with triggered cameras (``render.camera_trigger=command``), the frame sets :meth:`World.trigger` asked
    for, at the end of the period, instead of the camera rate's.
 
