@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import math
+import re
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -19,6 +21,7 @@ from droneulator.ros.topics import TYPES, battery_state_topic
 from droneulator.state import STATE
 from droneulator.vehicles.battery import AIRFRAME_BATTERIES, Battery, pack_for
 from droneulator.vehicles.dynamics import GRAVITY, PARAM_WMAX
+from droneulator.vehicles.params import get_params
 from droneulator.world import World
 
 TS = get_typestore(Stores.ROS2_JAZZY)
@@ -305,3 +308,14 @@ def test_px4_parameters_resemble_the_pack():
 def test_the_batched_rows_of_many_worlds_fly_without_a_battery():
     w = World(load_config(), render=False, worlds=2)
     assert w.batteries == {} and "battery" not in w.vehicle().state.to_dict()
+
+
+def test_the_docs_px4_example_is_what_px4_params_gives():
+    """docs/battery.md's `param set` lines for px4_quadx are Battery.px4_params' values."""
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "battery.md").read_text()
+    lines = dict(re.findall(r"^param set (\w+) ([\d.]+)$", doc, flags=re.M))
+    q = get_params("px4_quadx")
+    arm = float(np.hypot(*q["rotor_pos"]["r1"][:2]))
+    area = 4.0 * math.pi * (0.45 * arm) ** 2  # px4_quadx has no rotor_radius: Vehicle.disk_area's rule
+    want = Battery(BatteryConfig(), "px4_quadx").px4_params(float(q["mass"]) * GRAVITY, area)
+    assert {k: float(v) for k, v in lines.items()} == {k: float(v) for k, v in want.items()}
