@@ -31,7 +31,7 @@ from droneulator.px4.link import PX4Fleet
 from droneulator.recording.recorder import Recorder, run_recorder_config
 from droneulator.recording.replay import ReplayConfig, replay
 from droneulator.ros.publishers import FramePublisher, StatePublisher
-from droneulator.ros.topics import vehicle_names
+from droneulator.ros.topics import battery_state_topic, vehicle_names
 from droneulator.ros.zenoh_node import RosZenohNode, ZenohNodeConfig
 from droneulator.runtime.dynamics_server import lockstep_may_step
 from droneulator.runtime.launch import free_port, launch_run
@@ -318,9 +318,9 @@ def test_every_vehicles_topics_decode_with_their_frames_and_stamps(key_mode: str
             field_ned = earth_field_ned(world.config.px4, home)
             states.publish_sensors(shot.states, {n: v.rig.suite.latest for n, v in world.vehicles.items()})
         end = time.monotonic() + 10
-        # per vehicle odom, odom_world, wind, 4 sensor and 7 camera keys; /clock and the tf keys (shared
-        # /tf and /tf_static with prefixed frames, each vehicle's own two in Nav2's convention)
-        keys = 2 * (3 + 4 + 7) + 1 + (2 if fleet_tf == "prefix" else 4)
+        # per vehicle odom, odom_world, wind, battery, 4 sensor and 7 camera keys; /clock and the tf keys
+        # (shared /tf and /tf_static with prefixed frames, each vehicle's own two in Nav2's convention)
+        keys = 2 * (4 + 4 + 7) + 1 + (2 if fleet_tf == "prefix" else 4)
         while time.monotonic() < end and len(got) < keys:
             time.sleep(0.05)
     finally:
@@ -351,7 +351,9 @@ def test_every_vehicles_topics_decode_with_their_frames_and_stamps(key_mode: str
         t = names.topics()
         imu, mag = decoded[t["imu"]], decoded[t["magnetic_field"]]
         baro, fix = decoded[t["air_pressure"]], decoded[t["gps_fix"]]
-        for msg in (imu, mag, baro, fix):
+        battery = decoded[battery_state_topic(names.namespace)]
+        assert battery.voltage == pytest.approx(shot.states[v].battery["voltage"], rel=1e-6)
+        for msg in (imu, mag, baro, fix, battery):
             assert msg.header.frame_id == names.base_frame
             assert msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == stamp
         st = shot.states[v]
@@ -391,7 +393,7 @@ def _ros2dds_type(topic: str) -> str:
     leaf = {
         "odom": "odom", "odom_world": "odom_world", "wind": "wind", "tf": "tf", "tf_static": "tf_static",
         "clock": "clock", "imu": "imu", "fix": "gps_fix", "air_pressure": "air_pressure",
-        "magnetic_field": "magnetic_field",
+        "magnetic_field": "magnetic_field", "battery": "battery",
         "pose": "pose", "camera_info": "info_rgb", "image_raw": "depth", "compressed": "rgb",
     }  # fmt: skip
     return TYPES[leaf[topic.rsplit("/", 1)[-1]]]

@@ -47,7 +47,7 @@ from droneulator.config import CameraConfig, SimConfig, load_config
 from droneulator.frames import quat_from_yaw, quat_to_matrix
 from droneulator.ros import messages as M
 from droneulator.ros.publishers import static_transforms
-from droneulator.ros.topics import TYPES, optical_frame, topic_names, vehicle_topics
+from droneulator.ros.topics import TYPES, battery_state_topic, optical_frame, topic_names, vehicle_topics
 from droneulator.runtime.launch import LaunchedRun, free_port, launch_run
 from droneulator.sensors.camera import intrinsics
 
@@ -306,6 +306,8 @@ def plain(msg: Any) -> Any:
         return a.dtype.str, a.tobytes()
     if isinstance(msg, list):
         return [plain(m) for m in msg]
+    if isinstance(msg, float | np.floating) and math.isnan(msg):
+        return "NaN"  # unmeasured (BatteryState's temperature): equal on both sides
     return msg
 
 
@@ -370,6 +372,8 @@ def expected_topics(cfg: SimConfig) -> tuple[dict[str, str], dict[str, str]]:
     """(published, subscribed) topic -> type of a simulator with these cameras."""
     ns = cfg.bridge.namespace
     pub = {t: TYPES[k] for k, t in vehicle_topics(ns).items() if k not in INPUTS}
+    if cfg.battery.enabled:
+        pub[battery_state_topic(ns)] = TYPES["battery"]
     for cam in cfg.render.cameras:
         pub.update({t: TYPES[k] for k, t in topic_names(ns, cam.name).items()})
     return pub, {t: TYPES[k] for k, t in vehicle_topics(ns).items() if k in INPUTS}
@@ -541,6 +545,26 @@ def test_attitude_target_and_actuators_builders_and_rclpy_agree(ros: Ros) -> Non
     assert plain(back) == plain(theirs) and back.normalized.tolist() == [0.25, 0.5, 0.75, 1.0]
 
 
+def test_battery_state_builder_and_rclpy_agree(ros: Ros) -> None:
+    """sensor_msgs/BatteryState as the simulator builds it, read by rclpy: the current negative while
+    discharging, the cells, NaN temperatures, LiPo; and rclpy's own message read by our decoder."""
+    bs = ros.cls("sensor_msgs/msg/BatteryState")
+    ours = M.battery_state(5_000_000_007, "uav1/base_link", 11.5, 3.25, 1.9, 2.1, 0.9, 3)
+    msg = judge(ros, "sensor_msgs/msg/BatteryState", bytes(M.serialize(ours)))
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id) == (5, 7, "uav1/base_link")
+    assert (msg.voltage, msg.current, msg.charge, msg.percentage) == pytest.approx((11.5, -3.25, 1.9, 0.9))
+    assert msg.capacity == msg.design_capacity == pytest.approx(2.1) and msg.present
+    assert list(msg.cell_voltage) == pytest.approx([11.5 / 3] * 3) and math.isnan(msg.temperature)
+    assert msg.power_supply_technology == bs.POWER_SUPPLY_TECHNOLOGY_LIPO
+    assert msg.power_supply_status == bs.POWER_SUPPLY_STATUS_DISCHARGING
+    assert msg.power_supply_health == bs.POWER_SUPPLY_HEALTH_GOOD
+    theirs = bs()
+    theirs.voltage, theirs.percentage = 3.7, 0.25
+    theirs.cell_voltage = [3.7]
+    back = M.decode("sensor_msgs/msg/BatteryState", ros.serialize(theirs))
+    assert back.voltage == pytest.approx(3.7) and list(back.cell_voltage) == pytest.approx([3.7])
+
+
 @pytest.mark.slow
 def test_every_announced_key_decodes_with_rclpy(capture: Capture, ros: Ros) -> None:
     """The simulator announces exactly its topics, with rosidl's type hashes (the rmw_zenoh keys carry
@@ -598,6 +622,15 @@ def test_rclpy_reads_what_the_simulator_meant(capture: Capture, ros: Ros) -> Non
         np.testing.assert_allclose([wv.x, wv.y, wv.z], st["velocity"], atol=1e-12)
         np.testing.assert_allclose([rate.x, rate.y, rate.z], st["angular_velocity"], atol=1e-12)
     assert max(np.hypot(*capture.states[t]["velocity"][:2]) for t in common) > 0.3  # it was flying
+    # the battery as the API state has it at the same stamp: flying, it draws current (negative in the msg)
+    battery = {stamp_ns(m.header.stamp): m for m in msgs[battery_state_topic(capture.cfg.bridge.namespace)]}
+    both = sorted(set(battery) & set(capture.states))
+    assert len(both) > 10
+    for t in both:
+        m, b = battery[t], capture.states[t]["battery"]
+        assert m.header.frame_id == "base_link" and m.voltage == pytest.approx(b["voltage"], rel=1e-6)
+        assert m.current == pytest.approx(-b["current"], rel=1e-6) and m.current < 0.0
+        assert m.percentage == pytest.approx(b["soc"], rel=1e-6) and len(m.cell_voltage) == b["cells"]
 
     want = {(parent, child): (p, q) for parent, child, p, q in static_transforms(capture.cfg.render.cameras)}
     assert msgs["/tf_static"]

@@ -52,6 +52,7 @@ TOPICS = {
     "droneulator/gps/fix": "sensor_msgs/msg/NavSatFix",
     "droneulator/air_pressure": "sensor_msgs/msg/FluidPressure",
     "droneulator/magnetic_field": "sensor_msgs/msg/MagneticField",
+    "droneulator/battery": "sensor_msgs/msg/BatteryState",
     "tf": "tf2_msgs/msg/TFMessage",
     "tf_static": "tf2_msgs/msg/TFMessage",
     "clock": "rosgraph_msgs/msg/Clock",
@@ -165,7 +166,7 @@ def test_sensor_topics_read_the_vehicle_at_rest(run):
     """The vehicle as it rests after start-up (this test runs first on the module's run): the IMU reads +g
     on base_link's z (FLU, REP 103) with the default preset's 0.02 m/s^2 noise at every state stamp, the
     magnetometer the WMM field rotated into the body in tesla, the pressure ISA at the altitude in Pa,
-    the fix the home position, each with the noise models' variances."""
+    the fix the home position, each with the noise models' variances; the battery charged and at rest."""
     c = run.client
     st = c.state()
     assert st["mode"] == "idle" and np.linalg.norm(st["velocity"]) < 1e-3
@@ -212,6 +213,13 @@ def test_sensor_topics_read_the_vehicle_at_rest(run):
         east, north, up = geodetic_to_enu(f.latitude, f.longitude, f.altitude, lat, lon, alt)
         assert abs(east) < 0.15 and abs(north) < 0.15 and abs(up) < 0.2
     assert len(fixes) >= 5
+    # the battery at rest (motors off): a charged pack at its open-circuit voltage, no current
+    bat = st["battery"]
+    assert bat["soc"] == 1.0 and bat["current"] == 0.0 and bat["voltage"] == pytest.approx(12.6)
+    for m in msgs["droneulator/battery"][-5:]:
+        assert (m.header.frame_id, m.current, m.percentage) == ("base_link", 0.0, 1.0)
+        assert m.power_supply_status == 3  # not charging
+        assert m.voltage == pytest.approx(12.6) and list(m.cell_voltage) == pytest.approx([4.2] * 3)
 
 
 def test_fly_and_decode_every_topic(run):

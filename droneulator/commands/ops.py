@@ -478,8 +478,11 @@ OPS: dict[str, Op] = {
             "(rad/s, body); `yaw` (rad); `mode` (`idle`, `takeoff`, `goto`, `hold`, `velocity`, `track`, "
             '`land`, `collided`, `external`, `rotors`, `rates`, `attitude`); `vehicle`: its name; `wind` '
             "[x, y, z] (m/s, world): the wind "
-            "at the vehicle, rotor wakes of vehicles above included. With `vehicle` `\"*\"`: `t`, `stamp_ns` "
-            "and `vehicles` (name -> that state) for every vehicle",
+            "at the vehicle, rotor wakes of vehicles above included; `battery` (`battery.enabled`, "
+            "docs/battery.md): `voltage` (V, under load), `current` (A, discharging positive), `power` (W), "
+            "`soc` (0..1), `remaining_mah`, `capacity_mah`, `cells`, `ocv` (V), `empty` and `top_speed` (the "
+            "share of the airframe's top rotor speed the voltage leaves). With `vehicle` `\"*\"`: `t`, "
+            "`stamp_ns` and `vehicles` (name -> that state) for every vehicle",
             (
                 Arg(
                     "vehicle",

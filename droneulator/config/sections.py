@@ -228,6 +228,93 @@ class FlightConfig:
             raise ValueError(f"flight.min_lift must lie in [0, 1), got {self.min_lift}")
 
 
+#: a LiPo cell's open-circuit (resting) voltage against its state of charge, (SoC, V) from empty to full:
+#: the resting-voltage chart LiPo makers and RC references tabulate (3.27 V spent, 3.7 V near the middle,
+#: 4.20 V full; docs/battery.md)
+LIPO_OCV: tuple[tuple[float, float], ...] = (
+    (0.00, 3.27), (0.05, 3.61), (0.10, 3.69), (0.15, 3.71), (0.20, 3.73), (0.25, 3.75), (0.30, 3.77),
+    (0.35, 3.79), (0.40, 3.80), (0.45, 3.82), (0.50, 3.84), (0.55, 3.85), (0.60, 3.87), (0.65, 3.91),
+    (0.70, 3.95), (0.75, 3.98), (0.80, 4.02), (0.85, 4.08), (0.90, 4.11), (0.95, 4.15), (1.00, 4.20),
+)
+
+
+def _check_battery_number(name: str, value: object, low: float, high: float | None = None) -> None:
+    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    if not ok or value <= low or (high is not None and value > high):
+        bound = f"in ({low:g}, {high:g}]" if high is not None else f"above {low:g}"
+        raise ValueError(f"battery.{name} must be a number {bound}, got {value!r}")
+
+
+@dataclass
+class BatteryConfig:
+    """A vehicle's battery (docs/battery.md): a pack of ``cells`` LiPo cells in series of ``capacity_mah``
+    with a pack internal resistance, discharged by the rotors' electrical power (momentum-theory power /
+    ``figure_of_merit`` / ``efficiency``). Unset (null) numbers take the airframe's pack
+    (``droneulator.vehicles.battery.AIRFRAME_BATTERIES``)."""
+
+    #: model the battery (its voltage limits the rotors' top speed; a spent pack stops them)
+    enabled: bool = True
+    #: cells in series, usable capacity (mAh, from full to the empty end of the curve), pack internal
+    #: resistance (ohm, cells and wiring); null: the airframe's
+    cells: int | None = None
+    capacity_mah: float | None = None
+    internal_resistance_ohm: float | None = None
+    #: motor and ESC efficiency (electrical to shaft power, (0, 1]); null: the airframe's
+    efficiency: float | None = None
+    #: rotor figure of merit: ideal (momentum theory) power / shaft power, (0, 1]
+    figure_of_merit: float = 0.6
+    #: air density for the induced velocity (kg/m^3; ISA sea level)
+    air_density: float = 1.225
+    #: state of charge at every reset, in (0, 1]
+    initial_soc: float = 1.0
+    #: a cell's voltage at which the airframe's ``rotor_speed_max`` is reached (the LiPo nominal 3.7 V):
+    #: below it the top speed falls in proportion to the terminal voltage
+    nominal_cell_v: float = 3.7
+    #: the top rotor speed follows the sagged voltage through a first-order lag of this time constant (s; the
+    #: motors and ESCs do not follow a voltage step at once): it keeps the loop voltage -> top speed ->
+    #: power -> voltage from chattering between control periods when a full-throttle demand overloads a pack
+    speed_time_constant_s: float = 0.1
+    #: a cell's open-circuit voltage against state of charge, (SoC, V) rising from SoC 0 to 1; null: LiPo
+    ocv_curve: list[tuple[float, float]] | None = None
+
+    def __post_init__(self) -> None:
+        if self.cells is not None and (
+            isinstance(self.cells, bool) or not isinstance(self.cells, int) or not 1 <= self.cells <= 24
+        ):
+            raise ValueError(f"battery.cells must be an integer in [1, 24], got {self.cells!r}")
+        if self.capacity_mah is not None:
+            _check_battery_number("capacity_mah", self.capacity_mah, 0.0)
+        if self.internal_resistance_ohm is not None:
+            r = self.internal_resistance_ohm
+            if not (isinstance(r, int | float) and math.isfinite(r) and 0.0 <= r <= 10.0):
+                raise ValueError(f"battery.internal_resistance_ohm must lie in [0, 10] ohm, got {r!r}")
+        if self.efficiency is not None:
+            _check_battery_number("efficiency", self.efficiency, 0.0, 1.0)
+        _check_battery_number("figure_of_merit", self.figure_of_merit, 0.0, 1.0)
+        _check_battery_number("air_density", self.air_density, 0.0)
+        _check_battery_number("initial_soc", self.initial_soc, 0.0, 1.0)
+        _check_battery_number("nominal_cell_v", self.nominal_cell_v, 0.0)
+        _check_battery_number("speed_time_constant_s", self.speed_time_constant_s, 0.0, 10.0)
+        if self.ocv_curve is not None:
+            curve = [tuple(point) for point in self.ocv_curve]
+            if len(curve) < 2 or any(len(p) != 2 for p in curve):
+                raise ValueError("battery.ocv_curve must be two or more (SoC, V) pairs")
+            soc = [float(p[0]) for p in curve]
+            volts = [float(p[1]) for p in curve]
+            if not all(math.isfinite(v) for v in soc + volts):
+                raise ValueError("battery.ocv_curve must hold finite numbers")
+            if soc[0] != 0.0 or soc[-1] != 1.0 or any(b <= a for a, b in zip(soc[:-1], soc[1:], strict=True)):
+                raise ValueError(f"battery.ocv_curve's SoC must rise strictly from 0 to 1, got {soc}")
+            if volts[0] <= 0.0 or any(b < a for a, b in zip(volts[:-1], volts[1:], strict=True)):
+                raise ValueError(f"battery.ocv_curve's voltages must be positive and never fall, got {volts}")
+            self.ocv_curve = [(s, v) for s, v in zip(soc, volts, strict=True)]
+
+    @property
+    def curve(self) -> tuple[tuple[float, float], ...]:
+        """The cell's (SoC, V) curve: ``ocv_curve`` or :data:`LIPO_OCV`."""
+        return LIPO_OCV if self.ocv_curve is None else tuple(self.ocv_curve)
+
+
 @dataclass
 class RuntimeConfig:
     """The multi-process runtime (``droneulator run``)."""
@@ -595,7 +682,7 @@ _VEHICLE_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 class VehicleSpec:
     """One vehicle of the world (``vehicles``). Unset fields take the single-vehicle sections' values:
     ``params`` from ``vehicle.params``, ``cameras`` from ``render.cameras``, ``sensors`` from
-    ``vehicle.sensors``, ``flight`` from ``flight``;
+    ``vehicle.sensors``, ``flight`` from ``flight``, ``battery`` from ``battery``;
     ``spawn`` null: the scene's spawn pattern (its spawn point for the first vehicle, free points near it
     for the others), on the ground; ``yaw`` null: the scene's spawn heading."""
 
@@ -607,6 +694,8 @@ class VehicleSpec:
     sensors: list[str] | None = None
     flight: FlightConfig | None = None
     controlled_by: str = "internal"
+    #: its battery; null: the ``battery`` section
+    battery: BatteryConfig | None = None
 
     def __post_init__(self) -> None:
         if not _VEHICLE_NAME.match(self.name):
@@ -656,6 +745,8 @@ class SimConfig:
     wind: WindConfig = field(default_factory=WindConfig)
     #: the spray system of spraying vehicles and the droplet solver (docs/spray.md)
     spray: SprayConfig = field(default_factory=SprayConfig)
+    #: every vehicle's battery (on; numbers left null take the airframe's pack; docs/battery.md)
+    battery: BatteryConfig = field(default_factory=BatteryConfig)
     #: the air's temperature, humidity and pressure (the droplets' drag and evaporation)
     weather: WeatherConfig = field(default_factory=WeatherConfig)
     #: domain randomisation: wind, light and depth-camera ranges drawn at every reset (off by default)
@@ -699,6 +790,7 @@ class SimConfig:
                 cameras=list(self.render.cameras if v.cameras is None else v.cameras),
                 sensors=list(self.vehicle.sensors if v.sensors is None else v.sensors),
                 flight=v.flight or self.flight,
+                battery=v.battery or self.battery,
                 controlled_by=first if first != "internal" and i == 0 else v.controlled_by,
             )
             for i, v in enumerate(specs)

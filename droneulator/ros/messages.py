@@ -43,6 +43,7 @@ __all__ = [
     "CdrBytes",
     "SerdeError",
     "StatePacker",
+    "battery_state",
     "camera_info",
     "SensorPacker",
     "clock",
@@ -174,6 +175,7 @@ _MultiArrayLayout = _T["std_msgs/msg/MultiArrayLayout"]
 _MultiArrayDimension = _T["std_msgs/msg/MultiArrayDimension"]
 _OccupancyGrid = _T["nav_msgs/msg/OccupancyGrid"]
 _MapMetaData = _T["nav_msgs/msg/MapMetaData"]
+_BatteryState = _T["sensor_msgs/msg/BatteryState"]
 
 _NS_PER_S = 1_000_000_000
 
@@ -486,6 +488,44 @@ def nav_sat_fix(
         altitude=float(alt_m),
         position_covariance=_cov3(cov_enu, "cov_enu"),
         position_covariance_type=int(cov_type),
+    )
+
+
+def battery_state(
+    t_ns: int,
+    frame_id: str,
+    voltage: float,
+    current: float,
+    charge_ah: float,
+    capacity_ah: float,
+    percentage: float,
+    cells: int,
+    empty: bool = False,
+) -> Any:
+    """sensor_msgs/BatteryState of a LiPo pack of ``cells`` equal cells in series: terminal ``voltage`` (V),
+    ``current`` (A, discharging positive as the simulator counts it; the message carries it negative, as
+    sensor_msgs defines), remaining ``charge_ah`` of ``capacity_ah`` (the design capacity too), ``percentage``
+    in [0, 1]; temperatures unmeasured (NaN). Status discharging while it gives current, health dead once
+    the pack is spent (``empty``)."""
+    B = _BatteryState
+    status = B.POWER_SUPPLY_STATUS_DISCHARGING if current > 0.0 else B.POWER_SUPPLY_STATUS_NOT_CHARGING
+    return B(
+        header=header(t_ns, frame_id),
+        voltage=np.float32(voltage),
+        temperature=np.float32(math.nan),
+        current=np.float32(-current),
+        charge=np.float32(charge_ah),
+        capacity=np.float32(capacity_ah),
+        design_capacity=np.float32(capacity_ah),
+        percentage=np.float32(percentage),
+        power_supply_status=status,
+        power_supply_health=B.POWER_SUPPLY_HEALTH_DEAD if empty else B.POWER_SUPPLY_HEALTH_GOOD,
+        power_supply_technology=B.POWER_SUPPLY_TECHNOLOGY_LIPO,
+        present=True,
+        cell_voltage=np.full(int(cells), voltage / cells, dtype=np.float32),
+        cell_temperature=np.full(int(cells), math.nan, dtype=np.float32),
+        location="",
+        serial_number="",
     )
 
 

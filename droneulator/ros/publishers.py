@@ -43,6 +43,7 @@ from droneulator.ros.topics import (
     SPRAY_FIELDS,
     TYPES,
     VehicleNames,
+    battery_state_topic,
     spray_deposit_topic,
     spray_state_topic,
     vehicle_names,
@@ -106,6 +107,8 @@ class _VehicleOut:
         self.sent: dict[str, int] = {}
         #: the spray state's publisher (``spray.enabled``)
         self.spray: Any = None
+        #: the battery's publisher (``battery.enabled``)
+        self.battery: Any = None
 
 
 def sensor_variances(cfg: SimConfig) -> dict[str, float]:
@@ -163,6 +166,8 @@ class StatePublisher:
             )
             if cfg.spray.enabled:
                 out.spray = pub(spray_state_topic(names.namespace), "spray")
+            if spec.battery is not None and spec.battery.enabled:
+                out.battery = pub(battery_state_topic(names.namespace), "battery")
             for kind in spec.sensors or ():
                 if kind in SENSOR_TOPICS:
                     key = SENSOR_TOPICS[kind]
@@ -187,7 +192,8 @@ class StatePublisher:
 
     def publish_states(self, states: Mapping[str, VehicleState]) -> None:
         """Publish the states of one instant: every odometry first (the latency-critical stream), then
-        ``/clock`` once, then TF, ``odom_world`` and the true wind (``wind``, in ``odom``).
+        ``/clock`` once, then TF, ``odom_world``, the true wind (``wind``, in ``odom``), the spray state and
+        the battery (``sensor_msgs/BatteryState``) of the vehicles that have them.
 
         The fixed-layout packer makes this a few microseconds a vehicle (rosbags' generic serialiser
         takes ~0.1 ms).
@@ -210,6 +216,12 @@ class StatePublisher:
             if st.spray is not None and out.spray is not None:
                 values = [float(st.spray[k]) for k in SPRAY_FIELDS]
                 out.spray.publish(M.serialize(M.labelled_array(SPRAY_FIELDS, values)), t)
+            if st.battery is not None and out.battery is not None:
+                b = st.battery
+                msg = M.battery_state(t, out.names.base_frame, b["voltage"], b["current"],
+                                      b["remaining_mah"] / 1000.0, b["capacity_mah"] / 1000.0, b["soc"],
+                                      b["cells"], b["empty"])  # fmt: skip
+                out.battery.publish(M.serialize(msg), t)
 
     def publish_deposit(self, t_ns: int, deposit_ul_cm2: np.ndarray, cell: float, origin_xy: Any) -> None:
         """The ground deposit (uL/cm^2 per cell, ``[x, y]``) as an occupancy grid in ``map``: 0 where

@@ -17,6 +17,8 @@ client, the benchmarks) finds them here instead of spelling them out itself::
                                                      level_l, tank_l, flow_l_min, sprayed_l, labelled)
     /<namespace>/spray/deposit                       nav_msgs/OccupancyGrid (spray.enabled, 1 Hz: the
                                                      ground deposit, log scale, in map; docs/spray.md)
+    /<ns>/battery                                    sensor_msgs/BatteryState (battery.enabled: voltage,
+                                                     current, charge, per cell; docs/battery.md)
     /<ns>/cmd_vel, /<ns>/goal_pose       (in)        geometry_msgs/Twist, geometry_msgs/PoseStamped
     /<ns>/position_cmd                   (in)        quadrotor_msgs/PositionCommand (EGO-Planner's)
     /<ns>/setpoint_raw/attitude          (in)        mavros_msgs/AttitudeTarget (MAVROS's: CTBR, attitude)
@@ -75,6 +77,7 @@ TYPES: dict[str, str] = {
     "magnetic_field": "sensor_msgs/msg/MagneticField",
     "spray": "std_msgs/msg/Float64MultiArray",
     "spray_deposit": "nav_msgs/msg/OccupancyGrid",
+    "battery": "sensor_msgs/msg/BatteryState",
     "cmd_vel": "geometry_msgs/msg/Twist",
     "goal_pose": "geometry_msgs/msg/PoseStamped",
     "position_cmd": "quadrotor_msgs/msg/PositionCommand",
@@ -135,6 +138,12 @@ def spray_state_topic(ns: str) -> str:
     """A vehicle's spray state (``spray.enabled``), under its namespace ``ns``."""
     _check_name("namespace", ns)
     return f"/{ns}/spray/state"
+
+
+def battery_state_topic(ns: str) -> str:
+    """A vehicle's battery (``battery.enabled``), under its namespace ``ns``."""
+    _check_name("namespace", ns)
+    return f"/{ns}/battery"
 
 
 def spray_deposit_topic(namespace: str) -> str:

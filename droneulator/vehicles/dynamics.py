@@ -46,6 +46,8 @@ _CD = 20  # 3 drag coefficients
 _INERTIA = 23  # 9 entries, row-major
 _INV_INERTIA = 32  # 9 entries
 _N_PARAMS = 41
+#: where the packed vector keeps the top rotor speed (rad/s): the battery lowers it as the voltage sags
+PARAM_WMAX = _WMAX
 
 
 # Layout of the step output vector (sums over the integrated time since the caller zeroed it).

@@ -57,6 +57,8 @@ class VehicleState:
     wind: np.ndarray | None = None
     #: its spray system's state (:meth:`droneulator.spray.system.SpraySystem.state`), when it has one
     spray: dict[str, Any] | None = None
+    #: its battery's state (:meth:`droneulator.vehicles.battery.Battery.state`), when it has one
+    battery: dict[str, Any] | None = None
 
     @property
     def t(self) -> float:
@@ -85,6 +87,7 @@ class VehicleState:
             "mode": self.mode,
             "wind": None if self.wind is None else self.wind.tolist(),
             **({} if self.spray is None else {"spray": self.spray}),
+            **({} if self.battery is None else {"battery": self.battery}),
         }
 
 
@@ -241,6 +244,7 @@ class Vehicle:
             self.name,
             s[STATE.wind].copy(),
             self._spray_state(),
+            self._battery_state(),
         )
 
     def _spray_state(self) -> dict[str, Any] | None:
@@ -248,6 +252,11 @@ class Vehicle:
         spraying = getattr(self.world, "spraying", None)
         system = None if spraying is None else spraying.systems.get(self.name)
         return None if system is None else system.state()
+
+    def _battery_state(self) -> dict[str, Any] | None:
+        """Its battery's state, when it has one (``battery.enabled``)."""
+        battery = getattr(self.world, "batteries", {}).get(self.name)
+        return None if battery is None else battery.state()
 
     @property
     def thrust(self) -> float:

@@ -15,7 +15,9 @@ control period, its vehicles driven by their flight controllers:
    collisions per row;
 4. vehicles whose bodies overlap collide (:mod:`droneulator.world.contact`): one ``collision`` event
    names both, and both stop where they were at the start of the period;
-5. each vehicle's IMU means and hard touchdowns;
+5. each vehicle's IMU means and hard touchdowns; the spray systems (``spray.enabled``); each vehicle's
+   battery (``battery.enabled``, docs/battery.md): drained by its rotors' power, its sagged voltage setting
+   the top rotor speed of the next period in the vehicle's parameter row;
 6. with triggered cameras (``render.camera_trigger=command``), the frame sets :meth:`World.trigger` asked
    for, at the end of the period, instead of the camera rate's.
 
@@ -48,10 +50,12 @@ from droneulator.frames import quat_to_matrix, yaw_of
 from droneulator.scenes import get_scene
 from droneulator.scenes.base import Scene
 from droneulator.state import FLAT_SIZE, STATE, STATE_SIZE
+from droneulator.vehicles.battery import Battery
 from droneulator.vehicles.dynamics import (
     OUTPUT,
     OUTPUT_SIZE,
     PARALLEL_ROWS,
+    PARAM_WMAX,
     ParamTable,
     hover_speed,
     pack_params,
@@ -208,6 +212,17 @@ class World:
         self.wind = WindField(cfg.wind, W * n, self.control_period_ns / NS, cfg.seed)
         #: the vehicles' spray systems and their droplets (``spray.enabled``; the first world's)
         self.spraying: Spraying | None = None
+        #: each vehicle's battery (its ``battery.enabled``), drained in :meth:`step`; the batched rows of many
+        #: worlds (:meth:`step_frame`) fly without one
+        self.batteries: dict[str, Battery] = {}
+        #: a rotor's disk area (m^2) of each vehicle with a battery
+        self._rotor_area: dict[str, float] = {}
+        for i, v in enumerate(vs):
+            bat = v.spec.battery
+            if bat is not None and bat.enabled and W == 1:
+                self.batteries[v.name] = Battery(bat, str(v.spec.params))
+                self._rotor_area[v.name] = v.disk_area / 4.0
+                self._own_row(i, "battery")
         self._load_scene(cfg.scene, cfg.seed, cfg.vegetation)
         self.reset()
         if cfg.spray.enabled:
@@ -256,7 +271,8 @@ class World:
         """Carry ``kg`` of payload (e.g. a spray tank's liquid) at ``offset`` (body FLU, m) on vehicle
         ``name``, in every world: its mass and inertia in the dynamics (and the ground contact's legs),
         and in its SE(3) controller's feed-forward, as :func:`~droneulator.vehicles.dynamics.with_payload`
-        gives them. The vehicle gets a parameter row of its own."""
+        gives them. The vehicle gets a parameter row of its own (with the top rotor speed its battery
+        leaves)."""
         v = self.vehicle(name)
         if not (isinstance(kg, int | float) and math.isfinite(kg) and kg >= 0.0):
             raise ValueError(f"payload must be a finite mass >= 0 kg, got {kg!r}")
@@ -270,9 +286,48 @@ class World:
                               strict=True):  # fmt: skip
             arr[row] = value
         self._pidx[i] = row
+        bat = self.batteries.get(v.name)
+        if bat is not None:  # the new row keeps the top speed the battery leaves
+            self.table.params[row, PARAM_WMAX] = bat.top_speed * float(q["rotor_speed_max"])
         v.flight.se3.set_mass(q)
         self._gains[i] = v.flight.se3.gains()
         self._hover[i] = v.hover_speed
+
+    def _own_row(self, i: int, why: str) -> None:
+        """Give vehicle ``i`` a parameter row of its own (a copy of the one it shares with others), so that
+        what changes its row (its battery) changes no other vehicle."""
+        t, row = self.table, int(self._pidx[i])
+        if np.count_nonzero(self._pidx == row) < 2:
+            return
+        v = self.vehicle_list[i]
+        packed = (t.params[row].copy(), t.geometry[row].copy(), t.directions[row].copy())
+        own = t.add((v.spec.params, v.name, why), packed)
+        for arr, value in zip((t.params, t.geometry, t.directions), packed, strict=True):
+            arr[own] = value
+        self._pidx[i] = own
+
+    def _drain(self, vs: list[Vehicle], dt: float, events: list[Event]) -> None:
+        """Each battery over the period just stepped (docs/battery.md): the rotors' electrical power at the
+        period's end (momentum theory, thrust ``k_eta w^2``, climbing along the thrust axis) drawn for
+        ``dt``, and the vehicle's top rotor speed from the sagged voltage; a ``battery_empty`` event when a
+        pack is spent."""
+        rows, params = self._rows, self.table.params
+        for i, v in enumerate(vs):
+            bat = self.batteries.get(v.name)
+            if bat is None:
+                continue
+            s = rows[i].tolist()  # floats: cheaper than numpy for these few numbers
+            k_eta = v.quad_params["k_eta"]
+            thrusts = [k_eta * w * w for w in s[STATE.rotor_speeds]]
+            qx, qy, qz, qw = s[STATE.q]
+            ax, ay, az = (a - b for a, b in zip(s[STATE.v], s[STATE.wind], strict=True))  # airspeed
+            climb = (2.0 * (qx * qz + qw * qy) * ax + 2.0 * (qy * qz - qw * qx) * ay
+                     + (1.0 - 2.0 * (qx * qx + qy * qy)) * az)  # fmt: skip
+            was_empty = bat.empty
+            bat.draw_power(bat.electrical_power(thrusts, self._rotor_area[v.name], climb), dt)
+            if bat.empty and not was_empty:
+                events.append(Event("battery_empty", self.t, {"position": s[STATE.x]}, v.name))
+            params[self._pidx[i], PARAM_WMAX] = bat.follow(dt) * float(v.quad_params["rotor_speed_max"])
 
     def spawns(self) -> list[tuple[np.ndarray, float]]:
         """Each vehicle's start (position, yaw): its spec's, or the scene's spawn pattern."""
@@ -343,6 +398,12 @@ class World:
         self._busy.update(range(self.num_vehicles))
         if self.spraying is not None:  # a fresh cloud (the scene's targets if it changed), full tanks
             self.spraying.reset()
+        for i, v in enumerate(self.vehicle_list):  # charged packs (the airframes' top speeds, when full)
+            bat = self.batteries.get(v.name)
+            if bat is not None:
+                bat.reset()
+                top = bat.top_speed * float(v.quad_params["rotor_speed_max"])
+                self.table.params[self._pidx[i], PARAM_WMAX] = top
         if self.num_worlds > 1:  # every other world a copy of the first, holding where it is
             self.states[1:] = self._rows
             self._flats[1:] = 0.0
@@ -497,6 +558,8 @@ class World:
             self._finish_period(vs, dt, t_start, out.events)
             if self.spraying is not None:
                 self.spraying.step()
+            if self.batteries:
+                self._drain(vs, dt, out.events)
             if self._shots:
                 self._shoot(out, tuple(name for name in self.vehicles if name in self._shots))
                 self._shots.clear()
