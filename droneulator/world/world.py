@@ -222,7 +222,7 @@ class World:
             if bat is not None and bat.enabled and W == 1:
                 self.batteries[v.name] = Battery(bat, str(v.spec.params))
                 self._rotor_area[v.name] = v.disk_area / 4.0
-                self._own_row(i, "battery")
+                self._own_row(i, "own")
         self._load_scene(cfg.scene, cfg.seed, cfg.vegetation)
         self.reset()
         if cfg.spray.enabled:
@@ -281,11 +281,11 @@ class World:
         v.quad_params = q
         v.packed = pack_params(q, self.config.vehicle.aero, True, v.contact)
         v.hover_speed = hover_speed(v.packed[0])
-        row = self.table.add((v.spec.params, v.name, "payload"), v.packed)
+        self._own_row(i, "own")
+        row = int(self._pidx[i])
         for arr, value in zip((self.table.params, self.table.geometry, self.table.directions), v.packed,
                               strict=True):  # fmt: skip
             arr[row] = value
-        self._pidx[i] = row
         bat = self.batteries.get(v.name)
         if bat is not None:  # the new row keeps the top speed the battery leaves
             self.table.params[row, PARAM_WMAX] = bat.top_speed * float(q["rotor_speed_max"])
@@ -295,7 +295,7 @@ class World:
 
     def _own_row(self, i: int, why: str) -> None:
         """Give vehicle ``i`` a parameter row of its own (a copy of the one it shares with others), so that
-        what changes its row (its battery) changes no other vehicle."""
+        what changes its row (its battery, its payload) changes no other vehicle."""
         t, row = self.table, int(self._pidx[i])
         if np.count_nonzero(self._pidx == row) < 2:
             return
@@ -504,6 +504,8 @@ class World:
         self.hit[:] = False
         self.wind.dt = dt
         for _ in range(n):
+            if args[5] is not self.table.params:  # a vehicle got a parameter row of its own meanwhile
+                args = self._args()
             t = self.t
             for i in sorted(self._busy):
                 v = vs[i]
