@@ -356,7 +356,7 @@ def test_a_trailing_vortex_pair_blows_down_between_its_cores_and_out_beside_them
     assert row is not None and 0.0 < row[13] < 1.0  # it shares the wake with the jets at 5 m/s
     out = np.zeros(kernel.AIR_SIZE)
     none = np.zeros((0, kernel.ROTOR_SIZE))
-    wind = np.array([1.0, 0.0, 0.0, 0.05, 0.0])
+    wind = kernel.wind_row(WindConfig())
 
     def at(x: float, y: float, z: float) -> np.ndarray:
         kernel.air_velocity(x, y, z, wind, none, row[None, :], out)

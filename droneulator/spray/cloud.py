@@ -134,10 +134,7 @@ class SprayCloud:
                 GRAVITY,
             ]
         )
-        hx, hy = wind.heading
-        self._wind = np.array(
-            [hx, hy, wind.speed_m_s, wind.roughness_m, 1.0 if wind.profile == "log" else 0.0]
-        )
+        self._wind = kernel.wind_row(wind)
         self._turbulence = self._turbulence_table(int(math.ceil(domain.ceiling)) + 1)
         self._domain = np.array([domain.x0, domain.x1, domain.y0, domain.y1, domain.ceiling])
         self.parcels_released = 0

@@ -41,6 +41,7 @@ import math
 import numba
 import numpy as np
 
+from droneulator.config.wind import WindConfig
 from droneulator.spray.droplets import EVAPORATION_UM2_S_C, VENTILATION, drag_factor
 from droneulator.world.downwash import RHO, SPREAD, Z_MAX, disk_wake_speed
 
@@ -100,6 +101,15 @@ def _lookup(dims: np.ndarray, origin: np.ndarray, cell: float, x: float, y: floa
     return (i * ny + j) * nz + k
 
 
+def wind_row(wind: WindConfig) -> np.ndarray:
+    """The mean wind as the kernel reads it: heading (x, y), W20 (m/s), roughness length z0 (m), 1 for the
+    log profile (0: uniform), and W20 / ln(20 ft / z0)."""
+    hx, hy = wind.heading
+    log = wind.profile == "log"
+    scale = wind.speed_m_s / math.log(6.096 / wind.roughness_m)
+    return np.array([hx, hy, wind.speed_m_s, wind.roughness_m, 1.0 if log else 0.0, scale])
+
+
 #: the trailing vortices' core radius, as a share of their separation, and the turbulence velocity (m/s)
 #: that decays them (AGDISP's decay law, dGamma/dt = -0.45 q Gamma / b)
 VORTEX_CORE = 0.1
@@ -156,15 +166,14 @@ def air_velocity(
     vortices: np.ndarray,
     out: np.ndarray,
 ) -> None:
-    """At a point: the mean wind (``wind`` = heading x, heading y, W20, z0, log profile 1/0) into
+    """At a point: the mean wind (``wind``: a :func:`wind_row`) into
     ``out[0:3]``, every rotor's wake into ``out[3:6]``, and the wake's speed and the width of the widest
     wake there into ``out[6:8]`` (for its turbulence); the shelter and the wind's turbulence are the
     caller's."""
     h = max(z, 0.0)
-    w20, z0 = wind[2], wind[3]
-    mean = w20
+    mean = wind[2]
     if wind[4] > 0.5:  # the log profile, zero below the roughness length
-        mean = w20 * math.log(h / z0) / math.log(6.096 / z0) if h > z0 else 0.0
+        mean = wind[5] * math.log(h / wind[3]) if h > wind[3] else 0.0
     out[0] = wind[0] * mean
     out[1] = wind[1] * mean
     out[2] = 0.0

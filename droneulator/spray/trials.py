@@ -29,7 +29,7 @@ from droneulator.config.wind import WindConfig
 from droneulator.frames import matrix_to_quat
 from droneulator.spray.cloud import Domain, Emitter, SprayCloud
 from droneulator.spray.droplets import GRAVITY
-from droneulator.spray.kernel import AIR_SIZE, ROTOR_SIZE, VORTEX_SIZE, air_velocity
+from droneulator.spray.kernel import AIR_SIZE, ROTOR_SIZE, VORTEX_SIZE, air_velocity, wind_row
 from droneulator.vehicles.params import get_params
 
 #: 1 m^3 of liquid per m^2 of ground, in microlitres per cm^2
@@ -128,8 +128,7 @@ def _cloud(
 def _mean_wind(wind: WindConfig, height: float) -> np.ndarray:
     """The mean wind (m/s, world) at ``height`` m."""
     out = np.empty(AIR_SIZE)
-    hx, hy = wind.heading
-    spec = np.array([hx, hy, wind.speed_m_s, wind.roughness_m, 1.0 if wind.profile == "log" else 0.0])
+    spec = wind_row(wind)
     air_velocity(0.0, 0.0, height, spec, np.zeros((0, ROTOR_SIZE)), np.zeros((0, VORTEX_SIZE)), out)
     return out[:3]
 
