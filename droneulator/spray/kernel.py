@@ -423,146 +423,24 @@ def _chunk(
         x[i, 0], x[i, 1], x[i, 2] = x1, y1, z1
 
 
+#: where the parcel count and the ledger stand among :func:`step_parcels`'s arguments
+_COUNT, _LEDGER = 6, 27
+
+
 @numba.njit(cache=True, fastmath=True)
-def _serial(
-    x,
-    v,
-    turb,
-    d,
-    n,
-    ids,
-    count,
-    dt,
-    step,
-    seed,
-    air,
-    wind,
-    turbulence,
-    rotors,
-    vortices,
-    shelter,
-    leaf,
-    wood,
-    plant,
-    third,
-    wood_class,
-    dims,
-    grid_origin,
-    cell,
-    ground_origin,
-    ground_cell,
-    domain,
-    ledger,
-    dose,
-    ground,
-) -> None:
-    per = (count + ledger.shape[0] - 1) // ledger.shape[0]
-    for c in range(ledger.shape[0]):
-        _chunk(
-            c,
-            per,
-            x,
-            v,
-            turb,
-            d,
-            n,
-            ids,
-            count,
-            dt,
-            step,
-            seed,
-            air,
-            wind,
-            turbulence,
-            rotors,
-            vortices,
-            shelter,
-            leaf,
-            wood,
-            plant,
-            third,
-            wood_class,
-            dims,
-            grid_origin,
-            cell,
-            ground_origin,
-            ground_cell,
-            domain,
-            ledger,
-            dose,
-            ground,
-        )
+def _serial(*args):  # noqa: ANN002, ANN202 - step_parcels's arguments, passed on
+    chunks = args[_LEDGER].shape[0]
+    per = (args[_COUNT] + chunks - 1) // chunks
+    for c in range(chunks):
+        _chunk(c, per, *args)
 
 
 @numba.njit(cache=True, parallel=True, fastmath=True)
-def _parallel(
-    x,
-    v,
-    turb,
-    d,
-    n,
-    ids,
-    count,
-    dt,
-    step,
-    seed,
-    air,
-    wind,
-    turbulence,
-    rotors,
-    vortices,
-    shelter,
-    leaf,
-    wood,
-    plant,
-    third,
-    wood_class,
-    dims,
-    grid_origin,
-    cell,
-    ground_origin,
-    ground_cell,
-    domain,
-    ledger,
-    dose,
-    ground,
-) -> None:
-    per = (count + ledger.shape[0] - 1) // ledger.shape[0]
-    for c in numba.prange(ledger.shape[0]):
-        _chunk(
-            c,
-            per,
-            x,
-            v,
-            turb,
-            d,
-            n,
-            ids,
-            count,
-            dt,
-            step,
-            seed,
-            air,
-            wind,
-            turbulence,
-            rotors,
-            vortices,
-            shelter,
-            leaf,
-            wood,
-            plant,
-            third,
-            wood_class,
-            dims,
-            grid_origin,
-            cell,
-            ground_origin,
-            ground_cell,
-            domain,
-            ledger,
-            dose,
-            ground,
-        )
+def _parallel(*args):  # noqa: ANN002, ANN202 - step_parcels's arguments, passed on
+    chunks = args[_LEDGER].shape[0]
+    per = (args[_COUNT] + chunks - 1) // chunks
+    for c in numba.prange(chunks):
+        _chunk(c, per, *args)
 
 
 #: below this many parcels a step runs on one thread (waking the others costs more than it saves)
@@ -580,4 +458,4 @@ def step_parcels(*args: object) -> None:
     ``e = exp(-dt / T)`` and kick ``sigma sqrt(1 - e^2)``, along the ground (u, v) and up (w); ``shelter``
     the mean wind's factor on the targets' grid; ``domain`` = (x0, x1, y0, y1, ceiling);
     ``ledger`` (chunks, len(LEDGER)), ``dose`` (chunks, plants, 3), ``ground`` (chunks, gx, gy)."""
-    (_parallel if args[6] >= PARALLEL_PARCELS else _serial)(*args)  # type: ignore[operator]
+    (_parallel if args[_COUNT] >= PARALLEL_PARCELS else _serial)(*args)  # type: ignore[operator]
