@@ -46,6 +46,7 @@ from droneulator.ardupilot.protocol import FdmState, ProtocolError, ServoPacket,
 from droneulator.config import ArduPilotConfig
 from droneulator.controllers.flight import Event
 from droneulator.logs import LogThrottle
+from droneulator.px4.fleet import AutopilotFleet
 from droneulator.px4.handover import Handover, landed, on_ground, take_over
 from droneulator.sensors import SensorSuite, Truth
 
@@ -465,14 +466,13 @@ def _step_links(links: list[ArduPilotLink], guard: Any) -> StepResult:
     return result
 
 
-class ArduPilotFleet:
+class ArduPilotFleet(AutopilotFleet[ArduPilotLink]):
     """Every ArduPilot link of a world (one SITL instance per vehicle it flies), served and stepped
     together (:func:`serve_links`); the runtime's face of the ArduPilot interface."""
 
-    def __init__(self, links: list[ArduPilotLink]) -> None:
-        if not links:
-            raise ValueError("an ArduPilot fleet needs at least one link")
-        self.links = links
+    kind = "ArduPilot"
+    scheme = "udp"
+    serve = staticmethod(serve_links)
 
     @classmethod
     def of(cls, world: World) -> ArduPilotFleet:
@@ -481,33 +481,3 @@ class ArduPilotFleet:
         instances = world.config.ardupilot_instances()
         return cls([ArduPilotLink(world, vehicle=name, instance=k) for name, k in instances.items()])
 
-    def start(self, listen: bool = True) -> None:
-        for link in self.links:
-            link.start(listen)
-
-    @property
-    def listening(self) -> bool:
-        return all(link.listening for link in self.links)
-
-    @property
-    def connected(self) -> bool:
-        """True while any ArduPilot is connected (it then drives the simulation clock)."""
-        return any(link.connected for link in self.links)
-
-    def connected_vehicles(self) -> set[str]:
-        """The vehicles with an ArduPilot connected (their links sample their IMUs every step)."""
-        return {link.vehicle.name for link in self.links if link.connected}
-
-    def describe(self) -> str:
-        """Where each link waits, for the runtime's log."""
-        return ", ".join(f"udp://{link.cfg.host}:{link.port} ({link.vehicle.name})" for link in self.links)
-
-    def serve_once(self, timeout: float, lock: threading.Lock | None = None) -> StepResult | None:
-        return serve_links(self.links, timeout, lock)
-
-    def take_events(self) -> list[Event]:
-        return [e for link in self.links for e in link.take_events()]
-
-    def close(self) -> None:
-        for link in self.links:
-            link.close()

@@ -41,6 +41,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from droneulator.config import PX4Config
 from droneulator.controllers.flight import Event, Mode
+from droneulator.px4.fleet import AutopilotFleet
 from droneulator.px4.handover import Handover, landed, on_ground, take_over
 from droneulator.px4.hil import HilEncoder
 from droneulator.px4.mixing import MotorMap
@@ -533,14 +534,13 @@ def _step_links(links: list[PX4Link], guard: Any) -> StepResult:
     return result
 
 
-class PX4Fleet:
+class PX4Fleet(AutopilotFleet[PX4Link]):
     """Every PX4 link of a world (one PX4 SITL instance per vehicle it flies), served and stepped
     together (:func:`serve_links`); the runtime's face of the PX4 interface."""
 
-    def __init__(self, links: list[PX4Link]) -> None:
-        if not links:
-            raise ValueError("a PX4 fleet needs at least one link")
-        self.links = links
+    kind = "PX4"
+    scheme = "tcp"
+    serve = staticmethod(serve_links)
 
     @classmethod
     def of(cls, world: World) -> PX4Fleet:
@@ -549,33 +549,3 @@ class PX4Fleet:
             [PX4Link(world, vehicle=name, instance=k) for name, k in world.config.px4_instances().items()]
         )
 
-    def start(self, listen: bool = True) -> None:
-        for link in self.links:
-            link.start(listen)
-
-    @property
-    def listening(self) -> bool:
-        return all(link.listening for link in self.links)
-
-    @property
-    def connected(self) -> bool:
-        """True while any PX4 is connected (PX4 then drives the simulation clock)."""
-        return any(link.connected for link in self.links)
-
-    def connected_vehicles(self) -> set[str]:
-        """The vehicles with a PX4 connected (each such link samples its vehicle's sensors every step)."""
-        return {link.vehicle.name for link in self.links if link.connected}
-
-    def describe(self) -> str:
-        """Where each link listens, for the runtime's log."""
-        return ", ".join(f"tcp://{link.cfg.host}:{link.port} ({link.vehicle.name})" for link in self.links)
-
-    def serve_once(self, timeout: float, lock: threading.Lock | None = None) -> StepResult | None:
-        return serve_links(self.links, timeout, lock)
-
-    def take_events(self) -> list[Event]:
-        return [e for link in self.links for e in link.take_events()]
-
-    def close(self) -> None:
-        for link in self.links:
-            link.close()
