@@ -3,10 +3,15 @@
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from droneulator.cli.common import add_config_args, config_from_args
 from droneulator.runtime import preflight
+
+if TYPE_CHECKING:
+    from droneulator.config import SimConfig
 
 AIRFRAMES = ("sprayer10", "sprayer40")
 TRIALS = ("hover", "pass")
@@ -104,7 +109,7 @@ def cmd_spray(args: argparse.Namespace) -> int:
     return 0
 
 
-def _trial(args: argparse.Namespace, cfg, out: Path, progress) -> int:  # noqa: ANN001
+def _trial(args: argparse.Namespace, cfg: SimConfig, out: Path, progress: Callable[..., None]) -> int:
     import numpy as np
 
     from droneulator.spray import trials

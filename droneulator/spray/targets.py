@@ -25,7 +25,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from droneulator.scenes.base import Scene, SemanticClass
+from droneulator.scenes.base import MeshPart, Scene, SemanticClass
 
 #: the grid's cell (m): fine enough for a vine hedge's 0.7 m width, coarse enough to hold leaves
 CELL_M = 0.2
@@ -133,7 +133,7 @@ class SprayTargets:
         )
 
 
-def _samples(scene: Scene, part) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _samples(scene: Scene, part: MeshPart) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points spread over ``part``'s triangles, each with the (opaque) area it stands for and its class."""
     tri = part.indices.astype(np.int64)
     p = part.positions.astype(np.float64)[tri]  # (M, 3, 3)
