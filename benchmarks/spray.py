@@ -56,7 +56,7 @@ def parcel_steps(parcels: int, steps: int) -> dict[str, Any]:
         cloud.step([frame.emitter(pos, np.zeros(3), wv, [(n, 1e-5) for n in spray.nozzles])])
     quiet = [frame.emitter(pos, np.zeros(3), wv, [])]
     rotors, vortices = cloud.rotor_rows(quiet), cloud.vortex_rows(quiet)
-    names = ("x", "v", "turb", "d", "n", "ids")
+    names = ("x", "v", "turb", "d", "dres", "n", "ids")
     state = [getattr(cloud, a).copy() for a in names]
     count = cloud.count
 

@@ -368,3 +368,21 @@ def test_a_trailing_vortex_pair_blows_down_between_its_cores_and_out_beside_them
     left, right = at(-3.0, 2.0 * half, 0.3), at(-3.0, -2.0 * half, 0.3)
     assert left[1] > 0.0 > right[1]  # beside the cores near the ground, out to either side
     assert left[1] == pytest.approx(-right[1])
+
+
+def test_a_droplet_dries_to_its_non_volatile_residue_and_flies_on():
+    weather = WeatherConfig(temperature_c=30.0, relative_humidity=0.5)
+    cloud = _cloud(_mono(40.0), weather=weather, parcels_per_s=100.0, min_diameter_um=1.0,
+                   nonvolatile_fraction=0.01)  # fmt: skip
+    cloud.release(Emitter(np.array([0.0, 0.0, 25.0]), np.array([0, 0, 0, 1.0]), np.zeros(3), np.zeros((0, 8)),
+                          [(cloud.config.nozzles[0], 1e-6)]), 0.01)  # fmt: skip
+    for _ in range(round(2.0 * lifetime_s(40e-6, Air.of(weather)) / cloud.dt)):
+        cloud.step([])
+    alive = cloud.n[: cloud.count] > 0
+    assert alive.all()  # still airborne: residues of 40 * 0.01^(1/3) = 8.6 um fall at 2 mm/s
+    assert np.allclose(cloud.d[: cloud.count], 40e-6 * 0.01 ** (1 / 3), rtol=2e-3)
+    ledger = cloud.ledger_now()
+    assert ledger.parts["evaporated"] == pytest.approx(0.99 * ledger.sprayed, rel=2e-3)
+    assert ledger.accounted == pytest.approx(ledger.sprayed, rel=1e-9)
+    with pytest.raises(ValueError, match="nonvolatile_fraction"):
+        SprayConfig(nonvolatile_fraction=1.0)

@@ -112,6 +112,9 @@ class SprayConfig:
     dt_s: float = 0.01
     #: a factor on every nozzle's droplet sizes (a finer or coarser spray; ``randomize.droplet_scale``)
     droplet_scale: float = 1.0
+    #: the share of the liquid that does not evaporate (active ingredient, adjuvants, a tracer): a droplet
+    #: dries to a residue of this share of its volume and flies on (0: water, it evaporates away)
+    nonvolatile_fraction: float = 0.0
     #: droplets smaller than this (um) have evaporated (their liquid counts as evaporated)
     min_diameter_um: float = 5.0
     #: the deposit grid's cell (m) and how far parcels are followed: the sprayed area plus this margin
@@ -131,6 +134,9 @@ class SprayConfig:
             _positive("spray", name, getattr(self, name))
         for name in ("margin_m", "ceiling_m", "leaf_projection", "leaf_size_m", "wood_size_m"):
             _positive("spray", name, getattr(self, name))
+        frac = self.nonvolatile_fraction
+        if not (isinstance(frac, int | float) and not isinstance(frac, bool) and 0.0 <= frac < 1.0):
+            raise ValueError(f"spray.nonvolatile_fraction must lie in [0, 1), got {frac!r}")
         if not (isinstance(self.load_l, int | float) and 0.0 <= self.load_l <= self.tank_l):
             raise ValueError(f"spray.load_l must lie in [0, tank_l={self.tank_l}], got {self.load_l!r}")
         if not self.nozzles:

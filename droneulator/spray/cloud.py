@@ -109,6 +109,7 @@ class SprayCloud:
         self.v = np.zeros((cap, 3))
         self.turb = np.zeros((cap, 3))
         self.d = np.zeros(cap)
+        self.dres = np.zeros(cap)
         self.n = np.zeros(cap)
         self.ids = np.zeros(cap, np.int64)
         self.count = 0
@@ -173,7 +174,7 @@ class SprayCloud:
             self._compact()
             return
         cap = max(need, 2 * self.x.shape[0])
-        for name in ("x", "v", "turb", "d", "n", "ids"):
+        for name in ("x", "v", "turb", "d", "dres", "n", "ids"):
             old = getattr(self, name)
             new = np.zeros((cap, *old.shape[1:]), old.dtype)
             new[: self.count] = old[: self.count]
@@ -183,7 +184,7 @@ class SprayCloud:
         """Drop the parcels that are gone (deposited, evaporated, left)."""
         alive = np.flatnonzero(self.n[: self.count] > 0.0)
         k = len(alive)
-        for name in ("x", "v", "turb", "d", "n", "ids"):
+        for name in ("x", "v", "turb", "d", "dres", "n", "ids"):
             arr = getattr(self, name)
             arr[:k] = arr[alive]
             arr[k : self.count] = 0
@@ -221,6 +222,7 @@ class SprayCloud:
             self.v[s] = np.asarray(emitter.velocity) + nozzle.exit_speed_m_s * body @ R.T
             self.turb[s] = 0.0
             self.d[s] = diam
+            self.dres[s] = diam * self.config.nonvolatile_fraction ** (1.0 / 3.0)
             self.n[s] = (volume / k) / (math.pi / 6.0 * diam**3)
             self.ids[s] = np.arange(self.next_id, self.next_id + k)
             self.next_id += k
@@ -300,7 +302,7 @@ class SprayCloud:
         """Move every parcel one step through the air of these rotor and vortex rows (the kernel's)."""
         tg = self.targets
         kernel.step_parcels(
-            self.x, self.v, self.turb, self.d, self.n, self.ids, self.count, self.dt, self.steps,
+            self.x, self.v, self.turb, self.d, self.dres, self.n, self.ids, self.count, self.dt, self.steps,
             self.seed, self._air, self._wind, self._turbulence, rotors, vortices,
             self.shelter.ravel(),
             tg.leaf.ravel(), tg.wood.ravel(), tg.plant.ravel(), tg.third.ravel(), tg.wood_class.ravel(),

@@ -19,7 +19,9 @@ Per parcel (``n`` droplets of diameter ``d`` at ``x`` moving at ``v``), per step
    start (:mod:`droneulator.spray.droplets`): ``v' = v_eq + (v - v_eq) e^{-dt/tau}``,
    ``x' = x + v_eq dt + (v - v_eq) tau (1 - e^{-dt/tau})`` with ``v_eq = u + g' tau``. Stable at any step
    (a 50 um droplet's tau is a few ms) and exact at terminal velocity.
-3. **Evaporation** by the d^2 law at the step's Reynolds number; below ``d_min`` the rest evaporates.
+3. **Evaporation** by the d^2 law at the step's Reynolds number, down to the droplet's non-volatile
+   residue (``spray.nonvolatile_fraction`` of its volume), which flies on; without one, below ``d_min``
+   the rest evaporates.
 4. **Capture** along the step's path ``ds`` through leaves and wood: a share
    ``1 - exp(-eta a ds)`` of the droplets is deposited, ``a`` the cell's interception density
    (:mod:`droneulator.spray.targets`) and ``eta`` the collection efficiency: inertial impaction on a
@@ -283,6 +285,7 @@ def _chunk(
     v: np.ndarray,
     turb: np.ndarray,
     d: np.ndarray,
+    dres: np.ndarray,
     n: np.ndarray,
     ids: np.ndarray,
     count: int,
@@ -371,13 +374,14 @@ def _chunk(
         v[i, 0] = ex + (v[i, 0] - ex) * e
         v[i, 1] = ey + (v[i, 1] - ey) * e
         v[i, 2] = ez + (v[i, 2] - ez) * e
-        # evaporation
+        # evaporation, down to the droplet's non-volatile residue (if any)
         d2 = di * di - lam0 * (1.0 + VENTILATION * math.sqrt(re)) * dt
-        if d2 <= dmin * dmin:
+        floor = dres[i]
+        if floor <= dmin and d2 <= dmin * dmin:
             ledger[c, EVAPORATED] += n[i] * vol * di * di * di
             n[i] = 0.0
             continue
-        dn = math.sqrt(d2)
+        dn = math.sqrt(max(d2, floor * floor))
         ledger[c, EVAPORATED] += n[i] * vol * (di * di * di - dn * dn * dn)
         d[i] = dn
         drop = vol * dn * dn * dn
@@ -424,7 +428,7 @@ def _chunk(
 
 
 #: where the parcel count and the ledger stand among :func:`step_parcels`'s arguments
-_COUNT, _LEDGER = 6, 27
+_COUNT, _LEDGER = 7, 28
 
 
 @numba.njit(cache=True, fastmath=True)
@@ -451,6 +455,7 @@ def step_parcels(*args: object) -> None:
     """Advance parcels ``0..count-1`` (those with ``n > 0``) by ``dt`` (compiled twice, serial and
     parallel, chosen by the parcel count).
 
+    ``dres``: each parcel's residue diameter (its non-volatile share's, m), where evaporation stops;
     ``air`` = (rho_air, mu, rho_liquid, wet-bulb depression C, d_min m, leaf size m, wood size m, g);
     The targets' grids (``shelter``, ``leaf``, ``wood``, ``plant``, ``third``, ``wood_class``) come
     flattened (C order) from a grid of shape ``dims``.
