@@ -47,7 +47,7 @@ from droneulator.config import ArduPilotConfig
 from droneulator.controllers.flight import Event
 from droneulator.logs import LogThrottle
 from droneulator.px4.fleet import AutopilotFleet
-from droneulator.px4.handover import Handover, landed, on_ground, take_over
+from droneulator.px4.handover import Handover, RotorHandover, on_ground, take_over
 from droneulator.sensors import SensorSuite, Truth
 
 if TYPE_CHECKING:
@@ -66,7 +66,7 @@ RESEND_AFTER_S = 0.5
 MAX_DATAGRAM = 2048
 
 
-class ArduPilotLink:
+class ArduPilotLink(RotorHandover):
     """Serve ArduPilot SITL's JSON physics interface for one vehicle on UDP ``(cfg.host, cfg.base_port +
     10 instance)``; ``base_port = 0`` takes a free port (see :attr:`port`).
 
@@ -76,6 +76,9 @@ class ArduPilotLink:
     (noise from the ``px4`` section's presets); ArduPilot derives GPS, barometer and compass from the
     state. Several links (one ArduPilot per vehicle) step one world together (:class:`ArduPilotFleet`).
     """
+
+    autopilot = "ArduPilot"
+    event_prefix = "ardupilot"
 
     #: the autopilot's name in the flight lock's reasons and the logs
     autopilot = "ArduPilot"
@@ -376,22 +379,6 @@ class ArduPilotLink:
                 self.vehicle.set_rotor_speeds(self.motors.rotor_speeds(pwm))
             else:
                 self.vehicle.motors_off()
-
-    def _update_hold(self, armed: bool) -> None:
-        verdict = self._handover.command(armed, landed(self.vehicle))
-        if verdict == "refuse":
-            reason = (
-                f"ArduPilot armed with the vehicle in the air ({self.vehicle.mode.value} under the "
-                "simulator's controller): its outputs are not applied; it gets the rotors once the vehicle "
-                "is on the ground and ArduPilot is disarmed or arms there"
-            )
-            log.warning("%s", reason)
-            self._event("ardupilot_arm_refused", reason=reason)
-        elif verdict == "hand_over":
-            log.info("the vehicle is on the ground at t=%.3f s: ArduPilot has the rotors", self.world.t)
-            self._event("ardupilot_in_control")
-            if self.on_change is not None:
-                self.on_change()
 
     def _answer(self, truth: Truth) -> None:
         """Send the state after the step (the vehicle's IMU sample, the truth) for the pending frame."""

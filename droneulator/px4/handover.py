@@ -106,3 +106,33 @@ class Handover:
             return "refuse"
         self.holding = False
         return "hand_over"
+
+
+class RotorHandover:
+    """What a link to an autopilot that takes the rotors over by :class:`Handover`'s rules does on each
+    of its commands while the simulator holds the vehicle: hand the rotors over once the vehicle is on the
+    ground with the autopilot disarmed, or armed there; refuse, and say so, an arm in the air. A link
+    class names its autopilot (``autopilot``: "PX4", "ArduPilot") and the prefix of its events."""
+
+    autopilot: str
+    event_prefix: str
+
+    def _update_hold(self, armed: bool) -> None:
+        me: Any = self
+        verdict = me._handover.command(armed, landed(me.vehicle))
+        if verdict == "refuse":
+            reason = (
+                f"{self.autopilot} armed with the vehicle in the air ({me.vehicle.mode.value} under the "
+                f"simulator's controller): its outputs are not applied; it gets the rotors once the vehicle "
+                f"is on the ground and {self.autopilot} is disarmed or arms there"
+            )
+            logging.getLogger(type(self).__module__).warning("%s", reason)
+            me._event(f"{self.event_prefix}_arm_refused", reason=reason)
+        elif verdict == "hand_over":
+            logging.getLogger(type(self).__module__).info(
+                "the vehicle is on the ground at t=%.3f s: %s has the rotors", me.world.t, self.autopilot
+            )
+            me._event(f"{self.event_prefix}_in_control")
+            if me.on_change is not None:
+                me.on_change()
+

@@ -42,7 +42,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from droneulator.config import PX4Config
 from droneulator.controllers.flight import Event, Mode
 from droneulator.px4.fleet import AutopilotFleet
-from droneulator.px4.handover import Handover, landed, on_ground, take_over
+from droneulator.px4.handover import Handover, RotorHandover, on_ground, take_over
 from droneulator.px4.hil import HilEncoder
 from droneulator.px4.mixing import MotorMap
 from droneulator.px4.transport import Candidate, ConnectionLostError, Transport
@@ -71,7 +71,7 @@ CATCH_UP_WAIT_S = 0.02
 MAX_LAG_S = 0.25
 
 
-class PX4Link:
+class PX4Link(RotorHandover):
     """Serve PX4 SITL's simulator MAVLink for one vehicle on ``(cfg.host, cfg.base_port + instance)``.
 
     The caller owns the loop: :meth:`serve_once` accepts PX4, reads its messages and, when one
@@ -86,6 +86,9 @@ class PX4Link:
     an IMU, magnetometer and barometer it must have; without a GPS no HIL_GPS is sent, without an
     airspeed sensor HIL_STATE_QUATERNION's airspeeds are zero.
     """
+
+    autopilot = "PX4"
+    event_prefix = "px4"
 
     #: the autopilot's name in the flight lock's reasons and the logs
     autopilot = "PX4"
@@ -342,24 +345,6 @@ class PX4Link:
         self._event("px4_lost", action=action, **data)
         if self.on_change is not None:
             self.on_change()
-
-    def _update_hold(self, armed: bool) -> None:
-        """(Under the lock, on each actuator command while holding) hand PX4 the rotors once the vehicle
-        is on the ground with PX4 disarmed, or armed there; refuse, and say so, an arm in the air."""
-        verdict = self._handover.command(armed, landed(self.vehicle))
-        if verdict == "refuse":
-            reason = (
-                f"PX4 armed with the vehicle in the air ({self.vehicle.mode.value} under the simulator's "
-                "controller): its outputs are not applied; it gets the rotors once the vehicle is on "
-                "the ground and PX4 is disarmed or arms there"
-            )
-            log.warning("%s", reason)
-            self._event("px4_arm_refused", reason=reason)
-        elif verdict == "hand_over":
-            log.info("the vehicle is on the ground at t=%.3f s: PX4 has the rotors", self.world.t)
-            self._event("px4_in_control")
-            if self.on_change is not None:
-                self.on_change()
 
     def _start_boot_grace(self) -> None:
         """Give PX4 BOOT_GRACE_S of wall time to answer the first batch before free-running."""
