@@ -4,8 +4,7 @@ A spray's volume is spread over droplet diameters as a log-normal distribution (
 the spectrum's Dv0.1, Dv0.5 and Dv0.9 (the diameters below which 10, 50 and 90 % of the volume lies):
 the median is Dv0.5 and the spread ``sigma = ln(Dv0.9 / Dv0.1) / (2 z_0.9)`` with ``z_0.9 = 1.2816``,
 the standard normal's 90th percentile. Parcels carry equal volumes, so their diameters are drawn from
-the volume distribution: ``d = Dv0.5 exp(sigma z)``, z standard normal. The relative span
-``(Dv0.9 - Dv0.1) / Dv0.5`` is what spray tables quote beside the median.
+the volume distribution: ``d = Dv0.5 exp(sigma z)``, z standard normal.
 """
 
 from __future__ import annotations
@@ -46,10 +45,6 @@ class Spectrum:
         from statistics import NormalDist
 
         return self.median * math.exp(self.sigma * NormalDist().inv_cdf(q))
-
-    @property
-    def relative_span(self) -> float:
-        return (self.dv(0.9) - self.dv(0.1)) / self.median
 
     def volume_below(self, d: float) -> float:
         """The share of the volume in droplets smaller than ``d`` (m) (e.g. the driftable share below

@@ -191,13 +191,3 @@ class Spraying:
             self.cloud.step(self.emitters(self.cloud.dt))
         for name in self.systems:
             self._update_payload(name)
-
-    def state(self) -> dict[str, Any]:
-        """Each vehicle's spray state and the cloud's totals (litres)."""
-        ledger = self.cloud.ledger_now()
-        return {
-            "vehicles": {name: s.state() for name, s in self.systems.items()},
-            "airborne_parcels": self.cloud.airborne_count,
-            "sprayed_l": ledger.sprayed * 1000.0,
-            "ledger_l": {k: v * 1000.0 for k, v in ledger.parts.items()},
-        }
