@@ -789,7 +789,9 @@ def test_a_fresh_run_sends_px4_its_sensor_data_without_a_boot_stall():
         finally:
             gc.enable()
         gaps = np.diff(arrivals)
-        assert arrivals[0] - t_connect < 0.1, run.log.tail()
+        # the first HIL_SENSOR comes at once: well inside PX4's 1 s poll timeout (0.12 s seen in a CI run
+        # with the machine loaded; a link that waited for PX4's first actuator message sends nothing here)
+        assert arrivals[0] - t_connect < 0.5, run.log.tail()
         assert gaps[0] < BOOT_GRACE_S + 0.05  # the boot grace, then free-running sensor data
         # free-running while PX4 boots: about real time (250 Hz, ~500 in 2 s) on a quiet machine, 134 seen
         # beside another test worker; a link that waited for PX4's first actuator message sends one
