@@ -97,7 +97,7 @@ GENERATED = {
 }
 
 #: topic keys the simulator subscribes to; every other key of vehicle_topics and topic_names it publishes
-INPUTS = ("cmd_vel", "goal_pose", "position_cmd", "attitude_target", "motor_speed")
+INPUTS = ("cmd_vel", "goal_pose", "position_cmd", "attitude_target", "motor_speed", "fault")
 CAMS = [
     CameraConfig(name="front", width=160, height=120),
     CameraConfig(name="down", width=128, height=96, rpy_deg=(0.0, 90.0, 0.0)),

@@ -37,6 +37,7 @@ def test_names_and_types_are_the_documented_ones():
         "position_cmd": "/uav1/position_cmd",
         "attitude_target": "/uav1/setpoint_raw/attitude",
         "motor_speed": "/uav1/command/motor_speed",
+        "fault": "/uav1/fault",
         "rgb": "/uav1/down/color/image_raw/compressed",
         "depth": "/uav1/down/depth/image_raw",
         "seg": "/uav1/down/segmentation/image_raw/compressed",

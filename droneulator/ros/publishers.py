@@ -18,6 +18,7 @@ never runs backwards, not even across a reset.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any, Protocol
@@ -361,7 +362,9 @@ ATTITUDE_IGNORE_ORIENTATION, ATTITUDE_IGNORE_THRUST = 128, 64
 def subscribe_commands(node: RosZenohNode, cfg: SimConfig, commands: CommandPath) -> None:
     """Every vehicle's ``cmd_vel`` -> ``velocity``, ``goal_pose`` -> ``goto``, ``position_cmd`` ->
     ``track``, ``setpoint_raw/attitude`` -> ``rates`` or ``attitude`` and ``command/motor_speed`` ->
-    ``rotors``, through the one command path, each commanding its own vehicle.
+    ``rotors``, and ``fault`` (a std_msgs/String holding the ``fault`` op's fields as a JSON object, the
+    vehicle the topic's; docs/faults.md) -> ``fault``, through the one command path, each commanding its
+    own vehicle.
 
     An AttitudeTarget is MAVROS's ``setpoint_raw/attitude`` (ENU world, FLU body, thrust normalised to
     [0, 1] of the largest): with ``IGNORE_ATTITUDE`` (128) in its ``type_mask`` its body rates (those not
@@ -458,4 +461,18 @@ def _subscribe_vehicle(node: RosZenohNode, names: VehicleNames, vehicle: str, co
     node.subscribe(topics["goal_pose"], TYPES["goal_pose"], on_goal_pose)
     node.subscribe(topics["position_cmd"], TYPES["position_cmd"], on_position_cmd)
     node.subscribe(topics["attitude_target"], TYPES["attitude_target"], on_attitude_target)
+    def on_fault(msg: Any) -> None:
+        try:
+            args = json.loads(msg.data)
+        except ValueError as e:
+            commands.reject(src_fault, "fault", "parse_error", f"not JSON: {e}")
+            return
+        if not isinstance(args, dict) or "vehicle" in args:
+            commands.reject(src_fault, "fault", "invalid_argument", "a JSON object of the fault op's fields "
+                            "(its vehicle is the topic's)")  # fmt: skip
+            return
+        commands.submit(src_fault, "fault", {**args, "vehicle": vehicle})
+
+    src_fault = f"ROS {topics['fault']}"
     node.subscribe(topics["motor_speed"], TYPES["motor_speed"], on_motor_speed)
+    node.subscribe(topics["fault"], TYPES["fault"], on_fault)

@@ -23,6 +23,8 @@ client, the benchmarks) finds them here instead of spelling them out itself::
     /<ns>/position_cmd                   (in)        quadrotor_msgs/PositionCommand (EGO-Planner's)
     /<ns>/setpoint_raw/attitude          (in)        mavros_msgs/AttitudeTarget (MAVROS's: CTBR, attitude)
     /<ns>/command/motor_speed            (in)        actuator_msgs/Actuators (rotor speeds, Gazebo's)
+    /<ns>/fault                          (in)        std_msgs/String (the ``fault`` op's fields as JSON;
+                                                     docs/faults.md)
     /<ns>/<cam>/pose                                 geometry_msgs/PoseStamped (optical frame in odom)
     /<ns>/<cam>/{color,depth,segmentation}/camera_info   sensor_msgs/CameraInfo
     /<ns>/<cam>/color/image_raw/compressed           sensor_msgs/CompressedImage (jpeg)
@@ -83,6 +85,7 @@ TYPES: dict[str, str] = {
     "position_cmd": "quadrotor_msgs/msg/PositionCommand",
     "attitude_target": "mavros_msgs/msg/AttitudeTarget",
     "motor_speed": "actuator_msgs/msg/Actuators",
+    "fault": "std_msgs/msg/String",
     "pose": "geometry_msgs/msg/PoseStamped",
     "rgb": "sensor_msgs/msg/CompressedImage",
     "depth": "sensor_msgs/msg/Image",
@@ -176,6 +179,7 @@ def vehicle_topics(ns: str) -> dict[str, str]:
         "position_cmd": f"/{ns}/position_cmd",
         "attitude_target": f"/{ns}/setpoint_raw/attitude",
         "motor_speed": f"/{ns}/command/motor_speed",
+        "fault": f"/{ns}/fault",
     }
 
 
