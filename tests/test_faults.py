@@ -3,12 +3,15 @@ sensor data PX4 gets, the events of a schedule, the op's refusals, a cut command
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from droneulator.commands.ops import execute, make_request
 from droneulator.config import FaultSpec, PX4Config, RandomizeConfig, SiteConfig, from_dict, load_config
+from droneulator.config.faults import fault_markdown
 from droneulator.frames import geodetic_to_enu
 from droneulator.px4.hil import HilEncoder
 from droneulator.sensors import SensorSuite, Truth
@@ -18,6 +21,7 @@ from droneulator.vehicles.params import get_params
 from droneulator.world import World
 
 NS = 1_000_000_000
+DOCS = Path(__file__).resolve().parents[1] / "docs"
 
 
 @pytest.fixture(scope="module")
@@ -233,3 +237,7 @@ def test_randomisation_draws_a_rotor_fault_and_a_config_carries_it():
     assert calm.rotor_efficiency == (1.0, 1.0, 1.0, 1.0)
     with pytest.raises(ValueError, match="rotor_fault_prob"):
         RandomizeConfig(rotor_fault_prob=2.0)
+
+
+def test_docs_list_every_kind_as_the_code_checks_them():
+    assert fault_markdown().split("\n", 2)[2] in (DOCS / "faults.md").read_text()
