@@ -3,6 +3,7 @@ sensor data PX4 gets, the events of a schedule, the op's refusals, a cut command
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -241,3 +242,56 @@ def test_randomisation_draws_a_rotor_fault_and_a_config_carries_it():
 
 def test_docs_list_every_kind_as_the_code_checks_them():
     assert fault_markdown().split("\n", 2)[2] in (DOCS / "faults.md").read_text()
+
+
+class _Node:
+    """A ROS node that keeps what is published, by topic."""
+
+    def __init__(self) -> None:
+        self.sent: dict[str, list[tuple[bytes, int]]] = {}
+
+    def publisher(self, topic: str, typename: str) -> object:
+        sent = self.sent.setdefault(topic, [])
+
+        class Pub:
+            def publish(self, payload: bytes, t: int) -> None:
+                sent.append((bytes(payload), t))
+
+        return Pub()
+
+
+def test_ros_carries_the_active_faults_on_a_change_and_once_a_second(world):
+    from droneulator.ros.messages import decode
+    from droneulator.ros.publishers import StatePublisher
+    from droneulator.ros.topics import TYPES, faults_topic
+
+    world.reset(position=[0.0, 0.0, 3.0])
+    node = _Node()
+    pub = StatePublisher(node, world.config)  # type: ignore[arg-type]
+    pub.publish_states(world.states_now())
+    world.inject_fault(FaultSpec(kind="imu_bias", accel=(0.1, 0.0, 0.0)))
+    world.step()
+    pub.publish_states(world.states_now())
+    pub.publish_states(world.states_now())  # unchanged within a second: not again
+    topic = faults_topic("droneulator")
+    sent = [json.loads(decode(TYPES["faults"], raw).data) for raw, _ in node.sent[topic]]
+    assert len(sent) == 2 and sent[0] == [] and [f["kind"] for f in sent[1]] == ["imu_bias"]
+    assert sent[1][0]["accel"] == [0.1, 0.0, 0.0]
+
+
+def test_the_ros_fault_topic_runs_the_op_for_its_vehicle(world):
+    from types import SimpleNamespace
+
+    from droneulator.commands.path import CommandPath
+    from droneulator.ros.publishers import subscribe_commands
+
+    handlers = {}
+    node = SimpleNamespace(subscribe=lambda topic, typename, cb: handlers.__setitem__(topic, cb))
+    subscribe_commands(node, world.config, CommandPath(world))  # type: ignore[arg-type]
+    world.reset(position=[0.0, 0.0, 3.0])
+    on_fault = handlers["/droneulator/fault"]
+    on_fault(SimpleNamespace(data='{"kind": "rotor", "rotor": 3, "efficiency": 0.25}'))
+    on_fault(SimpleNamespace(data='{"kind": "rotor", "rotor": 9}'))  # refused (logged), nothing changes
+    on_fault(SimpleNamespace(data="not json"))
+    assert [(f.spec.kind, f.spec.rotor) for f in world.faults.active.values()] == [("rotor", 3)]
+    assert world.rotor_efficiency[0, 0].tolist() == [1.0, 1.0, 1.0, 0.25]

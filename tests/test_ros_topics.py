@@ -46,7 +46,8 @@ def test_names_and_types_are_the_documented_ones():
         "info_seg": "/uav1/down/segmentation/camera_info",
         "pose": "/uav1/down/pose",
     }
-    assert set(T.TYPES) == set(names) | {"spray", "spray_deposit", "battery"}
+    assert set(T.TYPES) == set(names) | {"spray", "spray_deposit", "battery", "faults"}
+    assert T.faults_topic("uav1") == "/uav1/faults"
     assert T.spray_state_topic("uav1") == "/uav1/spray/state"
     assert T.battery_state_topic("uav1") == "/uav1/battery"
     assert T.spray_deposit_topic("droneulator") == "/droneulator/spray/deposit"

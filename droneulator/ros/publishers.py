@@ -40,11 +40,13 @@ from droneulator.ros.topics import (
     CLOCK,
     DEPOSIT_LOG_RANGE,
     MAP_FRAME,
+    NS_PER_S,
     SENSOR_TOPICS,
     SPRAY_FIELDS,
     TYPES,
     VehicleNames,
     battery_state_topic,
+    faults_topic,
     spray_deposit_topic,
     spray_state_topic,
     vehicle_names,
@@ -110,6 +112,9 @@ class _VehicleOut:
         self.spray: Any = None
         #: the battery's publisher (``battery.enabled``)
         self.battery: Any = None
+        #: the active faults' publisher, what it last sent and when (stamp ns)
+        self.faults: Any = None
+        self.faults_sent: tuple[str, int] | None = None
 
 
 def sensor_variances(cfg: SimConfig) -> dict[str, float]:
@@ -169,6 +174,7 @@ class StatePublisher:
                 out.spray = pub(spray_state_topic(names.namespace), "spray")
             if spec.battery is not None and spec.battery.enabled:
                 out.battery = pub(battery_state_topic(names.namespace), "battery")
+            out.faults = pub(faults_topic(names.namespace), "faults")
             for kind in spec.sensors or ():
                 if kind in SENSOR_TOPICS:
                     key = SENSOR_TOPICS[kind]
@@ -194,7 +200,8 @@ class StatePublisher:
     def publish_states(self, states: Mapping[str, VehicleState]) -> None:
         """Publish the states of one instant: every odometry first (the latency-critical stream), then
         ``/clock`` once, then TF, ``odom_world``, the true wind (``wind``, in ``odom``), the spray state and
-        the battery (``sensor_msgs/BatteryState``) of the vehicles that have them.
+        the battery (``sensor_msgs/BatteryState``) of the vehicles that have them, and each vehicle's active
+        faults (``/<ns>/faults``, on a change and once a second).
 
         The fixed-layout packer makes this a few microseconds a vehicle (rosbags' generic serialiser
         takes ~0.1 ms).
@@ -223,6 +230,17 @@ class StatePublisher:
                                       b["remaining_mah"] / 1000.0, b["capacity_mah"] / 1000.0, b["soc"],
                                       b["cells"], b["empty"])  # fmt: skip
                 out.battery.publish(M.serialize(msg), t)
+            self._publish_faults(out, st)
+
+    @staticmethod
+    def _publish_faults(out: _VehicleOut, st: VehicleState) -> None:
+        """The vehicle's active faults (a JSON list) when they changed, and once a second."""
+        t = st.stamp_ns
+        text = json.dumps(st.faults or [], separators=(",", ":"))
+        last = out.faults_sent
+        if last is None or last[0] != text or not 0 <= t - last[1] < NS_PER_S:
+            out.faults.publish(M.serialize(M.string(text)), t)
+            out.faults_sent = (text, t)
 
     def publish_deposit(self, t_ns: int, deposit_ul_cm2: np.ndarray, cell: float, origin_xy: Any) -> None:
         """The ground deposit (uL/cm^2 per cell, ``[x, y]``) as an occupancy grid in ``map``: 0 where

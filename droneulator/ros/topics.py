@@ -25,6 +25,8 @@ client, the benchmarks) finds them here instead of spelling them out itself::
     /<ns>/command/motor_speed            (in)        actuator_msgs/Actuators (rotor speeds, Gazebo's)
     /<ns>/fault                          (in)        std_msgs/String (the ``fault`` op's fields as JSON;
                                                      docs/faults.md)
+    /<ns>/faults                                     std_msgs/String (the active faults, a JSON list, on
+                                                     every change and once a second)
     /<ns>/<cam>/pose                                 geometry_msgs/PoseStamped (optical frame in odom)
     /<ns>/<cam>/{color,depth,segmentation}/camera_info   sensor_msgs/CameraInfo
     /<ns>/<cam>/color/image_raw/compressed           sensor_msgs/CompressedImage (jpeg)
@@ -80,6 +82,7 @@ TYPES: dict[str, str] = {
     "spray": "std_msgs/msg/Float64MultiArray",
     "spray_deposit": "nav_msgs/msg/OccupancyGrid",
     "battery": "sensor_msgs/msg/BatteryState",
+    "faults": "std_msgs/msg/String",
     "cmd_vel": "geometry_msgs/msg/Twist",
     "goal_pose": "geometry_msgs/msg/PoseStamped",
     "position_cmd": "quadrotor_msgs/msg/PositionCommand",
@@ -141,6 +144,12 @@ def spray_state_topic(ns: str) -> str:
     """A vehicle's spray state (``spray.enabled``), under its namespace ``ns``."""
     _check_name("namespace", ns)
     return f"/{ns}/spray/state"
+
+
+def faults_topic(ns: str) -> str:
+    """The faults active on a vehicle (std_msgs/String, a JSON list; docs/faults.md), under ``ns``."""
+    _check_name("namespace", ns)
+    return f"/{ns}/faults"
 
 
 def battery_state_topic(ns: str) -> str:
