@@ -295,3 +295,26 @@ def test_the_ros_fault_topic_runs_the_op_for_its_vehicle(world):
     on_fault(SimpleNamespace(data="not json"))
     assert [(f.spec.kind, f.spec.rotor) for f in world.faults.active.values()] == [("rotor", 3)]
     assert world.rotor_efficiency[0, 0].tolist() == [1.0, 1.0, 1.0, 0.25]
+
+
+@pytest.mark.parametrize("efficiency", [0.5, 0.05])
+def test_the_controller_drives_a_weak_rotor_as_the_model_says_and_saturates_when_it_cannot(world, efficiency):
+    """Holding, the SE(3) controller brings the weak rotor to the speed that gives its share of the weight,
+    ``w_hover / sqrt(efficiency)`` (the same reaction torque: no yaw left), or, when that is beyond the
+    airframe's top speed, drives it to the top and the vehicle falls."""
+    v = world.vehicle()
+    world.reset(position=[0.0, 0.0, 5.0], yaw=0.0)
+    world.inject_fault(FaultSpec(kind="rotor", rotor=1, efficiency=efficiency))
+    need, top = v.hover_speed / np.sqrt(efficiency), float(v.quad_params["rotor_speed_max"])
+    most = 0.0
+    for _ in range(25):
+        world.run(0.1)
+        most = max(most, float(world._cmds[0, 0, 1]))
+    speeds, st = v.s[STATE.rotor_speeds], v.state
+    if need < top:
+        assert speeds[1] == pytest.approx(need, rel=0.01)
+        np.testing.assert_allclose(np.delete(speeds, 1), v.hover_speed, rtol=0.01)
+        assert abs(st.angular_velocity[2]) < 0.05 and st.position[2] > 4.7
+    else:
+        # it asks the weak rotor for nearly all it has and cuts the others to stay level: it falls
+        assert most > 0.95 * top and st.position[2] < 0.5
