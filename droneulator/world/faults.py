@@ -115,9 +115,10 @@ class FaultBoard:
         now = self.world.t_ns
         events, self._queued = self._queued, []
         changed = bool(events)
-        for f in [f for f in self.active.values() if f.end_ns is not None and f.end_ns <= now]:
-            del self.active[f.id]
-            events.append(self._event("fault_ended", f, f.end_ns / NS, "expired"))
+        for f in list(self.active.values()):
+            if f.end_ns is not None and f.end_ns <= now:
+                del self.active[f.id]
+                events.append(self._event("fault_ended", f, f.end_ns / NS, "expired"))
             changed = True
         while self._schedule and round(self._schedule[0].at * NS) <= now:
             spec = self._schedule.pop(0)
