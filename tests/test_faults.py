@@ -238,6 +238,8 @@ def test_randomisation_draws_a_rotor_fault_and_a_config_carries_it():
     assert calm.rotor_efficiency == (1.0, 1.0, 1.0, 1.0)
     with pytest.raises(ValueError, match="rotor_fault_prob"):
         RandomizeConfig(rotor_fault_prob=2.0)
+    with pytest.raises(ValueError, match="needs `kind`"):
+        from_dict(type(load_config()), {"faults": [{"at": 1.0}]})
 
 
 def test_docs_list_every_kind_as_the_code_checks_them():

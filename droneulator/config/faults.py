@@ -112,7 +112,7 @@ class FaultSpec:
     null: until cleared or the episode ends); the other fields are the kinds' parameters, null unless
     the kind takes them (its defaults fill them)."""
 
-    kind: str = "rotor"
+    kind: str = ""
     vehicle: str | None = None
     at: float = 0.0
     duration: float | None = None
@@ -128,6 +128,8 @@ class FaultSpec:
     field: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
+        if not self.kind:
+            raise FaultError("invalid_argument", f"a fault needs `kind`: one of {', '.join(FAULT_KINDS)}")
         if self.kind not in FAULT_KINDS:
             raise FaultError("invalid_argument", f"unknown fault kind {self.kind!r}; the kinds are "
                              f"{', '.join(FAULT_KINDS)}")  # fmt: skip
