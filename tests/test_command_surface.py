@@ -38,7 +38,8 @@ def test_the_world_and_its_vehicles_are_what_the_command_path_drives(world):
 @pytest.mark.parametrize(
     ("protocol", "cls", "methods"),
     [
-        (CommandedWorld, World, {"vehicle", "reset", "trigger", "set_wind"}),
+        (CommandedWorld, World, {"vehicle", "reset", "trigger", "set_wind", "inject_fault", "clear_faults",
+                                 "command_link_cut"}),
         (CommandedVehicle, Vehicle, {"takeoff", "land", "goto", "velocity", "track", "hold", "motors_off",
                                      "describe", "rotors", "rates", "attitude"}),  # fmt: skip
     ],

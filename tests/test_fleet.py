@@ -393,7 +393,7 @@ def _ros2dds_type(topic: str) -> str:
     leaf = {
         "odom": "odom", "odom_world": "odom_world", "wind": "wind", "tf": "tf", "tf_static": "tf_static",
         "clock": "clock", "imu": "imu", "fix": "gps_fix", "air_pressure": "air_pressure",
-        "magnetic_field": "magnetic_field", "battery": "battery",
+        "magnetic_field": "magnetic_field", "battery": "battery", "faults": "faults",
         "pose": "pose", "camera_info": "info_rgb", "image_raw": "depth", "compressed": "rgb",
     }  # fmt: skip
     return TYPES[leaf[topic.rsplit("/", 1)[-1]]]

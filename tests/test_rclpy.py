@@ -47,7 +47,14 @@ from droneulator.config import CameraConfig, SimConfig, load_config
 from droneulator.frames import quat_from_yaw, quat_to_matrix
 from droneulator.ros import messages as M
 from droneulator.ros.publishers import static_transforms
-from droneulator.ros.topics import TYPES, battery_state_topic, optical_frame, topic_names, vehicle_topics
+from droneulator.ros.topics import (
+    TYPES,
+    battery_state_topic,
+    faults_topic,
+    optical_frame,
+    topic_names,
+    vehicle_topics,
+)
 from droneulator.runtime.launch import LaunchedRun, free_port, launch_run
 from droneulator.sensors.camera import intrinsics
 
@@ -97,7 +104,7 @@ GENERATED = {
 }
 
 #: topic keys the simulator subscribes to; every other key of vehicle_topics and topic_names it publishes
-INPUTS = ("cmd_vel", "goal_pose", "position_cmd", "attitude_target", "motor_speed")
+INPUTS = ("cmd_vel", "goal_pose", "position_cmd", "attitude_target", "motor_speed", "fault")
 CAMS = [
     CameraConfig(name="front", width=160, height=120),
     CameraConfig(name="down", width=128, height=96, rpy_deg=(0.0, 90.0, 0.0)),
@@ -374,6 +381,7 @@ def expected_topics(cfg: SimConfig) -> tuple[dict[str, str], dict[str, str]]:
     pub = {t: TYPES[k] for k, t in vehicle_topics(ns).items() if k not in INPUTS}
     if cfg.battery.enabled:
         pub[battery_state_topic(ns)] = TYPES["battery"]
+    pub[faults_topic(ns)] = TYPES["faults"]
     for cam in cfg.render.cameras:
         pub.update({t: TYPES[k] for k, t in topic_names(ns, cam.name).items()})
     return pub, {t: TYPES[k] for k, t in vehicle_topics(ns).items() if k in INPUTS}

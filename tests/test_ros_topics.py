@@ -37,6 +37,7 @@ def test_names_and_types_are_the_documented_ones():
         "position_cmd": "/uav1/position_cmd",
         "attitude_target": "/uav1/setpoint_raw/attitude",
         "motor_speed": "/uav1/command/motor_speed",
+        "fault": "/uav1/fault",
         "rgb": "/uav1/down/color/image_raw/compressed",
         "depth": "/uav1/down/depth/image_raw",
         "seg": "/uav1/down/segmentation/image_raw/compressed",
@@ -45,7 +46,8 @@ def test_names_and_types_are_the_documented_ones():
         "info_seg": "/uav1/down/segmentation/camera_info",
         "pose": "/uav1/down/pose",
     }
-    assert set(T.TYPES) == set(names) | {"spray", "spray_deposit", "battery"}
+    assert set(T.TYPES) == set(names) | {"spray", "spray_deposit", "battery", "faults"}
+    assert T.faults_topic("uav1") == "/uav1/faults"
     assert T.spray_state_topic("uav1") == "/uav1/spray/state"
     assert T.battery_state_topic("uav1") == "/uav1/battery"
     assert T.spray_deposit_topic("droneulator") == "/droneulator/spray/deposit"

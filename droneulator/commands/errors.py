@@ -37,6 +37,9 @@ ERROR_CODES: dict[str, str] = {
     "rate_limited": "the connection sent more messages than the server's rate limit "
     "(`access.rate_hz` a second, `access.burst` at once); the message was not run, and the connection "
     "stays usable",
+    "link_cut": "a flight command to a vehicle whose command link is cut (a `link_cut` fault, "
+    "docs/faults.md): it was not delivered, as over a lost radio link; a command stream stops, so the "
+    "vehicle holds after its stream timeout",
     "internal_error": "an unexpected failure inside the server; the message says what, the server "
     "keeps running and the traceback is logged",
 }

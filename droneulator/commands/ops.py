@@ -24,6 +24,7 @@ from typing import Any
 
 from droneulator.commands.errors import ERROR_CODES, CommandError
 from droneulator.commands.surface import CommandedVehicle, CommandedWorld
+from droneulator.config.faults import FAULT_KINDS, FaultError, FaultSpec
 from droneulator.config.scene import VEGETATION_RANGE
 
 #: the ``vehicle`` value of ``state`` and ``subscribe`` that means every vehicle (not a valid name)
@@ -275,6 +276,28 @@ def _spray_refill(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
     name = _vehicle(sim, a).name
     system = _spraying(sim).refill(name, a.get("litres"))
     return {"spray": system.state(), "vehicle": name, **_when(sim)}
+
+
+#: the ``fault`` op's fields that are a kind's parameters (docs/faults.md)
+_FAULT_PARAMS = ("rotor", "efficiency", "noise_m", "satellites", "drift", "offset", "accel", "gyro", "rate",
+                 "field")  # fmt: skip
+
+
+def _fault(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
+    params = {k: a[k] for k in _FAULT_PARAMS if k in a}
+    try:
+        spec = FaultSpec(kind=a["kind"], vehicle=a.get("vehicle"), duration=a.get("duration"), **params)
+    except FaultError as e:
+        raise CommandError(e.code, e.message) from None
+    return {"fault": sim.inject_fault(spec), **_when(sim)}
+
+
+def _fault_clear(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
+    kind = a.get("kind")
+    if kind is not None and kind not in FAULT_KINDS:
+        known = ", ".join(FAULT_KINDS)
+        raise CommandError("invalid_argument", f"unknown fault kind {kind!r}; the kinds are {known}")
+    return {"cleared": sim.clear_faults(a.get("vehicle"), kind, a.get("id")), **_when(sim)}
 
 
 #: the ``vehicle`` field of every flight op
@@ -533,6 +556,49 @@ OPS: dict[str, Op] = {
             (Arg("litres", "number", "how full (L; default: the configured load)", bounds=(0, 1000)),
              _VEHICLE),  # fmt: skip
             _spray_refill,
+        ),
+        Op(
+            "fault",
+            "Inject a fault into a vehicle now (docs/faults.md): `rotor` (a rotor's loss of efficiency), "
+            "`gps_loss`, `gps_jamming`, `gps_spoofing`, `imu_bias`, `baro_drift`, `mag_interference`, "
+            "`camera_dropout` or `link_cut` (its flight commands are answered `link_cut`, so a command "
+            "stream stops and the vehicle holds after its stream timeout). A `fault_started` event "
+            "follows, and a `fault_ended` one when `duration` runs out or `fault_clear` ends it; a reset "
+            "ends every fault. Each kind takes only its own parameters (a foreign one is refused). PX4 and "
+            "ArduPilot see the sensor faults in the sensor data they get.",
+            "`fault`: the fault as started (`id`, `kind`, `vehicle`, `start` s, `duration`, its "
+            "parameters with their defaults); `t`: " + _T,
+            (
+                Arg("kind", "string", "the fault: " + ", ".join(f"`{k}`" for k in FAULT_KINDS), True),
+                Arg("duration", "number", "how long it lasts, s (default: until `fault_clear` or a reset)"),
+                Arg("rotor", "integer", "`rotor`: the rotor, 0-3 in RotorPy's order (required)"),
+                Arg("efficiency", "number", "`rotor`: the share of its thrust left, 0-1 (default 0: dead)"),
+                Arg("noise_m", "number", "`gps_jamming`: extra position noise, 1-sigma per axis, m "
+                    "(default 5)"),  # fmt: skip
+                Arg("satellites", "integer", "`gps_jamming`: satellites the fixes report, 0-50 (default 4)"),
+                Arg("drift", "vec3", "`gps_spoofing`: how fast the position moves off, [e, n, u] m/s "
+                    "(default 0)"),  # fmt: skip
+                Arg("offset", "vec3", "`gps_spoofing`: the position's offset at the start, [e, n, u] m "
+                    "(default 0)"),  # fmt: skip
+                Arg("accel", "vec3", "`imu_bias`: accelerometer bias step, m/s^2, body FRD (default 0)"),
+                Arg("gyro", "vec3", "`imu_bias`: gyroscope bias step, rad/s, body FRD (default 0)"),
+                Arg("rate", "number", "`baro_drift`: drift of the pressure altitude, m/s (default 0.5)"),
+                Arg("field", "vec3", "`mag_interference`: field added, gauss, body FRD (required)"),
+                _VEHICLE,
+            ),
+            _fault,
+        ),
+        Op(
+            "fault_clear",
+            "End active faults at once (those matching every field given; all of them for none); a "
+            "`fault_ended` event follows for each.",
+            "`cleared`: the ids of the faults ended; `t`: " + _T,
+            (
+                Arg("kind", "string", "only faults of this kind"),
+                Arg("id", "integer", "only the fault with this id (the `fault` reply's)"),
+                Arg("vehicle", "string", "only the faults of this vehicle"),
+            ),
+            _fault_clear,
         ),
         Op(
             "trigger",
@@ -818,6 +884,10 @@ def execute(
                 raise CommandError("flight_locked", flight_locked)
             if sim is None:
                 raise CommandError("internal_error", f"{request.op} needs the simulator, and none was given")
+            if spec.flight and request.op != "reset" and sim.command_link_cut(request.args.get("vehicle")):
+                who = request.args.get("vehicle") or "the vehicle"
+                raise CommandError("link_cut", f"the command link of {who} is cut (a link_cut fault): the "
+                                   "command was not delivered")  # fmt: skip
             result = spec.run(sim, request.args)
         reply = ok_reply(request.id, result)
         encode(reply)  # fail here, with a proper error, rather than in the transport

@@ -13,7 +13,7 @@ from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 if TYPE_CHECKING:  # annotations only: importing the command path stays cheap
-    from droneulator.config import LightConfig, SimConfig, WindConfig
+    from droneulator.config import FaultSpec, LightConfig, SimConfig, WindConfig
     from droneulator.scenes.base import Scene
 
 #: a point or vector of the world frame as a request carries it: three finite numbers
@@ -158,4 +158,18 @@ class CommandedWorld(Protocol):
 
     def set_wind(self, config: WindConfig, vehicle: str | None = None) -> None:
         """Change the wind of every vehicle, or of ``vehicle`` only."""
+        ...
+
+    def inject_fault(self, spec: FaultSpec) -> dict[str, Any]:
+        """Start the fault ``spec`` now; the fault as started (plain JSON)."""
+        ...
+
+    def clear_faults(
+        self, vehicle: str | None = None, kind: str | None = None, fault_id: int | None = None
+    ) -> list[int]:
+        """End the active faults matching every filter given; their ids."""
+        ...
+
+    def command_link_cut(self, vehicle: str | None) -> bool:
+        """Whether ``vehicle``'s (None: the first vehicle's) command link is cut."""
         ...

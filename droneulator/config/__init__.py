@@ -8,6 +8,7 @@ from the command line, in that order (:mod:`~droneulator.config.loading`).
 """
 
 from droneulator.config.capture import CaptureConfig
+from droneulator.config.faults import FAULT_KINDS, FaultError, FaultSpec
 from droneulator.config.light import LightConfig
 from droneulator.config.loading import (
     ConfigError,
@@ -52,6 +53,9 @@ from droneulator.config.wind import WindConfig
 
 __all__ = [
     "AccessConfig",
+    "FAULT_KINDS",
+    "FaultError",
+    "FaultSpec",
     "BARO_PRESETS",
     "CONTROLLERS",
     "GPS_PRESETS",

@@ -1,6 +1,6 @@
 """Domain randomisation (the ``randomize`` section): ranges the wind, the light and the depth camera's
-error model (its preset and how noisy that camera is) are drawn from at every reset, so a policy or a
-benchmark meets the field's variety.
+error model (its preset and how noisy that camera is) and a rotor fault (docs/faults.md) are drawn from at
+every reset, so a policy or a benchmark meets the field's variety.
 
 Drawn per episode from the episode's own generator (seeded: the same seeds draw the same conditions),
 by :meth:`RandomizeConfig.draw`. The RL environments (single and batched), ``droneulator capture`` and
@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from droneulator.config.camera_presets import DEPTH_PRESETS
+from droneulator.config.faults import FaultSpec
 from droneulator.config.scene import VEGETATION_RANGE
 from droneulator.config.wind import WindConfig
 
@@ -52,6 +53,8 @@ class Draw:
     droplet_scale: float = 1.0
     temperature_c: float = 20.0
     relative_humidity: float = 0.6
+    #: each rotor's efficiency (docs/faults.md): all 1 but in an episode with a rotor fault drawn
+    rotor_efficiency: tuple[float, float, float, float] = (1.0, 1.0, 1.0, 1.0)
 
     def describe(self) -> str:
         """One line for a log."""
@@ -63,6 +66,7 @@ class Draw:
             f"dropouts x{self.depth_dropout_scale:.2f})"
             + ("" if self.scene_seed is None else f", scene seed {self.scene_seed}")
             + ("" if self.vegetation == 1.0 else f", vegetation x{self.vegetation:.2f}")
+            + ("" if min(self.rotor_efficiency) == 1.0 else f", rotor efficiency {self.rotor_efficiency}")
         )
 
 
@@ -103,6 +107,10 @@ class RandomizeConfig:
     droplet_scale: tuple[float, float] = (0.7, 1.4)
     temperature_c: tuple[float, float] = (10.0, 35.0)
     relative_humidity: tuple[float, float] = (0.3, 0.9)
+    #: a rotor fault (docs/faults.md): the share of episodes in which one rotor, drawn uniformly, keeps
+    #: only an efficiency drawn from ``rotor_efficiency`` (its thrust and moments x it) for the whole episode
+    rotor_fault_prob: float = 0.0
+    rotor_efficiency: tuple[float, float] = (0.5, 0.9)
 
     def __post_init__(self) -> None:
         self.wind_speed_m_s = _range("wind_speed_m_s", self.wind_speed_m_s, 0.0, 40.0)
@@ -118,6 +126,10 @@ class RandomizeConfig:
         self.droplet_scale = _range("droplet_scale", self.droplet_scale, 0.1, 10.0)
         self.temperature_c = _range("temperature_c", self.temperature_c, -20.0, 50.0)
         self.relative_humidity = _range("relative_humidity", self.relative_humidity, 0.05, 1.0)
+        self.rotor_efficiency = _range("rotor_efficiency", self.rotor_efficiency, 0.0, 1.0)
+        prob = self.rotor_fault_prob
+        if isinstance(prob, bool) or not (isinstance(prob, int | float) and 0.0 <= prob <= 1.0):
+            raise ValueError(f"randomize.rotor_fault_prob must lie in [0, 1], got {prob!r}")
         if self.scene_seed is not None:
             lo, hi = _range("scene_seed", self.scene_seed, 0, 2**32 - 1)
             if lo != int(lo) or hi != int(hi):
@@ -177,6 +189,10 @@ class RandomizeConfig:
         droplets = float(rng.uniform(*self.droplet_scale))
         temperature = float(rng.uniform(*self.temperature_c))
         humidity = float(rng.uniform(*self.relative_humidity))
+        faulty = bool(rng.random() < self.rotor_fault_prob)
+        rotor = int(rng.integers(4))
+        kept = float(rng.uniform(*self.rotor_efficiency))
+        efficiency = tuple(kept if faulty and i == rotor else 1.0 for i in range(4))
         return Draw(
             wind=drawn_wind,
             depth_model=depth,
@@ -190,13 +206,14 @@ class RandomizeConfig:
             droplet_scale=droplets,
             temperature_c=temperature,
             relative_humidity=humidity,
+            rotor_efficiency=efficiency,  # type: ignore[arg-type]
         )
 
     def apply(self, cfg: Any, draw: Draw) -> Any:
         """A copy of ``cfg`` (a :class:`~droneulator.config.SimConfig`) in the conditions of ``draw``: its
         wind, its light's time of day, clouds and haze, every camera's depth model, its scene's seed and
-        vegetation (for a workflow that draws once, e.g. a capture), and its weather and nozzles' droplet
-        sizes."""
+        vegetation (for a workflow that draws once, e.g. a capture), its weather and nozzles' droplet
+        sizes, and a rotor fault drawn (one for the whole episode in its ``faults``)."""
         out = copy.deepcopy(cfg)
         out.wind = draw.wind
         if draw.scene_seed is not None:
@@ -217,6 +234,8 @@ class RandomizeConfig:
             out.weather, temperature_c=draw.temperature_c, relative_humidity=draw.relative_humidity
         )
         out.spray = dataclasses.replace(out.spray, droplet_scale=draw.droplet_scale)
+        rotors = [FaultSpec(kind="rotor", rotor=i, efficiency=e) for i, e in enumerate(draw.rotor_efficiency)]
+        out.faults = [*out.faults, *(f for f in rotors if f.efficiency < 1.0)]  # type: ignore[operator]
         out.render.cameras = [dataclasses.replace(c, **depth) for c in out.render.cameras]
         for v in out.vehicles:
             if v.cameras is not None:

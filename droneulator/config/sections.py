@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 
 from droneulator.config.camera_presets import DEPTH_PRESETS, RGB_PRESETS, radial_invertible
 from droneulator.config.capture import CaptureConfig
+from droneulator.config.faults import FaultSpec
 from droneulator.config.light import LightConfig
 from droneulator.config.randomize import RandomizeConfig
 from droneulator.config.rl import RLConfig
@@ -754,6 +755,8 @@ class SimConfig:
     #: the vehicles of the world; empty: one vehicle, ``uav0``, from the single-vehicle sections (so
     #: every single-vehicle config file keeps working)
     vehicles: list[VehicleSpec] = field(default_factory=list)
+    #: faults scheduled in every episode (docs/faults.md): each starts ``at`` s after the reset
+    faults: list[FaultSpec] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.vegetation = check_vegetation(self.vegetation)
@@ -761,6 +764,11 @@ class SimConfig:
         twice = sorted({n for n in names if names.count(n) > 1})
         if twice:
             raise ValueError(f"vehicle names must be unique: {', '.join(twice)} given more than once")
+        known = [v.name for v in self.vehicle_specs()]
+        strangers = sorted({f.vehicle for f in self.faults if f.vehicle is not None} - set(known))
+        if strangers:
+            names = ", ".join(known)
+            raise ValueError(f"faults name vehicle(s) {', '.join(strangers)}; the vehicles are {names}")
         kinds = {v.controlled_by for v in self.vehicle_specs()} & set(AUTOPILOTS)
         if len(kinds) > 1 or (self.px4.enabled and self.ardupilot.enabled):
             raise ValueError(

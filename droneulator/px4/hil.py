@@ -92,7 +92,9 @@ class HilEncoder:
                 )
             )
         if "gps" in self.sensors and self._due("gps", t_ns, self.cfg.gps_hz):
-            msgs.append(self._gps_message(truth, t_us))
+            gps = self._gps_message(truth, t_us)
+            if gps is not None:  # no fix while the GPS is lost (docs/faults.md)
+                msgs.append(gps)
         msgs.append(self._state_message(truth, t_us))
         msgs.append(self._sensor_message(truth, t_us))
         return b"".join(m.pack(self._tx) for m in msgs)
@@ -129,6 +131,8 @@ class HilEncoder:
 
     def _gps_message(self, truth: Truth, t_us: int) -> Any:
         g = self.sensors.gps(truth)
+        if g is None:
+            return None
         return self._tx.hil_gps_encode(
             t_us,
             g.fix_type,

@@ -578,6 +578,11 @@ def image(t_ns: int, frame_id: str, array: np.ndarray, encoding: str | None = No
 
 
 # --------------------------------------------------------------------------- (de)serialisation
+def string(data: str) -> Any:
+    """std_msgs/String holding ``data``."""
+    return _T["std_msgs/msg/String"](data=data)
+
+
 def labelled_array(labels: Sequence[str], values: Sequence[float]) -> Any:
     """std_msgs/Float64MultiArray of ``values``, one layout dimension per value naming it (size 1)."""
     if len(labels) != len(values):

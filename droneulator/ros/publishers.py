@@ -18,6 +18,7 @@ never runs backwards, not even across a reset.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any, Protocol
@@ -39,11 +40,13 @@ from droneulator.ros.topics import (
     CLOCK,
     DEPOSIT_LOG_RANGE,
     MAP_FRAME,
+    NS_PER_S,
     SENSOR_TOPICS,
     SPRAY_FIELDS,
     TYPES,
     VehicleNames,
     battery_state_topic,
+    faults_topic,
     spray_deposit_topic,
     spray_state_topic,
     vehicle_names,
@@ -109,6 +112,9 @@ class _VehicleOut:
         self.spray: Any = None
         #: the battery's publisher (``battery.enabled``)
         self.battery: Any = None
+        #: the active faults' publisher, what it last sent and when (stamp ns)
+        self.faults: Any = None
+        self.faults_sent: tuple[str, int] | None = None
 
 
 def sensor_variances(cfg: SimConfig) -> dict[str, float]:
@@ -168,6 +174,7 @@ class StatePublisher:
                 out.spray = pub(spray_state_topic(names.namespace), "spray")
             if spec.battery is not None and spec.battery.enabled:
                 out.battery = pub(battery_state_topic(names.namespace), "battery")
+            out.faults = pub(faults_topic(names.namespace), "faults")
             for kind in spec.sensors or ():
                 if kind in SENSOR_TOPICS:
                     key = SENSOR_TOPICS[kind]
@@ -193,7 +200,8 @@ class StatePublisher:
     def publish_states(self, states: Mapping[str, VehicleState]) -> None:
         """Publish the states of one instant: every odometry first (the latency-critical stream), then
         ``/clock`` once, then TF, ``odom_world``, the true wind (``wind``, in ``odom``), the spray state and
-        the battery (``sensor_msgs/BatteryState``) of the vehicles that have them.
+        the battery (``sensor_msgs/BatteryState``) of the vehicles that have them, and each vehicle's active
+        faults (``/<ns>/faults``, on a change and once a second).
 
         The fixed-layout packer makes this a few microseconds a vehicle (rosbags' generic serialiser
         takes ~0.1 ms).
@@ -222,6 +230,17 @@ class StatePublisher:
                                       b["remaining_mah"] / 1000.0, b["capacity_mah"] / 1000.0, b["soc"],
                                       b["cells"], b["empty"])  # fmt: skip
                 out.battery.publish(M.serialize(msg), t)
+            self._publish_faults(out, st)
+
+    @staticmethod
+    def _publish_faults(out: _VehicleOut, st: VehicleState) -> None:
+        """The vehicle's active faults (a JSON list) when they changed, and once a second."""
+        t = st.stamp_ns
+        text = json.dumps(st.faults or [], separators=(",", ":"))
+        last = out.faults_sent
+        if last is None or last[0] != text or not 0 <= t - last[1] < NS_PER_S:
+            out.faults.publish(M.serialize(M.string(text)), t)
+            out.faults_sent = (text, t)
 
     def publish_deposit(self, t_ns: int, deposit_ul_cm2: np.ndarray, cell: float, origin_xy: Any) -> None:
         """The ground deposit (uL/cm^2 per cell, ``[x, y]``) as an occupancy grid in ``map``: 0 where
@@ -361,7 +380,9 @@ ATTITUDE_IGNORE_ORIENTATION, ATTITUDE_IGNORE_THRUST = 128, 64
 def subscribe_commands(node: RosZenohNode, cfg: SimConfig, commands: CommandPath) -> None:
     """Every vehicle's ``cmd_vel`` -> ``velocity``, ``goal_pose`` -> ``goto``, ``position_cmd`` ->
     ``track``, ``setpoint_raw/attitude`` -> ``rates`` or ``attitude`` and ``command/motor_speed`` ->
-    ``rotors``, through the one command path, each commanding its own vehicle.
+    ``rotors``, and ``fault`` (a std_msgs/String holding the ``fault`` op's fields as a JSON object, the
+    vehicle the topic's; docs/faults.md) -> ``fault``, through the one command path, each commanding its
+    own vehicle.
 
     An AttitudeTarget is MAVROS's ``setpoint_raw/attitude`` (ENU world, FLU body, thrust normalised to
     [0, 1] of the largest): with ``IGNORE_ATTITUDE`` (128) in its ``type_mask`` its body rates (those not
@@ -458,4 +479,18 @@ def _subscribe_vehicle(node: RosZenohNode, names: VehicleNames, vehicle: str, co
     node.subscribe(topics["goal_pose"], TYPES["goal_pose"], on_goal_pose)
     node.subscribe(topics["position_cmd"], TYPES["position_cmd"], on_position_cmd)
     node.subscribe(topics["attitude_target"], TYPES["attitude_target"], on_attitude_target)
+    def on_fault(msg: Any) -> None:
+        try:
+            args = json.loads(msg.data)
+        except ValueError as e:
+            commands.reject(src_fault, "fault", "parse_error", f"not JSON: {e}")
+            return
+        if not isinstance(args, dict) or "vehicle" in args:
+            commands.reject(src_fault, "fault", "invalid_argument", "a JSON object of the fault op's fields "
+                            "(its vehicle is the topic's)")  # fmt: skip
+            return
+        commands.submit(src_fault, "fault", {**args, "vehicle": vehicle})
+
+    src_fault = f"ROS {topics['fault']}"
     node.subscribe(topics["motor_speed"], TYPES["motor_speed"], on_motor_speed)
+    node.subscribe(topics["fault"], TYPES["fault"], on_fault)

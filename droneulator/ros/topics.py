@@ -23,6 +23,10 @@ client, the benchmarks) finds them here instead of spelling them out itself::
     /<ns>/position_cmd                   (in)        quadrotor_msgs/PositionCommand (EGO-Planner's)
     /<ns>/setpoint_raw/attitude          (in)        mavros_msgs/AttitudeTarget (MAVROS's: CTBR, attitude)
     /<ns>/command/motor_speed            (in)        actuator_msgs/Actuators (rotor speeds, Gazebo's)
+    /<ns>/fault                          (in)        std_msgs/String (the ``fault`` op's fields as JSON;
+                                                     docs/faults.md)
+    /<ns>/faults                                     std_msgs/String (the active faults, a JSON list, on
+                                                     every change and once a second)
     /<ns>/<cam>/pose                                 geometry_msgs/PoseStamped (optical frame in odom)
     /<ns>/<cam>/{color,depth,segmentation}/camera_info   sensor_msgs/CameraInfo
     /<ns>/<cam>/color/image_raw/compressed           sensor_msgs/CompressedImage (jpeg)
@@ -78,11 +82,13 @@ TYPES: dict[str, str] = {
     "spray": "std_msgs/msg/Float64MultiArray",
     "spray_deposit": "nav_msgs/msg/OccupancyGrid",
     "battery": "sensor_msgs/msg/BatteryState",
+    "faults": "std_msgs/msg/String",
     "cmd_vel": "geometry_msgs/msg/Twist",
     "goal_pose": "geometry_msgs/msg/PoseStamped",
     "position_cmd": "quadrotor_msgs/msg/PositionCommand",
     "attitude_target": "mavros_msgs/msg/AttitudeTarget",
     "motor_speed": "actuator_msgs/msg/Actuators",
+    "fault": "std_msgs/msg/String",
     "pose": "geometry_msgs/msg/PoseStamped",
     "rgb": "sensor_msgs/msg/CompressedImage",
     "depth": "sensor_msgs/msg/Image",
@@ -140,6 +146,12 @@ def spray_state_topic(ns: str) -> str:
     return f"/{ns}/spray/state"
 
 
+def faults_topic(ns: str) -> str:
+    """The faults active on a vehicle (std_msgs/String, a JSON list; docs/faults.md), under ``ns``."""
+    _check_name("namespace", ns)
+    return f"/{ns}/faults"
+
+
 def battery_state_topic(ns: str) -> str:
     """A vehicle's battery (``battery.enabled``), under its namespace ``ns``."""
     _check_name("namespace", ns)
@@ -176,6 +188,7 @@ def vehicle_topics(ns: str) -> dict[str, str]:
         "position_cmd": f"/{ns}/position_cmd",
         "attitude_target": f"/{ns}/setpoint_raw/attitude",
         "motor_speed": f"/{ns}/command/motor_speed",
+        "fault": f"/{ns}/fault",
     }
 
 

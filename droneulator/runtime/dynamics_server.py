@@ -223,7 +223,12 @@ class DynamicsServer:
                 item = self.in_flight.get(seq)
                 if item is not None:
                     self.in_flight[seq] = ("publish", item[1], item[2])
-                    self._send("bridge", self._request("bridge", seq, item[1], item[2]))
+                    request = self._request("bridge", seq, item[1], item[2])
+                    dropped = self.world.camera_dropouts()  # a camera_dropout fault: no frames from those
+                    if dropped and isinstance(request, Publish):
+                        kept = {name: st for name, st in request.states.items() if name not in dropped}
+                        request = Publish(seq, kept)
+                    self._send("bridge", request)
             case Published(seq):
                 self.in_flight.pop(seq, None)
                 self.frames_published += 1

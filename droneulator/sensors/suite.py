@@ -21,6 +21,7 @@ import numpy as np
 
 from droneulator.config.site import SiteConfig
 from droneulator.sensors.baro import BaroSample
+from droneulator.sensors.faults import SensorFaults
 from droneulator.sensors.gps import GpsSample
 from droneulator.sensors.imu import IMU_HZ
 from droneulator.sensors.registry import get_sensor
@@ -125,6 +126,9 @@ class SensorSuite:
                 self.models[kind] = model(cfg, site=self.site)
         #: the GPS delay line hears every sample, when there is a GPS
         self._gps = self.models.get("gps")
+        #: the active sensor faults (docs/faults.md), drawn from a stream of their own spawned after the
+        #: models' (so the models' streams are what they were without faults)
+        self.faults = SensorFaults(np.random.default_rng(seq.spawn(1)[0]))
         #: the newest sample of each kind (see :class:`Reading`), whoever drew it
         self.latest: dict[str, Reading] = {}
         self._seq = 0
@@ -149,7 +153,7 @@ class SensorSuite:
         if "baro" in self.models and schedule.due("baro", t_ns, c.baro_hz):
             self.baro(truth)
         if "gps" in self.models and schedule.due("gps", t_ns, c.gps_hz):
-            self.gps(truth)
+            self.gps(truth)  # None, nothing recorded, while the GPS is lost
 
     def __contains__(self, kind: str) -> bool:
         return kind in self.models
@@ -161,26 +165,32 @@ class SensorSuite:
     def imu(self, truth: Truth) -> tuple[np.ndarray, np.ndarray]:
         """(accelerometer m/s^2, gyroscope rad/s), both in the FRD body frame."""
         self._observe(truth)
-        out = self.models["imu"].sample(truth)
+        model = self.models["imu"]
+        accel, gyro = model.sample(truth)
+        out = self.faults.imu(accel, gyro, model.accel_range, model.gyro_range)
         self.record("imu", truth.t_ns, out)
         return out
 
     def mag(self, truth: Truth) -> np.ndarray:
         """Magnetic field in the FRD body frame (gauss)."""
         self._observe(truth)
-        out = self.models["mag"].sample(truth)
+        out = self.faults.mag(self.models["mag"].sample(truth))
         self.record("mag", truth.t_ns, out)
         return out
 
     def baro(self, truth: Truth) -> BaroSample:
         self._observe(truth)
-        out = self.models["baro"].sample(truth)
+        out = self.faults.baro(self.models["baro"].sample(truth), truth.t_ns)
         self.record("baro", truth.t_ns, out)
         return out
 
-    def gps(self, truth: Truth) -> GpsSample:
-        """The fix sent now: the state ``gps_delay_s`` earlier, with the correlated error."""
-        out = self.models["gps"].sample(truth)
+    def gps(self, truth: Truth) -> GpsSample | None:
+        """The fix sent now: the state ``gps_delay_s`` earlier, with the correlated error (and the active
+        jamming or spoofing); None while the GPS is lost (a ``gps_loss`` fault)."""
+        if self.faults.gps_lost:
+            self._observe(truth)
+            return None
+        out = self.faults.gps(self.models["gps"].sample(truth), truth.t_ns, self.site)
         self.record("gps", truth.t_ns, out)
         return out
 

@@ -191,11 +191,16 @@ def _derivative(
     p: np.ndarray,
     geom: np.ndarray,
     dirs: np.ndarray,
+    eff: np.ndarray,
     ds: np.ndarray,
     fb: np.ndarray,
     R: np.ndarray,
 ) -> None:
     """Write d/dt of the packed state into ``ds`` and the body specific force (m/s^2) into ``fb``.
+
+    ``eff[i]`` is rotor ``i``'s efficiency (1: healthy, 0: no thrust; a damaged propeller or a weak
+    motor): every force and moment the rotor makes (thrust, rotor drag, flapping, reaction torque) is
+    scaled by it, at the same rotor speed.
 
     Allocation free (``R`` is a 3x3 scratch for the attitude matrix), so that many vehicles can be
     integrated in parallel without touching the allocator."""
@@ -247,15 +252,19 @@ def _derivative(
             fy = -om * p[_KD] * ly
             fz += -om * p[_KZ] * lz + p[_KH] * (lx * lx + ly * ly)
             # flapping moment: -k_flap * om * (local x e3)
-            M0 += -p[_KFLAP] * om * ly
-            M1 += p[_KFLAP] * om * lx
+            M0 += -eff[i] * p[_KFLAP] * om * ly
+            M1 += eff[i] * p[_KFLAP] * om * lx
+        e = eff[i]
+        fx *= e
+        fy *= e
+        fz *= e
         F0 += fx
         F1 += fy
         F2 += fz
         # moment of the hub force about the CoM, plus the rotor's reaction torque
         M0 += ry * fz - rz * fy
         M1 += rz * fx - rx * fz
-        M2 += rx * fy - ry * fx + dirs[i] * p[_KM] * om * om
+        M2 += rx * fy - ry * fx + e * dirs[i] * p[_KM] * om * om
 
     if p[_GROUND] > 0.5 and s[2] < p[_REACH]:
         c0, c1, c2, m0, m1, m2 = _contact(s, R, p, geom)
@@ -341,13 +350,20 @@ def _contact(
     return ax + bx_, ay + by_, az + bz_, M0, M1, M2
 
 
-@numba.njit(cache=True)
 def state_derivative(
-    s: np.ndarray, cmd: np.ndarray, p: np.ndarray, geom: np.ndarray, dirs: np.ndarray
+    s: np.ndarray,
+    cmd: np.ndarray,
+    p: np.ndarray,
+    geom: np.ndarray,
+    dirs: np.ndarray,
+    efficiency: np.ndarray | None = None,
 ) -> np.ndarray:
-    """d/dt of the packed state for constant commanded rotor speeds (RotorPy ``_s_dot_fn`` in the air)."""
+    """d/dt of the packed state for constant commanded rotor speeds (RotorPy ``_s_dot_fn`` in the air),
+    each rotor at ``efficiency`` (four factors; None: healthy)."""
+    eff = _HEALTHY if efficiency is None else np.ascontiguousarray(efficiency, dtype=np.float64)
     ds = np.empty(STATE_SIZE)
-    _derivative(s, cmd, p, geom, dirs, ds, np.empty(3), np.empty((3, 3)))
+    _derivative(np.asarray(s, dtype=np.float64), np.asarray(cmd, dtype=np.float64), p, geom, dirs, eff, ds,
+                np.empty(3), np.empty((3, 3)))  # fmt: skip
     return ds
 
 
@@ -387,6 +403,7 @@ def integrate(
     p: np.ndarray,
     geom: np.ndarray,
     dirs: np.ndarray,
+    eff: np.ndarray,
     sdf: np.ndarray,
     origin: np.ndarray,
     res: float,
@@ -395,7 +412,8 @@ def integrate(
     work: np.ndarray,
     R: np.ndarray,
 ) -> bool:
-    """Advance ``s`` in place by ``dt`` with ``n_sub`` RK4 steps under constant rotor commands.
+    """Advance ``s`` in place by ``dt`` with ``n_sub`` RK4 steps under constant rotor commands, each rotor
+    at efficiency ``eff[i]`` (1: healthy; a rotor fault lowers it, :mod:`droneulator.world.faults`).
 
     The collision model is queried after every sub-step; on contact the state is rolled back to
     the last collision-free sub-step and True is returned. ``out`` (:data:`OUTPUT` layout)
@@ -417,16 +435,16 @@ def integrate(
     for _ in range(n_sub):
         for j in range(n):
             prev[j] = s[j]
-        _derivative(s, cmd, p, geom, dirs, k1, f1, R)
+        _derivative(s, cmd, p, geom, dirs, eff, k1, f1, R)
         for j in range(n):
             tmp[j] = s[j] + 0.5 * h * k1[j]
-        _derivative(tmp, cmd, p, geom, dirs, k2, f2, R)
+        _derivative(tmp, cmd, p, geom, dirs, eff, k2, f2, R)
         for j in range(n):
             tmp[j] = s[j] + 0.5 * h * k2[j]
-        _derivative(tmp, cmd, p, geom, dirs, k3, f3, R)
+        _derivative(tmp, cmd, p, geom, dirs, eff, k3, f3, R)
         for j in range(n):
             tmp[j] = s[j] + h * k3[j]
-        _derivative(tmp, cmd, p, geom, dirs, k4, f4, R)
+        _derivative(tmp, cmd, p, geom, dirs, eff, k4, f4, R)
         for j in range(n):
             s[j] += (h / 6.0) * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j])
         if check and sdf_lookup(sdf, origin, res, s[0:3]) < radius:
@@ -478,6 +496,8 @@ class ParamTable:
 
 
 _NO_SDF = np.ones((1, 1, 1), dtype=np.float32)
+#: every rotor at full efficiency
+_HEALTHY = np.ones(4)
 
 
 class FastMultirotor:
@@ -503,6 +523,8 @@ class FastMultirotor:
         self._res = 1.0
         self._radius = 0.0
         self._scratch = np.zeros(OUTPUT_SIZE)
+        #: each rotor's efficiency (1: healthy), as the world's ``rotor_efficiency`` rows
+        self.rotor_efficiency = np.ones(4)
         work, R = work_arrays(1)
         self._work, self._R = work[0], R[0]
 
@@ -539,6 +561,7 @@ class FastMultirotor:
             self.params,
             self.geometry,
             self.directions,
+            self.rotor_efficiency,
             self._sdf,
             self._origin,
             self._res,

@@ -59,6 +59,8 @@ class VehicleState:
     spray: dict[str, Any] | None = None
     #: its battery's state (:meth:`droneulator.vehicles.battery.Battery.state`), when it has one
     battery: dict[str, Any] | None = None
+    #: the faults active on it (docs/faults.md: ``id``, ``kind``, ``start``, ``duration``, parameters)
+    faults: list[dict[str, Any]] | None = None
 
     @property
     def t(self) -> float:
@@ -88,6 +90,7 @@ class VehicleState:
             "wind": None if self.wind is None else self.wind.tolist(),
             **({} if self.spray is None else {"spray": self.spray}),
             **({} if self.battery is None else {"battery": self.battery}),
+            **({} if not self.faults else {"faults": self.faults}),
         }
 
 
@@ -245,7 +248,13 @@ class Vehicle:
             s[STATE.wind].copy(),
             self._spray_state(),
             self._battery_state(),
+            self._faults(),
         )
+
+    def _faults(self) -> list[dict[str, Any]] | None:
+        """The faults active on it (None: none), as its world's fault board describes them."""
+        board = getattr(self.world, "faults", None)
+        return None if board is None or not board.active else board.of(self.name) or None
 
     def _spray_state(self) -> dict[str, Any] | None:
         """Its spray system's state, when its world sprays (``spray.enabled``) and it carries one."""

@@ -112,8 +112,8 @@ def _begin_worlds(go, states, wind, period_start, out):  # fmt: skip
 
 
 @numba.njit(cache=True)
-def _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, off, shapes, origins,
-                 res, variant, radius, out, hit, hit_t, work, R):  # fmt: skip
+def _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, eff, sdfs, off, shapes,
+                 origins, res, variant, radius, out, hit, hit_t, work, R):  # fmt: skip
     N = states.shape[1]
     w, n = k // N, k % N
     if not go[w] or not active[w, n] or t_to[w] <= t_ns[w]:
@@ -123,8 +123,8 @@ def _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx
     v = variant[w]
     p = pidx[n]
     s = states[w, n]
-    if integrate(s, cmds[w, n], h, n_sub, P[p], G[p], D[p], _sdf(sdfs, off, shapes, v), origins[v], res[v],
-                 radius[n], out[w, n], work[w, n], R[w, n]):  # fmt: skip
+    if integrate(s, cmds[w, n], h, n_sub, P[p], G[p], D[p], eff[w, n], _sdf(sdfs, off, shapes, v), origins[v],
+                 res[v], radius[n], out[w, n], work[w, n], R[w, n]):  # fmt: skip
         hit[w, n] = True
         hit_t[w, n] = t_ns[w]
         active[w, n] = False
@@ -141,13 +141,14 @@ def _advance_clocks(go, t_to, t_ns):  # fmt: skip
 
 
 @numba.njit(cache=True)
-def run_period_serial(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, off, shapes,
-                      origins, res, variant, radius, out, hit, hit_t, work, R, wind, period_start, mode,
-                      flats, vref, dt, lim, gains):  # fmt: skip
+def run_period_serial(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, eff, sdfs, off,
+                      shapes, origins, res, variant, radius, out, hit, hit_t, work, R, wind, period_start,
+                      mode, flats, vref, dt, lim, gains):  # fmt: skip
     """Steps 1 (with ``begin``: wind, wakes included, start states, rotor commands) and 2 (integrate the
     active rows of the worlds where ``go`` from their clock to ``t_to``, ns per world, then set those
-    clocks) in one call, row after row. A row that touches the scene is flagged in ``hit`` (with the
-    segment's start time in ``hit_t``), stopped and made inactive. Returns how many rows hit."""
+    clocks) in one call, row after row, each rotor at its efficiency ``eff[w, n, i]`` (1: healthy). A row
+    that touches the scene is flagged in ``hit`` (with the segment's start time in ``hit_t``), stopped and
+    made inactive. Returns how many rows hit."""
     W, N = states.shape[0], states.shape[1]
     if begin:
         _begin_worlds(go, states, wind, period_start, out)
@@ -155,14 +156,14 @@ def run_period_serial(go, begin, t_to, t_ns, states, cmds, active, substep, P, G
             _begin_row(k, go, states, mode, flats, cmds, vref, dt, lim, gains, R)
     hits = 0
     for k in range(W * N):
-        hits += _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, off,
+        hits += _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, eff, sdfs, off,
                              shapes, origins, res, variant, radius, out, hit, hit_t, work, R)  # fmt: skip
     _advance_clocks(go, t_to, t_ns)
     return hits
 
 
 @numba.njit(cache=True, parallel=True)
-def run_period_parallel(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, off,
+def run_period_parallel(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, eff, sdfs, off,
                         shapes, origins, res, variant, radius, out, hit, hit_t, work, R, wind, period_start,
                         mode, flats, vref, dt, lim, gains):  # fmt: skip
     """:func:`run_period_serial` with the rows spread over the cores (compiled apart: a parallel kernel
@@ -174,7 +175,7 @@ def run_period_parallel(go, begin, t_to, t_ns, states, cmds, active, substep, P,
             _begin_row(k, go, states, mode, flats, cmds, vref, dt, lim, gains, R)
     hits = 0
     for k in numba.prange(W * N):
-        hits += _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, off,
+        hits += _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, eff, sdfs, off,
                              shapes, origins, res, variant, radius, out, hit, hit_t, work, R)  # fmt: skip
     _advance_clocks(go, t_to, t_ns)
     return hits
@@ -209,7 +210,7 @@ def end_period(go, states, active, radius, period_start):  # fmt: skip
 
 @numba.njit(cache=True)
 def step_to_frame(run, parallel, period_ns, camera_ns, t_ns, next_frame, states, wind, wakes, k_eta, area,
-                  period_start, out, mode, flats, cmds, vref, lim, gains, active, substep, P, G, D, pidx,
+                  period_start, out, mode, flats, cmds, vref, lim, gains, active, substep, P, G, D, pidx, eff,
                   sdfs, off, shapes, origins, res, variant, radius, hit, hit_t, work, R, cam,
                   touched):  # fmt: skip
     """Advance every world where ``run`` period by period to the end of the period holding its next camera
@@ -246,13 +247,13 @@ def step_to_frame(run, parallel, period_ns, camera_ns, t_ns, next_frame, states,
             if not left:
                 break
             if parallel:
-                run_period_parallel(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx,
+                run_period_parallel(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, eff,
                                     sdfs, off, shapes, origins, res, variant, radius, out, hit, hit_t, work,
                                     R, now, period_start, mode, flats, vref, dt, lim, gains)  # fmt: skip
             else:
-                run_period_serial(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs,
-                                  off, shapes, origins, res, variant, radius, out, hit, hit_t, work, R, now,
-                                  period_start, mode, flats, vref, dt, lim, gains)  # fmt: skip
+                run_period_serial(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, eff,
+                                  sdfs, off, shapes, origins, res, variant, radius, out, hit, hit_t, work, R,
+                                  now, period_start, mode, flats, vref, dt, lim, gains)  # fmt: skip
             begin = False
             for w in range(W):
                 if go[w] and t_ns[w] == next_frame[w]:

@@ -42,7 +42,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from droneulator.commands.errors import CommandError
-from droneulator.config import LightConfig, SimConfig, load_config
+from droneulator.config import FaultSpec, LightConfig, SimConfig, load_config
 from droneulator.controllers.flight import Event, Mode
 from droneulator.controllers.inner import SETPOINT_SIZE
 from droneulator.controllers.velocity import VCMD, VREF_SIZE, start_reference, velocity_limits
@@ -66,6 +66,7 @@ from droneulator.vehicles.vehicle import Vehicle, VehicleState
 from droneulator.wind.field import WindField
 from droneulator.world import step as kernel
 from droneulator.world.downwash import WakeModel, wakes
+from droneulator.world.faults import FaultBoard
 from droneulator.world.step import ATTITUDE, FLAT, RATES, ROTORS, VELOCITY, SdfStack
 
 if TYPE_CHECKING:
@@ -176,6 +177,9 @@ class World:
         self._hit_t = np.zeros((W, n), dtype=np.int64)
         #: rows integrated (a collided or retired row is not)
         self.active = np.ones((W, n), dtype=bool)
+        #: each rotor's efficiency per row, ``(worlds, vehicles, 4)``: 1 healthy, lower with a rotor fault
+        #: (:mod:`droneulator.world.faults`) or a learning env's draw; its thrust and moments scale by it
+        self.rotor_efficiency = np.ones((W, n, 4))
         #: for each row, the vehicle of its world it touched in the last :meth:`step_frame` (-1: none)
         self.touched = np.full((W, n), -1, dtype=np.int64)
         work, R = work_arrays(W * n)
@@ -223,6 +227,8 @@ class World:
                 self.batteries[v.name] = Battery(bat, str(v.spec.params))
                 self._rotor_area[v.name] = v.disk_area / 4.0
                 self._own_row(i, "own")
+        #: the faults of the first world (docs/faults.md): the config's schedule, the ``fault`` op's
+        self.faults = FaultBoard(self)
         self._load_scene(cfg.scene, cfg.seed, cfg.vegetation)
         self.reset()
         if cfg.spray.enabled:
@@ -387,6 +393,7 @@ class World:
         self._next_frame[:] = self.camera_period_ns
         self.frame_count = 0
         self._shots.clear()  # a reset ends the episode a trigger was for
+        self.faults.reset()  # and the faults of it
         for v in self.vehicles.values():
             pos, heading = starts[v.name]
             v.place(pos, float(heading), airborne if v is target else None)
@@ -474,7 +481,7 @@ class World:
         sd = self._sdfs
         t = self.table
         return (self.clocks, self.states, self._cmds, self.active, self._substep, t.params, t.geometry,
-                t.directions, self._pidx, sd.buffer, sd.offsets, sd.shapes, sd.origins,
+                t.directions, self._pidx, self.rotor_efficiency, sd.buffer, sd.offsets, sd.shapes, sd.origins,
                 sd.resolutions, self.variant, self._radius, self._out, self.hit, self._hit_t, self._work,
                 self._R)  # fmt: skip
 
@@ -506,6 +513,8 @@ class World:
         for _ in range(n):
             if args[5] is not self.table.params:  # a vehicle got a parameter row of its own meanwhile
                 args = self._args()
+            if not self.faults.idle:
+                out.events.extend(self.faults.update())
             t = self.t
             for i in sorted(self._busy):
                 v = vs[i]
@@ -780,21 +789,47 @@ class World:
             self.wind.dt = self.camera_period_ns / NS
             flat = self.states.reshape(W * n, STATE_SIZE)
             self._wind_rows[:] = self.wind.update(flat[:, STATE.x], flat[:, STATE.v]).reshape(W, n, 3)
-        (clocks, states, cmds, active, substep, P, G, D, pidx, buf, off, shapes, origins, res, variant,
+        (clocks, states, cmds, active, substep, P, G, D, pidx, eff, buf, off, shapes, origins, res, variant,
          radius, out, hit, hit_t, work, R) = self._args()  # fmt: skip
         kernel.step_to_frame(
             mask, self._parallel(), self.control_period_ns, self.camera_period_ns, clocks, self._next_frame,
             states, self._wind_rows, self._wake.active, self._wake.k_eta, self._wake.disk_area,
             self._period_start, out, self.mode, self._flats, cmds, self._vref, self._lim, self._gains, active,
-            substep, P, G, D, pidx, buf, off, shapes, origins, res, variant, radius, hit, hit_t, work, R,
-            self.camera_states, self.touched,
+            substep, P, G, D, pidx, eff, buf, off, shapes, origins, res, variant, radius, hit, hit_t, work,
+            R, self.camera_states, self.touched,
         )  # fmt: skip
         return self.camera_states, self.hit
 
+    def inject_fault(self, spec: FaultSpec) -> dict[str, Any]:
+        """Start the fault ``spec`` (docs/faults.md) on its vehicle now; its ``fault_started`` event comes
+        with the next step. Returns it described (``id``, ``kind``, ``vehicle``, ``start``, parameters)."""
+        return self.faults.inject(spec).describe()
+
+    def clear_faults(
+        self, vehicle: str | None = None, kind: str | None = None, fault_id: int | None = None
+    ) -> list[int]:
+        """End the active faults matching every filter given (all for none); returns their ids."""
+        return self.faults.clear(vehicle, kind, fault_id)
+
+    def camera_dropouts(self) -> set[str]:
+        """The vehicles whose cameras deliver no frames now (a ``camera_dropout`` fault)."""
+        if not self.faults.active:
+            return set()
+        return {name for name in self.vehicles if self.faults.has(name, "camera_dropout")}
+
+    def command_link_cut(self, vehicle: str | None) -> bool:
+        """Whether ``vehicle``'s command link (None: the first vehicle's) is cut (a ``link_cut`` fault):
+        the command path delivers none of its commands."""
+        return bool(self.faults.active) and self.faults.has(self.vehicle(vehicle).name, "link_cut")
+
     def _shoot(self, out: StepResult, rigs: tuple[str, ...] | None) -> None:
-        """A camera instant now: the frames (own renderer) or the states for a render server."""
+        """A camera instant now: the frames (own renderer; none of a vehicle whose cameras drop out) or the
+        states for a render server."""
         if self.cameras is not None:
-            out.frames.append(self.render(rigs))
+            frames = self.render(rigs)
+            for name in self.camera_dropouts():
+                frames.cameras.pop(name, None)
+            out.frames.append(frames)
         else:
             out.camera_states.append(self.states_now())
             out.camera_rigs.append(rigs)

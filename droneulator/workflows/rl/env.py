@@ -142,8 +142,9 @@ class LocalBackend:
         self.depth_scales = np.array([[cam.depth_noise_scale, cam.depth_dropout_scale]])
 
     def randomize(self, draw: Draw) -> None:
-        """Fly the next episode in the conditions of ``draw``: its wind and depth camera."""
+        """Fly the next episode in the conditions of ``draw``: its wind, depth camera and rotor efficiency."""
         self.world.set_wind(draw.wind)
+        self.world.rotor_efficiency[0, 0] = draw.rotor_efficiency
         self.depth_model = draw.depth_model
         self.depth_scales = np.array([[draw.depth_noise_scale, draw.depth_dropout_scale]])
 

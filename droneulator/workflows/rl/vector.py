@@ -240,6 +240,7 @@ class VineyardNavVectorEnv(ThreadedVectorEnv):
             draws = [self.config.randomize.draw(self._rngs[i], self._base_wind) for i in idx]
             self.worlds.set_wind_rows([d.wind for d in draws], idx)
             for i, d in zip(idx, draws, strict=True):
+                self.worlds.rotor_efficiency[i, 0] = d.rotor_efficiency
                 self._depth_models[i] = d.depth_model
                 self._depth_scales[i] = d.depth_noise_scale, d.depth_dropout_scale
         for i, (start, yaw, goal, field) in zip(idx, begun, strict=True):
