@@ -61,6 +61,7 @@ def obs_size(action: str) -> int:
     """The observation's size at control level ``action`` (``rl.action``)."""
     return STRIP_SAMPLES + tail_size(action)
 
+
 _GRIDS: dict[tuple[Any, ...], OccupancyGrid] = {}
 
 
