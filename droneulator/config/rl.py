@@ -16,9 +16,9 @@ class RLConfig:
 
     The agent sees a depth strip from a small depth-only camera, the heading error to the goal (through
     a look-ahead point on the A* path, or straight at it) and its own speeds; it commands forward speed
-    and yaw rate in velocity mode at a held altitude. Reward: ``progress_scale * (d_prev - d) -
-    step_penalty``, plus ``goal_reward`` within ``goal_radius`` of the goal or minus
-    ``collision_penalty`` on a collision, with ``d`` the shortest-path distance to the goal.
+    and yaw rate in velocity mode at a held altitude, or acts at a lower level (``action``). Reward:
+    ``progress_scale * (d_prev - d) - step_penalty``, plus ``goal_reward`` within ``goal_radius`` of the
+    goal or minus ``collision_penalty`` on a collision, with ``d`` the shortest-path distance to the goal.
     """
 
     #: the control level the policy acts at: "velocity" (forward speed and yaw rate, the altitude held),
