@@ -383,7 +383,9 @@ class NavTask:
         truncated = reason == "time_limit"
         return float(self.rows.reward[0]), reason is not None and not truncated, truncated, reason
 
-    def step_info(self, kin: Kinematics, reason: str | None, command: Sequence[float]) -> dict[str, Any]:
+    def step_info(
+        self, kin: Kinematics, reason: str | None, command: Sequence[float] | np.ndarray
+    ) -> dict[str, Any]:
         """The info dict of a step (of a reset: ``reason`` None, ``command`` zero); ``command`` is the
         level's (:data:`~droneulator.workflows.rl.levels.COMMAND_SIZE`)."""
         return {

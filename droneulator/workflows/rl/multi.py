@@ -291,7 +291,7 @@ class VineyardMultiVectorEnv(ThreadedVectorEnv):
         if not self._reset_called:
             raise RuntimeError("call reset() before step()")
         R, N = self.num_envs, self.num_agents
-        size = self.single_action_space.shape[0]
+        size = self.actuator.space.shape[0]
         a = np.asarray(actions, dtype=np.float64)
         if a.shape != (R, size) or not np.all(np.isfinite(a)):
             raise ValueError(f"actions must be finite numbers of shape ({R}, {size}), got shape {a.shape}")
@@ -448,7 +448,7 @@ class VineyardNavParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
             detail = f"missing {missing}, unknown {sorted(unknown)}"
             raise ValueError(f"need an action for each live agent {self.agents}: {detail}")
         live = list(self.agents)
-        size = self.core.single_action_space.shape[0]
+        size = self.core.actuator.space.shape[0]
         batch = np.zeros((len(self.possible_agents), size))
         for name in live:
             self.tasks[name].check_action(actions[name])

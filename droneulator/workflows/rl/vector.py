@@ -311,7 +311,7 @@ class VineyardNavVectorEnv(ThreadedVectorEnv):
         if not self._reset_called:
             raise RuntimeError("call reset() before step()")
         n = self.num_envs
-        size = self.single_action_space.shape[0]
+        size = self.actuator.space.shape[0]
         a = np.asarray(actions, dtype=np.float64)
         if a.shape != (n, size) or not np.all(np.isfinite(a)):
             raise ValueError(f"actions must be finite numbers of shape ({n}, {size}), got shape {a.shape}")
