@@ -28,9 +28,13 @@ def env(request):
     e.close()
 
 
-def test_the_gymnasium_checker_passes_and_the_spaces_fit_the_level(env):
+def test_the_gymnasium_and_sb3_checkers_pass_and_the_spaces_fit_the_level(env):
     assert env.action_space.shape == (4,) and env.observation_space.shape == (44,)
     check_env(env, skip_render_check=True)
+    sb3_checker = pytest.importorskip("stable_baselines3.common.env_checker")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # SB3 only warns about what it finds wrong
+        sb3_checker.check_env(env, warn=True)
 
 
 def test_a_neutral_action_hovers_for_a_second(env):
