@@ -6,6 +6,9 @@ from dataclasses import dataclass
 
 from droneulator.config.camera_presets import DEPTH_PRESETS
 
+#: the control levels a policy may act at (``rl.action``; :mod:`droneulator.workflows.rl.levels`)
+ACTIONS = ("velocity", "ctbr", "attitude", "rotors")
+
 
 @dataclass
 class RLConfig:
@@ -13,11 +16,16 @@ class RLConfig:
 
     The agent sees a depth strip from a small depth-only camera, the heading error to the goal (through
     a look-ahead point on the A* path, or straight at it) and its own speeds; it commands forward speed
-    and yaw rate in velocity mode at a held altitude. Reward: ``progress_scale * (d_prev - d) -
-    step_penalty``, plus ``goal_reward`` within ``goal_radius`` of the goal or minus
-    ``collision_penalty`` on a collision, with ``d`` the shortest-path distance to the goal.
+    and yaw rate in velocity mode at a held altitude, or acts at a lower level (``action``). Reward:
+    ``progress_scale * (d_prev - d) - step_penalty``, plus ``goal_reward`` within ``goal_radius`` of the
+    goal or minus ``collision_penalty`` on a collision, with ``d`` the shortest-path distance to the goal.
     """
 
+    #: the control level the policy acts at: "velocity" (forward speed and yaw rate, the altitude held),
+    #: "ctbr" (collective thrust and body rates), "attitude" (collective thrust, tilt and yaw rate) or
+    #: "rotors" (each rotor's thrust); all but "velocity" add body rates, attitude, vertical and lateral
+    #: speed and the altitude error to the observation (docs/rl.md, "Control levels")
+    action: str = "velocity"
     altitude: float = 1.5
     #: depth camera (depth only, no shadows): its centre row is min-pooled into the 32-sample strip
     camera_width: int = 128
@@ -54,6 +62,8 @@ class RLConfig:
     min_average_speed: float = 0.75
 
     def __post_init__(self) -> None:
+        if self.action not in ACTIONS:
+            raise ValueError(f"rl.action must be one of {', '.join(ACTIONS)}, got {self.action!r}")
         if self.heading not in ("path", "goal"):
             raise ValueError(f"rl.heading must be 'path' or 'goal', got {self.heading!r}")
         if not self.forward_min < 0 < self.forward_max or not self.max_yaw_rate > 0:

@@ -13,7 +13,9 @@ Spaces (both float32):
 * **Action** (2,) in [-1, 1]: forward speed ``mid + a0 * half`` with ``mid, half`` the centre and
   half-width of ``[rl.forward_min, rl.forward_max]`` (default [-2, 3] m/s: a0 = 0 means 0.5 m/s)
   and yaw rate ``a1 * rl.max_yaw_rate`` (default 1.5 rad/s), sent through the velocity mode, which
-  holds the altitude.
+  holds the altitude. ``rl.action`` chooses a level below it (``ctbr``, ``attitude``, ``rotors``: four
+  numbers in [-1, 1], :mod:`.levels`); the observation then has 9 more entries after ``[34]``: body rates,
+  gravity's direction in the body frame, lateral and vertical speed and the height error (:mod:`.task`).
 
 One step is one camera frame (``render.camera_hz``, 30 Hz sim time): the command is applied and the
 simulation runs in lockstep up to the next camera instant. Reward: ``rl.progress_scale * (d_prev -
@@ -47,10 +49,18 @@ from droneulator.render.pipeline import DEPTH_SOURCES
 from droneulator.scenes.base import Scene
 from droneulator.workflows.rl.astar import DistanceField, OccupancyGrid, occupancy_from_scene
 from droneulator.workflows.rl.backend import CAMERA_NAME, SCENE, Backend, Kinematics
-from droneulator.workflows.rl.task import REASONS, TaskRows, state_row
+from droneulator.workflows.rl.levels import Actuator
+from droneulator.workflows.rl.task import REASONS, TaskRows, state_row, tail_size
 
 STRIP_SAMPLES = 32
+#: the observation's size at the velocity level (:func:`obs_size` for any)
 OBS_SIZE = STRIP_SAMPLES + 3
+
+
+def obs_size(action: str) -> int:
+    """The observation's size at control level ``action`` (``rl.action``)."""
+    return STRIP_SAMPLES + tail_size(action)
+
 
 _GRIDS: dict[tuple[Any, ...], OccupancyGrid] = {}
 
@@ -161,6 +171,15 @@ class LocalBackend:
 
     def step(self, forward: float, yaw_rate: float) -> tuple[np.ndarray, Kinematics, bool]:
         self.vehicle.velocity(forward, yaw_rate)
+        return self._frame()
+
+    def fly(self, actuator: Actuator, command: np.ndarray) -> tuple[np.ndarray, Kinematics, bool]:
+        """:meth:`step` with a command of ``actuator``'s control level."""
+        actuator.send_vehicle(self.vehicle, command)
+        return self._frame()
+
+    def _frame(self) -> tuple[np.ndarray, Kinematics, bool]:
+        """Run to the next camera instant: its depth image and state, and whether a collision happened."""
         name = self.vehicle.name
         collided = False
         while True:
@@ -175,8 +194,9 @@ class LocalBackend:
         self.world.close()
 
 
-#: the run mask of a batch of one
+#: the run mask and the index of a batch of one
 _ONE = np.ones(1, dtype=bool)
+_FIRST = np.zeros(1, dtype=np.int64)
 
 
 def _row(kin: Kinematics) -> np.ndarray:
@@ -198,9 +218,12 @@ class NavTask:
         self.rl = config.rl
         self.use_scene(scene)
         self.frame_dt = 1.0 / config.render.camera_hz
-        low = np.concatenate([np.zeros(STRIP_SAMPLES), -np.ones(3)]).astype(np.float32)
-        self.observation_space = gym.spaces.Box(low, np.ones(OBS_SIZE, dtype=np.float32), dtype=np.float32)
-        self.action_space = gym.spaces.Box(-1.0, 1.0, (2,), dtype=np.float32)
+        size = obs_size(self.rl.action)
+        low = np.concatenate([np.zeros(STRIP_SAMPLES), -np.ones(size - STRIP_SAMPLES)]).astype(np.float32)
+        self.observation_space = gym.spaces.Box(low, np.ones(size, dtype=np.float32), dtype=np.float32)
+        #: this env's action at ``rl.action``'s level (:mod:`.levels`), a batch of one
+        self.actuator = Actuator(config, 1)
+        self.action_space = self.actuator.space
         self._mid = 0.5 * (self.rl.forward_min + self.rl.forward_max)
         self._half = 0.5 * (self.rl.forward_max - self.rl.forward_min)
         self.field: DistanceField | None = None
@@ -235,12 +258,15 @@ class NavTask:
         a = [(forward - self._mid) / self._half, yaw_rate / self.rl.max_yaw_rate]
         return np.clip(np.array(a, dtype=np.float32), -1.0, 1.0)
 
-    def check_action(self, action: Any) -> tuple[float, float]:
-        """The command for ``action``; a ValueError unless it is two finite numbers."""
-        a = np.asarray(action, dtype=np.float64)
-        if a.size != 2 or not np.all(np.isfinite(a)):
-            raise ValueError(f"action must be two finite numbers, got {action!r}")
-        return self.action_to_command(a)
+    def check_action(self, action: Any) -> np.ndarray:
+        """The command for ``action`` at ``rl.action``'s level (:mod:`.levels`); a ValueError unless it
+        is finite numbers of the action's size. Advances the attitude level's yaw setpoint."""
+        try:
+            a = self.actuator.check(action, 1)
+        except ValueError:
+            size = self.action_space.shape[0]
+            raise ValueError(f"action must be {size} finite numbers, got {action!r}") from None
+        return self.actuator.map(_FIRST, a)[0]
 
     def target(self, position: np.ndarray) -> np.ndarray:
         """The point the heading error refers to (see ``rl.heading``)."""
@@ -339,6 +365,7 @@ class NavTask:
         self.field, self.goal = field, goal.copy()
         self.start = np.array([start[0], start[1], yaw])
         self.kinematics = kin
+        self.actuator.begin(0, yaw)
         self.initial_distance = field.distance(kin.position)
         limit_s = self.rl.time_limit_base_s + self.initial_distance / self.rl.min_average_speed
         self.max_steps = math.ceil(limit_s / self.frame_dt)
@@ -357,13 +384,16 @@ class NavTask:
         truncated = reason == "time_limit"
         return float(self.rows.reward[0]), reason is not None and not truncated, truncated, reason
 
-    def step_info(self, kin: Kinematics, reason: str | None, command: tuple[float, float]) -> dict[str, Any]:
-        """The info dict of a step (of a reset: ``reason`` None, ``command`` zero)."""
+    def step_info(
+        self, kin: Kinematics, reason: str | None, command: Sequence[float] | np.ndarray
+    ) -> dict[str, Any]:
+        """The info dict of a step (of a reset: ``reason`` None, ``command`` zero); ``command`` is the
+        level's (:data:`~droneulator.workflows.rl.levels.COMMAND_SIZE`)."""
         return {
             "t": kin.t,
             "position": kin.position.copy(),
             "yaw": kin.yaw,
-            "command": command,
+            "command": tuple(float(c) for c in command),
             "distance": float(self.rows.d[0]),
             "goal_distance": float(math.hypot(*(kin.position[:2] - self.goal))),
             "termination": reason,
@@ -396,6 +426,8 @@ class VineyardNavEnv(NavTask, gym.Env[np.ndarray, np.ndarray]):
         self.mode = mode
         if cfg.randomize.enabled and mode != "local":
             raise ValueError("domain randomisation (randomize.enabled) needs mode='local'")
+        if cfg.rl.action != "velocity" and mode != "local":
+            raise ValueError(f"rl.action = {cfg.rl.action!r} needs mode='local' (remote mode flies velocity)")
         self.variants = scene_variants(cfg)
         self._backends: dict[int, Backend] = {}
         self._depth = depth
@@ -435,13 +467,16 @@ class VineyardNavEnv(NavTask, gym.Env[np.ndarray, np.ndarray]):
             self.backend.randomize(self.conditions)  # type: ignore[attr-defined]
         depth, kin = self.backend.reset(np.array([start[0], start[1], self.rl.altitude]), yaw)
         self.begin(start, yaw, goal, field, kin)
-        return self.observe(depth, kin), self.step_info(kin, None, (0.0, 0.0))
+        return self.observe(depth, kin), self.step_info(kin, None, self.actuator.commands[0])
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self.field is None:
             raise RuntimeError("call reset() before step()")
         command = self.check_action(action)
-        depth, kin, collided = self.backend.step(*command)
+        if self.rl.action == "velocity":
+            depth, kin, collided = self.backend.step(float(command[0]), float(command[1]))
+        else:
+            depth, kin, collided = self.backend.fly(self.actuator, command)  # type: ignore[attr-defined]
         reward, terminated, truncated, reason = self.advance(kin, collided)
         return self.observe(depth, kin), reward, terminated, truncated, self.step_info(kin, reason, command)
 

@@ -132,8 +132,13 @@ def rollout(env: VineyardNavEnv, policy: Any, seed: int, deterministic: bool = T
     def record(info: dict[str, Any]) -> None:
         ro.t.append(float(info["t"]))
         ro.xy.append(np.asarray(info["position"][:2], dtype=float))
-        ro.forward.append(float(info["command"][0]))
-        ro.yaw_rate.append(float(info["command"][1]))
+        if env.rl.action == "velocity":
+            ro.forward.append(float(info["command"][0]))
+            ro.yaw_rate.append(float(info["command"][1]))
+        else:  # a level below velocity: the speeds flown (its commands are thrusts, rates or attitudes)
+            assert env.kinematics is not None
+            ro.forward.append(env.kinematics.forward_speed)
+            ro.yaw_rate.append(env.kinematics.yaw_rate)
         ro.clearance.append(col.distance(np.asarray(info["position"], dtype=float)) - radius)
 
     record(info)
@@ -265,10 +270,12 @@ def plot_trajectories(env: VineyardNavEnv, rollouts: list[Rollout], png: Path) -
     )
     rl = env.rl
     ax_v.set_ylim(rl.forward_min - 0.2, rl.forward_max + 0.2)
-    ax_v.set_ylabel("forward speed command (m/s)")
+    what = "command" if rl.action == "velocity" else "flown"
+    ax_v.set_ylabel(f"forward speed {what} (m/s)")
     ax_w.set_ylim(-rl.max_yaw_rate - 0.1, rl.max_yaw_rate + 0.1)
-    ax_w.set_ylabel("yaw rate command (rad/s)")
-    ax_v.set_title(f"commands: each step (grey) and their {SMOOTH_S:g} s moving mean (coloured)", fontsize=10)
+    ax_w.set_ylabel(f"yaw rate {what} (rad/s)")
+    title = "commands" if rl.action == "velocity" else f"speeds flown ({rl.action} actions)"
+    ax_v.set_title(f"{title}: each step (grey) and their {SMOOTH_S:g} s moving mean (coloured)", fontsize=10)
     ax_w.set_xlabel("time (s)")
     ax_v.set_xlim(0, t_max)
     for a in (ax_v, ax_w):

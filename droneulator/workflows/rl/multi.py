@@ -46,6 +46,7 @@ from droneulator.render.pipeline import CameraPipeline
 from droneulator.state import STATE
 from droneulator.workflows.rl.backend import CAMERA_NAME, Kinematics
 from droneulator.workflows.rl.env import DEPTH_SOURCES, STRIP_SAMPLES, NavTask, env_config, strips
+from droneulator.workflows.rl.levels import Actuator
 from droneulator.workflows.rl.task import REASONS, TaskRows
 from droneulator.workflows.rl.vector import ThreadedVectorEnv, depth_strips
 from droneulator.world.world import NS, World
@@ -131,7 +132,8 @@ class VineyardMultiVectorEnv(ThreadedVectorEnv):
         self._radius = float(cfg.vehicle.collision_radius)
         self._rngs = [np.random.default_rng() for _ in range(W)]
         self._obs = np.zeros((R, self.single_observation_space.shape[0]), dtype=np.float32)
-        self._commands = np.zeros((R, 2))
+        #: every row's action at ``rl.action``'s level and its command (:mod:`.levels`)
+        self.actuator = Actuator(cfg, R)
         #: rows whose episode ended at the last step (restarted at this one, with NEXT_STEP)
         self._done = np.zeros(R, dtype=bool)
         #: rows in their world (with episodes="world", a done agent leaves it until the world starts over)
@@ -193,7 +195,7 @@ class VineyardMultiVectorEnv(ThreadedVectorEnv):
         mask[rows] = True
         self.rows.step(mask, self._flat(states), ~mask, self.grid, self.scene, advance=False)
         self._obs[rows, STRIP_SAMPLES:] = self.rows.tail[rows]
-        self._commands[rows] = 0.0
+        self.actuator.begin(rows, yaw)
 
     def _flat(self, states: np.ndarray) -> np.ndarray:
         return states.reshape(self.num_envs, -1)
@@ -245,7 +247,7 @@ class VineyardMultiVectorEnv(ThreadedVectorEnv):
             "t": np.repeat(self.world.frame_t_ns() / NS, self.num_agents),
             "position": flat[:, 0:3].copy(),
             "yaw": yaw,
-            "command": self._commands.copy(),
+            "command": self.actuator.commands.copy(),
             "distance": self.rows.dist.copy(),
             "goal_distance": self.rows.goal_dist.copy(),
             "termination": np.array([REASONS[r] for r in self.rows.reason], dtype=object),
@@ -289,19 +291,17 @@ class VineyardMultiVectorEnv(ThreadedVectorEnv):
         if not self._reset_called:
             raise RuntimeError("call reset() before step()")
         R, N = self.num_envs, self.num_agents
+        size = self.actuator.space.shape[0]
         a = np.asarray(actions, dtype=np.float64)
-        if a.shape != (R, 2) or not np.all(np.isfinite(a)):
-            raise ValueError(f"actions must be finite numbers of shape ({R}, 2), got shape {a.shape}")
+        if a.shape != (R, size) or not np.all(np.isfinite(a)):
+            raise ValueError(f"actions must be finite numbers of shape ({R}, {size}), got shape {a.shape}")
         next_step = self.autoreset_mode == AutoresetMode.NEXT_STEP
         restarting = self._restart(self._done, observe=False) if next_step else np.zeros(R, dtype=bool)
         moving = self.live & ~restarting
-        k = self.rows.k
         a = np.clip(a, -1.0, 1.0)
-        self._commands[moving, 0] = k[6] + a[moving, 0] * k[7]
-        self._commands[moving, 1] = a[moving, 1] * k[8]
         idx = np.flatnonzero(moving)
         w, ag = self._where(idx)
-        self.world.velocity_rows(w, ag, self._commands[idx, 0], self._commands[idx, 1])
+        self.actuator.send_rows(self.world, w, ag, self.actuator.map(idx, a[idx]))
         # restarted agents wait at their start through this frame (not flown: their episode begins now);
         # a world with none of its agents flying does not step
         held = np.flatnonzero(restarting)
@@ -448,10 +448,12 @@ class VineyardNavParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
             detail = f"missing {missing}, unknown {sorted(unknown)}"
             raise ValueError(f"need an action for each live agent {self.agents}: {detail}")
         live = list(self.agents)
-        batch = np.zeros((len(self.possible_agents), 2))
+        size = self.core.actuator.space.shape[0]
+        batch = np.zeros((len(self.possible_agents), size))
         for name in live:
             self.tasks[name].check_action(actions[name])
-            batch[self.possible_agents.index(name)] = np.asarray(actions[name], dtype=np.float64).reshape(2)
+            row = self.possible_agents.index(name)
+            batch[row] = np.asarray(actions[name], dtype=np.float64).reshape(size)
         obs, rewards, terminated, truncated, infos = self.core.step(batch)
         out_obs, out_info = self._dicts(obs, infos, live)
         rows = [self.possible_agents.index(name) for name in live]

@@ -13,8 +13,11 @@ For each env at its camera instant (a state row in RotorPy's layout, :data:`~dro
   ``rl.goal_radius`` of the goal, minus ``rl.collision_penalty`` on a collision or leaving the scene's
   bounds; the episode is truncated after its step budget;
 * the observation tail: the heading error to the steering target (a carrot ``rl.lookahead`` m along the
-  shortest path, or the goal) over pi, the forward speed and the yaw rate normalised like the action, each
-  clipped to [-1, 1].
+  shortest path, or the goal) over pi, the forward speed and the yaw rate normalised like the velocity
+  action, each clipped to [-1, 1]; at the levels below velocity (``rl.action`` other than ``"velocity"``,
+  :data:`LEVEL_TAIL` more): the body rates over the airframe's largest, the direction of gravity in the
+  body frame (the attitude's roll and pitch), the lateral (body y) and vertical (world z) speeds over
+  :data:`SPEED_SCALE` and the height above ``rl.altitude`` over :data:`HEIGHT_SCALE`, clipped likewise.
 """
 
 from __future__ import annotations
@@ -35,6 +38,20 @@ from droneulator.workflows.rl.astar import DistanceField, OccupancyGrid, bilinea
 _X, _V, _Q, _W = STATE.x.start, STATE.v.start, STATE.q.start, STATE.w.start
 #: why an episode ended (index 0: it goes on)
 REASONS = (None, "collision", "out_of_bounds", "goal", "time_limit")
+#: the observation tail's size at the velocity level and what the levels below it add
+TAIL, LEVEL_TAIL = 3, 9
+#: the speed (m/s) and height error (m) that read 1 in the levels' tail
+SPEED_SCALE, HEIGHT_SCALE = 2.0, 1.0
+
+
+def tail_size(action: str) -> int:
+    """The observation tail's size at control level ``action`` (``rl.action``)."""
+    return TAIL if action == "velocity" else TAIL + LEVEL_TAIL
+
+
+@numba.njit(cache=True)
+def _unit(x: float) -> float:
+    return min(max(x, -1.0), 1.0)
 
 
 @numba.njit(cache=True)
@@ -51,7 +68,8 @@ def _task_rows(
     ``reason``, ``dist``, ``goal_dist``, counting the step); always its observation tail (``tail``); from
     its state at the camera instant (``rows``) and its goal's distance field (``values``, ``nxt``,
     ``reach``). ``k``: progress scale, step penalty, goal reward, collision penalty, goal radius, lookahead
-    (m; 0: steer at the goal), forward mid, forward half-range, max yaw rate."""
+    (m; 0: steer at the goal), forward mid, forward half-range, max yaw rate, the airframe's largest body
+    rates (3), the flight altitude; a ``tail`` wider than :data:`TAIL` takes the levels' part too."""
     nx, ny = free.shape
     for b in numba.prange(run.shape[0]):
         if not run[b]:
@@ -103,9 +121,17 @@ def _task_rows(
         heading = ((math.atan2(ty - py, tx - px) - yaw + math.pi) % (2 * math.pi) - math.pi) / math.pi
         forward = R[0, 0] * s[_V] + R[1, 0] * s[_V + 1] + R[2, 0] * s[_V + 2]
         yaw_rate = R[2, 0] * s[_W] + R[2, 1] * s[_W + 1] + R[2, 2] * s[_W + 2]
-        tail[b, 0] = min(max(heading, -1.0), 1.0)
-        tail[b, 1] = min(max((forward - k[6]) / k[7], -1.0), 1.0)
-        tail[b, 2] = min(max(yaw_rate / k[8], -1.0), 1.0)
+        tail[b, 0] = _unit(heading)
+        tail[b, 1] = _unit((forward - k[6]) / k[7])
+        tail[b, 2] = _unit(yaw_rate / k[8])
+        if tail.shape[1] > 3:
+            for j in range(3):
+                tail[b, 3 + j] = _unit(s[_W + j] / k[9 + j])
+                tail[b, 6 + j] = -R[2, j]  # gravity's direction (world -z) in the body frame
+            lateral = R[0, 1] * s[_V] + R[1, 1] * s[_V + 1] + R[2, 1] * s[_V + 2]
+            tail[b, 9] = _unit(lateral / SPEED_SCALE)
+            tail[b, 10] = _unit(s[_V + 2] / SPEED_SCALE)
+            tail[b, 11] = _unit((s[_X + 2] - k[12]) / HEIGHT_SCALE)
 
 
 def state_row(position: Any, quaternion: Any, velocity: Any, angular_velocity: Any) -> np.ndarray:
@@ -128,6 +154,7 @@ class TaskRows:
         self.k = np.array([
             rl.progress_scale, rl.step_penalty, rl.goal_reward, rl.collision_penalty, rl.goal_radius,
             rl.lookahead if rl.heading == "path" else 0.0, mid, half, rl.max_yaw_rate,
+            *np.radians(config.vehicle_specs()[0].flight.max_body_rate_deg_s), rl.altitude,
         ])  # fmt: skip
         shape = (n, *grid.shape) if n > 1 else (1, 1, 1)  # one env flies on its field's own arrays
         self.values = np.zeros(shape)
@@ -139,7 +166,7 @@ class TaskRows:
         self.max_steps = np.zeros(n, dtype=np.int64)
         self.reward = np.zeros(n)
         self.reason = np.zeros(n, dtype=np.int64)
-        self.tail = np.zeros((n, 3))
+        self.tail = np.zeros((n, tail_size(rl.action)))
         self.dist = np.zeros(n)
         self.goal_dist = np.zeros(n)
 

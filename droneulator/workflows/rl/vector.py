@@ -53,6 +53,7 @@ from droneulator.workflows.rl.env import (
     scene_variants,
     strips,
 )
+from droneulator.workflows.rl.levels import Actuator
 from droneulator.workflows.rl.task import REASONS, TaskRows
 from droneulator.world.world import NS, World
 
@@ -188,7 +189,8 @@ class VineyardNavVectorEnv(ThreadedVectorEnv):
         self._rngs = [np.random.default_rng() for _ in range(n)]
         self._obs = np.zeros((n, self.single_observation_space.shape[0]), dtype=np.float32)
         self._done = np.zeros(n, dtype=bool)
-        self._commands = np.zeros((n, 2))
+        #: every env's action at ``rl.action``'s level and its command (:mod:`.levels`)
+        self.actuator = Actuator(cfg, n)
         self._reset_called = False
         #: each env's depth preset this episode (``rl.depth_model``, or randomisation's draw)
         cam = cfg.render.cameras[0]
@@ -254,7 +256,7 @@ class VineyardNavVectorEnv(ThreadedVectorEnv):
             mine[sub] = True
             self.rows.step(mine, rows, none, batch.grid, batch.scene, advance=False)
         self._obs[idx, STRIP_SAMPLES:] = self.rows.tail[idx]
-        self._commands[idx] = 0.0
+        self.actuator.begin(idx, yaws)
         self._strips(idx, self.states)
 
     def _kinematics(self, i: int, t_ns: int) -> Kinematics:
@@ -282,7 +284,7 @@ class VineyardNavVectorEnv(ThreadedVectorEnv):
             "t": t.astype(float),
             "position": rows[:, 0:3].copy(),
             "yaw": yaw,
-            "command": self._commands.copy(),
+            "command": self.actuator.commands.copy(),
             "distance": task.dist.copy(),
             "goal_distance": task.goal_dist.copy(),
             "termination": termination,
@@ -310,18 +312,17 @@ class VineyardNavVectorEnv(ThreadedVectorEnv):
         if not self._reset_called:
             raise RuntimeError("call reset() before step()")
         n = self.num_envs
+        size = self.actuator.space.shape[0]
         a = np.asarray(actions, dtype=np.float64)
-        if a.shape != (n, 2) or not np.all(np.isfinite(a)):
-            raise ValueError(f"actions must be finite numbers of shape ({n}, 2), got shape {a.shape}")
+        if a.shape != (n, size) or not np.all(np.isfinite(a)):
+            raise ValueError(f"actions must be finite numbers of shape ({n}, {size}), got shape {a.shape}")
         next_step = self.autoreset_mode == AutoresetMode.NEXT_STEP
         resetting = self._done.copy() if next_step else np.zeros(n, dtype=bool)
         run = ~resetting
         idx = np.flatnonzero(run)
-        k = self.rows.k
         a = np.clip(a, -1.0, 1.0)
-        self._commands[:, 0] = k[6] + a[:, 0] * k[7]
-        self._commands[:, 1] = a[:, 1] * k[8]
-        self.worlds.velocity(idx, self._commands[idx, 0], self._commands[idx, 1])
+        commands = self.actuator.map(idx, a[idx])
+        self.actuator.send_rows(self.worlds, idx, np.zeros(len(idx), dtype=np.int64), commands)
         cams, hits = self.worlds.step_frame(run)
         cam, hit = cams[:, 0], hits[:, 0]
         t = self.worlds.frame_t_ns() / NS
