@@ -119,7 +119,7 @@ class FaultBoard:
             if f.end_ns is not None and f.end_ns <= now:
                 del self.active[f.id]
                 events.append(self._event("fault_ended", f, f.end_ns / NS, "expired"))
-            changed = True
+                changed = True
         while self._schedule and round(self._schedule[0].at * NS) <= now:
             spec = self._schedule.pop(0)
             fault = self._start(spec, round(spec.at * NS))
