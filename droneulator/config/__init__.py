@@ -20,6 +20,7 @@ from droneulator.config.loading import (
 from droneulator.config.randomize import RandomizeConfig
 from droneulator.config.rl import RLConfig
 from droneulator.config.sections import (
+    CONTACT_MODELS,
     CONTROLLERS,
     PX4_ON_LOSS,
     WIND_MODELS,
@@ -53,6 +54,7 @@ from droneulator.config.wind import WindConfig
 __all__ = [
     "AccessConfig",
     "BARO_PRESETS",
+    "CONTACT_MODELS",
     "CONTROLLERS",
     "GPS_PRESETS",
     "IMU_PRESETS",
