@@ -52,10 +52,15 @@ from droneulator.scenes.base import Scene
 from droneulator.state import FLAT_SIZE, STATE, STATE_SIZE
 from droneulator.vehicles.battery import Battery
 from droneulator.vehicles.dynamics import (
+    CONTACT_CRASH,
+    CONTACT_PHYSICAL,
+    CONTACT_STOP,
     OUTPUT,
     OUTPUT_SIZE,
     PARALLEL_ROWS,
     PARAM_WMAX,
+    TOUCH_FOLIAGE,
+    TOUCH_WOOD,
     ParamTable,
     hover_speed,
     pack_params,
@@ -78,6 +83,14 @@ log = logging.getLogger("droneulator.sim")
 
 #: the compiled step's mode for the flight modes whose reference is an inner-loop setpoint, not a flat output
 _INNER_MODES = {Mode.RATES: RATES, Mode.ATTITUDE: ATTITUDE}
+#: the compiled step's code of each contact model (``vehicle.contact_model``), and of what a row touched
+_CONTACT_CODES = {"stop": CONTACT_STOP, "physical": CONTACT_PHYSICAL, "crash": CONTACT_CRASH}
+_TOUCHES = {TOUCH_FOLIAGE: "foliage", TOUCH_WOOD: "wood"}
+
+
+def _rotors(mask: int) -> list[int]:
+    """The rotors (RotorPy's order, from 0) of a bit mask."""
+    return [i for i in range(4) if mask >> i & 1]
 
 
 @dataclass
@@ -171,9 +184,19 @@ class World:
         self._cmds = np.zeros((W, n, 4))
         self._vref = np.zeros((W, n, VREF_SIZE))
         self._out = np.zeros((W, n, OUTPUT_SIZE))
-        #: rows that touched the scene during the last step (stopped there, inactive)
+        #: rows that began a contact with the scene during the last step (under ``stop``: stopped there,
+        #: inactive), and what they touched (:func:`~droneulator.vehicles.dynamics.integrate`'s code)
         self.hit = np.zeros((W, n), dtype=bool)
         self._hit_t = np.zeros((W, n), dtype=np.int64)
+        self.hit_kind = np.zeros((W, n), dtype=np.int64)
+        #: what a touch does to each row (``vehicle.contact_model``: CONTACT_STOP, _PHYSICAL, _CRASH)
+        codes = np.array([_CONTACT_CODES[str(spec.contact_model)] for spec in self.specs], dtype=np.int64)
+        self.contact_model = np.tile(codes, (W, 1))
+        #: each rotor's share of its thrust (1: whole, 0: its propeller lost on wood), ``(worlds, vehicles,
+        #: 4)``: the physics reads it every sub-step; a reset or a place makes every rotor whole again
+        self.rotor_efficiency = np.ones((W, n, 4))
+        #: rows crashed under ``crash``: their rotors stay stopped until the row is placed again
+        self.dead = np.zeros((W, n), dtype=bool)
         #: rows integrated (a collided or retired row is not)
         self.active = np.ones((W, n), dtype=bool)
         #: for each row, the vehicle of its world it touched in the last :meth:`step_frame` (-1: none)
@@ -392,6 +415,8 @@ class World:
             v.place(pos, float(heading), airborne if v is target else None)
         self.mode[:] = FLAT
         self.active[:] = True
+        self.rotor_efficiency[:] = 1.0
+        self.dead[:] = False
         self.hit[:] = False
         self.touched[:] = -1
         self.variant[:] = 0
@@ -474,9 +499,9 @@ class World:
         sd = self._sdfs
         t = self.table
         return (self.clocks, self.states, self._cmds, self.active, self._substep, t.params, t.geometry,
-                t.directions, self._pidx, sd.buffer, sd.offsets, sd.shapes, sd.origins,
-                sd.resolutions, self.variant, self._radius, self._out, self.hit, self._hit_t, self._work,
-                self._R)  # fmt: skip
+                t.directions, self._pidx, sd.buffer, sd.wood, sd.offsets, sd.shapes, sd.origins,
+                sd.resolutions, self.variant, self._radius, self.contact_model, self.rotor_efficiency,
+                self.dead, self._out, self.hit, self._hit_t, self.hit_kind, self._work, self._R)  # fmt: skip
 
     def _begin_args(self, dt: float) -> tuple[Any, ...]:
         """The arrays :func:`~droneulator.world.step.run_period_serial` takes after :meth:`_args`'s."""
@@ -547,7 +572,10 @@ class World:
                 t_to[0] = min(t_end, int(self._next_frame[0])) if rate else t_end
                 if run_period(go, begin, t_to, *args, *extra):
                     for i in np.flatnonzero(self.hit[0]):
-                        out.events.append(vs[i].on_collision(t=self._hit_t[0, i] / NS))
+                        code = int(self.hit_kind[0, i])
+                        when, touch = self._hit_t[0, i] / NS, _TOUCHES[code & 3]
+                        lost = _rotors(code >> 2)
+                        out.events.append(vs[i].on_collision(t=when, contact=touch, rotors_lost=lost))
                     self.hit[:] = False
                 begin = False
                 now = int(clock[0])
@@ -555,8 +583,11 @@ class World:
                     self._shoot(out, None)
                     self._next_frame[0] += self.camera_period_ns
             if len(vs) > 1:
-                pairs = kernel.end_period(go, self.states, self.active, self._radius, self._period_start)
-                self._vehicle_contacts(vs, sorted((int(p[1]), int(p[2])) for p in pairs), out.events)
+                t = self.table
+                pairs = kernel.end_period(go, self.states, self.active, self._radius, self._period_start,
+                                          self.contact_model, self.rotor_efficiency, self.dead, t.geometry,
+                                          self._pidx)  # fmt: skip
+                self._vehicle_contacts(vs, sorted(tuple(int(x) for x in p[1:]) for p in pairs), out.events)
             self._finish_period(vs, dt, t_start, out.events)
             if self.spraying is not None:
                 self.spraying.step()
@@ -638,6 +669,8 @@ class World:
         self._flats[w, v] = flats
         self.mode[w, v] = FLAT
         self.active[w, v] = True
+        self.rotor_efficiency[w, v] = 1.0
+        self.dead[w, v] = False
         self.hit[w, v] = False
         self.touched[w, v] = -1
         self.wind.reset_rows(w * self.num_vehicles + v)
@@ -780,14 +813,14 @@ class World:
             self.wind.dt = self.camera_period_ns / NS
             flat = self.states.reshape(W * n, STATE_SIZE)
             self._wind_rows[:] = self.wind.update(flat[:, STATE.x], flat[:, STATE.v]).reshape(W, n, 3)
-        (clocks, states, cmds, active, substep, P, G, D, pidx, buf, off, shapes, origins, res, variant,
-         radius, out, hit, hit_t, work, R) = self._args()  # fmt: skip
+        (clocks, states, cmds, active, substep, P, G, D, pidx, buf, wood, off, shapes, origins, res, variant,
+         radius, model, eff, dead, out, hit, hit_t, hit_kind, work, R) = self._args()  # fmt: skip
         kernel.step_to_frame(
             mask, self._parallel(), self.control_period_ns, self.camera_period_ns, clocks, self._next_frame,
             states, self._wind_rows, self._wake.active, self._wake.k_eta, self._wake.disk_area,
             self._period_start, out, self.mode, self._flats, cmds, self._vref, self._lim, self._gains, active,
-            substep, P, G, D, pidx, buf, off, shapes, origins, res, variant, radius, hit, hit_t, work, R,
-            self.camera_states, self.touched,
+            substep, P, G, D, pidx, buf, wood, off, shapes, origins, res, variant, radius, model, eff, dead,
+            hit, hit_t, hit_kind, work, R, self.camera_states, self.touched,
         )  # fmt: skip
         return self.camera_states, self.hit
 
@@ -832,16 +865,19 @@ class World:
             events.append(Event("impact", t_start + float(imu[i, OUTPUT.touchdown_time]),
                                 {"position": where, "speed": speed}, vs[i].name))  # fmt: skip
 
-    def _vehicle_contacts(self, vs: list[Vehicle], pairs: list[tuple[int, int]], events: list[Event]) -> None:
-        """Vehicles whose bodies overlapped (stopped by the step where they were at the start of the period):
-        one ``collision`` event per pair, naming both."""
+    def _vehicle_contacts(self, vs: list[Vehicle], pairs: list[tuple[int, ...]], events: list[Event]) -> None:
+        """Vehicles whose bodies overlapped (met by the step, each by its contact model): one ``collision``
+        event per pair, naming both (``rotors_lost``: each one's, in the order of ``vehicles``)."""
         rows = self._rows
-        for a, b in pairs:
-            vs[a].on_collision(with_=vs[b].name)
-            vs[b].on_collision(with_=vs[a].name)
+        for a, b, lost_a, lost_b in pairs:
+            lost = [_rotors(lost_a), _rotors(lost_b)]
+            vs[a].on_collision(with_=vs[b].name, contact="vehicle", rotors_lost=lost[0])
+            vs[b].on_collision(with_=vs[a].name, contact="vehicle", rotors_lost=lost[1])
             mid = 0.5 * (rows[a, STATE.x] + rows[b, STATE.x])
             names = [vs[a].name, vs[b].name]
-            events.append(Event("collision", self.t, {"position": mid.tolist(), "vehicles": names}, names[0]))
+            data = {"position": mid.tolist(), "vehicles": names, "contact": "vehicle",
+                    "models": [vs[a].contact_model, vs[b].contact_model], "rotors_lost": lost}  # fmt: skip
+            events.append(Event("collision", self.t, data, names[0]))
 
     def run(self, seconds: float) -> StepResult:
         """Step for ``seconds`` of simulated time, collecting frames and events."""
