@@ -164,3 +164,26 @@ def test_two_physical_vehicles_that_meet_lose_the_rotors_facing_each_other_and_f
     assert a.mode.value == b.mode.value == "external" and world.active[0].all()  # never held
     assert a.state.position[2] < 1.6 and b.state.position[2] < 1.6  # falling on what they have left
     assert a.s[3] < 0.0 < b.s[3]  # bounced apart
+
+
+def test_a_hard_touchdown_crashes_a_vehicle_under_crash_only():
+    """Motors cut at 4 m (an autopilot's outputs gone): under crash the touchdown is a crash on the ground,
+    under physical the legs take it and the vehicle flies again when told."""
+    for model in ("crash", "physical"):
+        overrides = ["vehicle.params=hummingbird", f"vehicle.contact_model={model}"]
+        world = World(scene="default", render=False, config=load_config(overrides=overrides))
+        uav = world.vehicle()
+        world.reset(position=world.scene.spawn_position + [0.0, 0.0, 4.0])
+        uav.set_rotor_speeds([0.0] * 4)
+        events = []
+        world.run_until(lambda w: False, 1.5, events)
+        assert [e.type for e in events][:1] == ["impact"]
+        hits = collisions(events)
+        if model == "crash":
+            assert [(e.data["contact"], e.data["model"]) for e in hits] == [("ground", "crash")]
+            assert uav.mode.value == "crashed" and world.dead[0, 0]
+        else:
+            assert hits == [] and not world.dead[0, 0]
+            uav.set_rotor_speeds([uav.hover_speed * 1.2] * 4)
+            world.run(0.5)
+            assert uav.state.position[2] > 0.2

@@ -11,10 +11,14 @@ rows: its vehicles' Python flight controllers (one world, every flight mode) or 
    (``VELOCITY``), or an inner loop's (:mod:`droneulator.controllers.inner`) flying the collective thrust
    and body rates (``RATES``) or the collective thrust and attitude (``ATTITUDE``) given in the row's
    reference;
-2. (:func:`run_period_serial`, once per stretch between camera instants) RK4 with the scene's collisions
-   (a row that touches its world's scene stops there, level, and is integrated no further);
-3. :func:`end_period`: vehicles of one world whose bodies overlap stop where they were at the start of
-   the period, level.
+2. (:func:`run_period_serial`, once per stretch between camera instants) RK4 with the scene's collisions,
+   each row by its contact model (``model``; docs/contact.md): under ``stop`` a row that touches its
+   world's scene stops there, level, and is integrated no further; under ``physical`` the leaves push and
+   slow it and a strike on wood costs the struck rotors their thrust (``eff``, the world's
+   ``rotor_efficiency``); under ``crash`` its rotors stop for good (``dead``);
+3. :func:`end_period`: vehicles of one world whose bodies overlap meet by their contact models (``stop``:
+   back where they were at the start of the period, level and stopped; ``physical`` and ``crash``: back
+   there bouncing apart, losing the rotors facing each other or all of them).
 
 :func:`step_to_frame` runs whole periods of chosen worlds, each to the end of the period holding its
 next camera instant, in one call. Each world has its own clock, camera instants and scene (a variant

@@ -12,9 +12,11 @@ control period, its vehicles driven by their flight controllers:
    (:mod:`droneulator.world.downwash`), turns every reference into rotor commands (SE(3)) and integrates
    every row of the state array (``states``, laid out ``(worlds, vehicles, STATE_SIZE)``), split at camera
    instants so that every frame is rendered from the exact state at ``k / camera_hz``, with the scene's
-   collisions per row;
+   collisions per row, each vehicle by its contact model (``vehicle.contact_model``: ``stop``, ``physical``
+   or ``crash``; docs/contact.md), a ``collision`` event saying what it touched;
 4. vehicles whose bodies overlap collide (:mod:`droneulator.world.contact`): one ``collision`` event
-   names both, and both stop where they were at the start of the period;
+   names both, and each meets the other by its contact model (``stop``: where it was at the start of the
+   period, held);
 5. each vehicle's IMU means and hard touchdowns; the spray systems (``spray.enabled``); each vehicle's
    battery (``battery.enabled``, docs/battery.md): drained by its rotors' power, its sagged voltage setting
    the top rotor speed of the next period in the vehicle's parameter row;
@@ -851,7 +853,8 @@ class World:
 
     def _finish_period(self, vs: list[Vehicle], dt: float, t_start: float, events: list[Event]) -> None:
         """Every vehicle's IMU means over the period just stepped, and ``impact`` events for hard
-        touchdowns."""
+        touchdowns; a hard touchdown of a vehicle under ``crash`` crashes it (a ``collision`` event with
+        ``contact`` "ground": its rotors stop)."""
         imu = self._out[0]
         sf = imu[:, OUTPUT.specific_force] / dt
         held = dt - imu[:, OUTPUT.elapsed]
@@ -862,8 +865,11 @@ class World:
         for i in np.flatnonzero(imu[:, OUTPUT.touchdown_speed] > self._impact_speed):
             where = imu[i, OUTPUT.touchdown_position].tolist()
             speed = float(imu[i, OUTPUT.touchdown_speed])
-            events.append(Event("impact", t_start + float(imu[i, OUTPUT.touchdown_time]),
-                                {"position": where, "speed": speed}, vs[i].name))  # fmt: skip
+            when = t_start + float(imu[i, OUTPUT.touchdown_time])
+            events.append(Event("impact", when, {"position": where, "speed": speed}, vs[i].name))
+            if vs[i].contact_model == "crash" and not self.dead[0, i]:
+                self.dead[0, i] = True
+                events.append(vs[i].on_collision(t=when, contact="ground", rotors_lost=[0, 1, 2, 3]))
 
     def _vehicle_contacts(self, vs: list[Vehicle], pairs: list[tuple[int, ...]], events: list[Event]) -> None:
         """Vehicles whose bodies overlapped (met by the step, each by its contact model): one ``collision``
