@@ -187,3 +187,27 @@ def test_a_hard_touchdown_crashes_a_vehicle_under_crash_only():
             uav.set_rotor_speeds([uav.hover_speed * 1.2] * 4)
             world.run(0.5)
             assert uav.state.position[2] > 0.2
+
+
+def test_many_worlds_step_their_rows_by_the_contact_model_and_never_freeze_a_physical_one():
+    """The batched rows (learning's path): world 0's row flies into the crown under velocity commands and
+    is flagged once and flies on; under stop the same row is held and inactive, as the envs expect."""
+    for model in ("physical", "stop"):
+        overrides = ["vehicle.params=hummingbird", f"vehicle.contact_model={model}"]
+        world = World(scene="default", render=False, worlds=2, config=load_config(overrides=overrides))
+        trunk = np.asarray(world.scene.landmarks["trunks"][0], dtype=float)
+        world.place(None, [trunk + [-3.5, 0.0, 4.4], trunk + [-3.5, -8.0, 4.4]], [0.0, 0.0])
+        world.velocity(None, [[1.5], [1.5]], [[0.0], [0.0]])
+        flagged = []
+        for _ in range(40):  # 40 frames, 1.3 s at 30 Hz
+            _, hit = world.step_frame()
+            flagged.append(hit[:, 0].copy())
+        flagged = np.array(flagged)
+        assert flagged[:, 0].sum() == 1 and not flagged[:, 1].any()
+        before = world.states[0, 0, 0:3].copy()
+        world.step_frame()
+        moved = np.linalg.norm(world.states[0, 0, 0:3] - before)
+        if model == "physical":
+            assert world.active[0, 0] and moved > 1e-3
+        else:
+            assert not world.active[0, 0] and moved == 0.0
