@@ -225,9 +225,10 @@ def sdf_lookup_many(sdf: np.ndarray, origin: np.ndarray, resolution: float, poin
     return out
 
 
+@numba.njit(cache=True)
 def sdf_gradient(sdf: np.ndarray, origin: np.ndarray, resolution: float, p: np.ndarray) -> np.ndarray:
     """Central-difference gradient of the distance at ``p`` (points away from obstacles; zero in
-    clamped free space), e.g. the contact normal for a collision response."""
+    clamped free space): the contact normal of the physical contact model (vehicles/dynamics.py)."""
     g = np.zeros(3)
     h = 0.5 * resolution
     q = p.copy()

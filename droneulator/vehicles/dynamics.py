@@ -30,7 +30,7 @@ import numba
 import numpy as np
 
 from droneulator.frames_numba import quat_to_matrix_into
-from droneulator.scenes.collision import sdf_lookup
+from droneulator.scenes.collision import sdf_gradient, sdf_lookup
 from droneulator.state import STATE, STATE_SIZE
 
 #: gravity of the model (m/s^2), as in RotorPy
@@ -396,26 +396,15 @@ def work_arrays(rows: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 @numba.njit(cache=True)
-def _normal(grid: np.ndarray, origin: np.ndarray, res: float, x: np.ndarray, n: np.ndarray) -> None:
-    """The unit gradient of ``grid`` at ``x`` (central differences) into ``n``: the contact normal, out of
-    the obstacle (straight up where the gradient vanishes)."""
-    h = 0.5 * res
-    q = np.empty(3)
-    for a in range(3):
-        q[a] = x[a]
-    for a in range(3):
-        q[a] = x[a] + h
-        d1 = sdf_lookup(grid, origin, res, q)
-        q[a] = x[a] - h
-        d0 = sdf_lookup(grid, origin, res, q)
-        q[a] = x[a]
-        n[a] = d1 - d0
+def _normal(grid: np.ndarray, origin: np.ndarray, res: float, x: np.ndarray) -> np.ndarray:
+    """The contact normal at ``x``: the unit gradient of ``grid``, out of the obstacle (straight up where
+    the gradient vanishes)."""
+    n = sdf_gradient(grid, origin, res, x)
     norm = math.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
     if norm < 1e-9:
         n[0], n[1], n[2] = 0.0, 0.0, 1.0
-    else:
-        for a in range(3):
-            n[a] /= norm
+        return n
+    return n / norm
 
 
 @numba.njit(cache=True)
@@ -445,11 +434,10 @@ def _scene_contact(s: np.ndarray, kind: int, depth: float, radius: float, grid: 
                    origin: np.ndarray, res: float, h: float, a: np.ndarray) -> None:  # fmt: skip
     """The scene's push on a row whose collision sphere is ``depth`` m into foliage (``kind``
     TOUCH_FOLIAGE) or wood (TOUCH_WOOD; ``grid`` the one touched), as an acceleration ``a`` (world) that
-    changes the velocity over the sub-step ``h`` (semi-implicit: stiff enough to hold, explicit enough to
-    stay in the kernel). Foliage pushes out along the normal and drags; wood is a stiff damped spring with
-    friction that never pulls."""
-    n = np.empty(3)
-    _normal(grid, origin, res, s[0:3], n)
+    :func:`integrate` adds to the velocity over the sub-step ``h`` after each RK4 step (explicit: stable for
+    these stiffnesses at sub-steps up to a few ms). Foliage pushes out along the normal and drags; wood is
+    a stiff damped spring that never pulls, with friction along it."""
+    n = _normal(grid, origin, res, s[0:3])
     vn = s[3] * n[0] + s[4] * n[1] + s[5] * n[2]
     if kind == TOUCH_FOLIAGE:
         drag = FOLIAGE_DRAG * min(depth / radius, 1.0)
