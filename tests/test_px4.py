@@ -460,6 +460,34 @@ def test_hover_outputs_hold_altitude(served, sim):
     peer.close()
 
 
+def test_a_px4_vehicle_that_brushes_a_canopy_is_pushed_out_and_flies_on():
+    """A vehicle PX4 flies defaults to the physical contact model (docs/contact.md): drifting into a crown at
+    hover outputs, the leaves push it back out; the link steps it on, never held in ``collided``."""
+    cfg = load_config(overrides=["vehicle.control_hz=250", "vehicle.params=px4_quadx", "px4.enabled=true"])
+    world = World(cfg, scene="default", render=False)
+    uav = world.vehicle()
+    assert uav.contact_model == "physical"
+    world.step()  # compiled before a peer waits on it
+    trunk = np.asarray(world.scene.landmarks["trunks"][0], dtype=float)
+    served = Served(world)
+    try:
+        peer = px4_in_the_air(served, trunk + [-3.5, 0.0, 4.4])
+        u = float(served.link.motor_map.speed_to_output(uav.hover_speed))
+        peer.step([u] * 4)
+        with served.lock:
+            uav.s[3:6] = [1.5, 0.0, 0.0]
+        xs = [float(uav.state.position[0]) for _ in range(500) if peer.step([u] * 4)]  # 2 s
+        hits = [e for e in served.sim_events if e.type == "collision"]
+        assert [(e.data["contact"], e.data["model"]) for e in hits] == [("foliage", "physical")]
+        assert uav.mode.value == "external" and served.link.in_control
+        assert max(xs) - xs[0] > 0.3 and xs[-1] < max(xs) - 0.05  # in, then pushed back out
+        assert abs(xs[-1] - xs[-2]) > 1e-4  # still moving: never frozen
+        peer.close()
+    finally:
+        served.close()
+        world.close()
+
+
 # PX4 quad-X: body rate signs (FRD roll p, pitch q, yaw r) from extra thrust on one motor
 QUAD_X_RESPONSE = {
     1: (-1, +1, +1),  # front-right, CCW: rolls left, pitches nose up, yaws right (reaction torque)

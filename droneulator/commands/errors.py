@@ -20,6 +20,8 @@ ERROR_CODES: dict[str, str] = {
     "below_ground": "a target altitude is not above the ground (z <= 0; a reset position may be z = 0)",
     "out_of_bounds": "a target lies outside the scene's flyable bounds (see `scene_info`)",
     "not_airborne": "`velocity`, `track`, `hold` or `land` while the motors are off: take off first",
+    "crashed": "a flight command for a vehicle that crashed (contact model `crash`, docs/contact.md): "
+    "its rotors stay stopped until a `reset` places it again",
     "flight_locked": "flight commands are refused because another controller (e.g. PX4) is in control; "
     "the message says why",
     "message_too_large": "the message is longer than the server's limit (64 KiB by default); it is "

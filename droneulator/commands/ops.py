@@ -499,8 +499,8 @@ OPS: dict[str, Op] = {
             "(equal to `t_ns` before the first reset); `position` [x, y, z] (m, world); "
             "`velocity` (m/s, world); `quaternion` [x, y, z, w] (body FLU to world); `angular_velocity` "
             "(rad/s, body); `yaw` (rad); `mode` (`idle`, `takeoff`, `goto`, `hold`, `velocity`, `track`, "
-            '`land`, `collided`, `external`, `rotors`, `rates`, `attitude`); `vehicle`: its name; `wind` '
-            "[x, y, z] (m/s, world): the wind "
+            '`land`, `collided`, `crashed`, `external`, `rotors`, `rates`, `attitude`); `vehicle`: its name; '
+            "`wind` [x, y, z] (m/s, world): the wind "
             "at the vehicle, rotor wakes of vehicles above included; `battery` (`battery.enabled`, "
             "docs/battery.md): `voltage` (V, under load), `current` (A, discharging positive), `power` (W), "
             "`soc` (0..1), `remaining_mah`, `capacity_mah`, `cells`, `ocv` (V), `empty` and `top_speed` (the "

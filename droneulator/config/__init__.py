@@ -21,6 +21,7 @@ from droneulator.config.loading import (
 from droneulator.config.randomize import RandomizeConfig
 from droneulator.config.rl import RLConfig
 from droneulator.config.sections import (
+    CONTACT_MODELS,
     CONTROLLERS,
     PX4_ON_LOSS,
     WIND_MODELS,
@@ -57,6 +58,7 @@ __all__ = [
     "FaultError",
     "FaultSpec",
     "BARO_PRESETS",
+    "CONTACT_MODELS",
     "CONTROLLERS",
     "GPS_PRESETS",
     "IMU_PRESETS",

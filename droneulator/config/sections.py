@@ -125,6 +125,10 @@ class RenderConfig:
 WIND_MODELS = ("none", "constant", "sinusoid", "dryden")
 
 
+#: what a touch does to a vehicle (``vehicle.contact_model``, ``VehicleSpec.contact_model``; docs/contact.md)
+CONTACT_MODELS = ("stop", "physical", "crash")
+
+
 @dataclass
 class VehicleConfig:
     #: RotorPy parameter set: see ``droneulator.vehicles.params.PARAMETER_SETS``
@@ -151,6 +155,11 @@ class VehicleConfig:
     friction_slip_speed: float = 0.05
     #: a touchdown faster than this (m/s, downward) raises an "impact" event
     impact_speed: float = 1.5
+    #: what a touch of the scene or another vehicle does (docs/contact.md): "stop" (held where it touched,
+    #: level, mode collided), "physical" (foliage pushes and slows it, a strike on wood costs the struck
+    #: rotors their thrust), "crash" (the rotors stop: it falls, dead until placed again), or "auto":
+    #: physical for a vehicle an autopilot flies (PX4, ArduPilot), stop for the others
+    contact_model: str = "auto"
     #: the noisy sensors the vehicle carries (kinds of ``droneulator.sensors``; their noise and rates are
     #: in ``px4``): PX4 needs imu, mag and baro; without gps it gets no GPS fix (as under a dense canopy)
     sensors: list[str] = field(default_factory=lambda: ["imu", "mag", "baro", "gps", "airspeed"])
@@ -158,6 +167,10 @@ class VehicleConfig:
     def __post_init__(self) -> None:
         if self.wind not in WIND_MODELS:
             raise ValueError(f"vehicle.wind must be one of {', '.join(WIND_MODELS)}; got {self.wind!r}")
+        if self.contact_model not in ("auto", *CONTACT_MODELS):
+            raise ValueError(
+                f"vehicle.contact_model must be auto, {', '.join(CONTACT_MODELS)}; got {self.contact_model!r}"
+            )
         for name in (
             "contact_frequency_hz",
             "contact_damping_ratio",
@@ -697,6 +710,8 @@ class VehicleSpec:
     controlled_by: str = "internal"
     #: its battery; null: the ``battery`` section
     battery: BatteryConfig | None = None
+    #: what a touch does to it (one of CONTACT_MODELS); null: ``vehicle.contact_model``
+    contact_model: str | None = None
 
     def __post_init__(self) -> None:
         if not _VEHICLE_NAME.match(self.name):
@@ -706,6 +721,11 @@ class VehicleSpec:
             )
         if self.controlled_by not in CONTROLLERS:
             raise ValueError(f"vehicle {self.name!r}: controlled_by must be one of {', '.join(CONTROLLERS)}")
+        if self.contact_model is not None and self.contact_model not in CONTACT_MODELS:
+            raise ValueError(
+                f"vehicle {self.name!r}: contact_model must be one of {', '.join(CONTACT_MODELS)}; got "
+                f"{self.contact_model!r}"
+            )
         if self.spawn is not None and not all(math.isfinite(v) for v in self.spawn):
             raise ValueError(f"vehicle {self.name!r}: spawn must be three finite numbers")
         if self.yaw is not None and not math.isfinite(self.yaw):
@@ -785,13 +805,15 @@ class SimConfig:
         """Every vehicle with its unset fields filled from the single-vehicle sections (copies).
 
         ``px4.enabled`` (``--px4``) hands the first vehicle to PX4 when no vehicle names PX4 itself;
-        ``ardupilot.enabled`` (``--ardupilot``) likewise to ArduPilot."""
+        ``ardupilot.enabled`` (``--ardupilot``) likewise to ArduPilot. ``contact_model`` comes out set:
+        the vehicle's, else ``vehicle.contact_model``, whose ``auto`` is physical under an autopilot and
+        stop otherwise."""
         specs = self.vehicles or [VehicleSpec()]
         first = "internal"
         for kind, enabled in (("px4", self.px4.enabled), ("ardupilot", self.ardupilot.enabled)):
             if enabled and all(v.controlled_by != kind for v in specs):
                 first = kind
-        return [
+        specs = [
             dataclasses.replace(
                 v,
                 params=v.params or self.vehicle.params,
@@ -803,6 +825,12 @@ class SimConfig:
             )
             for i, v in enumerate(specs)
         ]
+        for v in specs:
+            if v.contact_model is None:
+                v.contact_model = self.vehicle.contact_model
+            if v.contact_model == "auto":
+                v.contact_model = "physical" if v.controlled_by in AUTOPILOTS else "stop"
+        return specs
 
     def camera_rigs(self) -> dict[str, list[CameraConfig]]:
         """Every vehicle's cameras, by vehicle name."""

@@ -7,7 +7,8 @@
   e.g. EGO-Planner's ``PositionCommand``) fed straight to the SE(3) controller as its flat output; when
   no setpoint arrives for :data:`TRACK_TIMEOUT` s of sim time the vehicle holds where it is;
 * ``idle``: motors off (rests on the ground);
-* ``collided``: the vehicle stopped against the scene until the next command;
+* ``collided``: the vehicle stopped against the scene until the next command (contact model ``stop``);
+* ``crashed``: its rotors stopped for good on a touch (contact model ``crash``) until it is placed again;
 * ``external``: rotor speeds set directly by an autopilot (PX4 SITL), no controller in the loop;
 * ``rotors``, ``rates``, ``attitude``: a stream of rotor speeds, of collective thrust and body rates, or of
   collective thrust and attitude (the inner loops of :mod:`droneulator.controllers.inner`, run by the
@@ -54,6 +55,8 @@ class Mode(StrEnum):
     TRACK = "track"
     LAND = "land"
     COLLIDED = "collided"
+    #: rotors stopped by a crash (contact model ``crash``): no command until the vehicle is placed again
+    CRASHED = "crashed"
     #: rotor speeds commanded from outside (PX4 SITL actuator outputs)
     EXTERNAL = "external"
     #: a stream of rotor speeds (API, ROS, learning)
@@ -121,6 +124,8 @@ class FlightController:
             self.on_command()
 
     def motors_off(self) -> None:
+        if self.mode == Mode.CRASHED:  # stopped already, and stays crashed until placed again
+            return
         self._commanded()
         self.mode, self.trajectory, self.velocity_ref, self.target = Mode.IDLE, None, None, None
         self._then_land = False
@@ -240,7 +245,10 @@ class FlightController:
         return f
 
     def external(self, rotor_speeds: np.ndarray) -> None:
-        """Hand the rotors to an external controller: these speeds (rad/s, RotorPy order) until changed."""
+        """Hand the rotors to an external controller: these speeds (rad/s, RotorPy order) until changed; a
+        crashed vehicle ignores them (its autopilot flies on, the rotors stay stopped)."""
+        if self.mode == Mode.CRASHED:
+            return
         self._commanded()
         self._external[:] = rotor_speeds
         self._then_land = False
@@ -279,12 +287,23 @@ class FlightController:
         self._then_land = False
         self.mode, self.trajectory, self.velocity_ref, self.target = Mode.COLLIDED, None, None, None
 
+    def crashed(self) -> None:
+        """The rotors stop for good (contact model ``crash``): zero commands until :meth:`revive`."""
+        self._commanded()
+        self._then_land = False
+        self.mode, self.trajectory, self.velocity_ref, self.target = Mode.CRASHED, None, None, None
+
+    def revive(self) -> None:
+        """A crashed vehicle placed again: motors off, commands taken again."""
+        if self.mode == Mode.CRASHED:
+            self.mode = Mode.IDLE
+
     # ------------------------------------------------------------------ control tick
     @property
     def steady(self) -> bool:
         """True while :meth:`update` would return the same command or reference and raise nothing (motors
         off, or holding): a world of many vehicles skips them until the next command."""
-        return self.mode in (Mode.IDLE, Mode.COLLIDED, Mode.HOLD)
+        return self.mode in (Mode.IDLE, Mode.COLLIDED, Mode.CRASHED, Mode.HOLD)
 
     def update(
         self, s: np.ndarray, t: float, dt: float
@@ -295,7 +314,7 @@ class FlightController:
         (:mod:`droneulator.controllers.inner`); the world runs the controllers for every vehicle at once,
         :meth:`command` here for one."""
         events: list[Event] = []
-        if self.mode in (Mode.IDLE, Mode.COLLIDED):
+        if self.mode in (Mode.IDLE, Mode.COLLIDED, Mode.CRASHED):
             return self._zero, None, events
         if self.mode == Mode.EXTERNAL:
             return self._external, None, events

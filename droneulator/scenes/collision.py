@@ -1,4 +1,9 @@
-"""Analytic collision primitives and the signed distance grid built from them.
+"""Analytic collision primitives and the signed distance grids built from them.
+
+Each primitive is wood (hard: trunks, branches, stems, posts, wires, rocks; the default) or ``foliage``
+(leaf clusters, a hedge's leaf slab). The scene's grid holds the distance to all of them, a second grid on
+the same cells the distance to the wood alone, so a contact can tell a brush with leaves from a strike on
+wood (:mod:`droneulator.world.step`).
 
 Each primitive only updates the grid cells inside its bounding box padded by :data:`CLAMP_DISTANCE`;
 everything farther than that from every primitive reads exactly ``CLAMP_DISTANCE`` (also returned
@@ -24,6 +29,7 @@ class Capsule:
     a: np.ndarray
     b: np.ndarray
     radius: float
+    foliage: bool = False
 
     def bbox(self) -> tuple[np.ndarray, np.ndarray]:
         a, b = np.asarray(self.a, float), np.asarray(self.b, float)
@@ -48,6 +54,7 @@ class Capsule:
 class Sphere:
     center: np.ndarray
     radius: float
+    foliage: bool = False
 
     def bbox(self) -> tuple[np.ndarray, np.ndarray]:
         c = np.asarray(self.center, float)
@@ -72,6 +79,7 @@ class Ellipsoid:
 
     center: np.ndarray
     radii: np.ndarray
+    foliage: bool = False
 
     def bbox(self) -> tuple[np.ndarray, np.ndarray]:
         c, r = np.asarray(self.center, float), np.asarray(self.radii, float)
@@ -93,6 +101,7 @@ class Box:
     center: np.ndarray
     half_extents: np.ndarray
     rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    foliage: bool = False
 
     def bbox(self) -> tuple[np.ndarray, np.ndarray]:
         ext = np.abs(np.asarray(self.rotation, float)) @ np.asarray(self.half_extents, float)
@@ -137,7 +146,8 @@ def build_collision(
     resolution: float = 0.1,
     max_cells: int | None = 8_000_000,
 ) -> CollisionModel:
-    """Signed distance grid (metres, negative inside, clamped at :data:`CLAMP_DISTANCE`).
+    """Signed distance grid (metres, negative inside, clamped at :data:`CLAMP_DISTANCE`), with the wood's
+    alone on the same cells.
 
     The grid spans the primitives' padded bounding box intersected with the padded flyable bounds
     (primitives entirely outside are dropped), so far-away scenery costs nothing and empty sky above
@@ -156,7 +166,8 @@ def build_collision(
             kept.append((p, np.maximum(lo, lo_b), np.minimum(hi, hi_b)))
     if not kept:
         origin = np.asarray(bounds_min, float)
-        return CollisionModel(np.full((2, 2, 2), CLAMP_DISTANCE, np.float32), origin, resolution)
+        empty = np.full((2, 2, 2), CLAMP_DISTANCE, np.float32)
+        return CollisionModel(empty, origin, resolution, empty.copy())
     lo = np.min([k[1] for k in kept], axis=0)
     hi = np.max([k[2] for k in kept], axis=0)
     if max_cells is not None:
@@ -165,6 +176,7 @@ def build_collision(
     origin = np.floor(lo / resolution) * resolution
     shape = np.maximum(np.ceil((hi - origin) / resolution).astype(int) + 1, 2)
     sdf = np.full(tuple(shape), CLAMP_DISTANCE, dtype=np.float32)
+    wood = np.full(tuple(shape), CLAMP_DISTANCE, dtype=np.float32)
     axes = [(origin[i] + np.arange(shape[i]) * resolution).astype(np.float32) for i in range(3)]
     for prim, plo, phi in kept:
         i0 = np.clip(np.floor((plo - origin) / resolution).astype(int), 0, shape - 1)
@@ -172,9 +184,12 @@ def build_collision(
         x = axes[0][i0[0] : i1[0], None, None]
         y = axes[1][None, i0[1] : i1[1], None]
         z = axes[2][None, None, i0[2] : i1[2]]
-        block = sdf[i0[0] : i1[0], i0[1] : i1[1], i0[2] : i1[2]]
-        np.minimum(block, prim.distance(x, y, z), out=block)
-    return CollisionModel(sdf, origin, resolution)
+        cells = (slice(i0[0], i1[0]), slice(i0[1], i1[1]), slice(i0[2], i1[2]))
+        d = prim.distance(x, y, z)
+        np.minimum(sdf[cells], d, out=sdf[cells])
+        if not prim.foliage:
+            np.minimum(wood[cells], d, out=wood[cells])
+    return CollisionModel(sdf, origin, resolution, wood)
 
 
 # --------------------------------------------------------------------------- queries
@@ -210,9 +225,10 @@ def sdf_lookup_many(sdf: np.ndarray, origin: np.ndarray, resolution: float, poin
     return out
 
 
+@numba.njit(cache=True)
 def sdf_gradient(sdf: np.ndarray, origin: np.ndarray, resolution: float, p: np.ndarray) -> np.ndarray:
     """Central-difference gradient of the distance at ``p`` (points away from obstacles; zero in
-    clamped free space), e.g. the contact normal for a collision response."""
+    clamped free space): the contact normal of the physical contact model (vehicles/dynamics.py)."""
     g = np.zeros(3)
     h = 0.5 * resolution
     q = p.copy()
@@ -230,14 +246,23 @@ class CollisionModel:
     """Signed distance to scene geometry on a regular grid, built once per scene.
 
     ``distance(p)`` is the trilinearly interpolated distance (metres) from world point ``p`` to the
-    nearest obstacle surface, negative inside obstacles. The ground plane z = 0 is handled by the
-    vehicle's ground contact, not here.
+    nearest obstacle surface, negative inside obstacles; ``wood`` the same grid for the wood alone (None:
+    every obstacle is wood). The ground plane z = 0 is handled by the vehicle's ground contact, not here.
     """
 
-    def __init__(self, sdf: np.ndarray, origin: np.ndarray, resolution: float) -> None:
+    def __init__(
+        self, sdf: np.ndarray, origin: np.ndarray, resolution: float, wood: np.ndarray | None = None
+    ) -> None:
         self.sdf = np.ascontiguousarray(sdf, dtype=np.float32)
         self.origin = np.asarray(origin, dtype=np.float64)
         self.resolution = float(resolution)
+        self.wood = self.sdf if wood is None else np.ascontiguousarray(wood, dtype=np.float32)
+        if self.wood.shape != self.sdf.shape:
+            raise ValueError(f"the wood grid {self.wood.shape} must match the scene grid {self.sdf.shape}")
 
     def distance(self, p: np.ndarray) -> float:
         return float(sdf_lookup(self.sdf, self.origin, self.resolution, np.asarray(p, dtype=np.float64)))
+
+    def wood_distance(self, p: np.ndarray) -> float:
+        """:meth:`distance` to the wood alone (trunks, branches, posts, wires, rocks; no leaves)."""
+        return float(sdf_lookup(self.wood, self.origin, self.resolution, np.asarray(p, dtype=np.float64)))

@@ -243,7 +243,7 @@ class _TreeGrower:
         cards = crossed_cards(card_c, rots, sizes, rects, shade)
         foliage.add(cards, SemanticClass.CANOPY)
         margin = 0.25 * p.card_size
-        prims += [Sphere(c, float(r + margin)) for c, r in zip(centers_a, radii_a, strict=True)]
+        prims += [Sphere(c, float(r + margin), foliage=True) for c, r in zip(centers_a, radii_a, strict=True)]
         if fruit is not None and p.fruit_count > 0:
             owner_f = rng.integers(0, len(centers_a), p.fruit_count)
             d = rng.normal(size=(p.fruit_count, 3))

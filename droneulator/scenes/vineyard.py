@@ -128,6 +128,7 @@ def build_vineyard(seed: int, vegetation: float = 1.0) -> Scene:
             Box(
                 np.array([0.0, y, cz]),
                 np.array([(x1 - x0) / 2 + 0.15, HEDGE_HALF_WIDTH, (CANOPY_Z[1] - CANOPY_Z[0]) / 2]),
+                foliage=True,
             )
         )
     half_x, half_y = 30.0, 30.0

@@ -30,7 +30,7 @@ import numba
 import numpy as np
 
 from droneulator.frames_numba import quat_to_matrix_into
-from droneulator.scenes.collision import sdf_lookup
+from droneulator.scenes.collision import sdf_gradient, sdf_lookup
 from droneulator.state import STATE, STATE_SIZE
 
 #: gravity of the model (m/s^2), as in RotorPy
@@ -383,6 +383,21 @@ def _touching(s: np.ndarray, p: np.ndarray, geom: np.ndarray) -> bool:
     return lowest < 0.0
 
 
+#: what a touch of the scene does to a row (``vehicle.contact_model``; docs/contact.md): held where it
+#: touched (the caller stops it), pushed, slowed and struck (:func:`_scene_contact`), or that with its
+#: rotors stopped for good
+CONTACT_STOP, CONTACT_PHYSICAL, CONTACT_CRASH = 0, 1, 2
+#: what a row touches: nothing, leaves (the scene grid but not its wood grid), wood
+TOUCH_NONE, TOUCH_FOLIAGE, TOUCH_WOOD = 0, 1, 2
+#: foliage (per unit mass): the push out along the normal per metre the collision sphere is in (1/s^2), and
+#: the drag on the velocity with the sphere wholly in (1/s; less as it is less in)
+FOLIAGE_STIFFNESS, FOLIAGE_DRAG = 100.0, 4.0
+#: wood (per unit mass): stiffness (1/s^2; stops 3 m/s within 7 cm), damping ratio of the normal motion
+#: and Coulomb friction of the sliding motion
+WOOD_STIFFNESS, WOOD_DAMPING_RATIO, WOOD_FRICTION = 2000.0, 0.7, 0.5
+#: rotors within this share of the arm of the hub nearest the wood are struck with it
+STRUCK_SHARE = 0.3
+
 #: rows of an integration work array (:func:`work_arrays`): the four RK4 stages, the stage input,
 #: the state before the sub-step, the clamped command, then the four stages' specific forces
 _K1, _K2, _K3, _K4, _TMP, _PREV, _CMD, _F1 = 0, 1, 2, 3, 4, 5, 6, 7
@@ -392,6 +407,67 @@ _WORK_ROWS = 11
 def work_arrays(rows: int) -> tuple[np.ndarray, np.ndarray]:
     """Scratch space for :func:`integrate` (one set per row, reused every step)."""
     return np.zeros((rows, _WORK_ROWS, STATE_SIZE)), np.zeros((rows, 3, 3))
+
+
+@numba.njit(cache=True)
+def _normal(grid: np.ndarray, origin: np.ndarray, res: float, x: np.ndarray) -> np.ndarray:
+    """The contact normal at ``x``: the unit gradient of ``grid``, out of the obstacle (straight up where
+    the gradient vanishes)."""
+    n = sdf_gradient(grid, origin, res, x)
+    norm = math.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+    if norm < 1e-9:
+        n[0], n[1], n[2] = 0.0, 0.0, 1.0
+        return n
+    return n / norm
+
+
+@numba.njit(cache=True)
+def _struck(s: np.ndarray, geom: np.ndarray, wood: np.ndarray, origin: np.ndarray, res: float,
+            R: np.ndarray) -> int:  # fmt: skip
+    """The rotors a strike on wood hits, as a bit mask: the hub nearest the wood and those within
+    :data:`STRUCK_SHARE` of an arm of it (both front rotors of a head-on strike)."""
+    quat_to_matrix_into(s[6:10], R)
+    hub = np.empty(3)
+    d = np.empty(4)
+    arm = 0.0
+    for i in range(4):
+        for a in range(3):
+            hub[a] = s[a] + R[a, 0] * geom[i, 0] + R[a, 1] * geom[i, 1] + R[a, 2] * geom[i, 2]
+        d[i] = sdf_lookup(wood, origin, res, hub)
+        arm = max(arm, math.sqrt(geom[i, 0] * geom[i, 0] + geom[i, 1] * geom[i, 1]))
+    nearest = d.min()
+    mask = 0
+    for i in range(4):
+        if d[i] <= nearest + STRUCK_SHARE * arm:
+            mask |= 1 << i
+    return mask
+
+
+@numba.njit(cache=True)
+def _scene_contact(s: np.ndarray, kind: int, depth: float, radius: float, grid: np.ndarray,
+                   origin: np.ndarray, res: float, h: float, a: np.ndarray) -> None:  # fmt: skip
+    """The scene's push on a row whose collision sphere is ``depth`` m into foliage (``kind``
+    TOUCH_FOLIAGE) or wood (TOUCH_WOOD; ``grid`` the one touched), as an acceleration ``a`` (world) that
+    :func:`integrate` adds to the velocity over the sub-step ``h`` after each RK4 step (explicit: stable for
+    these stiffnesses at sub-steps up to a few ms). Foliage pushes out along the normal and drags; wood is
+    a stiff damped spring that never pulls, with friction along it."""
+    n = _normal(grid, origin, res, s[0:3])
+    vn = s[3] * n[0] + s[4] * n[1] + s[5] * n[2]
+    if kind == TOUCH_FOLIAGE:
+        drag = FOLIAGE_DRAG * min(depth / radius, 1.0)
+        for j in range(3):
+            a[j] = FOLIAGE_STIFFNESS * depth * n[j] - drag * s[3 + j]
+        return
+    push = WOOD_STIFFNESS * depth - 2.0 * WOOD_DAMPING_RATIO * math.sqrt(WOOD_STIFFNESS) * vn
+    push = max(push, 0.0)
+    t0, t1, t2 = s[3] - vn * n[0], s[4] - vn * n[1], s[5] - vn * n[2]
+    slip = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2 + 0.05 * 0.05)
+    a[0] = push * n[0] - WOOD_FRICTION * push * t0 / slip
+    a[1] = push * n[1] - WOOD_FRICTION * push * t1 / slip
+    a[2] = push * n[2] - WOOD_FRICTION * push * t2 / slip
+    # the friction stops the sliding, it does not reverse it within a sub-step
+    if h * WOOD_FRICTION * push > math.sqrt(t0 * t0 + t1 * t1 + t2 * t2):
+        a[0], a[1], a[2] = push * n[0] - t0 / h, push * n[1] - t1 / h, push * n[2] - t2 / h
 
 
 @numba.njit(cache=True)
@@ -405,21 +481,29 @@ def integrate(
     dirs: np.ndarray,
     eff: np.ndarray,
     sdf: np.ndarray,
+    wood: np.ndarray,
     origin: np.ndarray,
     res: float,
     radius: float,
+    model: int,
     out: np.ndarray,
     work: np.ndarray,
     R: np.ndarray,
-) -> bool:
+) -> int:
     """Advance ``s`` in place by ``dt`` with ``n_sub`` RK4 steps under constant rotor commands, each rotor
-    at efficiency ``eff[i]`` (1: healthy; a rotor fault lowers it, :mod:`droneulator.world.faults`).
+    at efficiency ``eff[i]`` (1: healthy; a rotor fault lowers it, :mod:`droneulator.world.faults`, and a
+    strike on wood sets it to 0).
 
-    The collision model is queried after every sub-step; on contact the state is rolled back to
-    the last collision-free sub-step and True is returned. ``out`` (:data:`OUTPUT` layout)
-    accumulates the RK4-weighted specific force and velocity change of every completed sub-step and
-    records the fastest touchdown of the feet on the ground. ``work`` and ``R`` are scratch
-    (:func:`work_arrays`): nothing is allocated.
+    The collision model (``sdf``; ``wood`` its wood alone) is queried after every sub-step. A contact
+    under ``model`` CONTACT_STOP rolls the state back to the last collision-free sub-step and returns at
+    once; under CONTACT_PHYSICAL and CONTACT_CRASH the scene pushes the row (:func:`_scene_contact`) and
+    it flies on: a strike on wood sets the struck rotors' ``eff`` to 0 (:func:`_struck`), and under
+    CONTACT_CRASH the first touch stops every rotor (a zero command, spun down by the motors' lag).
+    Returns the newest contact begun in the call, ``kind | lost << 2`` (kind TOUCH_FOLIAGE or TOUCH_WOOD,
+    ``lost`` the bit mask of the rotors it cost), 0 for none. ``out`` (:data:`OUTPUT` layout) accumulates
+    the RK4-weighted specific force (the scene's push included) and velocity change of every completed
+    sub-step and records the fastest touchdown of the feet on the ground. ``work`` and ``R`` are scratch
+    (:func:`work_arrays`): nothing is allocated but a few small vectors while in contact.
     """
     cmd = work[_CMD]
     for i in range(4):
@@ -432,6 +516,11 @@ def integrate(
     tmp = work[_TMP]
     prev = work[_PREV]
     touching = _touching(s, p, geom)
+    # what the row touched before this call (a contact begins when the row touches more than that)
+    kind = TOUCH_NONE
+    if check and model != CONTACT_STOP and sdf_lookup(sdf, origin, res, s[0:3]) < radius:
+        kind = TOUCH_WOOD if sdf_lookup(wood, origin, res, s[0:3]) < radius else TOUCH_FOLIAGE
+    begun = 0
     for _ in range(n_sub):
         for j in range(n):
             prev[j] = s[j]
@@ -447,10 +536,39 @@ def integrate(
         _derivative(tmp, cmd, p, geom, dirs, eff, k4, f4, R)
         for j in range(n):
             s[j] += (h / 6.0) * (k1[j] + 2.0 * k2[j] + 2.0 * k3[j] + k4[j])
-        if check and sdf_lookup(sdf, origin, res, s[0:3]) < radius:
-            for j in range(n):
-                s[j] = prev[j]
-            return True
+        now_kind = TOUCH_NONE
+        if check:
+            d = sdf_lookup(sdf, origin, res, s[0:3])
+            if d < radius:
+                dw = sdf_lookup(wood, origin, res, s[0:3])
+                now_kind = TOUCH_WOOD if dw < radius else TOUCH_FOLIAGE
+                if model == CONTACT_STOP:
+                    for j in range(n):
+                        s[j] = prev[j]
+                    return now_kind
+                if now_kind > kind:  # a contact begins: a strike on wood costs the struck rotors
+                    lost = 0
+                    if model == CONTACT_CRASH:
+                        lost = 15 if begun == 0 else 0
+                        for i in range(4):
+                            cmd[i] = 0.0
+                    elif now_kind == TOUCH_WOOD:
+                        struck = _struck(s, geom, wood, origin, res, R)
+                        for i in range(4):
+                            if struck & (1 << i) and eff[i] > 0.0:
+                                eff[i] = 0.0
+                                lost |= 1 << i
+                    begun = max(begun & 3, now_kind) | (lost | (begun >> 2)) << 2
+                acc = np.empty(3)
+                if now_kind == TOUCH_WOOD:
+                    _scene_contact(s, now_kind, radius - dw, radius, wood, origin, res, h, acc)
+                else:
+                    _scene_contact(s, now_kind, radius - d, radius, sdf, origin, res, h, acc)
+                quat_to_matrix_into(s[6:10], R)
+                for j in range(3):
+                    s[3 + j] += h * acc[j]
+                    out[_OUT_SF + j] += h * (R[0, j] * acc[0] + R[1, j] * acc[1] + R[2, j] * acc[2])
+        kind = now_kind
         for j in range(3):
             out[_OUT_SF + j] += (h / 6.0) * (f1[j] + 2.0 * f2[j] + 2.0 * f3[j] + f4[j])
             out[_OUT_ACC + j] += s[3 + j] - prev[3 + j]
@@ -467,7 +585,7 @@ def integrate(
         s[j] /= qn
     for i in range(4):
         s[16 + i] = min(max(s[16 + i], p[_WMIN]), p[_WMAX])
-    return False
+    return begun
 
 
 #: from this many rows (worlds x vehicles) on, the world's step (:mod:`droneulator.world.step`) spreads
@@ -518,7 +636,7 @@ class FastMultirotor:
             quad_params, aero, enable_ground, self.contact
         )
         self.substep = substep
-        self._sdf = _NO_SDF
+        self._sdf = self._wood = _NO_SDF
         self._origin = np.zeros(3)
         self._res = 1.0
         self._radius = 0.0
@@ -530,7 +648,7 @@ class FastMultirotor:
 
     def set_collision(self, sdf: np.ndarray, origin: np.ndarray, resolution: float, radius: float) -> None:
         """Query this signed distance grid after every sub-step (sphere of ``radius``)."""
-        self._sdf = np.ascontiguousarray(sdf, dtype=np.float32)
+        self._sdf = self._wood = np.ascontiguousarray(sdf, dtype=np.float32)
         self._origin = np.asarray(origin, dtype=np.float64)
         self._res = float(resolution)
         self._radius = float(radius)
@@ -543,7 +661,7 @@ class FastMultirotor:
     def step(
         self, s: np.ndarray, cmd_motor_speeds: np.ndarray, dt: float, out: np.ndarray | None = None
     ) -> bool:
-        """Integrate state vector ``s`` in place; True if the vehicle touched the scene.
+        """Integrate state vector ``s`` in place; True if the vehicle touched the scene (and stopped there).
 
         ``out`` (float64, :data:`OUTPUT` layout), when given, accumulates the step's specific force
         and velocity change integrals and its touchdown; the caller zeroes it when a period starts.
@@ -553,7 +671,7 @@ class FastMultirotor:
             out[:] = 0.0
         elif out.shape != (OUTPUT_SIZE,) or out.dtype != np.float64:
             raise ValueError(f"out must be a float64 vector of {OUTPUT_SIZE} (OUTPUT layout)")
-        return integrate(
+        touched = integrate(
             s,
             np.asarray(cmd_motor_speeds, dtype=np.float64),
             dt,
@@ -563,13 +681,16 @@ class FastMultirotor:
             self.directions,
             self.rotor_efficiency,
             self._sdf,
+            self._wood,
             self._origin,
             self._res,
             self._radius,
+            CONTACT_STOP,
             out,
             self._work,
             self._R,
         )
+        return touched != 0
 
 
 def substeps(dt: float, substep: float) -> int:

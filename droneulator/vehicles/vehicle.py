@@ -163,6 +163,10 @@ class Vehicle:
             site=config.site,
         )
         self.collision_radius = config.vehicle.collision_radius
+        #: what a touch does to it (docs/contact.md): "stop", "physical" or "crash"
+        self.contact_model = str(spec.contact_model or "stop")
+        #: crashed under ``crash``: its rotors are stopped and it takes no command until placed again
+        self.crashed = False
         self.s = row
         self.wind = make_wind(config.vehicle, config.seed, 1.0 / config.vehicle.control_hz)
         self.collisions = 0
@@ -300,9 +304,11 @@ class Vehicle:
         s[:] = 0.0
         s[STATE.x] = pos
         s[STATE.q] = quat_from_yaw(yaw)
+        self.flight.revive()
         self.flight.motors_off()
         self._reference = None
         self.collisions = 0
+        self.crashed = False
         # until the first step: what a vehicle at rest on its legs or hovering measures
         self._motion[0:3] = self.holding_force()
         self._motion[3:6] = 0.0
@@ -328,12 +334,18 @@ class Vehicle:
                 f"{lo.tolist()} .. {hi.tolist()}",
             )
 
+    def _require_alive(self, op: str) -> None:
+        if self.crashed:
+            raise CommandError("crashed", f"{op}: the vehicle crashed (contact model crash): reset it first")
+
     def _require_airborne(self, op: str) -> None:
+        self._require_alive(op)
         if self.flight.mode == Mode.IDLE:
             raise CommandError("not_airborne", f"{op} needs the vehicle in the air: take off first")
 
     def takeoff(self, altitude: float | None = None) -> float:
         """Climb vertically to ``altitude`` (default from config); returns the planned duration."""
+        self._require_alive("takeoff")
         self._finite("altitude", altitude)
         alt = self.flight_config.takeoff_altitude if altitude is None else float(altitude)
         self._check_position(np.array([*self.s[STATE.x][:2], alt]))
@@ -347,6 +359,7 @@ class Vehicle:
         duration: float | None = None,
     ) -> float:
         """Min-snap move to ``position`` with heading ``yaw`` (radians, kept if None)."""
+        self._require_alive("goto")
         try:
             p = np.asarray(position, dtype=float)
         except (TypeError, ValueError):
@@ -504,6 +517,7 @@ class Vehicle:
         rotor's largest (speed ``rotor_speed_max * sqrt(u)``, raised to ``rotor_speed_min``). A value
         outside is refused (``out_of_range``). The motors follow with the airframe's lag; after
         :data:`~droneulator.controllers.flight.TRACK_TIMEOUT` s without a command the vehicle holds."""
+        self._require_alive("rotors")
         w = self._vector("rotor_speeds", rotor_speeds, 4)
         lo, hi = float(self.quad_params["rotor_speed_min"]), float(self.quad_params["rotor_speed_max"])
         if normalized:
@@ -518,6 +532,7 @@ class Vehicle:
         """Collective thrust (N, or with ``normalized`` a share in [0, 1] of :attr:`max_thrust`) and body
         rates (rad/s, body FLU, each within ``flight.max_body_rate_deg_s``) for the body-rate loop; after
         :data:`~droneulator.controllers.flight.TRACK_TIMEOUT` s without a command the vehicle holds."""
+        self._require_alive("rates")
         f = self._thrust(thrust, normalized)
         w = self._vector("body_rates", body_rates, 3)
         most = np.radians(self.flight_config.max_body_rate_deg_s)
@@ -540,6 +555,7 @@ class Vehicle:
         or roll, pitch, yaw (rad, Z-Y-X; 0 for roll and pitch, the current heading for yaw when left out),
         tilted at most ``flight.max_attitude_tilt_deg`` from level; after
         :data:`~droneulator.controllers.flight.TRACK_TIMEOUT` s without a command the vehicle holds."""
+        self._require_alive("attitude")
         f = self._thrust(thrust, normalized)
         if quaternion is not None:
             if roll is not None or pitch is not None or yaw is not None:
@@ -560,12 +576,30 @@ class Vehicle:
         self.flight.attitude(self.t, f, q)
 
     # ------------------------------------------------------------------ the world's hooks
-    def on_collision(self, with_: str | None = None, t: float | None = None) -> Event:
-        """The vehicle touched the scene at ``t`` (default: now), or ``with_``, another vehicle; the world's
-        step has stopped it where it was, level (:func:`~droneulator.world.step.stop_level`)."""
-        self.flight.collided()
+    def on_collision(
+        self,
+        with_: str | None = None,
+        t: float | None = None,
+        contact: str = "wood",
+        rotors_lost: list[int] | None = None,
+    ) -> Event:
+        """The vehicle began a contact at ``t`` (default: now) with the scene (``contact`` "foliage" or
+        "wood") or with ``with_``, another vehicle ("vehicle"), and the world's step met it by its contact
+        model: under ``stop`` stopped where it was, level (:func:`~droneulator.world.step.stop_level`; mode
+        collided); under ``physical`` pushed and flying on, ``rotors_lost`` (RotorPy's order, from 0) without
+        thrust; under ``crash`` with every rotor stopped (mode crashed). Returns the ``collision`` event."""
+        if self.contact_model == "stop":
+            self.flight.collided()
+        elif self.contact_model == "crash":
+            self.crashed = True
+            self.flight.crashed()
         self.collisions += 1
-        data: dict[str, Any] = {"position": self.s[STATE.x].tolist()}
+        data: dict[str, Any] = {
+            "position": self.s[STATE.x].tolist(),
+            "contact": contact,
+            "model": self.contact_model,
+            "rotors_lost": list(rotors_lost or []),
+        }
         if with_ is not None:
             data["vehicles"] = [self.name, with_]
         return Event("collision", self.t if t is None else t, data, self.name)

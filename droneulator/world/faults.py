@@ -20,6 +20,8 @@ import dataclasses
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from droneulator.config.faults import FaultSpec
 from droneulator.controllers.flight import Event
 
@@ -60,8 +62,9 @@ class FaultBoard:
         self._schedule: list[FaultSpec] = []
         #: events of faults started or ended between steps (the op), emitted by the next step
         self._queued: list[Event] = []
-        #: vehicles whose rotor efficiency this board set (so it gives back only those rows)
-        self._rotor_rows: set[int] = set()
+        #: vehicles whose rotor efficiency this board set, with the factors it applied (so it gives back only
+        #: those rows, and tells its zeros from a rotor lost on wood)
+        self._rotor_rows: dict[int, np.ndarray] = {}
         self.reset()
 
     def reset(self) -> None:
@@ -156,8 +159,8 @@ class FaultBoard:
         """Write every active fault's effect, from scratch."""
         world = self.world
         eff = world.rotor_efficiency[0]
-        for i in self._rotor_rows:
-            eff[i] = 1.0
+        for i, applied in self._rotor_rows.items():  # give back its rows; a rotor lost on wood stays lost
+            eff[i] = np.where((eff[i] == 0.0) & (applied != 0.0), 0.0, 1.0)
         self._rotor_rows.clear()
         index = {name: i for i, name in enumerate(world.vehicles)}
         sensors: dict[str, list[tuple[FaultSpec, int]]] = {name: [] for name in world.vehicles}
@@ -168,7 +171,7 @@ class FaultBoard:
                 assert s.rotor is not None and s.efficiency is not None
                 i = index[s.vehicle]
                 eff[i, s.rotor] *= s.efficiency
-                self._rotor_rows.add(i)
+                self._rotor_rows.setdefault(i, np.ones(4))[s.rotor] *= s.efficiency
             elif s.kind in SENSOR_KINDS:
                 sensors[s.vehicle].append((s, f.start_ns))
         for name, v in world.vehicles.items():

@@ -11,10 +11,14 @@ rows: its vehicles' Python flight controllers (one world, every flight mode) or 
    (``VELOCITY``), or an inner loop's (:mod:`droneulator.controllers.inner`) flying the collective thrust
    and body rates (``RATES``) or the collective thrust and attitude (``ATTITUDE``) given in the row's
    reference;
-2. (:func:`run_period_serial`, once per stretch between camera instants) RK4 with the scene's collisions
-   (a row that touches its world's scene stops there, level, and is integrated no further);
-3. :func:`end_period`: vehicles of one world whose bodies overlap stop where they were at the start of
-   the period, level.
+2. (:func:`run_period_serial`, once per stretch between camera instants) RK4 with the scene's collisions,
+   each row by its contact model (``model``; docs/contact.md): under ``stop`` a row that touches its
+   world's scene stops there, level, and is integrated no further; under ``physical`` the leaves push and
+   slow it and a strike on wood costs the struck rotors their thrust (``eff``, the world's
+   ``rotor_efficiency``); under ``crash`` its rotors stop for good (``dead``);
+3. :func:`end_period`: vehicles of one world whose bodies overlap meet by their contact models (``stop``:
+   back where they were at the start of the period, level and stopped; ``physical`` and ``crash``: back
+   there bouncing apart, losing the rotors facing each other or all of them).
 
 :func:`step_to_frame` runs whole periods of chosen worlds, each to the end of the period holding its
 next camera instant, in one call. Each world has its own clock, camera instants and scene (a variant
@@ -33,10 +37,16 @@ import numpy as np
 from droneulator.controllers.inner import attitude_into, rates_into
 from droneulator.controllers.se3 import se3_into
 from droneulator.controllers.velocity import velocity_flat
-from droneulator.frames_numba import set_quat_from_yaw, yaw_of
+from droneulator.frames_numba import quat_to_matrix_into, set_quat_from_yaw, yaw_of
 from droneulator.scenes.collision import CollisionModel
 from droneulator.state import STATE, STATE_SIZE
-from droneulator.vehicles.dynamics import OUTPUT_SIZE, integrate
+from droneulator.vehicles.dynamics import (
+    CONTACT_CRASH,
+    CONTACT_STOP,
+    OUTPUT_SIZE,
+    STRUCK_SHARE,
+    integrate,
+)
 from droneulator.world.contact import _contacts
 from droneulator.world.downwash import _downwash
 
@@ -49,11 +59,13 @@ _WIND = STATE.wind.start
 
 class SdfStack:
     """The scenes' signed distance grids in one flat buffer, so that each world's rows collide with its
-    own scene variant inside one compiled call (grids of any shapes)."""
+    own scene variant inside one compiled call (grids of any shapes); their wood grids (the same cells) in
+    a second buffer at the same offsets."""
 
     def __init__(self, models: list[CollisionModel]) -> None:
         sizes = [m.sdf.size for m in models]
         self.buffer = np.concatenate([np.ascontiguousarray(m.sdf, dtype=np.float32).ravel() for m in models])
+        self.wood = np.concatenate([np.ascontiguousarray(m.wood, dtype=np.float32).ravel() for m in models])
         self.offsets = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
         self.shapes = np.array([m.sdf.shape for m in models], dtype=np.int64)
         self.origins = np.array([m.origin for m in models], dtype=np.float64)
@@ -77,10 +89,14 @@ def stop_level(s: np.ndarray) -> None:
 
 
 @numba.njit(cache=True)
-def _begin_row(k, go, states, mode, flats, cmds, vref, dt, lim, gains, R):  # fmt: skip
+def _begin_row(k, go, states, mode, flats, cmds, vref, dt, lim, gains, R, dead):  # fmt: skip
     N = states.shape[1]
     w, n = k // N, k % N
     if not go[w]:
+        return
+    if dead[w, n]:  # a crashed row's rotors stay stopped
+        for i in range(4):
+            cmds[w, n, i] = 0.0
         return
     s = states[w, n]
     m = mode[w, n]
@@ -112,8 +128,9 @@ def _begin_worlds(go, states, wind, period_start, out):  # fmt: skip
 
 
 @numba.njit(cache=True)
-def _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, eff, sdfs, off, shapes,
-                 origins, res, variant, radius, out, hit, hit_t, work, R):  # fmt: skip
+def _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, wood, off, shapes,
+                 origins, res, variant, radius, model, eff, dead, out, hit, hit_t, hit_kind, work,
+                 R):  # fmt: skip
     N = states.shape[1]
     w, n = k // N, k % N
     if not go[w] or not active[w, n] or t_to[w] <= t_ns[w]:
@@ -123,14 +140,25 @@ def _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx
     v = variant[w]
     p = pidx[n]
     s = states[w, n]
-    if integrate(s, cmds[w, n], h, n_sub, P[p], G[p], D[p], eff[w, n], _sdf(sdfs, off, shapes, v), origins[v],
-                 res[v], radius[n], out[w, n], work[w, n], R[w, n]):  # fmt: skip
-        hit[w, n] = True
+    m = model[w, n]
+    code = integrate(s, cmds[w, n], h, n_sub, P[p], G[p], D[p], eff[w, n], _sdf(sdfs, off, shapes, v),
+                     _sdf(wood, off, shapes, v), origins[v], res[v], radius[n], m, out[w, n], work[w, n],
+                     R[w, n])  # fmt: skip
+    if code == 0:
+        return 0
+    was = hit_kind[w, n] if hit[w, n] else 0
+    hit_kind[w, n] = max(was & 3, code & 3) | ((was | code) >> 2) << 2
+    if not hit[w, n]:
         hit_t[w, n] = t_ns[w]
+    hit[w, n] = True
+    if m == CONTACT_STOP:
         active[w, n] = False
         stop_level(s)
-        return 1
-    return 0
+    elif m == CONTACT_CRASH:
+        dead[w, n] = True
+        for i in range(4):
+            cmds[w, n, i] = 0.0
+    return 1
 
 
 @numba.njit(cache=True)
@@ -141,78 +169,135 @@ def _advance_clocks(go, t_to, t_ns):  # fmt: skip
 
 
 @numba.njit(cache=True)
-def run_period_serial(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, eff, sdfs, off,
-                      shapes, origins, res, variant, radius, out, hit, hit_t, work, R, wind, period_start,
-                      mode, flats, vref, dt, lim, gains):  # fmt: skip
+def run_period_serial(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, wood, off,
+                      shapes, origins, res, variant, radius, model, eff, dead, out, hit, hit_t, hit_kind,
+                      work, R, wind, period_start, mode, flats, vref, dt, lim, gains):  # fmt: skip
     """Steps 1 (with ``begin``: wind, wakes included, start states, rotor commands) and 2 (integrate the
     active rows of the worlds where ``go`` from their clock to ``t_to``, ns per world, then set those
-    clocks) in one call, row after row, each rotor at its efficiency ``eff[w, n, i]`` (1: healthy). A row
-    that touches the scene is flagged in ``hit`` (with the segment's start time in ``hit_t``), stopped and
-    made inactive. Returns how many rows hit."""
+    clocks) in one call, row after row. A row that begins a contact with the scene is flagged in ``hit``
+    (with the segment's start time in ``hit_t`` and what it touched in ``hit_kind``, as
+    :func:`~droneulator.vehicles.dynamics.integrate` returns it); under its ``model`` CONTACT_STOP it is
+    stopped and made inactive, under CONTACT_CRASH made ``dead`` (rotors stopped until placed again), under
+    CONTACT_PHYSICAL it flies on (rotors struck on wood lost in ``eff``). Returns how many rows hit."""
     W, N = states.shape[0], states.shape[1]
     if begin:
         _begin_worlds(go, states, wind, period_start, out)
         for k in range(W * N):
-            _begin_row(k, go, states, mode, flats, cmds, vref, dt, lim, gains, R)
+            _begin_row(k, go, states, mode, flats, cmds, vref, dt, lim, gains, R, dead)
     hits = 0
     for k in range(W * N):
-        hits += _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, eff, sdfs, off,
-                             shapes, origins, res, variant, radius, out, hit, hit_t, work, R)  # fmt: skip
+        hits += _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, wood,
+                             off, shapes, origins, res, variant, radius, model, eff, dead, out, hit, hit_t,
+                             hit_kind, work, R)  # fmt: skip
     _advance_clocks(go, t_to, t_ns)
     return hits
 
 
 @numba.njit(cache=True, parallel=True)
-def run_period_parallel(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, eff, sdfs, off,
-                        shapes, origins, res, variant, radius, out, hit, hit_t, work, R, wind, period_start,
-                        mode, flats, vref, dt, lim, gains):  # fmt: skip
+def run_period_parallel(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, wood,
+                        off, shapes, origins, res, variant, radius, model, eff, dead, out, hit, hit_t,
+                        hit_kind, work, R, wind, period_start, mode, flats, vref, dt, lim,
+                        gains):  # fmt: skip
     """:func:`run_period_serial` with the rows spread over the cores (compiled apart: a parallel kernel
     takes several times as long to compile, which a world of few vehicles never pays)."""
     W, N = states.shape[0], states.shape[1]
     if begin:
         _begin_worlds(go, states, wind, period_start, out)
         for k in numba.prange(W * N):
-            _begin_row(k, go, states, mode, flats, cmds, vref, dt, lim, gains, R)
+            _begin_row(k, go, states, mode, flats, cmds, vref, dt, lim, gains, R, dead)
     hits = 0
     for k in numba.prange(W * N):
-        hits += _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, eff, sdfs, off,
-                             shapes, origins, res, variant, radius, out, hit, hit_t, work, R)  # fmt: skip
+        hits += _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, wood,
+                             off, shapes, origins, res, variant, radius, model, eff, dead, out, hit, hit_t,
+                             hit_kind, work, R)  # fmt: skip
     _advance_clocks(go, t_to, t_ns)
     return hits
 
 
 @numba.njit(cache=True)
-def end_period(go, states, active, radius, period_start):  # fmt: skip
-    """Step 3: in each world where ``go``, vehicles whose bodies overlap go back to their start of the
-    period, level and stopped, and become inactive. Returns the pairs ``(world, i, j)``."""
+def _nearest_rotors(s, geom, other, R):  # fmt: skip
+    """Bit mask of the rotors of a vehicle in state ``s`` nearest the point ``other`` (those within
+    :data:`~droneulator.vehicles.dynamics.STRUCK_SHARE` of an arm of the nearest hub)."""
+    quat_to_matrix_into(s[_Q : _Q + 4], R)
+    d = np.empty(4)
+    arm = 0.0
+    for i in range(4):
+        d2 = 0.0
+        for a in range(3):
+            x = s[a] + R[a, 0] * geom[i, 0] + R[a, 1] * geom[i, 1] + R[a, 2] * geom[i, 2] - other[a]
+            d2 += x * x
+        d[i] = math.sqrt(d2)
+        arm = max(arm, math.sqrt(geom[i, 0] * geom[i, 0] + geom[i, 1] * geom[i, 1]))
+    mask = 0
+    for i in range(4):
+        if d[i] <= d.min() + STRUCK_SHARE * arm:
+            mask |= 1 << i
+    return mask
+
+
+@numba.njit(cache=True)
+def end_period(go, states, active, radius, period_start, model, eff, dead, G, pidx):  # fmt: skip
+    """Step 3: in each world where ``go``, vehicles whose bodies overlap meet, each by its ``model``:
+    CONTACT_STOP goes back to its start of the period, level and stopped, and becomes inactive;
+    CONTACT_PHYSICAL goes back to where it was at the start of the period keeping its motion but for the
+    part towards the other, which bounces off (restitution 0.3), and loses the rotors nearest the other
+    (``eff``); CONTACT_CRASH does the same with every rotor stopped (``dead``). Returns rows
+    ``(world, i, j, rotors i lost, rotors j lost)`` (bit masks; 15 for a crash)."""
     W, N = states.shape[0], states.shape[1]
     found = []
     if N < 2:
-        return np.empty((0, 3), dtype=np.int64)
+        return np.empty((0, 5), dtype=np.int64)
+    R = np.empty((3, 3))
+    x = np.empty((2, 3))
     for w in range(W):
         if not go[w]:
             continue
         pairs = _contacts(states[w, :, 0:3], radius, active[w])
         for k in range(pairs.shape[0]):
             a, b = pairs[k, 0], pairs[k, 1]
-            found.append((w, a, b))
-        for k in range(pairs.shape[0]):
-            for i in (pairs[k, 0], pairs[k, 1]):
-                for j in range(STATE_SIZE):
-                    states[w, i, j] = period_start[w, i, j]
-                stop_level(states[w, i])
-                active[w, i] = False
-    out = np.empty((len(found), 3), dtype=np.int64)
+            for j in range(3):
+                x[0, j], x[1, j] = states[w, a, j], states[w, b, j]
+            lost = [0, 0]
+            for side in range(2):
+                i = a if side == 0 else b
+                m = model[w, i]
+                if m == CONTACT_STOP:
+                    for j in range(STATE_SIZE):
+                        states[w, i, j] = period_start[w, i, j]
+                    stop_level(states[w, i])
+                    active[w, i] = False
+                    continue
+                s = states[w, i]
+                if m == CONTACT_CRASH:
+                    lost[side] = 0 if dead[w, i] else 15
+                    dead[w, i] = True
+                else:
+                    struck = _nearest_rotors(s, G[pidx[i]], x[1 - side], R)
+                    for r in range(4):
+                        if struck & (1 << r) and eff[w, i, r] > 0.0:
+                            eff[w, i, r] = 0.0
+                            lost[side] |= 1 << r
+                o = 1 - side
+                nx, ny, nz = x[side, 0] - x[o, 0], x[side, 1] - x[o, 1], x[side, 2] - x[o, 2]
+                norm = max(math.sqrt(nx * nx + ny * ny + nz * nz), 1e-9)
+                nx, ny, nz = nx / norm, ny / norm, nz / norm
+                vn = s[3] * nx + s[4] * ny + s[5] * nz
+                if vn < 0.0:
+                    s[3], s[4], s[5] = s[3] - 1.3 * vn * nx, s[4] - 1.3 * vn * ny, s[5] - 1.3 * vn * nz
+                for j in range(3):
+                    s[j] = period_start[w, i, j]
+            found.append((w, a, b, lost[0], lost[1]))
+    out = np.empty((len(found), 5), dtype=np.int64)
     for k in range(len(found)):
-        out[k, 0], out[k, 1], out[k, 2] = found[k]
+        out[k, 0], out[k, 1], out[k, 2], out[k, 3], out[k, 4] = found[k]
     return out
 
 
 @numba.njit(cache=True)
 def step_to_frame(run, parallel, period_ns, camera_ns, t_ns, next_frame, states, wind, wakes, k_eta, area,
-                  period_start, out, mode, flats, cmds, vref, lim, gains, active, substep, P, G, D, pidx, eff,
-                  sdfs, off, shapes, origins, res, variant, radius, hit, hit_t, work, R, cam,
-                  touched):  # fmt: skip
+                  period_start, out, mode, flats, cmds, vref, lim, gains, active, substep, P, G, D, pidx,
+                  sdfs, wood, off, shapes, origins, res, variant, radius, model, eff, dead, hit, hit_t,
+                  hit_kind, work, R, cam, touched):  # fmt: skip
     """Advance every world where ``run`` period by period to the end of the period holding its next camera
     instant, where its rows are copied to ``cam``. ``hit`` flags rows that touched the scene on the way,
     ``touched[w, i]`` the other vehicle a row touched (-1: none)."""
@@ -247,13 +332,15 @@ def step_to_frame(run, parallel, period_ns, camera_ns, t_ns, next_frame, states,
             if not left:
                 break
             if parallel:
-                run_period_parallel(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, eff,
-                                    sdfs, off, shapes, origins, res, variant, radius, out, hit, hit_t, work,
-                                    R, now, period_start, mode, flats, vref, dt, lim, gains)  # fmt: skip
+                run_period_parallel(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx,
+                                    sdfs, wood, off, shapes, origins, res, variant, radius, model, eff, dead,
+                                    out, hit, hit_t, hit_kind, work, R, now, period_start, mode, flats, vref,
+                                    dt, lim, gains)  # fmt: skip
             else:
-                run_period_serial(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, eff,
-                                  sdfs, off, shapes, origins, res, variant, radius, out, hit, hit_t, work, R,
-                                  now, period_start, mode, flats, vref, dt, lim, gains)  # fmt: skip
+                run_period_serial(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs,
+                                  wood, off, shapes, origins, res, variant, radius, model, eff, dead, out,
+                                  hit, hit_t, hit_kind, work, R, now, period_start, mode, flats, vref, dt,
+                                  lim, gains)  # fmt: skip
             begin = False
             for w in range(W):
                 if go[w] and t_ns[w] == next_frame[w]:
@@ -262,7 +349,7 @@ def step_to_frame(run, parallel, period_ns, camera_ns, t_ns, next_frame, states,
                             cam[w, n, j] = states[w, n, j]
                     next_frame[w] += camera_ns
                     framed[w] = True
-        pairs = end_period(go, states, active, radius, period_start)
+        pairs = end_period(go, states, active, radius, period_start, model, eff, dead, G, pidx)
         for k in range(pairs.shape[0]):
             w, a, b = pairs[k, 0], pairs[k, 1], pairs[k, 2]
             touched[w, a], touched[w, b] = b, a

@@ -12,9 +12,11 @@ control period, its vehicles driven by their flight controllers:
    (:mod:`droneulator.world.downwash`), turns every reference into rotor commands (SE(3)) and integrates
    every row of the state array (``states``, laid out ``(worlds, vehicles, STATE_SIZE)``), split at camera
    instants so that every frame is rendered from the exact state at ``k / camera_hz``, with the scene's
-   collisions per row;
+   collisions per row, each vehicle by its contact model (``vehicle.contact_model``: ``stop``, ``physical``
+   or ``crash``; docs/contact.md), a ``collision`` event saying what it touched;
 4. vehicles whose bodies overlap collide (:mod:`droneulator.world.contact`): one ``collision`` event
-   names both, and both stop where they were at the start of the period;
+   names both, and each meets the other by its contact model (``stop``: where it was at the start of the
+   period, held);
 5. each vehicle's IMU means and hard touchdowns; the spray systems (``spray.enabled``); each vehicle's
    battery (``battery.enabled``, docs/battery.md): drained by its rotors' power, its sagged voltage setting
    the top rotor speed of the next period in the vehicle's parameter row;
@@ -52,10 +54,15 @@ from droneulator.scenes.base import Scene
 from droneulator.state import FLAT_SIZE, STATE, STATE_SIZE
 from droneulator.vehicles.battery import Battery
 from droneulator.vehicles.dynamics import (
+    CONTACT_CRASH,
+    CONTACT_PHYSICAL,
+    CONTACT_STOP,
     OUTPUT,
     OUTPUT_SIZE,
     PARALLEL_ROWS,
     PARAM_WMAX,
+    TOUCH_FOLIAGE,
+    TOUCH_WOOD,
     ParamTable,
     hover_speed,
     pack_params,
@@ -79,6 +86,14 @@ log = logging.getLogger("droneulator.sim")
 
 #: the compiled step's mode for the flight modes whose reference is an inner-loop setpoint, not a flat output
 _INNER_MODES = {Mode.RATES: RATES, Mode.ATTITUDE: ATTITUDE}
+#: the compiled step's code of each contact model (``vehicle.contact_model``), and of what a row touched
+_CONTACT_CODES = {"stop": CONTACT_STOP, "physical": CONTACT_PHYSICAL, "crash": CONTACT_CRASH}
+_TOUCHES = {TOUCH_FOLIAGE: "foliage", TOUCH_WOOD: "wood"}
+
+
+def _rotors(mask: int) -> list[int]:
+    """The rotors (RotorPy's order, from 0) of a bit mask."""
+    return [i for i in range(4) if mask >> i & 1]
 
 
 @dataclass
@@ -172,14 +187,22 @@ class World:
         self._cmds = np.zeros((W, n, 4))
         self._vref = np.zeros((W, n, VREF_SIZE))
         self._out = np.zeros((W, n, OUTPUT_SIZE))
-        #: rows that touched the scene during the last step (stopped there, inactive)
+        #: rows that began a contact with the scene during the last step (under ``stop``: stopped there,
+        #: inactive), and what they touched (:func:`~droneulator.vehicles.dynamics.integrate`'s code)
         self.hit = np.zeros((W, n), dtype=bool)
         self._hit_t = np.zeros((W, n), dtype=np.int64)
+        self.hit_kind = np.zeros((W, n), dtype=np.int64)
+        #: what a touch does to each row (``vehicle.contact_model``: CONTACT_STOP, _PHYSICAL, _CRASH)
+        codes = np.array([_CONTACT_CODES[str(spec.contact_model)] for spec in self.specs], dtype=np.int64)
+        self.contact_model = np.tile(codes, (W, 1))
+        #: each rotor's efficiency per row, ``(worlds, vehicles, 4)``: 1 healthy, lower with a rotor fault
+        #: (:mod:`droneulator.world.faults`) or a learning env's draw, 0 for a propeller lost on wood; its
+        #: thrust and moments scale by it every sub-step; a reset or a place makes every rotor whole again
+        self.rotor_efficiency = np.ones((W, n, 4))
+        #: rows crashed under ``crash``: their rotors stay stopped until the row is placed again
+        self.dead = np.zeros((W, n), dtype=bool)
         #: rows integrated (a collided or retired row is not)
         self.active = np.ones((W, n), dtype=bool)
-        #: each rotor's efficiency per row, ``(worlds, vehicles, 4)``: 1 healthy, lower with a rotor fault
-        #: (:mod:`droneulator.world.faults`) or a learning env's draw; its thrust and moments scale by it
-        self.rotor_efficiency = np.ones((W, n, 4))
         #: for each row, the vehicle of its world it touched in the last :meth:`step_frame` (-1: none)
         self.touched = np.full((W, n), -1, dtype=np.int64)
         work, R = work_arrays(W * n)
@@ -399,6 +422,8 @@ class World:
             v.place(pos, float(heading), airborne if v is target else None)
         self.mode[:] = FLAT
         self.active[:] = True
+        self.rotor_efficiency[:] = 1.0
+        self.dead[:] = False
         self.hit[:] = False
         self.touched[:] = -1
         self.variant[:] = 0
@@ -481,9 +506,9 @@ class World:
         sd = self._sdfs
         t = self.table
         return (self.clocks, self.states, self._cmds, self.active, self._substep, t.params, t.geometry,
-                t.directions, self._pidx, self.rotor_efficiency, sd.buffer, sd.offsets, sd.shapes, sd.origins,
-                sd.resolutions, self.variant, self._radius, self._out, self.hit, self._hit_t, self._work,
-                self._R)  # fmt: skip
+                t.directions, self._pidx, sd.buffer, sd.wood, sd.offsets, sd.shapes, sd.origins,
+                sd.resolutions, self.variant, self._radius, self.contact_model, self.rotor_efficiency,
+                self.dead, self._out, self.hit, self._hit_t, self.hit_kind, self._work, self._R)  # fmt: skip
 
     def _begin_args(self, dt: float) -> tuple[Any, ...]:
         """The arrays :func:`~droneulator.world.step.run_period_serial` takes after :meth:`_args`'s."""
@@ -556,7 +581,10 @@ class World:
                 t_to[0] = min(t_end, int(self._next_frame[0])) if rate else t_end
                 if run_period(go, begin, t_to, *args, *extra):
                     for i in np.flatnonzero(self.hit[0]):
-                        out.events.append(vs[i].on_collision(t=self._hit_t[0, i] / NS))
+                        code = int(self.hit_kind[0, i])
+                        when, touch = self._hit_t[0, i] / NS, _TOUCHES[code & 3]
+                        lost = _rotors(code >> 2)
+                        out.events.append(vs[i].on_collision(t=when, contact=touch, rotors_lost=lost))
                     self.hit[:] = False
                 begin = False
                 now = int(clock[0])
@@ -564,8 +592,11 @@ class World:
                     self._shoot(out, None)
                     self._next_frame[0] += self.camera_period_ns
             if len(vs) > 1:
-                pairs = kernel.end_period(go, self.states, self.active, self._radius, self._period_start)
-                self._vehicle_contacts(vs, sorted((int(p[1]), int(p[2])) for p in pairs), out.events)
+                t = self.table
+                pairs = kernel.end_period(go, self.states, self.active, self._radius, self._period_start,
+                                          self.contact_model, self.rotor_efficiency, self.dead, t.geometry,
+                                          self._pidx)  # fmt: skip
+                self._vehicle_contacts(vs, sorted(tuple(int(x) for x in p[1:]) for p in pairs), out.events)
             self._finish_period(vs, dt, t_start, out.events)
             if self.spraying is not None:
                 self.spraying.step()
@@ -647,6 +678,8 @@ class World:
         self._flats[w, v] = flats
         self.mode[w, v] = FLAT
         self.active[w, v] = True
+        self.rotor_efficiency[w, v] = 1.0
+        self.dead[w, v] = False
         self.hit[w, v] = False
         self.touched[w, v] = -1
         self.wind.reset_rows(w * self.num_vehicles + v)
@@ -789,14 +822,14 @@ class World:
             self.wind.dt = self.camera_period_ns / NS
             flat = self.states.reshape(W * n, STATE_SIZE)
             self._wind_rows[:] = self.wind.update(flat[:, STATE.x], flat[:, STATE.v]).reshape(W, n, 3)
-        (clocks, states, cmds, active, substep, P, G, D, pidx, eff, buf, off, shapes, origins, res, variant,
-         radius, out, hit, hit_t, work, R) = self._args()  # fmt: skip
+        (clocks, states, cmds, active, substep, P, G, D, pidx, buf, wood, off, shapes, origins, res, variant,
+         radius, model, eff, dead, out, hit, hit_t, hit_kind, work, R) = self._args()  # fmt: skip
         kernel.step_to_frame(
             mask, self._parallel(), self.control_period_ns, self.camera_period_ns, clocks, self._next_frame,
             states, self._wind_rows, self._wake.active, self._wake.k_eta, self._wake.disk_area,
             self._period_start, out, self.mode, self._flats, cmds, self._vref, self._lim, self._gains, active,
-            substep, P, G, D, pidx, eff, buf, off, shapes, origins, res, variant, radius, hit, hit_t, work,
-            R, self.camera_states, self.touched,
+            substep, P, G, D, pidx, buf, wood, off, shapes, origins, res, variant, radius, model, eff, dead,
+            hit, hit_t, hit_kind, work, R, self.camera_states, self.touched,
         )  # fmt: skip
         return self.camera_states, self.hit
 
@@ -853,7 +886,8 @@ class World:
 
     def _finish_period(self, vs: list[Vehicle], dt: float, t_start: float, events: list[Event]) -> None:
         """Every vehicle's IMU means over the period just stepped, and ``impact`` events for hard
-        touchdowns."""
+        touchdowns; a hard touchdown of a vehicle under ``crash`` crashes it (a ``collision`` event with
+        ``contact`` "ground": its rotors stop)."""
         imu = self._out[0]
         sf = imu[:, OUTPUT.specific_force] / dt
         held = dt - imu[:, OUTPUT.elapsed]
@@ -864,19 +898,25 @@ class World:
         for i in np.flatnonzero(imu[:, OUTPUT.touchdown_speed] > self._impact_speed):
             where = imu[i, OUTPUT.touchdown_position].tolist()
             speed = float(imu[i, OUTPUT.touchdown_speed])
-            events.append(Event("impact", t_start + float(imu[i, OUTPUT.touchdown_time]),
-                                {"position": where, "speed": speed}, vs[i].name))  # fmt: skip
+            when = t_start + float(imu[i, OUTPUT.touchdown_time])
+            events.append(Event("impact", when, {"position": where, "speed": speed}, vs[i].name))
+            if vs[i].contact_model == "crash" and not self.dead[0, i]:
+                self.dead[0, i] = True
+                events.append(vs[i].on_collision(t=when, contact="ground", rotors_lost=[0, 1, 2, 3]))
 
-    def _vehicle_contacts(self, vs: list[Vehicle], pairs: list[tuple[int, int]], events: list[Event]) -> None:
-        """Vehicles whose bodies overlapped (stopped by the step where they were at the start of the period):
-        one ``collision`` event per pair, naming both."""
+    def _vehicle_contacts(self, vs: list[Vehicle], pairs: list[tuple[int, ...]], events: list[Event]) -> None:
+        """Vehicles whose bodies overlapped (met by the step, each by its contact model): one ``collision``
+        event per pair, naming both (``rotors_lost``: each one's, in the order of ``vehicles``)."""
         rows = self._rows
-        for a, b in pairs:
-            vs[a].on_collision(with_=vs[b].name)
-            vs[b].on_collision(with_=vs[a].name)
+        for a, b, lost_a, lost_b in pairs:
+            lost = [_rotors(lost_a), _rotors(lost_b)]
+            vs[a].on_collision(with_=vs[b].name, contact="vehicle", rotors_lost=lost[0])
+            vs[b].on_collision(with_=vs[a].name, contact="vehicle", rotors_lost=lost[1])
             mid = 0.5 * (rows[a, STATE.x] + rows[b, STATE.x])
             names = [vs[a].name, vs[b].name]
-            events.append(Event("collision", self.t, {"position": mid.tolist(), "vehicles": names}, names[0]))
+            data = {"position": mid.tolist(), "vehicles": names, "contact": "vehicle",
+                    "models": [vs[a].contact_model, vs[b].contact_model], "rotors_lost": lost}  # fmt: skip
+            events.append(Event("collision", self.t, data, names[0]))
 
     def run(self, seconds: float) -> StepResult:
         """Step for ``seconds`` of simulated time, collecting frames and events."""
