@@ -294,9 +294,13 @@ def test_every_vehicles_topics_decode_with_their_frames_and_stamps(key_mode: str
     session = zenoh.open(sub_cfg)
     got: dict[str, list[tuple[str, Any]]] = defaultdict(list)
     lock = threading.Lock()
+    probed = threading.Event()
 
     def on_sample(sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
+        if key == "test_probe":
+            probed.set()
+            return
         if "@" in key:
             return
         with lock:
@@ -305,7 +309,11 @@ def test_every_vehicles_topics_decode_with_their_frames_and_stamps(key_mode: str
     sub = session.declare_subscriber("**", on_sample)
     try:
         states, frames = StatePublisher(node, cfg), FramePublisher(node, cfg, zenoh.CongestionControl.BLOCK)
-        time.sleep(0.5)  # declarations reach the subscriber
+        deadline = time.monotonic() + 10.0  # the subscriber's declaration reaches the node (slow under load)
+        while not probed.is_set() and time.monotonic() < deadline:
+            node.session.put("test_probe", b"")
+            probed.wait(0.1)
+        assert probed.is_set(), "the subscriber never heard the node"
         with World(cfg) as world:
             world.vehicle("uav1").place([*world.vehicle("uav1").state.position[:2], 1.0], 0.3, airborne=True)
             shot = world.render()
