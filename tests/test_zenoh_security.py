@@ -9,6 +9,8 @@ off, so samples cross TLS as they would between hosts. The simulator's side is i
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import subprocess
 import threading
@@ -23,11 +25,11 @@ from rosbags.typesys import Stores, get_typestore
 
 from droneulator.cli import main as cli_main
 from droneulator.config import load_config
+from droneulator.runtime import zenoh_security
 from droneulator.runtime.bridge import open_bridge_node
 from droneulator.runtime.dynamics_server import open_zenoh_hub
 from droneulator.runtime.launch import free_port
-from droneulator.runtime.preflight import StartupError, check_simulation
-from droneulator.runtime.zenoh_security import access_control, router_config
+from droneulator.runtime.preflight import StartupError, check_ports, check_simulation, run_ports
 
 TS = get_typestore(Stores.ROS2_JAZZY)
 T = TS.types
@@ -185,17 +187,19 @@ def router_tls(pki: dict[str, Path], mtls: bool) -> dict[str, Any]:
 
 @pytest.fixture(scope="module")
 def mtls_router(pki: dict[str, Path]) -> Iterator[str]:
-    """A router with mutual TLS and the simulator's ACL (``access_control`` of a two-vehicle config:
-    the simulator's certificate CN ``droneulator``, ``ground-uav1`` commands uav1, ``ground-uav2`` uav2),
-    built by :func:`router_config` as the docs show; yields its endpoint."""
+    """A router with mutual TLS and the simulator's ACL for a two-vehicle config (the simulator's
+    certificate CN ``droneulator``, ``ground-uav1`` commands uav1, ``ground-uav2`` uav2), its
+    configuration printed by ``python -m droneulator.runtime.zenoh_security`` as docs/security.md
+    shows; yields its endpoint."""
     listen = f"tls/127.0.0.1:{free_port()}"
-    acl = access_control(
-        load_config(overrides=[FLEET]), "droneulator", {"ground-uav1": "uav1", "ground-uav2": "uav2"}
-    )
-    conf = router_config([listen], str(pki["ca"]), str(pki["router.pem"]), str(pki["router.key"]), acl)
-    folder = pki["ca"].parent
-    (folder / "router.json5").write_text(json.dumps(conf))
-    session = zenoh.open(zenoh.Config.from_file(str(folder / "router.json5")))
+    args = ["--set", FLEET, "--listen", listen, "--ca", str(pki["ca"]), "--cert", str(pki["router.pem"])]
+    args += ["--key", str(pki["router.key"]), "--client", "ground-uav1=uav1", "--client", "ground-uav2=uav2"]
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        zenoh_security.main(args)
+    path = pki["ca"].parent / "router.json5"
+    path.write_text(out.getvalue())
+    session = zenoh.open(zenoh.Config.from_file(str(path)))
     yield listen
     session.close()
 
@@ -317,3 +321,36 @@ def test_a_bad_certificate_path_is_one_clear_error(
         StartupError, match=r"bridge\.tls_key .*droneulator\.pem: not a PEM file holding a private key"
     ):
         check_simulation(load_config(overrides=sets))
+
+
+def test_simulator_as_the_router_listens_on_tls(pki: dict[str, Path]) -> None:
+    """Deployment 1 of docs/ros2.md over TLS: the simulator's session is the router, listening on
+    ``tls/`` with mutual TLS; a remote router presenting a certificate the CA signed connects to it and
+    gets /clock."""
+    listen = f"tls/127.0.0.1:{free_port()}"
+    sets = [
+        f'bridge.listen=["{listen}"]',
+        f"bridge.tls_ca={pki['ca']}",
+        f"bridge.tls_cert={pki['droneulator.pem']}",
+        f"bridge.tls_key={pki['droneulator.key']}",
+        "bridge.tls_mtls=true",
+    ]
+    cfg = load_config(overrides=sets)
+    check_simulation(cfg)
+    check_ports(run_ports(cfg))  # the tls/ port is checked like a tcp/ one
+    hub = open_zenoh_hub(cfg, None)
+    remote = zenoh.open(config("router", connect=[listen], tls=client_tls(pki, "ground-uav1")))
+    try:
+        inbox = Inbox()
+        sub = remote.declare_subscriber("clock", inbox.on("clock"))
+        clock = hub.publisher("/clock", "rosgraph_msgs/msg/Clock")
+        deadline = time.monotonic() + 10
+        while not inbox.get("clock"):
+            assert time.monotonic() < deadline, "no /clock across the simulator's TLS listener in 10 s"
+            clock.publish(b"tick")
+            time.sleep(0.02)
+        assert [str(z) for z in remote.info.routers_zid()] == [hub.zid]
+        sub.undeclare()
+    finally:
+        remote.close()
+        hub.close()
