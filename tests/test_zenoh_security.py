@@ -223,14 +223,20 @@ def test_refused_without_the_ca_or_a_certificate_it_signed(
         )
 
 
-def test_acl_lets_each_side_through_only_on_its_keys(pki: dict[str, Path], mtls_router: str) -> None:
+@pytest.mark.parametrize("mode", ["client", "router"])
+def test_acl_lets_each_side_through_only_on_its_keys(
+    pki: dict[str, Path], mtls_router: str, mode: str
+) -> None:
     """The simulator's own sessions, from ``--set bridge.tls_*``, and two ground clients behind the ACL
     router: sensor data reaches a client, each client commands its own vehicle; a command for the other
     vehicle never arrives, a subscription to another vehicle's commands gets nothing, and a key outside
-    the rules crosses in neither direction."""
+    the rules crosses in neither direction. ``client``: the run's sessions are leaves of the ACL router;
+    ``router``: the run's hub is a router of its own linked to it (what a ``sweep --ray`` job does, its
+    listen endpoint its own)."""
     sets = [
         FLEET,
-        "bridge.mode=client",
+        f"bridge.mode={mode}",
+        f'bridge.listen=["tcp/127.0.0.1:{free_port()}"]',
         f'bridge.connect=["{mtls_router}"]',
         f"bridge.tls_ca={pki['ca']}",
         f"bridge.tls_cert={pki['droneulator.pem']}",
@@ -354,3 +360,15 @@ def test_simulator_as_the_router_listens_on_tls(pki: dict[str, Path]) -> None:
     finally:
         remote.close()
         hub.close()
+
+
+def test_the_documented_example_is_what_the_helper_writes_and_zenoh_reads() -> None:
+    """examples/zenoh/router_acl.json5 (docs/security.md's ready-to-use router) is the helper's output for
+    the default run, and a valid Zenoh configuration."""
+    path = Path(__file__).resolve().parents[1] / "examples" / "zenoh" / "router_acl.json5"
+    text = "\n".join(line for line in path.read_text().splitlines() if not line.startswith("//"))
+    acl = zenoh_security.access_control(load_config(), "droneulator", {"ground": "uav0"})
+    expected = zenoh_security.router_config(["tls/0.0.0.0:7447"], "ca.pem", "router.pem", "router.key", acl)
+    assert json.loads(text) == expected
+    conf = zenoh.Config.from_file(str(path))
+    assert json.loads(conf.get_json("access_control/default_permission")) == "deny"
