@@ -307,6 +307,7 @@ def test_wildcard_host_sees_a_port_taken_on_loopback(taken_port: int) -> None:
         ("tcp/127.0.0.1:7448", ("127.0.0.1", 7448)),
         ("tcp/[::1]:7449", ("::1", 7449)),
         ("tcp/localhost:7450?rel=1#iface=lo", ("localhost", 7450)),
+        ("tls/0.0.0.0:7447", ("0.0.0.0", 7447)),
         ("udp/127.0.0.1:7448", None),
         ("unixsock-stream//tmp/z.sock", None),
     ],

@@ -385,8 +385,19 @@ class BridgeConfig:
     listen: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7448"])
     #: empty: nothing in ros2dds key mode, rmw_zenohd on tcp/127.0.0.1:7447 in rmw_zenoh key mode
     connect: list[str] = field(default_factory=list)
-    #: optional Zenoh JSON5 configuration file (listen/connect above are applied on top)
+    #: optional Zenoh JSON5 configuration file (listen/connect above are applied on top); an ACL
+    #: (``access_control``) goes here: droneulator.runtime.zenoh_security writes one (docs/security.md)
     zenoh_config: str = ""
+    #: TLS of ``tls/HOST:PORT`` endpoints (docs/security.md), PEM files, applied on top of zenoh_config:
+    #: the CA that signed the other side's certificate
+    tls_ca: str = ""
+    #: this side's certificate (chain) and private key: served when listening on tls/, and presented
+    #: when a router asks (mutual TLS); both or neither
+    tls_cert: str = ""
+    tls_key: str = ""
+    #: mutual TLS: listening on tls/, accept only peers whose certificate tls_ca signed; connecting,
+    #: present tls_cert (a router with mutual TLS refuses a client without one)
+    tls_mtls: bool = False
     #: ros2dds key mode: zenoh-bridge-ros2dds' own namespace option ("-n /ns" -> keys "ns/..."), so a
     #: bridge started with it routes the simulator's topics
     ros2dds_namespace: str = "/"
@@ -415,6 +426,10 @@ class BridgeConfig:
             raise ValueError("bridge.mode=client needs a router to connect to: set bridge.connect")
         if not 1 <= self.jpeg_quality <= 100:
             raise ValueError("bridge.jpeg_quality must lie in [1, 100]")
+        if bool(self.tls_cert) != bool(self.tls_key):
+            raise ValueError("bridge.tls_cert and bridge.tls_key go together: give both or neither")
+        if self.tls_mtls and not (self.tls_ca and self.tls_cert):
+            raise ValueError("bridge.tls_mtls needs bridge.tls_ca (to check peers) and tls_cert/tls_key")
         if self.fleet_tf not in ("prefix", "namespace"):
             raise ValueError(f"bridge.fleet_tf must be 'prefix' or 'namespace', got {self.fleet_tf!r}")
 

@@ -222,6 +222,34 @@ class _BridgeConfigLike(Protocol):
     connect: list[str]
     zenoh_config: str
     ros2dds_namespace: str
+    tls_ca: str
+    tls_cert: str
+    tls_key: str
+    tls_mtls: bool
+
+
+def tls_entries(ca: str = "", cert: str = "", key: str = "", mtls: bool = False) -> dict[str, Any]:
+    """Zenoh's ``transport/link/tls`` settings (paths to PEM files) for ``tls/HOST:PORT`` links.
+
+    ``ca`` verifies the other side (a listener's certificate when connecting; with ``mtls`` a
+    connecting peer's too). ``cert``/``key`` serve a ``tls/`` listener and, with ``mtls``, are presented
+    when connecting (Zenoh sends a client certificate only with ``enable_mtls``), so one node listens
+    and connects with one identity.
+    Only the given entries are returned: Zenoh's defaults stay for the rest.
+    """
+    entries: dict[str, Any] = {}
+    if ca:
+        entries["root_ca_certificate"] = ca
+    if cert:
+        entries |= {
+            "listen_certificate": cert,
+            "listen_private_key": key,
+            "connect_certificate": cert,
+            "connect_private_key": key,
+        }
+    if mtls:
+        entries["enable_mtls"] = True
+    return entries
 
 
 @dataclass(frozen=True)
@@ -253,6 +281,11 @@ class ZenohNodeConfig:
     node_name: str = "droneulator"
     node_namespace: str = "/"
     enclave: str = "/"
+    #: TLS of ``tls/`` endpoints (:func:`tls_entries`), applied on top of ``config_file``
+    tls_ca: str = ""
+    tls_cert: str = ""
+    tls_key: str = ""
+    tls_mtls: bool = False
 
     def __post_init__(self) -> None:
         if self.key_mode not in ("ros2dds", "rmw_zenoh"):
@@ -291,6 +324,7 @@ class ZenohNodeConfig:
             file_connects = json.loads(conf.get_json("connect/endpoints"))
             if connect and (self.connect or not file_connects):
                 conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+            self._apply_tls(conf)
             return conf
         conf = zenoh.Config()
         conf.insert_json5("mode", json.dumps(self.mode))
@@ -300,7 +334,12 @@ class ZenohNodeConfig:
         conf.insert_json5("connect/exit_on_failure", json.dumps(_CONNECT_EXIT_ON_FAILURE))
         conf.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
         conf.insert_json5("transport/shared_memory/enabled", json.dumps(self.shared_memory))
+        self._apply_tls(conf)
         return conf
+
+    def _apply_tls(self, conf: zenoh.Config) -> None:
+        for name, value in tls_entries(self.tls_ca, self.tls_cert, self.tls_key, self.tls_mtls).items():
+            conf.insert_json5(f"transport/link/tls/{name}", json.dumps(value))
 
 
 class RosPublisher:
@@ -493,7 +532,8 @@ class RosZenohNode:
         """A node from a ``droneulator.config.BridgeConfig``; ``overrides`` replace any field.
 
         Uses mode, key_mode, domain_id, listen, connect (empty: the key mode's default, see
-        :class:`ZenohNodeConfig`), zenoh_config and ros2dds_namespace (the bridge-style key prefix).
+        :class:`ZenohNodeConfig`), zenoh_config, ros2dds_namespace (the bridge-style key prefix) and the
+        ``tls_*`` files.
         ``BridgeConfig.namespace`` is not used: the simulator already puts it into its topic names.
         A second session of the same run passes e.g. ``mode="client", listen=(), connect=(...)``.
         """
@@ -505,6 +545,10 @@ class RosZenohNode:
             "connect": tuple(bridge.connect) or None,
             "config_file": bridge.zenoh_config or None,
             "namespace": bridge.ros2dds_namespace,
+            "tls_ca": bridge.tls_ca,
+            "tls_cert": bridge.tls_cert,
+            "tls_key": bridge.tls_key,
+            "tls_mtls": bridge.tls_mtls,
         }
         fields.update(overrides)
         return cls(ZenohNodeConfig(**fields))

@@ -257,15 +257,16 @@ def zenoh_listen_endpoints(cfg: SimConfig) -> list[str]:
 
 
 def parse_tcp_endpoint(endpoint: str) -> tuple[str, int] | None:
-    """``(host, port)`` of a Zenoh ``tcp/HOST:PORT[?metadata][#config]`` endpoint; None for other schemes."""
+    """``(host, port)`` of a Zenoh ``tcp/HOST:PORT[?metadata][#config]`` endpoint, or a ``tls/`` one (TLS
+    on TCP: the same port to bind); None for other schemes."""
     scheme, sep, rest = endpoint.partition("/")
-    if scheme != "tcp":
+    if scheme not in ("tcp", "tls"):
         return None
     address = rest.split("?", 1)[0].split("#", 1)[0]
     host, colon, port = address.rpartition(":")
     if not sep or not colon or not host or not port.isdigit():
         raise StartupError(
-            f"bridge.listen endpoint {endpoint!r} is not tcp/HOST:PORT; "
+            f"bridge.listen endpoint {endpoint!r} is not {scheme}/HOST:PORT; "
             "fix it with --set bridge.listen='[\"tcp/HOST:N\"]'",
             USAGE,
         )
@@ -360,6 +361,18 @@ def check_simulation(cfg: SimConfig) -> None:
     revalidate(cfg)
     check_scene(cfg.scene)
     check_vehicle(cfg)
+    check_zenoh_tls(cfg)
+
+
+def check_zenoh_tls(cfg: SimConfig) -> None:
+    """``bridge.tls_ca``, ``tls_cert`` and ``tls_key``, where given, are readable PEM files."""
+    from droneulator.runtime.zenoh_security import check_tls_files
+
+    b = cfg.bridge
+    try:
+        check_tls_files(b.tls_ca, b.tls_cert, b.tls_key)
+    except ValueError as exc:
+        raise StartupError(f"{exc}; expected PEM files (docs/security.md)", USAGE) from None
 
 
 def check_run(cfg: SimConfig) -> None:

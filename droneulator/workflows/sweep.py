@@ -103,6 +103,7 @@ def _config(job: Job, settings: SweepSettings) -> Any:
     from droneulator.runtime import preflight
 
     cfg = preflight.load(settings.config, settings.overrides, scene=job.scene, seed=job.seed)
+    preflight.check_zenoh_tls(cfg)  # on the node the job runs on: its certificate files must be there too
     if job.kind == "capture":
         cfg.capture.views = job.views
         cfg.capture.__post_init__()
