@@ -101,12 +101,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.ardupilot or args.ardupilot_instance is not None:
         if cfg.px4.enabled:
             raise StartupError(
-                "--px4 and --ardupilot: one autopilot flies a run's vehicles, choose one", preflight.USAGE
+                "--px4 and --ardupilot: both would fly the first vehicle; for a mixed fleet name each "
+                "vehicle's autopilot in the config's vehicles list (controlled_by: px4 / ardupilot)",
+                preflight.USAGE,
             )
         cfg.ardupilot.enabled = True
         cfg.ardupilot.instance = args.ardupilot_instance or 0
-    if cfg.ardupilot_instances():
-        _ardupilot_defaults(cfg, defaults, args.api_port is None)
     if cfg.px4_instances():
         # PX4's lockstep runs at 250 Hz; its SIH quad-X parameters suit PX4's default gains
         if cfg.vehicle.control_hz == defaults.vehicle.control_hz:
@@ -124,6 +124,10 @@ def cmd_run(args: argparse.Namespace) -> int:
                 cfg.bridge.listen = [f"tcp/127.0.0.1:{7448 + n}"]
             if cfg.bridge.namespace == defaults.bridge.namespace:
                 cfg.bridge.namespace = f"{defaults.bridge.namespace}{n}"
+    if cfg.ardupilot_instances():
+        # after PX4's: a mixed fleet keeps PX4's 250 Hz lockstep (ArduPilot's clock follows the replies)
+        shifted = bool(cfg.px4_instances()) and cfg.px4.instance > 0  # PX4's instance moved the API port
+        _ardupilot_defaults(cfg, defaults, args.api_port is None and not shifted)
     if args.ui_port is not None:
         cfg.ui.port = args.ui_port
     with_ui = args.ui or args.ui_port is not None

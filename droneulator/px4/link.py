@@ -27,10 +27,8 @@ are logged and queued as events (:meth:`PX4Link.take_events`).
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
-import select
 import time
 from collections import deque
 from collections.abc import Callable, Collection
@@ -41,6 +39,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from droneulator.config import PX4Config
 from droneulator.controllers.flight import Event, Mode
+from droneulator.px4 import fleet
 from droneulator.px4.fleet import AutopilotFleet
 from droneulator.px4.handover import Handover, RotorHandover, on_ground, take_over
 from droneulator.px4.hil import HilEncoder
@@ -50,6 +49,7 @@ from droneulator.sensors import SensorSuite, Truth
 from droneulator.sensors.suite import PX4_SENSORS
 
 if TYPE_CHECKING:
+    import socket
     import threading
 
     from droneulator.world.world import StepResult, World
@@ -89,6 +89,7 @@ class PX4Link(RotorHandover):
 
     autopilot = "PX4"
     event_prefix = "px4"
+    scheme = "tcp"
 
     #: the autopilot's name in the flight lock's reasons and the logs
     autopilot = "PX4"
@@ -232,7 +233,31 @@ class PX4Link(RotorHandover):
         """
         return serve_links([self], timeout, lock)
 
-    def _time_to_step(self) -> float | None:
+    # ------------------------------------------------------------------ the lockstep protocol (.fleet)
+    def sockets(self) -> list[socket.socket]:
+        return self._transport.sockets()
+
+    def apply_pending_loss(self, guard: Any) -> None:
+        if self._loss_pending:
+            with guard:
+                self._apply_loss()
+
+    def take_command(self) -> tuple[tuple[bool, np.ndarray | None] | None, bool]:
+        """PX4's lockstep command for the step (None: none came, e.g. while it boots) and whether the step
+        is the connection's first (forced at t = 0), after which PX4 has its boot grace."""
+        first, self._force_step = self._force_step, False
+        return (self._pending.popleft() if self._pending else None), first
+
+    def apply_command(self, cmd: tuple[tuple[bool, np.ndarray | None] | None, bool]) -> None:
+        self._apply(cmd[0], cmd[0] is not None)
+
+    def after_step(self, truth: Truth, cmd: tuple[tuple[bool, np.ndarray | None] | None, bool]) -> None:
+        """Send the step's HIL batch (HIL_SENSOR, HIL_GPS at its rate, HIL_STATE_QUATERNION)."""
+        self._send_batch(truth)
+        if cmd[1]:
+            self._start_boot_grace()
+
+    def time_to_step(self) -> float | None:
         """Seconds until the next step is due (<= 0: now), or None while waiting for PX4."""
         if self._force_step:
             return 0.0
@@ -257,7 +282,7 @@ class PX4Link(RotorHandover):
             due = now
         return due - now
 
-    def _on_readable(self, readable: Collection[Any], guard: Any) -> None:
+    def on_readable(self, readable: Collection[Any], guard: Any) -> None:
         """Handle what ``select`` found readable among the transport's sockets."""
         t = self._transport
         if t.conn is not None and t.conn in readable:
@@ -270,7 +295,7 @@ class PX4Link(RotorHandover):
             if c is not None:
                 self._promote(c, guard)
 
-    def _select_failed(self, exc: Exception) -> None:
+    def on_poll_error(self, exc: Exception) -> None:
         if self.connected:
             self._drop(f"socket error: {exc}")
 
@@ -451,81 +476,15 @@ class PX4Link(RotorHandover):
 
 
 # --------------------------------------------------------------------------- links stepping one world
-def serve_links(
-    links: list[PX4Link], timeout: float, lock: threading.Lock | None = None
-) -> StepResult | None:
-    """Serve every link for up to ``timeout`` s and step their (one) world at most once.
-
-    The world steps when every connected PX4 is ready: each in lockstep has sent its actuator outputs
-    for the last step, each booting (before lockstep) is due by its pacing, as Gazebo's lockstep waits
-    for every PX4 instance. Links without a PX4 do not hold the clock. Returns the step's result, or
-    None when nothing stepped within ``timeout``. ``lock`` is held around every access to the world.
-    """
-    for link in links:
-        if not link.listening:
-            raise RuntimeError("PX4Link is not listening: call start() first")
-    guard = lock if lock is not None else contextlib.nullcontext()
-    deadline = time.monotonic() + max(0.0, float(timeout))
-    polled = False
-    while True:
-        for link in links:
-            if link._loss_pending:
-                with guard:
-                    link._apply_loss()
-        waits = [link._time_to_step() for link in links if link.connected]
-        due = max(waits) if waits and all(w is not None for w in waits) else None  # type: ignore[type-var]
-        if due is not None and due <= 0.0:
-            return _step_links([link for link in links if link.connected], guard)
-        now = time.monotonic()
-        if polled and now >= deadline:
-            return None
-        wait = max(0.0, deadline - now)
-        if due is not None:
-            wait = min(wait, due)
-        _poll_links(links, wait, guard)
-        polled = True
-
-
-def _poll_links(links: list[PX4Link], wait: float, guard: Any) -> None:
-    owner = {sock: link for link in links for sock in link._transport.sockets()}
-    try:
-        readable, _, _ = select.select(list(owner), [], [], wait)
-    except (OSError, ValueError) as exc:
-        for link in links:
-            link._select_failed(exc)
-        return
-    for link in links:
-        link._on_readable([s for s in readable if owner[s] is link], guard)
-
-
-def _step_links(links: list[PX4Link], guard: Any) -> StepResult:
-    """Apply every connected PX4's command, step the world once, send each PX4 its sensor data."""
-    world = links[0].world
-    firsts = []
-    cmds = []
-    for link in links:
-        firsts.append(link._force_step)
-        link._force_step = False
-        cmds.append(link._pending.popleft() if link._pending else None)
-    with guard:
-        for link, cmd in zip(links, cmds, strict=True):
-            link._apply(cmd, cmd is not None)
-        result = world.step()
-        truths = [Truth.from_sim(link.vehicle) for link in links]
-    for link, truth, first in zip(links, truths, firsts, strict=True):
-        link._send_batch(truth)
-        if first:
-            link._start_boot_grace()
-    return result
+#: every link of a world, PX4's and ArduPilot's, steps it in one lockstep loop (:mod:`.fleet`)
+serve_links = fleet.serve_links
 
 
 class PX4Fleet(AutopilotFleet[PX4Link]):
     """Every PX4 link of a world (one PX4 SITL instance per vehicle it flies), served and stepped
-    together (:func:`serve_links`); the runtime's face of the PX4 interface."""
+    together (:func:`serve_links`); :meth:`AutopilotFleet.of` builds a world's mixed fleet."""
 
     kind = "PX4"
-    scheme = "tcp"
-    serve = staticmethod(serve_links)
 
     @classmethod
     def of(cls, world: World) -> PX4Fleet:
