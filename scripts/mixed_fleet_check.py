@@ -6,12 +6,13 @@ what they did (docs/ardupilot.md, "A mixed fleet").
         --px4 $PX4_WORK/src/build/px4_sitl_default [--alt 5] [--leg 5] [--out FILE]
 
 The run's vehicles: ``uav0`` and ``uav1`` on ArduCopter ``-I 0`` / ``-I 1`` (UDP 9002 / 9012, MAVLink
-TCP 5760 / 5770), ``uav2`` on PX4 instance 2 (``px4 -i 2``: TCP 4562, MAVLink UDP 14542), at PX4's
-250 Hz lockstep, no cameras. Each autopilot is flown over MAVLink (pymavlink) at the same time: take off to
-``--alt`` m, hold, fly ``--leg`` m north, hold, land, disarm (ArduPilot in GUIDED, PX4 with
-NAV_TAKEOFF, DO_REPOSITION and NAV_LAND). Its own position estimate (LOCAL_POSITION_NED) is compared
-with the truth from the run's WebSocket API (the vehicle's position from where it armed, NED). Prints
-(or writes to ``--out``) one JSON report with the simulation speed against wall time.
+TCP 5760 / 5770), ``uav2`` on PX4 instance 2 (``px4 -i 2``: TCP 4562, MAVLink UDP 14542); the world at
+1000 Hz (one ArduPilot frame a step, PX4's 250 Hz lockstep every 4th step), no cameras. Each autopilot
+is flown over MAVLink (pymavlink) at the same time: take off to ``--alt`` m, hold, fly ``--leg`` m
+north, hold, land, disarm (ArduPilot in GUIDED, PX4 with NAV_TAKEOFF, DO_REPOSITION and NAV_LAND). Its
+own position estimate (LOCAL_POSITION_NED) is compared with the truth from the run's WebSocket API (the
+vehicle's position from where it armed, NED). Prints (or writes to ``--out``) one JSON report with the
+simulation speed against wall time.
 """
 
 from __future__ import annotations
@@ -217,7 +218,7 @@ def main() -> int:
     ap.add_argument("--out", default=None, help="write the JSON report here")
     args = ap.parse_args()
 
-    cfg = load_config(overrides=["vehicle.control_hz=250", "vehicle.params=px4_quadx"])
+    cfg = load_config(overrides=["vehicle.control_hz=1000", "vehicle.params=px4_quadx"])
     cfg.vehicles = [
         VehicleSpec(name="uav0", controlled_by="ardupilot", cameras=[]),
         VehicleSpec(name="uav1", controlled_by="ardupilot", cameras=[]),

@@ -20,8 +20,9 @@ from droneulator.px4.fleet import AutopilotFleet
 from droneulator.px4.link import PX4Link
 from droneulator.world import World
 
-HZ = 250  # PX4's lockstep rate: a mixed world steps at it, ArduPilot's clock follows the replies
+HZ = 1000  # a mixed world's rate: one ArduPilot frame a step, PX4's 250 Hz lockstep every 4th step
 DT_US = 1_000_000 // HZ
+PX4_DT_US = 4 * DT_US
 
 
 class RecordingPX4(ScriptedPX4):
@@ -50,10 +51,10 @@ def wait_until(pred: Any, timeout: float = 5.0) -> None:
 
 
 def test_internal_px4_and_ardupilot_vehicles_fly_one_world_in_lockstep_and_lose_peers_apart(monkeypatch):
-    """The world steps once when both autopilots are ready; each gets exactly one sensor message per step,
-    stamped with the same simulation time; each autopilot's outputs move its own vehicle only, while the
-    internal one flies on the simulator's controller; a lost PX4 is held (``on_loss``) while ArduPilot
-    goes on stepping the world, and then a lost ArduPilot is landed."""
+    """The world steps once when both autopilots are ready; ArduPilot gets exactly one reply per step and
+    PX4 one HIL_SENSOR per 4 ms (every 4th step), stamped with the same simulation times; each autopilot's
+    outputs move its own vehicle only, while the internal one flies on the simulator's controller; a lost
+    PX4 is held (``on_loss``) while ArduPilot goes on stepping the world, then a lost ArduPilot is landed."""
     monkeypatch.setattr(ardupilot_link, "LINK_SILENCE_S", 0.3)
     c = load_config(overrides=[f"vehicle.control_hz={HZ}"])
     c.vehicles = [
@@ -97,33 +98,33 @@ def test_internal_px4_and_ardupilot_vehicles_fly_one_world_in_lockstep_and_lose_
                 for _ in range(n):
                     ap_stamps.append(round(ap.step(pwm)["timestamp"] * 1e6))
 
-            ap_steps(40, [1000] * 4)  # PX4 gets its GPS origin
+            ap_steps(160, [1000] * 4)  # PX4 gets its GPS origin
             assert px4.origin is not None and px4.error is None
             px4.takeoff()
-            ap_steps(350, [1000] * 4)  # ArduPilot disarmed: only PX4's vehicle (and the internal one) climb
+            ap_steps(1400, [1000] * 4)  # ArduPilot disarmed: only PX4's vehicle (and the internal one) climb
             with lock:
                 px, apv, own = (w.vehicle(n) for n in ("px", "ap", "own"))
                 assert px.state.position[2] > 0.3 and px.mode.value == "external"
                 assert apv.state.position[2] < 0.01 and not np.any(apv.state.rotor_speeds)
                 assert own.state.position[2] > 0.3 and own.mode.value != "external"
             climb = [1850] * 4
-            ap_steps(80, climb)  # ArduPilot armed: its motor outputs are its vehicle's rotor speeds
+            ap_steps(320, climb)  # ArduPilot armed: its motor outputs are its vehicle's rotor speeds
             with lock:
                 command = ap_link.motors.rotor_speeds(climb)  # the rotors lag it by < 1 % after 0.3 s
                 np.testing.assert_allclose(apv.state.rotor_speeds, command, rtol=0.02)
                 assert apv.state.position[2] > 0.1
                 assert not np.allclose(px.state.rotor_speeds, apv.state.rotor_speeds)
-            wait_until(lambda: px4.stamps[-1] == ap_stamps[-1])
-            # one sensor message per step to each, the same simulation times: from PX4's connection on,
-            # PX4's stamps are ArduPilot's, each once
-            joined = ap_stamps.index(px4.stamps[1])
-            assert px4.stamps[1:] == ap_stamps[joined:]
+            # a reply per step to ArduPilot, a HIL_SENSOR per 4 ms to PX4, on the same clock: from PX4's
+            # first lockstep batch on, PX4's stamps are ArduPilot's on its 4 ms grid, each once
+            on_grid = [t for t in ap_stamps if t % PX4_DT_US == 0]
+            wait_until(lambda: px4.stamps[-1] == on_grid[-1], 0.25)
+            assert px4.stamps[1:] == on_grid[on_grid.index(px4.stamps[1]) :]
             assert np.all(np.diff(ap_stamps) == DT_US) and len(stepped) == len(set(stepped))
 
             px4.close()  # killed in the air: held, and ArduPilot steps the world on
             wait_until(lambda: not px_link.connected)
-            ap_steps(20, climb)
-            assert np.all(np.diff(ap_stamps[-21:]) == DT_US)
+            ap_steps(40, climb)
+            assert np.all(np.diff(ap_stamps[-41:]) == DT_US)
             events = fleet.take_events()
             lost = [e for e in events if e.type.endswith("_lost")]
             assert [(e.type, e.vehicle, e.data["action"]) for e in lost] == [("px4_lost", "px", "hold")]

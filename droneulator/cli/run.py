@@ -108,9 +108,11 @@ def cmd_run(args: argparse.Namespace) -> int:
         cfg.ardupilot.enabled = True
         cfg.ardupilot.instance = args.ardupilot_instance or 0
     if cfg.px4_instances():
-        # PX4's lockstep runs at 250 Hz; its SIH quad-X parameters suit PX4's default gains
+        # PX4's lockstep runs at 250 Hz; its SIH quad-X parameters suit PX4's default gains. Beside
+        # ArduPilot (whose IMU must beat 1.8 x its 400 Hz loop) the world steps at 1000 Hz and PX4 is
+        # sent its sensor data every 4th step
         if cfg.vehicle.control_hz == defaults.vehicle.control_hz:
-            cfg.vehicle.control_hz = 250.0
+            cfg.vehicle.control_hz = 1000.0 if cfg.ardupilot_instances() else 250.0
         if not cfg.vehicles and cfg.vehicle.params == defaults.vehicle.params:
             cfg.vehicle.params = "px4_quadx"
         for spec in cfg.vehicles:
@@ -125,7 +127,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             if cfg.bridge.namespace == defaults.bridge.namespace:
                 cfg.bridge.namespace = f"{defaults.bridge.namespace}{n}"
     if cfg.ardupilot_instances():
-        # after PX4's: a mixed fleet keeps PX4's 250 Hz lockstep (ArduPilot's clock follows the replies)
+        # after PX4's: a mixed fleet keeps its 1000 Hz (ArduPilot's clock follows the replies)
         shifted = bool(cfg.px4_instances()) and cfg.px4.instance > 0  # PX4's instance moved the API port
         _ardupilot_defaults(cfg, defaults, args.api_port is None and not shifted)
     if args.ui_port is not None:

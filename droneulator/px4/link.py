@@ -63,6 +63,8 @@ ARMED_FLAG = mavlink.MAV_MODE_FLAG_SAFETY_ARMED
 
 #: motors stop when an autopilot's last actuator message is older than this (Gazebo-classic's rule)
 ACTUATOR_TIMEOUT_NS = 200_000_000
+#: PX4 SITL's lockstep rate (its airframes' IMU_INTEG_RATE): one HIL_SENSOR and one answer per 4 ms
+PX4_LOCKSTEP_HZ = 250.0
 #: wall time a new connection has to answer the first HIL_SENSOR before the link free-runs
 BOOT_GRACE_S = 0.05
 #: wall time PX4 may take between the answers of a catch-up burst before its newest stale one steps
@@ -127,10 +129,17 @@ class PX4Link(RotorHandover):
         self._last_cmd_t_ns: int | None = None
         self._reset_connection()
         hz = self.world.config.vehicle.control_hz
-        if not math.isclose(hz, 250.0):
+        #: world steps per exchange with PX4: a world stepping at a multiple of PX4's 250 Hz (a mixed
+        #: fleet's 1000 Hz, for ArduPilot's IMU) exchanges every ``every``-th step, on PX4's own clock
+        self.every = max(1, round(hz / PX4_LOCKSTEP_HZ))
+        if not math.isclose(hz, PX4_LOCKSTEP_HZ * self.every):
+            self.every = 1
             log.warning(
-                "vehicle.control_hz is %g Hz; PX4 SITL airframes expect a 250 Hz IMU (IMU_INTEG_RATE 250)", hz
+                "vehicle.control_hz is %g Hz; PX4 SITL airframes expect a 250 Hz IMU (IMU_INTEG_RATE 250): "
+                "use 250 Hz or a multiple of it",
+                hz,
             )
+        self._period_ns = self.every * self.world.control_period_ns
         log.info(
             "PX4 quad-X motor -> %s rotor of %s: %s",
             self.vehicle.spec.params,
@@ -246,14 +255,19 @@ class PX4Link(RotorHandover):
         """PX4's lockstep command for the step (None: none came, e.g. while it boots) and whether the step
         is the connection's first (forced at t = 0), after which PX4 has its boot grace."""
         first, self._force_step = self._force_step, False
-        return (self._pending.popleft() if self._pending else None), first
+        if not self._pending:
+            return None, first
+        self._awaiting = False
+        return self._pending.popleft(), first
 
     def apply_command(self, cmd: tuple[tuple[bool, np.ndarray | None] | None, bool]) -> None:
         self._apply(cmd[0], cmd[0] is not None)
 
     def after_step(self, truth: Truth, cmd: tuple[tuple[bool, np.ndarray | None] | None, bool]) -> None:
-        """Send the step's HIL batch (HIL_SENSOR, HIL_GPS at its rate, HIL_STATE_QUATERNION)."""
-        self._send_batch(truth)
+        """Send the step's HIL batch (HIL_SENSOR, HIL_GPS at its rate, HIL_STATE_QUATERNION) when the
+        step ends one of PX4's periods (every step at 250 Hz); the steps between apply its last outputs."""
+        if cmd[1] or truth.t_ns % self._period_ns == 0:
+            self._send_batch(truth)
         if cmd[1]:
             self._start_boot_grace()
 
@@ -267,8 +281,8 @@ class PX4Link(RotorHandover):
             left = CATCH_UP_WAIT_S - (time.monotonic() - self._stale_since)
             if left > 0:
                 return left
-        if self._pending:
-            speed = self.cfg.speed_factor
+        if self._pending or (self._lockstep and not self._awaiting):
+            speed = self.cfg.speed_factor  # its answer came, or the steps between two exchanges
         elif not self._lockstep:
             speed = self.cfg.speed_factor or 1.0
         else:
@@ -304,6 +318,8 @@ class PX4Link(RotorHandover):
         self._pending.clear()
         #: time (us) of the last sensor batch sent, and whether PX4's newest output answers an older one
         self._sent_us: int | None = None
+        #: a batch went out and PX4's answer to it has not been stepped yet (lockstep holds the clock)
+        self._awaiting = False
         self._catching_up = False
         self._stale_since = 0.0
         self._lockstep = False
@@ -469,6 +485,7 @@ class PX4Link(RotorHandover):
     def _send_batch(self, truth: Truth) -> None:
         """Send PX4 the step's sensor data for ``truth`` (:meth:`HilEncoder.batch`)."""
         self._sent_us = truth.t_ns // 1000
+        self._awaiting = True
         try:
             self._transport.send(self._hil.batch(truth))
         except ConnectionLostError as exc:
