@@ -421,7 +421,11 @@ class PX4Link(RotorHandover):
                 self._armed = armed
             if msg.flags & LOCKSTEP_FLAG:
                 if not self._lockstep:
-                    log.info("PX4 lockstep started at t=%.3f s: one step per actuator message", self.world.t)
+                    log.info(
+                        "PX4 lockstep started at t=%.3f s: %s per actuator message",
+                        self.world.t,
+                        "one step" if self.every == 1 else f"{self.every} steps",
+                    )
                     self._lockstep = True
                     self.lockstep_started_ns = self.world.t_ns
                     self._pace_wall, self._pace_sim = time.monotonic(), self.world.t_ns
