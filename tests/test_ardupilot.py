@@ -536,6 +536,10 @@ def test_config_hands_vehicles_to_ardupilot_beside_px4_but_not_the_first_vehicle
     assert c.ardupilot_instances() == {"b": 3} and c.px4_instances() == {"c": 2}
     with pytest.raises(ValueError, match="would hand the first vehicle"):
         load_config(overrides=["ardupilot.enabled=true", "px4.enabled=true"])
+    c.vehicles[0] = VehicleSpec(name="a", controlled_by="ardupilot")
+    c.px4.enabled, c.vehicles[2] = True, VehicleSpec(name="c")  # --px4 on a list whose first is ArduPilot's
+    with pytest.raises(ValueError, match=r"first vehicle \(flown by ardupilot\) to px4"):
+        c.check_autopilots()
     with pytest.raises(ValueError, match="ardupilot.on_loss must be one of land, hold, fall"):
         ArduPilotConfig(on_loss="crash")
     with pytest.raises(ValueError, match="MOT_SPIN_MIN"):

@@ -107,6 +107,10 @@ def cmd_run(args: argparse.Namespace) -> int:
             )
         cfg.ardupilot.enabled = True
         cfg.ardupilot.instance = args.ardupilot_instance or 0
+    try:
+        cfg.check_autopilots()
+    except ValueError as exc:
+        raise StartupError(str(exc), preflight.USAGE) from exc
     if cfg.px4_instances():
         # PX4's lockstep runs at 250 Hz; its SIH quad-X parameters suit PX4's default gains. Beside
         # ArduPilot (whose IMU must beat 1.8 x its 400 Hz loop) the world steps at 1000 Hz and PX4 is
