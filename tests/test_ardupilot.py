@@ -526,14 +526,20 @@ def test_the_flight_lock_refuses_internal_ops_while_ardupilot_flies(served, worl
         peer.close()
 
 
-def test_config_hands_vehicles_to_ardupilot_and_refuses_two_autopilot_kinds():
+def test_config_hands_vehicles_to_ardupilot_beside_px4_but_not_the_first_vehicle_to_both():
     c = load_config(overrides=["ardupilot.enabled=true"])
     assert c.ardupilot_instances() == {"uav0": 0} and c.px4_instances() == {}
     c = load_config(overrides=["ardupilot.instance=2"])
     c.vehicles = [VehicleSpec(name="a"), VehicleSpec(name="b", controlled_by="ardupilot")]
     assert c.ardupilot_instances() == {"b": 3}
-    with pytest.raises(ValueError, match="PX4 and ArduPilot"):
+    c.vehicles.append(VehicleSpec(name="c", controlled_by="px4"))
+    assert c.ardupilot_instances() == {"b": 3} and c.px4_instances() == {"c": 2}
+    with pytest.raises(ValueError, match="would hand the first vehicle"):
         load_config(overrides=["ardupilot.enabled=true", "px4.enabled=true"])
+    c.vehicles[0] = VehicleSpec(name="a", controlled_by="ardupilot")
+    c.px4.enabled, c.vehicles[2] = True, VehicleSpec(name="c")  # --px4 on a list whose first is ArduPilot's
+    with pytest.raises(ValueError, match=r"first vehicle \(flown by ardupilot\) to px4"):
+        c.check_autopilots()
     with pytest.raises(ValueError, match="ardupilot.on_loss must be one of land, hold, fall"):
         ArduPilotConfig(on_loss="crash")
     with pytest.raises(ValueError, match="MOT_SPIN_MIN"):

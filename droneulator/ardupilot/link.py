@@ -31,14 +31,12 @@ connects. Who flies the vehicle when ArduPilot is lost, or connects over a vehic
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
-import select
 import socket
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from typing import TYPE_CHECKING, Any
 
 from droneulator.ardupilot.mixing import ArduCopterMotors
@@ -46,6 +44,7 @@ from droneulator.ardupilot.protocol import FdmState, ProtocolError, ServoPacket,
 from droneulator.config import ArduPilotConfig
 from droneulator.controllers.flight import Event
 from droneulator.logs import LogThrottle
+from droneulator.px4 import fleet
 from droneulator.px4.fleet import AutopilotFleet
 from droneulator.px4.handover import Handover, RotorHandover, on_ground, take_over
 from droneulator.sensors import SensorSuite, Truth
@@ -79,6 +78,7 @@ class ArduPilotLink(RotorHandover):
 
     autopilot = "ArduPilot"
     event_prefix = "ardupilot"
+    scheme = "udp"
 
     #: the autopilot's name in the flight lock's reasons and the logs
     autopilot = "ArduPilot"
@@ -233,6 +233,38 @@ class ArduPilotLink(RotorHandover):
         """Read ArduPilot's packets for up to ``timeout`` s and step at most once (on a new frame);
         None when nothing stepped. ``lock`` is held around every access to the world."""
         return serve_links([self], timeout, lock)
+
+    # ------------------------------------------------------------------ the lockstep protocol (.fleet)
+    def sockets(self) -> list[socket.socket]:
+        return [] if self._sock is None else [self._sock]
+
+    def on_readable(self, readable: Collection[Any], guard: Any) -> None:
+        """Read the waiting servo packets; a peer silent for :data:`LINK_SILENCE_S` is lost."""
+        if self._sock is not None and self._sock in readable:
+            self._receive(guard)
+        self._check_silence()
+
+    def on_poll_error(self, exc: Exception) -> None:
+        log.error("ArduPilot link select failed: %s", exc)
+
+    def apply_pending_loss(self, guard: Any) -> None:
+        if self._loss_pending:
+            with guard:
+                self._apply_loss()
+
+    def time_to_step(self) -> float | None:
+        """0 once ArduPilot's next frame has come (each frame steps at once), None before."""
+        return 0.0 if self._pending is not None else None
+
+    def take_command(self) -> ServoPacket | None:
+        return self._pending
+
+    def apply_command(self, cmd: ServoPacket | None) -> None:
+        self._apply()
+
+    def after_step(self, truth: Truth, cmd: ServoPacket | None) -> None:
+        """Answer the frame with the JSON state after the step."""
+        self._answer(truth)
 
     def _receive(self, guard: Any) -> None:
         """Handle every datagram waiting on the port."""
@@ -403,63 +435,15 @@ class ArduPilotLink(RotorHandover):
 
 
 # --------------------------------------------------------------------------- links stepping one world
-def serve_links(
-    links: list[ArduPilotLink], timeout: float, lock: threading.Lock | None = None
-) -> StepResult | None:
-    """Serve every link for up to ``timeout`` s and step their (one) world at most once: when every
-    connected ArduPilot has sent its next frame. Links without an ArduPilot do not hold the clock.
-    Returns the step's result, or None when nothing stepped. ``lock`` is held around every access to
-    the world."""
-    for link in links:
-        if not link.listening:
-            raise RuntimeError("ArduPilotLink is not listening: call start() first")
-    guard = lock if lock is not None else contextlib.nullcontext()
-    deadline = time.monotonic() + max(0.0, float(timeout))
-    polled = False
-    while True:
-        for link in links:
-            if link._loss_pending:
-                with guard:
-                    link._apply_loss()
-        connected = [link for link in links if link.connected]
-        if connected and all(link._pending is not None for link in connected):
-            return _step_links(connected, guard)
-        now = time.monotonic()
-        if polled and now >= deadline:
-            return None
-        socks = {link._sock: link for link in links if link._sock is not None}
-        try:
-            readable, _, _ = select.select(list(socks), [], [], max(0.0, deadline - now))
-        except (OSError, ValueError) as exc:
-            log.error("ArduPilot link select failed: %s", exc)
-            readable = []
-        for sock in readable:
-            socks[sock]._receive(guard)
-        for link in links:
-            link._check_silence()
-        polled = True
-
-
-def _step_links(links: list[ArduPilotLink], guard: Any) -> StepResult:
-    """Apply every connected ArduPilot's frame, step the world once, answer each."""
-    world = links[0].world
-    with guard:
-        for link in links:
-            link._apply()
-        result = world.step()
-        truths = [Truth.from_sim(link.vehicle) for link in links]
-    for link, truth in zip(links, truths, strict=True):
-        link._answer(truth)
-    return result
+#: every link of a world, ArduPilot's and PX4's, steps it in one lockstep loop (:mod:`droneulator.px4.fleet`)
+serve_links = fleet.serve_links
 
 
 class ArduPilotFleet(AutopilotFleet[ArduPilotLink]):
     """Every ArduPilot link of a world (one SITL instance per vehicle it flies), served and stepped
-    together (:func:`serve_links`); the runtime's face of the ArduPilot interface."""
+    together (:func:`serve_links`); :meth:`AutopilotFleet.of` builds a world's mixed fleet."""
 
     kind = "ArduPilot"
-    scheme = "udp"
-    serve = staticmethod(serve_links)
 
     @classmethod
     def of(cls, world: World) -> ArduPilotFleet:

@@ -101,16 +101,22 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.ardupilot or args.ardupilot_instance is not None:
         if cfg.px4.enabled:
             raise StartupError(
-                "--px4 and --ardupilot: one autopilot flies a run's vehicles, choose one", preflight.USAGE
+                "--px4 and --ardupilot: both would fly the first vehicle; for a mixed fleet name each "
+                "vehicle's autopilot in the config's vehicles list (controlled_by: px4 / ardupilot)",
+                preflight.USAGE,
             )
         cfg.ardupilot.enabled = True
         cfg.ardupilot.instance = args.ardupilot_instance or 0
-    if cfg.ardupilot_instances():
-        _ardupilot_defaults(cfg, defaults, args.api_port is None)
+    try:
+        cfg.check_autopilots()
+    except ValueError as exc:
+        raise StartupError(str(exc), preflight.USAGE) from exc
     if cfg.px4_instances():
-        # PX4's lockstep runs at 250 Hz; its SIH quad-X parameters suit PX4's default gains
+        # PX4's lockstep runs at 250 Hz; its SIH quad-X parameters suit PX4's default gains. Beside
+        # ArduPilot (whose IMU must beat 1.8 x its 400 Hz loop) the world steps at 1000 Hz and PX4 is
+        # sent its sensor data every 4th step
         if cfg.vehicle.control_hz == defaults.vehicle.control_hz:
-            cfg.vehicle.control_hz = 250.0
+            cfg.vehicle.control_hz = 1000.0 if cfg.ardupilot_instances() else 250.0
         if not cfg.vehicles and cfg.vehicle.params == defaults.vehicle.params:
             cfg.vehicle.params = "px4_quadx"
         for spec in cfg.vehicles:
@@ -124,6 +130,10 @@ def cmd_run(args: argparse.Namespace) -> int:
                 cfg.bridge.listen = [f"tcp/127.0.0.1:{7448 + n}"]
             if cfg.bridge.namespace == defaults.bridge.namespace:
                 cfg.bridge.namespace = f"{defaults.bridge.namespace}{n}"
+    if cfg.ardupilot_instances():
+        # after PX4's: a mixed fleet keeps its 1000 Hz (ArduPilot's clock follows the replies)
+        shifted = bool(cfg.px4_instances()) and cfg.px4.instance > 0  # PX4's instance moved the API port
+        _ardupilot_defaults(cfg, defaults, args.api_port is None and not shifted)
     if args.ui_port is not None:
         cfg.ui.port = args.ui_port
     with_ui = args.ui or args.ui_port is not None

@@ -804,16 +804,28 @@ class SimConfig:
         if strangers:
             names = ", ".join(known)
             raise ValueError(f"faults name vehicle(s) {', '.join(strangers)}; the vehicles are {names}")
-        kinds = {v.controlled_by for v in self.vehicle_specs()} & set(AUTOPILOTS)
-        if len(kinds) > 1 or (self.px4.enabled and self.ardupilot.enabled):
-            raise ValueError(
-                "PX4 and ArduPilot cannot fly vehicles of one world together (each steps the world in its "
-                "own lockstep): hand every autopilot vehicle to one of them"
-            )
+        self.check_autopilots()
         if self.vehicle.wind != "none" and not self.wind.calm:
             raise ValueError(
                 f"vehicle.wind={self.vehicle.wind!r} (a RotorPy wind profile) and the wind field "
                 "(wind.speed_m_s, wind.gust_speed_m_s) are two wind models: use one"
+            )
+
+    def check_autopilots(self) -> None:
+        """Refuse ``px4.enabled`` / ``ardupilot.enabled`` handing over a first vehicle that is not theirs to
+        take (both at once, or one the list gives the other autopilot); a mixed fleet names each vehicle's
+        autopilot (``controlled_by``). Run again by ``droneulator run`` after ``--px4`` / ``--ardupilot``."""
+        specs = self.vehicles or [VehicleSpec()]
+        claims = [
+            kind
+            for kind in AUTOPILOTS
+            if getattr(self, kind).enabled and all(v.controlled_by != kind for v in specs)
+        ]
+        if len(claims) > 1 or (claims and specs[0].controlled_by not in ("internal", claims[0])):
+            raise ValueError(
+                f"{' and '.join(k + '.enabled' for k in claims)} would hand the first vehicle (flown by "
+                f"{specs[0].controlled_by}) to {' and '.join(claims)}: for a mixed fleet name each vehicle's "
+                "autopilot in the vehicles list (controlled_by: px4 / ardupilot)"
             )
 
     def vehicle_specs(self) -> list[VehicleSpec]:

@@ -17,8 +17,9 @@ from typing import TYPE_CHECKING
 from droneulator.commands import CommandPath
 
 if TYPE_CHECKING:
-    from droneulator.ardupilot.link import ArduPilotFleet, ArduPilotLink
-    from droneulator.px4.link import PX4Fleet, PX4Link
+    from droneulator.ardupilot.link import ArduPilotLink
+    from droneulator.px4.fleet import Fleet
+    from droneulator.px4.link import PX4Link
 
 log = logging.getLogger(__name__)
 
@@ -27,7 +28,7 @@ class PX4FlightLock:
     """Keeps ``commands``' flight lock on each vehicle of ``fleet`` in step with its link: at once when a
     link's hold changes under the simulation lock (``on_change``), and at each :meth:`update`."""
 
-    def __init__(self, commands: CommandPath, fleet: PX4Fleet | ArduPilotFleet) -> None:
+    def __init__(self, commands: CommandPath, fleet: Fleet) -> None:
         self.commands = commands
         self.fleet = fleet
         #: vehicle -> what PX4 holds of it: "control" (all flight ops), "connected" (reset), or None

@@ -27,10 +27,8 @@ are logged and queued as events (:meth:`PX4Link.take_events`).
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
-import select
 import time
 from collections import deque
 from collections.abc import Callable, Collection
@@ -41,6 +39,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from droneulator.config import PX4Config
 from droneulator.controllers.flight import Event, Mode
+from droneulator.px4 import fleet
 from droneulator.px4.fleet import AutopilotFleet
 from droneulator.px4.handover import Handover, RotorHandover, on_ground, take_over
 from droneulator.px4.hil import HilEncoder
@@ -50,6 +49,7 @@ from droneulator.sensors import SensorSuite, Truth
 from droneulator.sensors.suite import PX4_SENSORS
 
 if TYPE_CHECKING:
+    import socket
     import threading
 
     from droneulator.world.world import StepResult, World
@@ -63,6 +63,8 @@ ARMED_FLAG = mavlink.MAV_MODE_FLAG_SAFETY_ARMED
 
 #: motors stop when an autopilot's last actuator message is older than this (Gazebo-classic's rule)
 ACTUATOR_TIMEOUT_NS = 200_000_000
+#: PX4 SITL's lockstep rate (its airframes' IMU_INTEG_RATE): one HIL_SENSOR and one answer per 4 ms
+PX4_LOCKSTEP_HZ = 250.0
 #: wall time a new connection has to answer the first HIL_SENSOR before the link free-runs
 BOOT_GRACE_S = 0.05
 #: wall time PX4 may take between the answers of a catch-up burst before its newest stale one steps
@@ -89,6 +91,7 @@ class PX4Link(RotorHandover):
 
     autopilot = "PX4"
     event_prefix = "px4"
+    scheme = "tcp"
 
     #: the autopilot's name in the flight lock's reasons and the logs
     autopilot = "PX4"
@@ -126,10 +129,17 @@ class PX4Link(RotorHandover):
         self._last_cmd_t_ns: int | None = None
         self._reset_connection()
         hz = self.world.config.vehicle.control_hz
-        if not math.isclose(hz, 250.0):
+        #: world steps per exchange with PX4: a world stepping at a multiple of PX4's 250 Hz (a mixed
+        #: fleet's 1000 Hz, for ArduPilot's IMU) exchanges every ``every``-th step, on PX4's own clock
+        self.every = max(1, round(hz / PX4_LOCKSTEP_HZ))
+        if not math.isclose(hz, PX4_LOCKSTEP_HZ * self.every):
+            self.every = 1
             log.warning(
-                "vehicle.control_hz is %g Hz; PX4 SITL airframes expect a 250 Hz IMU (IMU_INTEG_RATE 250)", hz
+                "vehicle.control_hz is %g Hz; PX4 SITL airframes expect a 250 Hz IMU (IMU_INTEG_RATE 250): "
+                "use 250 Hz or a multiple of it",
+                hz,
             )
+        self._period_ns = self.every * self.world.control_period_ns
         log.info(
             "PX4 quad-X motor -> %s rotor of %s: %s",
             self.vehicle.spec.params,
@@ -232,7 +242,36 @@ class PX4Link(RotorHandover):
         """
         return serve_links([self], timeout, lock)
 
-    def _time_to_step(self) -> float | None:
+    # ------------------------------------------------------------------ the lockstep protocol (.fleet)
+    def sockets(self) -> list[socket.socket]:
+        return self._transport.sockets()
+
+    def apply_pending_loss(self, guard: Any) -> None:
+        if self._loss_pending:
+            with guard:
+                self._apply_loss()
+
+    def take_command(self) -> tuple[tuple[bool, np.ndarray | None] | None, bool]:
+        """PX4's lockstep command for the step (None: none came, e.g. while it boots) and whether the step
+        is the connection's first (forced at t = 0), after which PX4 has its boot grace."""
+        first, self._force_step = self._force_step, False
+        if not self._pending:
+            return None, first
+        self._awaiting = False
+        return self._pending.popleft(), first
+
+    def apply_command(self, cmd: tuple[tuple[bool, np.ndarray | None] | None, bool]) -> None:
+        self._apply(cmd[0], cmd[0] is not None)
+
+    def after_step(self, truth: Truth, cmd: tuple[tuple[bool, np.ndarray | None] | None, bool]) -> None:
+        """Send the step's HIL batch (HIL_SENSOR, HIL_GPS at its rate, HIL_STATE_QUATERNION) when the
+        step ends one of PX4's periods (every step at 250 Hz); the steps between apply its last outputs."""
+        if cmd[1] or truth.t_ns % self._period_ns == 0:
+            self._send_batch(truth)
+        if cmd[1]:
+            self._start_boot_grace()
+
+    def time_to_step(self) -> float | None:
         """Seconds until the next step is due (<= 0: now), or None while waiting for PX4."""
         if self._force_step:
             return 0.0
@@ -242,8 +281,8 @@ class PX4Link(RotorHandover):
             left = CATCH_UP_WAIT_S - (time.monotonic() - self._stale_since)
             if left > 0:
                 return left
-        if self._pending:
-            speed = self.cfg.speed_factor
+        if self._pending or (self._lockstep and not self._awaiting):
+            speed = self.cfg.speed_factor  # its answer came, or the steps between two exchanges
         elif not self._lockstep:
             speed = self.cfg.speed_factor or 1.0
         else:
@@ -257,7 +296,7 @@ class PX4Link(RotorHandover):
             due = now
         return due - now
 
-    def _on_readable(self, readable: Collection[Any], guard: Any) -> None:
+    def on_readable(self, readable: Collection[Any], guard: Any) -> None:
         """Handle what ``select`` found readable among the transport's sockets."""
         t = self._transport
         if t.conn is not None and t.conn in readable:
@@ -270,7 +309,7 @@ class PX4Link(RotorHandover):
             if c is not None:
                 self._promote(c, guard)
 
-    def _select_failed(self, exc: Exception) -> None:
+    def on_poll_error(self, exc: Exception) -> None:
         if self.connected:
             self._drop(f"socket error: {exc}")
 
@@ -279,6 +318,8 @@ class PX4Link(RotorHandover):
         self._pending.clear()
         #: time (us) of the last sensor batch sent, and whether PX4's newest output answers an older one
         self._sent_us: int | None = None
+        #: a batch went out and PX4's answer to it has not been stepped yet (lockstep holds the clock)
+        self._awaiting = False
         self._catching_up = False
         self._stale_since = 0.0
         self._lockstep = False
@@ -380,7 +421,11 @@ class PX4Link(RotorHandover):
                 self._armed = armed
             if msg.flags & LOCKSTEP_FLAG:
                 if not self._lockstep:
-                    log.info("PX4 lockstep started at t=%.3f s: one step per actuator message", self.world.t)
+                    log.info(
+                        "PX4 lockstep started at t=%.3f s: %s per actuator message",
+                        self.world.t,
+                        "one step" if self.every == 1 else f"{self.every} steps",
+                    )
                     self._lockstep = True
                     self.lockstep_started_ns = self.world.t_ns
                     self._pace_wall, self._pace_sim = time.monotonic(), self.world.t_ns
@@ -444,6 +489,7 @@ class PX4Link(RotorHandover):
     def _send_batch(self, truth: Truth) -> None:
         """Send PX4 the step's sensor data for ``truth`` (:meth:`HilEncoder.batch`)."""
         self._sent_us = truth.t_ns // 1000
+        self._awaiting = True
         try:
             self._transport.send(self._hil.batch(truth))
         except ConnectionLostError as exc:
@@ -451,81 +497,15 @@ class PX4Link(RotorHandover):
 
 
 # --------------------------------------------------------------------------- links stepping one world
-def serve_links(
-    links: list[PX4Link], timeout: float, lock: threading.Lock | None = None
-) -> StepResult | None:
-    """Serve every link for up to ``timeout`` s and step their (one) world at most once.
-
-    The world steps when every connected PX4 is ready: each in lockstep has sent its actuator outputs
-    for the last step, each booting (before lockstep) is due by its pacing, as Gazebo's lockstep waits
-    for every PX4 instance. Links without a PX4 do not hold the clock. Returns the step's result, or
-    None when nothing stepped within ``timeout``. ``lock`` is held around every access to the world.
-    """
-    for link in links:
-        if not link.listening:
-            raise RuntimeError("PX4Link is not listening: call start() first")
-    guard = lock if lock is not None else contextlib.nullcontext()
-    deadline = time.monotonic() + max(0.0, float(timeout))
-    polled = False
-    while True:
-        for link in links:
-            if link._loss_pending:
-                with guard:
-                    link._apply_loss()
-        waits = [link._time_to_step() for link in links if link.connected]
-        due = max(waits) if waits and all(w is not None for w in waits) else None  # type: ignore[type-var]
-        if due is not None and due <= 0.0:
-            return _step_links([link for link in links if link.connected], guard)
-        now = time.monotonic()
-        if polled and now >= deadline:
-            return None
-        wait = max(0.0, deadline - now)
-        if due is not None:
-            wait = min(wait, due)
-        _poll_links(links, wait, guard)
-        polled = True
-
-
-def _poll_links(links: list[PX4Link], wait: float, guard: Any) -> None:
-    owner = {sock: link for link in links for sock in link._transport.sockets()}
-    try:
-        readable, _, _ = select.select(list(owner), [], [], wait)
-    except (OSError, ValueError) as exc:
-        for link in links:
-            link._select_failed(exc)
-        return
-    for link in links:
-        link._on_readable([s for s in readable if owner[s] is link], guard)
-
-
-def _step_links(links: list[PX4Link], guard: Any) -> StepResult:
-    """Apply every connected PX4's command, step the world once, send each PX4 its sensor data."""
-    world = links[0].world
-    firsts = []
-    cmds = []
-    for link in links:
-        firsts.append(link._force_step)
-        link._force_step = False
-        cmds.append(link._pending.popleft() if link._pending else None)
-    with guard:
-        for link, cmd in zip(links, cmds, strict=True):
-            link._apply(cmd, cmd is not None)
-        result = world.step()
-        truths = [Truth.from_sim(link.vehicle) for link in links]
-    for link, truth, first in zip(links, truths, firsts, strict=True):
-        link._send_batch(truth)
-        if first:
-            link._start_boot_grace()
-    return result
+#: every link of a world, PX4's and ArduPilot's, steps it in one lockstep loop (:mod:`.fleet`)
+serve_links = fleet.serve_links
 
 
 class PX4Fleet(AutopilotFleet[PX4Link]):
     """Every PX4 link of a world (one PX4 SITL instance per vehicle it flies), served and stepped
-    together (:func:`serve_links`); the runtime's face of the PX4 interface."""
+    together (:func:`serve_links`); :meth:`AutopilotFleet.of` builds a world's mixed fleet."""
 
     kind = "PX4"
-    scheme = "tcp"
-    serve = staticmethod(serve_links)
 
     @classmethod
     def of(cls, world: World) -> PX4Fleet:

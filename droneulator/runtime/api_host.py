@@ -19,8 +19,7 @@ from droneulator.ros.publishers import fleet_names
 from droneulator.vehicles.vehicle import VehicleState
 
 if TYPE_CHECKING:
-    from droneulator.ardupilot.link import ArduPilotFleet
-    from droneulator.px4.link import PX4Fleet
+    from droneulator.px4.fleet import Fleet
 
 
 class ApiHost:
@@ -47,7 +46,7 @@ class ApiHost:
     def port(self) -> int:
         return self.server.port
 
-    def start(self, px4: PX4Fleet | ArduPilotFleet | None) -> None:
+    def start(self, px4: Fleet | None) -> None:
         """Say where each vehicle is reached (its PX4 port bound already), then serve."""
         self._describe_vehicles(px4)
         self.server.start()
@@ -62,7 +61,7 @@ class ApiHost:
         for e in events:
             self.server.publish_event(e.to_dict())
 
-    def _describe_vehicles(self, px4: PX4Fleet | ArduPilotFleet | None) -> None:
+    def _describe_vehicles(self, px4: Fleet | None) -> None:
         """Tell each vehicle where it is reached (``scene_info.vehicles``): ROS names, its autopilot's port
         (bound)."""
         ports = {}

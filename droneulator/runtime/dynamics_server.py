@@ -2,7 +2,8 @@
 server and the bridge connect to. Each camera instant goes to the render server as every vehicle's state
 at once. It composes what else runs on the clock: the WebSocket API (:mod:`.api_host`), the ROS 2 state
 and sensor topics (:mod:`.publishing`), the latency log (:mod:`.latency`), and the autopilot links with
-their flight lock: PX4's (:mod:`droneulator.px4`) or ArduPilot's (:mod:`droneulator.ardupilot`).
+their flight lock: PX4's (:mod:`droneulator.px4`) and ArduPilot's (:mod:`droneulator.ardupilot`), any mix
+of them stepping the world on one lockstep clock (:mod:`droneulator.px4.fleet`).
 
 Lockstep: a control step is taken only while fewer than ``frame_slots - 1`` frames are in flight
 (requested from the render server and not yet published by the bridge), so sim time advances
@@ -63,9 +64,8 @@ from droneulator.world import World
 from droneulator.world.world import StepResult
 
 if TYPE_CHECKING:
-    from droneulator.ardupilot.link import ArduPilotFleet
+    from droneulator.px4.fleet import Fleet
     from droneulator.px4.flight_lock import PX4FlightLock
-    from droneulator.px4.link import PX4Fleet
 
 log = logging.getLogger("droneulator.dynamics")
 ROLES = ("renderer", "bridge")
@@ -125,20 +125,14 @@ class DynamicsServer:
         self.stopping = threading.Event()
         self.dropped_frames = 0
         self.frames_published = 0
-        #: the autopilot links (PX4's or ArduPilot's: one kind per world) and their flight lock
-        self.px4: PX4Fleet | ArduPilotFleet | None = None
+        #: the autopilot links (PX4's and ArduPilot's, one lockstep clock for all) and their flight lock
+        self.px4: Fleet | None = None
         self.flight_lock: PX4FlightLock | None = None
         if cfg.px4_instances() or cfg.ardupilot_instances():
+            from droneulator.px4.fleet import AutopilotFleet
             from droneulator.px4.flight_lock import PX4FlightLock
 
-            if cfg.px4_instances():
-                from droneulator.px4.link import PX4Fleet
-
-                self.px4 = PX4Fleet.of(self.world)
-            else:
-                from droneulator.ardupilot.link import ArduPilotFleet
-
-                self.px4 = ArduPilotFleet.of(self.world)
+            self.px4 = AutopilotFleet.of(self.world)
             self.flight_lock = PX4FlightLock(self.commands, self.px4)
 
     # ------------------------------------------------------------------ peers
@@ -332,7 +326,7 @@ class DynamicsServer:
                 log.info(
                     "waiting for %s SITL on %s (renderer and bridge warm: the first frame was published "
                     "at t=%.3f s)",
-                    self.px4.links[0].autopilot,
+                    self.px4.autopilots,
                     self.px4.describe(),
                     self.world.t,
                 )
