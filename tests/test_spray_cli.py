@@ -127,3 +127,12 @@ def test_a_coverage_plan_uploads_to_the_scripted_px4_as_a_mission():
         sim.close()
         if conn is not None:
             conn.close()
+
+
+def test_the_spray_follows_px4s_spray_output_with_a_dead_band():
+    from droneulator.px4.link import spray_switch
+
+    assert spray_switch(1.0, False) is True and spray_switch(-1.0, True) is False
+    assert spray_switch(1.0, True) is None and spray_switch(-1.0, False) is None
+    for idle in (0.0, 0.3, -0.3, float("nan")):  # unassigned or not sent: the API's setting stands
+        assert spray_switch(idle, True) is None and spray_switch(idle, False) is None

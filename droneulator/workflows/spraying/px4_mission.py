@@ -11,9 +11,10 @@ NAV_RETURN_TO_LAUNCH.
 Why DO_SET_ACTUATOR and not DO_SET_SERVO: since v1.13 PX4 maps DO_SET_ACTUATOR's actuator 1-6 to the
 outputs assigned the functions "Peripheral via Actuator Set 1-6" (``PWM_MAIN_FUNCn`` and the like), in
 missions and as commands; its DO_SET_SERVO mission item is reported ignored (PX4-Autopilot issue 20554,
-open). The spray follows that output: with the sprayer's output set to :data:`SPRAY_ACTUATOR`'s function,
-the simulator would read it from the HIL_ACTUATOR_CONTROLS PX4 already sends (not wired yet: see
-docs/spray.md).
+open). The spray follows that output: with PX4's fifth simulator output set to "Peripheral via Actuator
+Set 1" (``HIL_ACT_FUNC5 = 301``), the PX4 link reads it from the HIL_ACTUATOR_CONTROLS PX4 already sends
+and switches the vehicle's spray system on above +0.5 and off below -0.5
+(:func:`droneulator.px4.link.spray_switch`).
 
 The upload is the MAVLink mission protocol's, as PX4's ``MavlinkMissionManager`` runs it: the ground
 station sends MISSION_COUNT, the vehicle asks for each item in turn with MISSION_REQUEST_INT (older
