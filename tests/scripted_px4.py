@@ -58,6 +58,19 @@ G = 9.80665
 TAKEOFF_ALT, TAKEOFF_SPEED, LAND_SPEED = 2.5, 1.5, 0.7
 #: PX4's offboard signal: a setpoint within this much sim time (COM_OF_LOSS_T is 1 s; the mode check 0.5 s)
 OFFBOARD_SIGNAL_S = 0.5
+#: the mission items PX4 stores (its dataman's default capacity), and the commands and frames its mission
+#: manager takes (a subset of ``MavlinkMissionManager::parse_mavlink_mission_item``'s)
+MISSION_MAX_ITEMS = 500
+MISSION_COMMANDS = frozenset({
+    mavlink.MAV_CMD_NAV_WAYPOINT, mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_NAV_LAND,
+    mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH, mavlink.MAV_CMD_NAV_LOITER_TIME, mavlink.MAV_CMD_NAV_LOITER_UNLIM,
+    mavlink.MAV_CMD_DO_CHANGE_SPEED, mavlink.MAV_CMD_DO_SET_ACTUATOR, mavlink.MAV_CMD_DO_SET_SERVO,
+    mavlink.MAV_CMD_DO_JUMP,
+})  # fmt: skip
+MISSION_FRAMES = frozenset({
+    mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT, mavlink.MAV_FRAME_GLOBAL_INT,
+    mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, mavlink.MAV_FRAME_MISSION,
+})  # fmt: skip
 #: complementary filter gains per GPS fix (10 Hz): position and velocity towards the fix
 GAIN_P, GAIN_V = 0.15, 0.25
 
@@ -109,6 +122,10 @@ class ScriptedPX4:
         self._setpoint: tuple[float, np.ndarray, np.ndarray, np.ndarray, float, float] | None = None
         self._next = {"heartbeat": 0.0, "local": 0.0, "attitude": 0.0}
         self._last_t_us: int | None = None
+        #: the stored mission (MISSION_ITEM_INT messages) and the upload under way
+        self.mission: list[Any] = []
+        self._upload: list[Any] | None = None
+        self._upload_count = 0
         #: every (sim t, mode, armed) change and every command result, for tests
         self.log: list[tuple[float, str, Any]] = []
         self.error: BaseException | None = None
@@ -315,6 +332,8 @@ class ScriptedPX4:
                 for msg in link[2].parse_buffer(data) or []:
                     if msg.get_type() == "COMMAND_LONG":
                         self._command(msg, link)
+                    elif msg.get_type() in ("MISSION_COUNT", "MISSION_ITEM_INT"):
+                        self._mission(msg, link)
                     elif msg.get_type() == "SET_POSITION_TARGET_LOCAL_NED":
                         self._on_setpoint(msg)
 
@@ -328,6 +347,49 @@ class ScriptedPX4:
         yaw_rate = 0.0 if mask & mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE else -m.yaw_rate
         with self.lock:
             self._setpoint = (self.t, p, v, a, frames.yaw_ned_to_enu(m.yaw), yaw_rate)
+
+    def _mission(self, msg: Any, link: list[Any]) -> None:
+        """The mission upload as PX4's MavlinkMissionManager answers it: MISSION_COUNT starts it (0 items
+        clears the mission), each item is asked for in turn with MISSION_REQUEST_INT, an item out of turn
+        is ignored (its request repeated), an unsupported command or frame ends it with that MISSION_ACK,
+        and the last item with MAV_MISSION_ACCEPTED; the mission then replaces the stored one."""
+        if msg.mission_type != mavlink.MAV_MISSION_TYPE_MISSION:
+            return self._mission_ack(msg, mavlink.MAV_MISSION_UNSUPPORTED, link)
+        if msg.get_type() == "MISSION_COUNT":
+            if msg.count > MISSION_MAX_ITEMS:
+                return self._mission_ack(msg, mavlink.MAV_MISSION_NO_SPACE, link)
+            self._upload = []
+            self._upload_count = msg.count
+            if msg.count == 0:
+                self.mission = []
+                return self._mission_ack(msg, mavlink.MAV_MISSION_ACCEPTED, link)
+            return self._mission_request(msg, link)
+        if self._upload is None:
+            return  # an item outside an upload: PX4 ignores it
+        if msg.seq != len(self._upload):
+            return self._mission_request(msg, link)
+        if msg.command not in MISSION_COMMANDS:
+            self._upload = None
+            return self._mission_ack(msg, mavlink.MAV_MISSION_UNSUPPORTED, link)
+        if msg.frame not in MISSION_FRAMES:
+            self._upload = None
+            return self._mission_ack(msg, mavlink.MAV_MISSION_UNSUPPORTED_FRAME, link)
+        self._upload.append(msg)
+        if len(self._upload) < self._upload_count:
+            return self._mission_request(msg, link)
+        with self.lock:
+            self.mission, self._upload = self._upload, None
+            self.log.append((self.t, "mission", len(self.mission)))
+        self._mission_ack(msg, mavlink.MAV_MISSION_ACCEPTED, link)
+
+    def _mission_request(self, msg: Any, link: list[Any]) -> None:
+        self._send(self._tx.mission_request_int_encode(msg.get_srcSystem(), msg.get_srcComponent(),
+                                                       len(self._upload), mavlink.MAV_MISSION_TYPE_MISSION),
+                   link)  # fmt: skip
+
+    def _mission_ack(self, msg: Any, result: int, link: list[Any]) -> None:
+        self._send(self._tx.mission_ack_encode(msg.get_srcSystem(), msg.get_srcComponent(), result,
+                                               msg.mission_type), link)  # fmt: skip
 
     def _ack(self, msg: Any, result: int, link: list[Any]) -> None:
         self._send(self._tx.command_ack_encode(msg.command, result, 0, 0, msg.get_srcSystem(),

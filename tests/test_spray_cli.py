@@ -75,3 +75,64 @@ def test_a_short_mission_balances_and_doses_the_row_it_flew():
     on_row = np.abs(plants[:, 1] - row) < 0.5
     assert dose[on_row].min() > 0.0 and dose[on_row].sum() > 5 * dose[~on_row].sum()
     assert report["tank"]["level_l"] == pytest.approx(10.0 - report["sprayed_l"], abs=1e-9)
+
+
+def test_a_coverage_plan_uploads_to_the_scripted_px4_as_a_mission():
+    """The plan's mission goes up by the mission protocol (MISSION_COUNT, MISSION_REQUEST_INT per item,
+    MISSION_ACK) and lands item for item: the spray switched on before each spraying leg and off after
+    it, every waypoint back on the plan's ENU position through the site's origin."""
+    import math
+    import socket
+
+    from pymavlink import mavutil
+    from pymavlink.dialects.v20 import common as mavlink
+    from scripted_px4 import ScriptedPX4
+
+    from droneulator.config.site import SiteConfig
+    from droneulator.frames import geodetic_to_enu
+    from droneulator.workflows.spraying.px4_mission import mission_items, upload_mission
+
+    plan = coverage_plan(get_scene("vineyard", 0))
+    site = SiteConfig()
+    items = mission_items(plan, site)
+    sim = socket.create_server(("127.0.0.1", 0))  # the simulator's port: the peer connects and waits
+    px4 = ScriptedPX4(sim.getsockname()[1], offboard_port=sim.getsockname()[1])
+    conn = None
+    try:
+        conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{px4._links[0][0].getsockname()[1]}",
+                                          source_system=255, source_component=190)  # fmt: skip
+        conn.mav = mavlink.MAVLink(conn, 255, 190)  # MAVLink 2 (mission_type)
+        upload_mission(conn, items)
+        assert px4.error is None
+        got = px4.mission
+        assert [m.seq for m in got] == list(range(len(items)))
+        assert [m.command for m in got] == [i.command for i in items]
+        spraying = [leg for leg in plan.legs if leg.spray]
+        on_off = [m.param1 for m in got if m.command == mavlink.MAV_CMD_DO_SET_ACTUATOR]
+        assert on_off == [1.0, -1.0] * len(spraying)
+        waypoints = [m for m in got if m.command == mavlink.MAV_CMD_NAV_WAYPOINT]
+        ends = [plan.legs[0].start] + [leg.end for leg in plan.legs]
+        for m, p in zip(waypoints, ends, strict=True):
+            enu = geodetic_to_enu(m.x * 1e-7, m.y * 1e-7, m.z, site.latitude_deg, site.longitude_deg,
+                                  site.altitude_m)  # fmt: skip
+            assert np.allclose(enu, p, atol=0.02)
+        assert math.isnan(got[1].param4)  # keep the yaw
+        # an unsupported command ends the upload with PX4's answer
+        bad = [items[0].__class__(mavlink.MAV_CMD_DO_SET_RELAY, mavlink.MAV_FRAME_MISSION, (0.0,) * 4)]
+        with pytest.raises(RuntimeError, match="MAV_MISSION_UNSUPPORTED"):
+            upload_mission(conn, bad)
+        assert len(px4.mission) == len(items)
+    finally:
+        px4.close()
+        sim.close()
+        if conn is not None:
+            conn.close()
+
+
+def test_the_spray_follows_px4s_spray_output_with_a_dead_band():
+    from droneulator.px4.link import spray_switch
+
+    assert spray_switch(1.0, False) is True and spray_switch(-1.0, True) is False
+    assert spray_switch(1.0, True) is None and spray_switch(-1.0, False) is None
+    for idle in (0.0, 0.3, -0.3, float("nan")):  # unassigned or not sent: the API's setting stands
+        assert spray_switch(idle, True) is None and spray_switch(idle, False) is None

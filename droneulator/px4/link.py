@@ -61,6 +61,27 @@ NS = 1_000_000_000
 LOCKSTEP_FLAG = mavlink.HIL_ACTUATOR_CONTROLS_FLAGS_LOCKSTEP
 ARMED_FLAG = mavlink.MAV_MODE_FLAG_SAFETY_ARMED
 
+#: the HIL_ACTUATOR_CONTROLS output a sprayer's pump follows: PX4's fifth simulator output, set to
+#: "Peripheral via Actuator Set 1" (``HIL_ACT_FUNC5 = 301``), which a mission's MAV_CMD_DO_SET_ACTUATOR
+#: (actuator 1) drives (:mod:`droneulator.workflows.spraying.px4_mission`)
+SPRAY_OUTPUT = 4
+#: the output switches the spray on above this and off below its negative (a dead band for an output
+#: that is unassigned, 0, or not sent, NaN: then the spray stays as the API set it)
+SPRAY_SWITCH = 0.5
+
+
+def spray_switch(output: float, on: bool) -> bool | None:
+    """The spray's new state for PX4's spray output ``output`` (-1 .. 1) when it is ``on`` now: True or
+    False on a switch, None when the output leaves it as it is."""
+    if not math.isfinite(output):
+        return None
+    if output > SPRAY_SWITCH and not on:
+        return True
+    if output < -SPRAY_SWITCH and on:
+        return False
+    return None
+
+
 #: motors stop when an autopilot's last actuator message is older than this (Gazebo-classic's rule)
 ACTUATOR_TIMEOUT_NS = 200_000_000
 #: PX4 SITL's lockstep rate (its airframes' IMU_INTEG_RATE): one HIL_SENSOR and one answer per 4 ms
@@ -316,6 +337,8 @@ class PX4Link(RotorHandover):
     # ------------------------------------------------------------------ connection
     def _reset_connection(self) -> None:
         self._pending.clear()
+        #: PX4's spray output in its last HIL_ACTUATOR_CONTROLS (:data:`SPRAY_OUTPUT`)
+        self._spray_output = math.nan
         #: time (us) of the last sensor batch sent, and whether PX4's newest output answers an older one
         self._sent_us: int | None = None
         #: a batch went out and PX4's answer to it has not been stepped yet (lockstep holds the clock)
@@ -415,6 +438,7 @@ class PX4Link(RotorHandover):
         if kind == "HIL_ACTUATOR_CONTROLS":
             armed = bool(msg.mode & ARMED_FLAG)
             speeds = self.motor_map.rotor_speeds(msg.controls[:4]) if armed else None
+            self._spray_output = float(msg.controls[SPRAY_OUTPUT])
             if armed != self._armed:
                 log.info("PX4 %s at t=%.3f s", "armed" if armed else "disarmed", self.world.t)
                 self._event("px4_armed" if armed else "px4_disarmed")
@@ -463,6 +487,12 @@ class PX4Link(RotorHandover):
         """(Under the lock, before a step) apply PX4's command ``cmd`` (``lockstep``: from a lockstep
         message) or, without a fresh one, the actuator timeout."""
         t_ns = self.world.t_ns
+        spraying = self.world.spraying
+        if spraying is not None and self.vehicle.name in spraying.systems:
+            system = spraying.systems[self.vehicle.name]
+            switch = spray_switch(self._spray_output, system.rate > 0.0)
+            if switch is not None:
+                system.set(1.0 if switch else 0.0)
         if cmd is None and self._free_cmd is not None and self._fresh(t_ns):
             cmd = self._free_cmd
         if cmd is not None:

@@ -207,9 +207,10 @@ def air_velocity(
         w *= rotors[r, 11]
         if w > 0.0:
             out[7] = max(out[7], r0 / math.sqrt(2.0) + SPREAD * depth)
-        # the ground: where the wake's axis meets it, the jet stops and spreads out as a wall jet
-        reach = rotors[r, 2] / max(-az, 1e-3)
-        if az < -0.2 and reach < 15.0:
+        # the ground: where the wake's axis (down the thrust axis) meets it, the jet stops and spreads
+        # out as a wall jet
+        reach = rotors[r, 2] / max(az, 1e-3)
+        if az > 0.2 and reach < 15.0:
             b_g = r0 / math.sqrt(2.0) + SPREAD * reach
             delta = 0.5 * b_g
             fade = math.exp(-h / delta) if h < 8.0 * delta else 0.0

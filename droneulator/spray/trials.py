@@ -44,7 +44,8 @@ DRIFT_M = np.array([1, 3, 5, 10, 15, 20, 30, 40, 50], float)
 
 @dataclass
 class Airframe:
-    """What a trial needs of a vehicle: its take-off mass, rotor layout and disk, and frame drag."""
+    """What a trial needs of a vehicle: its take-off mass, rotor layout, each rotor's disk area, and frame
+    drag."""
 
     mass: float
     rotor_pos: np.ndarray
@@ -78,7 +79,7 @@ class Airframe:
         rows[:, 0:3] = position + self.rotor_pos @ R.T
         rows[:, 3:6] = R[:, 2]
         rows[:, 6] = thrust / len(self.rotor_pos)
-        rows[:, 7] = self.disk_area / len(self.rotor_pos)
+        rows[:, 7] = self.disk_area
         return Emitter(position.copy(), q, velocity.copy(), rows, release)
 
 
