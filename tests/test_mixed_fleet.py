@@ -43,7 +43,8 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def wait_until(pred: Any, timeout: float = 5.0) -> None:
+def wait_until(pred: Any, timeout: float = 60.0) -> None:
+    """Wait for ``pred``: a failure detector, generous for a loaded machine compiling the kernels."""
     end = time.monotonic() + timeout
     while not pred():
         assert time.monotonic() < end, "timed out"
@@ -117,7 +118,7 @@ def test_internal_px4_and_ardupilot_vehicles_fly_one_world_in_lockstep_and_lose_
             # a reply per step to ArduPilot, a HIL_SENSOR per 4 ms to PX4, on the same clock: from PX4's
             # first lockstep batch on, PX4's stamps are ArduPilot's on its 4 ms grid, each once
             on_grid = [t for t in ap_stamps if t % PX4_DT_US == 0]
-            wait_until(lambda: px4.stamps[-1] == on_grid[-1], 0.5)
+            wait_until(lambda: px4.stamps[-1] == on_grid[-1])
             assert px4.stamps[1:] == on_grid[on_grid.index(px4.stamps[1]) :]
             assert np.all(np.diff(ap_stamps) == DT_US) and len(stepped) == len(set(stepped))
 
@@ -131,7 +132,7 @@ def test_internal_px4_and_ardupilot_vehicles_fly_one_world_in_lockstep_and_lose_
             assert px.mode.value == "hold" and apv.mode.value == "external"
 
             ap.close()  # ArduPilot silent: lost after LINK_SILENCE_S, its vehicle landed
-            wait_until(lambda: not ap_link.connected, 3.0)
+            wait_until(lambda: not ap_link.connected)
             taken: list[Any] = []
 
             def ardupilot_lost() -> list[Any]:
