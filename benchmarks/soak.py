@@ -295,19 +295,23 @@ def rss_growth(samples: list[tuple[float, str, int, int]], warm_s: float) -> dic
     return out
 
 
-def scan_log(lines: list[str]) -> dict[str, Any]:
-    """Tracebacks and ERROR lines, less the supervisor's reports of the deliberate SIGKILLs."""
+#: what an unhandled error leaves in a run's log (its format carries no level: a traceback, an exception)
+ERROR_MARKS = ("Traceback", "Error:", "Exception", " failed", "ERROR", "CRITICAL", "Fatal", "panicked")
+
+
+def scan_log(lines: list[str], expected: tuple[str, ...] = ("exited with code -9",)) -> dict[str, Any]:
+    """Lines that look like an error, less those ``expected`` (by default the supervisor's reports of
+    the deliberate SIGKILLs), and WebSocket connections closed on an error (1011)."""
     found = []
     for i, line in enumerate(lines):
-        if "Traceback" in line or " ERROR " in line or "ERROR:" in line or "CRITICAL" in line:
-            expected = "exited with code -9" in line
-            found.append({"line": i + 1, "text": line[:300], "expected": expected})
+        if any(m in line for m in ERROR_MARKS):
+            found.append({"line": i + 1, "text": line[:300], "expected": any(e in line for e in expected)})
     unexpected = [f for f in found if not f["expected"]]
-    closes = sum("1011 (internal error)" in line for line in lines)  # a WebSocket closed on an error
     return {
         "expected": len(found) - len(unexpected),
         "unhandled": len(unexpected),
-        "websocket_closes_1011": closes,
+        "tracebacks": sum("Traceback" in line for line in lines),
+        "websocket_closes_1011": sum("1011 (internal error)" in line for line in lines),
         "lines": unexpected[:20],
     }
 
