@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from droneulator.commands.ops import execute, make_request
+from droneulator.api.protocol import handle_request
+from droneulator.commands.ops import OPS, execute, make_request
 from droneulator.config import FaultSpec, PX4Config, RandomizeConfig, SiteConfig, from_dict, load_config
 from droneulator.config.faults import fault_markdown
 from droneulator.frames import geodetic_to_enu
@@ -216,6 +217,20 @@ def test_a_cut_link_delivers_no_command_so_the_stream_times_out_into_a_hold(worl
     assert cleared["ok"] and cleared["result"]["cleared"] == [started["result"]["fault"]["id"]]
     assert _op(world, "track", position=[0.0, 0.0, 3.2])["ok"]
     assert world.step().events[0].type == "fault_ended"
+
+
+def test_fault_clear_by_id_over_the_wire_clears_only_that_fault(world):
+    """Found by benchmarks/fuzz.py: the filter was named `id`, the request's own id, so over JSON it
+    never reached the op (every fault was cleared) and the reply carried the fault id, not the
+    request's (a client waiting for its reply timed out). No op may name a field `id` or `op`."""
+    assert not [(o.name, a.name) for o in OPS.values() for a in o.args if a.name in ("id", "op")]
+    world.reset(position=[0.0, 0.0, 3.0])
+    first = _op(world, "fault", kind="gps_loss")["result"]["fault"]["id"]
+    second = _op(world, "fault", kind="baro_drift")["result"]["fault"]["id"]
+    reply = handle_request(world, json.dumps({"id": "r1", "op": "fault_clear", "fault_id": first}))
+    assert reply["id"] == "r1" and reply["result"]["cleared"] == [first], reply
+    assert list(world.faults.active) == [second]
+    world.reset(position=[0.0, 0.0, 3.0])
 
 
 def test_a_camera_dropout_drops_the_vehicles_frames():

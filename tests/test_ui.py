@@ -543,3 +543,41 @@ def test_px4_status_and_flight_controls_locked_while_px4_flies(stack: Stack) -> 
             flying.join(10)
         page.close()
         run.stop()
+
+
+def test_a_closed_tab_closes_its_api_connection_cleanly() -> None:
+    """Found by benchmarks/soak.py: a tab that went away left its API connection closed with 1011
+    (internal error), the connection being cancelled inside ``connect``; it closes with 1000."""
+    import json
+
+    from websockets.sync.client import connect
+    from websockets.sync.server import serve
+
+    from droneulator.config import UIConfig
+    from droneulator.ui.server import UIServer
+
+    codes: list[int | None] = []
+
+    def api(ws) -> None:  # answers everything; records how each connection ended
+        for raw in ws:
+            msg = json.loads(raw)
+            ws.send(json.dumps({"id": msg.get("id"), "ok": True, "result": {"vehicles": []}}))
+        codes.append(ws.close_code)
+
+    with serve(api, "127.0.0.1", 0) as fake:
+        threading.Thread(target=fake.serve_forever, daemon=True).start()
+        api_url = f"ws://127.0.0.1:{fake.socket.getsockname()[1]}"
+        ui = UIServer(api_url, zenoh=f"tcp/127.0.0.1:{free_port()}", config=UIConfig(port=0, nice=0))
+        url = ui.start_in_thread()
+        try:
+            with connect(url.replace("http", "ws") + "/ws") as tab:
+                while '"connected": true' not in tab.recv(timeout=10):  # the tab's API link is up
+                    pass
+            deadline = time.monotonic() + 10
+            while len(codes) < 2:  # scene_info's own connection, then the tab's
+                assert time.monotonic() < deadline, codes
+                time.sleep(0.05)
+        finally:
+            ui.stop()
+            fake.shutdown()
+    assert codes == [1000, 1000]

@@ -723,7 +723,7 @@ def test_bad_payloads_are_logged_and_skipped(
                 "connect": [ep],
                 "payloads": [
                     {"key": "cmd_vel", "payload": b"definitely not cdr".hex()},
-                    {"key": "cmd_vel", "payload": good[:20].hex()},
+                    *[{"key": "cmd_vel", "payload": good[:20].hex()}] * 49,  # a flood (found by the fuzz)
                     {"key": "cmd_vel", "payload": good.hex()},
                 ],
             }
@@ -732,9 +732,9 @@ def test_bad_payloads_are_logged_and_skipped(
         assert done.wait(15)
         peer.expect("done")
     assert len(received) == 1 and M.twist_to_command(received[0]) == (0.7, -0.1)
-    assert sub.errors == 2 and sub.received == 1
+    assert sub.errors == 50 and sub.received == 1
     errors = [r for r in caplog.records if r.name == "droneulator.ros" and r.levelno == logging.ERROR]
-    assert len(errors) == 2 and all("/cmd_vel" in r.getMessage() for r in errors)
+    assert len(errors) == 1 and "/cmd_vel" in errors[0].getMessage()  # the burst's first; the rest counted
 
 
 def test_callback_exception_does_not_stop_subscription(

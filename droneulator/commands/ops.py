@@ -297,7 +297,7 @@ def _fault_clear(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
     if kind is not None and kind not in FAULT_KINDS:
         known = ", ".join(FAULT_KINDS)
         raise CommandError("invalid_argument", f"unknown fault kind {kind!r}; the kinds are {known}")
-    return {"cleared": sim.clear_faults(a.get("vehicle"), kind, a.get("id")), **_when(sim)}
+    return {"cleared": sim.clear_faults(a.get("vehicle"), kind, a.get("fault_id")), **_when(sim)}
 
 
 #: the ``vehicle`` field of every flight op
@@ -595,7 +595,8 @@ OPS: dict[str, Op] = {
             "`cleared`: the ids of the faults ended; `t`: " + _T,
             (
                 Arg("kind", "string", "only faults of this kind"),
-                Arg("id", "integer", "only the fault with this id (the `fault` reply's)"),
+                # not `id`: that is the request's own id, which the transport strips before the op sees it
+                Arg("fault_id", "integer", "only the fault with this id (the `fault` reply's `fault.id`)"),
                 Arg("vehicle", "string", "only the faults of this vehicle"),
             ),
             _fault_clear,

@@ -78,6 +78,7 @@ import xxhash
 import zenoh
 import zenoh.ext
 
+from droneulator.logs import LogThrottle
 from droneulator.ros import messages
 
 __all__ = [
@@ -94,6 +95,8 @@ __all__ = [
 ]
 
 log = logging.getLogger("droneulator.ros")
+#: undecodable samples: the first of a burst logged, the rest counted (a peer can send thousands a second)
+_bad_samples = LogThrottle(log, gap=2.0, period=10.0)
 
 KeyMode = Literal["ros2dds", "rmw_zenoh"]
 ZenohMode = Literal["peer", "client", "router"]
@@ -462,8 +465,15 @@ class RosSubscription:
             msg = messages.decode(self.typename, payload)
         except messages.SerdeError as exc:
             self.errors += 1
-            log.error(
-                "dropped a bad %s sample on %s (%d bytes): %s", self.typename, self.topic, len(payload), exc
+            _bad_samples.log(
+                (self.topic, self.typename),
+                logging.ERROR,
+                "dropped a bad %s sample on %s (%d bytes): %s",
+                self.typename,
+                self.topic,
+                len(payload),
+                exc,
+                summary=f"dropped {{n}} more bad {self.typename} samples on {self.topic}",
             )
             return
         self.received += 1

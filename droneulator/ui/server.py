@@ -478,11 +478,11 @@ class BrowserSession:
         except ConnectionClosed:
             pass
         finally:
+            if self.upstream is not None:  # first, with 1000: cancelled inside `connect` it closes with 1011
+                await self.upstream.close()
             for t in tasks:
                 t.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
-            if self.upstream is not None:
-                await self.upstream.close()
 
     async def _send(self, obj: dict[str, Any]) -> None:
         with contextlib.suppress(ConnectionClosed):
