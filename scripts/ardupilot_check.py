@@ -462,7 +462,7 @@ def fly(
     samples: list[tuple[float, np.ndarray, np.ndarray]] = []
     t0 = time.monotonic()
     phase, hold_until = "climb", None
-    while time.monotonic() - t0 < 120:
+    while time.monotonic() - t0 < 300:
         msg = mav.recv_match(type=["LOCAL_POSITION_NED", "STATUSTEXT"], blocking=True, timeout=1)
         if msg is None:
             continue
@@ -596,27 +596,31 @@ def fly_auto(
 
 
 def landing(sim: Served) -> dict[str, Any]:
-    """The last landing of vehicle 0 from :attr:`Served.trace`: first touchdown (the first step after the
-    highest point within 5 mm of the ground height it took off from), the peak vertical acceleration and
-    specific force from 1 s before it to 3 s after, the bounce (the highest point after it) and the
-    ArduPilot disarm's sim time after it."""
+    """The last landing of vehicle 0 from :attr:`Served.trace`: touchdown is the first step after the
+    highest point, within 10 cm of the rest height it took off from, where the ground pushes up (vertical
+    acceleration above 2 m/s^2); the descent speed over the 0.1 s before it; the peak vertical
+    acceleration and specific force from 1 s before it to 3 s after; the bounce (the highest point from
+    0.2 s after touchdown on, above the rest height) and ArduPilot's disarm, in sim time after it."""
     tr = np.array(sim.trace)
     ground = float(np.median(tr[: max(1, len(tr) // 50), 1]))
     top = int(np.argmax(tr[:, 1]))
-    down = top + int(np.argmax(tr[top:, 1] < ground + 0.005))
+    down = top + int(np.argmax((tr[top:, 1] < ground + 0.1) & (tr[top:, 2] > 2.0)))
     t_td = float(tr[down, 0])
+    before = tr[(tr[:, 0] > t_td - 0.1) & (tr[:, 0] <= t_td)]
     near = tr[(tr[:, 0] > t_td - 1.0) & (tr[:, 0] < t_td + 3.0)]
+    after = tr[tr[:, 0] > t_td + 0.2]
     disarms = [e.t for e in sim.events if e.type == "ardupilot_disarmed" and e.t > t_td - 5.0]
     impacts = [e.data for e in sim.sim_events if e.type == "impact"]
     return {
         "ground_z_m": round(ground, 4),
         "touchdown_sim_t_s": round(t_td, 3),
+        "touchdown_height_m": round(float(tr[down, 1]) - ground, 4),
         "descent_speed_before_m_s": round(
-            float((tr[down - 120, 1] - tr[down, 1]) / (tr[down, 0] - tr[down - 120, 0])), 3
+            float((before[0, 1] - before[-1, 1]) / (before[-1, 0] - before[0, 0])), 3
         ),
         "peak_vertical_accel_m_s2": round(float(np.max(np.abs(near[:, 2]))), 2),
         "peak_specific_force_up_m_s2": round(float(np.max(near[:, 3])), 2),
-        "bounce_m": round(float(np.max(tr[down:, 1]) - ground), 4),
+        "bounce_m": round(float(np.max(after[:, 1]) - ground), 4) if len(after) else None,
         "disarm_after_touchdown_sim_s": round(disarms[0] - t_td, 2) if disarms else None,
         "impact_events": impacts,
     }
