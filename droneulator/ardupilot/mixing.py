@@ -1,4 +1,4 @@
-"""ArduCopter quad-X servo PWM -> RotorPy rotor speeds.
+"""ArduCopter quad-X (and octa-quad X, for coaxial airframes) servo PWM -> RotorPy rotor speeds.
 
 Motor order
     ArduCopter's quad X (``FRAME_CLASS 1``, ``FRAME_TYPE 1``; ``AP_MotorsMatrix::setup_quad_matrix``)
