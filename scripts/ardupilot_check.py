@@ -48,11 +48,16 @@ class Served:
         self.stop = threading.Event()
         self.events: list[Any] = []
         self.sim_events: list[Any] = []
+        #: vehicle 0 after every step: (sim t, truth height z, vertical acceleration (world, m/s^2),
+        #: specific force along body up (the IMU's, m/s^2))
+        self.trace: list[tuple[float, float, float, float]] = []
+        self.wall0, self.sim0 = time.monotonic(), 0.0
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
 
     def _run(self) -> None:
         n = max(1, round(0.01 * self.world.config.vehicle.control_hz))
+        v = self.world.vehicle_list[0]
         while not self.stop.is_set():
             res = self.fleet.serve_once(0.01, self.lock)
             if res is None and not self.fleet.connected:
@@ -60,7 +65,24 @@ class Served:
                     res = self.world.step(n)
             if res is not None:
                 self.sim_events.extend(res.events)
+                with self.lock:
+                    self.trace.append(
+                        (self.world.t, float(v.state.position[2]), float(v.acceleration[2]),
+                         float(v.specific_force[2]))
+                    )  # fmt: skip
             self.events.extend(self.fleet.take_events())
+
+    def speed(self) -> dict[str, float]:
+        """Sim time over wall time since :meth:`mark` (or the start)."""
+        with self.lock:
+            sim = self.world.t - self.sim0
+        wall = time.monotonic() - self.wall0
+        return {"sim_s": round(sim, 2), "wall_s": round(wall, 2), "sim_per_wall": round(sim / wall, 3)}
+
+    def mark(self) -> None:
+        with self.lock:
+            self.sim0 = self.world.t
+        self.wall0 = time.monotonic()
 
     def truth_ned(self, k: int = 0) -> np.ndarray:
         with self.lock:
@@ -69,6 +91,12 @@ class Served:
     def mode(self, k: int = 0) -> str:
         with self.lock:
             return self.world.vehicle_list[k].mode.value
+
+    def heading_deg(self, k: int = 0) -> float:
+        """The truth heading, clockwise from north (degrees)."""
+        with self.lock:
+            x, y, z, w = self.world.vehicle_list[k].state.quaternion
+        return float((90.0 - np.degrees(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))) % 360.0)
 
     def stats(self) -> dict[str, Any]:
         return {
@@ -111,9 +139,13 @@ class ArduCopter:
 
     def __init__(self, args: argparse.Namespace, k: int, site: tuple[float, float, float]) -> None:
         lat, lon, alt = site
-        defaults = ",".join(str(Path(args.defaults) / f) for f in ("copter.parm", "copter-X.parm"))
+        frame = [str(Path(args.defaults) / f) for f in ("copter.parm", "copter-X.parm")]
+        if args.params == "sprayer40":
+            frame[1] = str(Path(__file__).with_name("ardupilot_octaquad_x.parm"))
+        defaults = ",".join(frame)
         self.cmd = [
-            os.path.abspath(args.arducopter), "--model", "JSON:127.0.0.1", "--speedup", "1", "-I", str(k),
+            os.path.abspath(args.arducopter), "--model", "JSON:127.0.0.1", "--speedup", str(args.speedup),
+            "-I", str(k),
             "--sysid", str(k + 1), "-w", "--serial0", "tcp:0", "--home", f"{lat},{lon},{alt},0",
             "--defaults", defaults,
         ]  # fmt: skip
@@ -141,7 +173,9 @@ class ArduCopter:
             ):
                 armable = time.monotonic() - t0
                 break
+        beat = self.mav.messages.get("HEARTBEAT")
         return {
+            "mav_type": None if beat is None else int(beat.type),
             "armable_after_wall_s": None if armable is None else round(armable, 1),
             "prearm_texts": sorted({t for t in texts if "PreArm" in t}),
             "texts": texts[:40],
@@ -162,7 +196,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--arducopter", required=True, help="build/sitl/bin/arducopter")
     ap.add_argument("--defaults", required=True, help="the folder of copter.parm and copter-X.parm")
-    ap.add_argument("--instance", type=int, default=0, help="with --run: the ArduPilot instance")
+    ap.add_argument("--instance", type=int, default=0, help="the (first) ArduPilot instance")
     ap.add_argument("--vehicles", type=int, default=1, help="in-process: this many vehicles, instance k each")
     ap.add_argument("--alt", type=float, default=5.0)
     ap.add_argument("--boot-timeout", type=float, default=120.0, help="wall s to become armable")
@@ -188,12 +222,25 @@ def main() -> int:
         help="through droneulator run --ardupilot on the planning scene: droneulator plan --ardupilot flies "
         "to this goal (the benchmark's ceiling 4 m, floor 1.5 m, margin 0.6 m, take-off to 2.5 m)",
     )
+    ap.add_argument("--params", default="px4_quadx", help="the airframe (sprayer40: OctaQuad X)")
+    ap.add_argument("--speedup", type=float, default=1.0, help="arducopter --speedup")
+    ap.add_argument("--on-loss", default="land", choices=["land", "hold", "fall"], help="ardupilot.on_loss")
+    ap.add_argument("--auto", action="store_true", help="fly an AUTO mission (take-off, --leg north, land)")
+    ap.add_argument("--yaw", type=float, default=0.0, help="in-process, GUIDED: turn this many degrees first")
+    ap.add_argument("--leg", type=float, default=0.0, help="fly this many metres north before landing")
     ap.add_argument("--log", default=None, help="append ArduPilot k's console to LOG.k")
     ap.add_argument("--run", action="store_true", help="through droneulator run --ardupilot (renderer, API)")
     ap.add_argument("--out", default=None, help="write the JSON report here")
     args = ap.parse_args()
 
-    cfg = load_config(overrides=["vehicle.control_hz=1200", "vehicle.params=px4_quadx"])
+    cfg = load_config(
+        overrides=[
+            "vehicle.control_hz=1200",
+            f"vehicle.params={args.params}",
+            f"ardupilot.on_loss={args.on_loss}",
+            f"ardupilot.instance={args.instance}",
+        ]
+    )
     if args.plan is not None:
         cfg = load_config(scene="planning")
         args.run = True
@@ -203,7 +250,7 @@ def main() -> int:
     else:
         cfg.vehicles = [VehicleSpec(name=f"uav{k}", controlled_by="ardupilot") for k in range(args.vehicles)]
         sim = Served(World(cfg, scene="default", render=False))
-        instances = list(range(args.vehicles))
+        instances = [args.instance + k for k in range(args.vehicles)]
     copters: list[ArduCopter] = []
     report: dict[str, Any] = {}
     try:
@@ -212,6 +259,9 @@ def main() -> int:
         boots = [c.wait_armable(args.boot_timeout) for c in copters]
         report["boot"] = boots
         report.update(sim.stats())
+        if isinstance(sim, Served):
+            report["boot_speed"] = sim.speed()
+            sim.mark()
         if args.plan is not None and isinstance(sim, ThroughRun) and boots[0]["armable_after_wall_s"]:
             copters[0].mav.close()  # SITL's TCP serial port serves one client: the planner's link
             report["plan"] = plan_flight(sim, args.instance, np.array(args.plan))
@@ -223,7 +273,17 @@ def main() -> int:
 
             def one(k: int) -> None:
                 kill = copters[k].kill if args.kill_in_air and k == 0 else None
-                flights[k] = fly(copters[k].mav, lambda: sim.truth_ned(k), args.alt, kill)
+                if args.auto:
+                    flights[k] = fly_auto(
+                        copters[k].mav, lambda: sim.truth_ned(k), cfg.site.geodetic, args.alt, args.leg
+                    )
+                else:
+                    yaw = (
+                        (args.yaw, lambda: sim.heading_deg(k))
+                        if args.yaw and isinstance(sim, Served)
+                        else None
+                    )
+                    flights[k] = fly(copters[k].mav, lambda: sim.truth_ned(k), args.alt, kill, args.leg, yaw)
 
             threads = [threading.Thread(target=one, args=(k,)) for k in range(len(copters))]
             for t in threads:
@@ -231,6 +291,10 @@ def main() -> int:
             for t in threads:
                 t.join()
             report["flight"] = flights
+            if isinstance(sim, Served):
+                report["flight_speed"] = sim.speed()
+                if not args.kill_in_air:
+                    report["landing"] = landing(sim)
             if args.kill_in_air and isinstance(sim, Served):
                 report["loss"] = after_kill(args, sim, copters, cfg)
     finally:
@@ -248,9 +312,11 @@ def main() -> int:
 def after_kill(
     args: argparse.Namespace, sim: Served, copters: list[ArduCopter], cfg: SimConfig
 ) -> dict[str, Any]:
-    """Instance 0 was killed in its hover: the loss rule lands the vehicle; a new ArduCopter started at
-    once connects over it in the air (held), and gets the rotors once the vehicle is down."""
-    out: dict[str, Any] = {}
+    """Instance 0 was killed in its hover: the loss rule (``--on-loss``) takes the vehicle (land: the
+    simulator lands it; hold: it hovers there; fall: the rotors stop); a new ArduCopter started at once
+    connects over it (held while it is in the air; under hold the script lands it with the simulator's
+    controller after 8 s), and gets the rotors once the vehicle is down."""
+    out: dict[str, Any] = {"on_loss": args.on_loss}
     t0 = time.monotonic()
     killed_alt = float(-sim.truth_ned(0)[2])
     out["killed_at_alt_m"] = round(killed_alt, 3)
@@ -259,18 +325,31 @@ def after_kill(
     lost = [e for e in sim.events if e.type == "ardupilot_lost"]
     out["lost_after_wall_s"] = round(time.monotonic() - t0, 2)
     out["lost_event"] = lost[0].data if lost else None
+    out["lost_action"] = lost[0].data.get("action") if lost else None
     out["mode_after_loss"] = sim.mode(0)
-    copters[0] = ArduCopter(args, 0, cfg.site.geodetic)  # restarted: boots over the vehicle in the air
+    time.sleep(3.0)
+    out["alt_3s_after_loss_m"] = round(float(-sim.truth_ned(0)[2]), 3)
+    out["mode_3s_after_loss"] = sim.mode(0)
+    copters[0] = ArduCopter(args, args.instance, cfg.site.geodetic)  # restarted: boots over the vehicle
     link = sim.fleet.links[0]
     out["restarted_connected_holding"] = link.holding
-    while time.monotonic() - t0 < 120 and not (sim.mode(0) == "idle" and -sim.truth_ned(0)[2] < 0.05):
+    out["restarted_alt_m"] = round(float(-sim.truth_ned(0)[2]), 3)
+    if args.on_loss == "hold":
+        time.sleep(8.0)
+        out["hold_8s_later_alt_m"] = round(float(-sim.truth_ned(0)[2]), 3)
+        out["hold_8s_later_still_holding"] = link.holding
+        with sim.lock:
+            sim.world.vehicle_list[0].land()
+    while time.monotonic() - t0 < 150 and not (sim.mode(0) == "idle" and -sim.truth_ned(0)[2] < 0.05):
         time.sleep(0.1)
-    out["landed_by_simulator_after_wall_s"] = round(time.monotonic() - t0, 1)
-    out["landed_alt_truth_m"] = round(float(-sim.truth_ned(0)[2]), 3)
-    end = time.monotonic() + 10
+    out["on_the_ground_after_wall_s"] = round(time.monotonic() - t0, 1)
+    out["ground_alt_truth_m"] = round(float(-sim.truth_ned(0)[2]), 3)
+    end = time.monotonic() + 20
     while time.monotonic() < end and not link.in_control:
         time.sleep(0.1)
     out["new_ardupilot_in_control_on_the_ground"] = link.in_control
+    out["in_control_after_wall_s"] = round(time.monotonic() - t0, 1)
+    out["arm_refused"] = [e.data for e in sim.events if e.type == "ardupilot_arm_refused"]
     out["impacts"] = [
         e.data for e in sim.sim_events if e.type in ("impact", "collision") and e.vehicle == "uav0"
     ]
@@ -357,9 +436,15 @@ def guided(sim: Served | ThroughRun, cfg: SimConfig, copter: ArduCopter, alt: fl
 
 
 def fly(
-    mav: Any, truth_ned: Callable[[], np.ndarray], alt: float, kill: Callable[[], None] | None
+    mav: Any,
+    truth_ned: Callable[[], np.ndarray],
+    alt: float,
+    kill: Callable[[], None] | None,
+    leg: float = 0.0,
+    yaw: tuple[float, Callable[[], float]] | None = None,
 ) -> dict[str, Any]:
-    """GUIDED takeoff to ``alt``, 5 s hold, LAND (or ``kill``); EKF (LOCAL_POSITION_NED) against the truth."""
+    """GUIDED takeoff to ``alt``, 5 s hold, ``leg`` m north and 3 s hold, LAND (or ``kill``); EKF
+    (LOCAL_POSITION_NED) against the truth."""
     out: dict[str, Any] = {}
     mav.set_mode("GUIDED")
     home = truth_ned()
@@ -377,7 +462,7 @@ def fly(
     samples: list[tuple[float, np.ndarray, np.ndarray]] = []
     t0 = time.monotonic()
     phase, hold_until = "climb", None
-    while time.monotonic() - t0 < 120:
+    while time.monotonic() - t0 < 300:
         msg = mav.recv_match(type=["LOCAL_POSITION_NED", "STATUSTEXT"], blocking=True, timeout=1)
         if msg is None:
             continue
@@ -400,8 +485,42 @@ def fly(
                 kill()
                 phase = "killed"
                 break
-            mav.set_mode("LAND")
-            phase = "land"
+            if yaw is not None:
+                turn, heading = yaw
+                before = heading()
+                mav.mav.command_long_send(
+                    mav.target_system, mav.target_component, mavutil.mavlink.MAV_CMD_CONDITION_YAW, 0,
+                    abs(turn), 30.0, 1 if turn > 0 else -1, 1, 0, 0, 0,
+                )  # fmt: skip
+                time.sleep(abs(turn) / 30.0 + 5.0)
+                turned = (heading() - before + 180.0) % 360.0 - 180.0
+                out["yaw"] = {
+                    "asked_deg": turn,
+                    "heading_before_deg": round(before, 1),
+                    "turned_deg": round(turned, 1),
+                }
+                ekf = np.array([msg.x, msg.y, msg.z])
+            if leg > 0:
+                mav.mav.set_position_target_local_ned_send(
+                    0, mav.target_system, mav.target_component, mavutil.mavlink.MAV_FRAME_LOCAL_NED,
+                    0b110111111000, ekf[0] + leg, ekf[1], ekf[2], 0, 0, 0, 0, 0, 0, 0, 0,
+                )  # fmt: skip
+                phase, hold_until = "leg", None
+                leg_start = truth[0]
+            else:
+                mav.set_mode("LAND")
+                phase = "land"
+                out["land_wall_s"] = round(time.monotonic() - t0, 1)
+        elif phase == "leg":
+            if hold_until is None and truth[0] - leg_start > leg - 0.3:
+                hold_until = time.monotonic() + 3.0
+                out["leg_wall_s"] = round(time.monotonic() - t0, 1)
+            elif hold_until is not None and time.monotonic() > hold_until:
+                out["leg_end_truth_ned"] = np.round(truth, 3).tolist()
+                out["leg_end_ekf_ned"] = np.round(ekf, 3).tolist()
+                mav.set_mode("LAND")
+                phase = "land"
+                out["land_wall_s"] = round(time.monotonic() - t0, 1)
         elif phase == "land" and not mav.motors_armed():
             out["landed_alt_truth_m"] = round(float(-truth[2]), 3)
             out["disarmed_after_wall_s"] = round(time.monotonic() - t0, 1)
@@ -414,6 +533,97 @@ def fly(
     out["max_alt_truth_m"] = round(float(max(-t[2] for _, _, t in samples)), 3) if samples else None
     out["phase_reached"] = phase
     return out
+
+
+def fly_auto(
+    mav: Any, truth_ned: Callable[[], np.ndarray], site: tuple[float, float, float], alt: float, leg: float
+) -> dict[str, Any]:
+    """An AUTO mission: NAV_TAKEOFF to ``alt``, NAV_WAYPOINT ``leg`` m north of home, NAV_LAND there;
+    uploaded, armed in GUIDED and started with MAV_CMD_MISSION_START (which ArduCopter lets take off
+    with no throttle); ends at the disarm."""
+    m = mavutil.mavlink
+    lat, lon, _ = site
+    north = int(round((lat + np.degrees(leg / 6378137.0)) * 1e7))
+    items = [
+        (m.MAV_FRAME_GLOBAL, m.MAV_CMD_NAV_WAYPOINT, int(lat * 1e7), int(lon * 1e7), 0.0),  # home
+        (m.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, m.MAV_CMD_NAV_TAKEOFF, 0, 0, alt),
+        (m.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, m.MAV_CMD_NAV_WAYPOINT, north, int(lon * 1e7), alt),
+        (m.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, m.MAV_CMD_NAV_LAND, north, int(lon * 1e7), 0.0),
+    ]
+    out: dict[str, Any] = {}
+    sysid, comp = mav.target_system, mav.target_component
+    mav.mav.mission_count_send(sysid, comp, len(items), 0)
+    end = time.monotonic() + 20
+    while time.monotonic() < end:
+        msg = mav.recv_match(
+            type=["MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK"], blocking=True, timeout=1
+        )
+        if msg is None:
+            continue
+        if msg.get_type() == "MISSION_ACK":
+            out["mission_ack"] = int(msg.type)
+            break
+        frame, cmd, x, y, z = items[msg.seq]
+        mav.mav.mission_item_int_send(
+            sysid, comp, msg.seq, frame, cmd, 0, 1, 0, 0, 0, 0, x, y, z, 0
+        )  # fmt: skip
+    if out.get("mission_ack") != 0:
+        return out
+    mav.set_mode("GUIDED")
+    home = truth_ned()
+    mav.arducopter_arm()
+    mav.motors_armed_wait()
+    mav.mav.command_long_send(sysid, comp, m.MAV_CMD_MISSION_START, 0, 0, 0, 0, 0, 0, 0, 0)
+    t0 = time.monotonic()
+    top, reached = 0.0, 0.0
+    while time.monotonic() - t0 < 240:
+        msg = mav.recv_match(
+            type=["HEARTBEAT", "STATUSTEXT", "MISSION_ITEM_REACHED"], blocking=True, timeout=1
+        )
+        truth = truth_ned() - home
+        top, reached = max(top, -truth[2]), max(reached, truth[0])
+        if msg is not None and msg.get_type() == "STATUSTEXT":
+            out.setdefault("texts", []).append(msg.text)
+        if msg is not None and msg.get_type() == "MISSION_ITEM_REACHED":
+            out.setdefault("reached", []).append((int(msg.seq), round(time.monotonic() - t0, 1)))
+        if time.monotonic() - t0 > 5 and not mav.motors_armed():
+            out["disarmed_after_wall_s"] = round(time.monotonic() - t0, 1)
+            out["landed_truth_ned"] = np.round(truth, 3).tolist()
+            break
+    out["max_alt_truth_m"] = round(float(top), 3)
+    out["max_north_truth_m"] = round(float(reached), 3)
+    return out
+
+
+def landing(sim: Served) -> dict[str, Any]:
+    """The last landing of vehicle 0 from :attr:`Served.trace`: touchdown is the first step after the
+    highest point, within 10 cm of the rest height it took off from, where the ground pushes up (vertical
+    acceleration above 2 m/s^2); the descent speed over the 0.1 s before it; the peak vertical
+    acceleration and specific force from 1 s before it to 3 s after; the bounce (the highest point from
+    0.2 s after touchdown on, above the rest height) and ArduPilot's disarm, in sim time after it."""
+    tr = np.array(sim.trace)
+    ground = float(np.median(tr[: max(1, len(tr) // 50), 1]))
+    top = int(np.argmax(tr[:, 1]))
+    down = top + int(np.argmax((tr[top:, 1] < ground + 0.1) & (tr[top:, 2] > 2.0)))
+    t_td = float(tr[down, 0])
+    before = tr[(tr[:, 0] > t_td - 0.1) & (tr[:, 0] <= t_td)]
+    near = tr[(tr[:, 0] > t_td - 1.0) & (tr[:, 0] < t_td + 3.0)]
+    after = tr[tr[:, 0] > t_td + 0.2]
+    disarms = [e.t for e in sim.events if e.type == "ardupilot_disarmed" and e.t > t_td - 5.0]
+    impacts = [e.data for e in sim.sim_events if e.type == "impact"]
+    return {
+        "ground_z_m": round(ground, 4),
+        "touchdown_sim_t_s": round(t_td, 3),
+        "touchdown_height_m": round(float(tr[down, 1]) - ground, 4),
+        "descent_speed_before_m_s": round(
+            float((before[0, 1] - before[-1, 1]) / (before[-1, 0] - before[0, 0])), 3
+        ),
+        "peak_vertical_accel_m_s2": round(float(np.max(np.abs(near[:, 2]))), 2),
+        "peak_specific_force_up_m_s2": round(float(np.max(near[:, 3])), 2),
+        "bounce_m": round(float(np.max(after[:, 1]) - ground), 4) if len(after) else None,
+        "disarm_after_touchdown_sim_s": round(disarms[0] - t_td, 2) if disarms else None,
+        "impact_events": impacts,
+    }
 
 
 if __name__ == "__main__":

@@ -25,7 +25,11 @@ from scripted_ardupilot import (
 from droneulator import frames as F
 from droneulator.ardupilot import ARDUCOPTER_QUAD_X, ArduCopterMotors, ArduPilotFleet, ArduPilotLink
 from droneulator.ardupilot import link as link_module
-from droneulator.ardupilot.mixing import ARDUCOPTER_QUAD_X_DEFS
+from droneulator.ardupilot.mixing import (
+    ARDUCOPTER_OCTAQUAD_X_DEFS,
+    ARDUCOPTER_QUAD_X_DEFS,
+    ArduCopterOctaQuadMotors,
+)
 from droneulator.ardupilot.protocol import (
     SERVO_16,
     SERVO_32,
@@ -421,6 +425,73 @@ def test_roll_pitch_yaw_commands_mixed_as_arducopter_turn_the_body_that_way(para
         served.close()
         if w is not world:
             w.close()
+
+
+def test_the_sprayers_coaxial_pairs_fly_on_arducopters_octa_quad_x_table():
+    """sprayer40 (four coaxial pairs, one rotor each) gets ArduCopter's OctaQuad X: motors 1-4 the upper
+    ring, a quad X, 5-8 under them spinning the other way; each pair-rotor is its corner's."""
+    m = ArduCopterOctaQuadMotors(get_params("sprayer40"))
+    # sprayer40: r1 front-left CW, r2 front-right CCW, r3 rear-right CW, r4 rear-left CCW (pair-rotors)
+    assert m.table() == [
+        (1, "front-right upper", "CCW", "r2"),
+        (2, "front-left upper", "CW", "r1"),
+        (3, "rear-left upper", "CCW", "r4"),
+        (4, "rear-right upper", "CW", "r3"),
+        (5, "front-left lower", "CCW", "r1"),
+        (6, "front-right lower", "CW", "r2"),
+        (7, "rear-right lower", "CCW", "r3"),
+        (8, "rear-left lower", "CW", "r4"),
+    ]
+    assert [d[3] for d in ARDUCOPTER_OCTAQUAD_X_DEFS] == [1, 7, 5, 3, 8, 2, 4, 6]  # testing order
+    assert not m.armed([1000] * 8 + [0] * 8) and m.armed([1000] * 7 + [1100])
+
+
+@pytest.mark.parametrize("channels", [16, 32])
+def test_octa_quad_x_hover_yaw_and_roll_give_each_pair_its_thrust_and_torque(channels, quick_loss):
+    """The PWM ArduCopter's OctaQuad X mixer sends (factors of ``add_motor``, out through its thrust curve),
+    in 16- or 32-channel packets: hover holds the sprayer level with four equal pair speeds; a yaw command
+    (each pair's CCW motor up, its CW motor down: the pairs' thrust unchanged) speeds up the CCW
+    pair-rotors, slows the CW ones and yaws the body right; a roll command speeds up the left pairs and
+    rolls it right (the reply's gyro, FRD)."""
+    w = make_world("sprayer40")
+    w.step()  # compiles the step before the peer's first frame waits on it
+    w.reset()
+    served = Served(w)
+    try:
+        m = served.link.motors
+        assert isinstance(m, ArduCopterOctaQuadMotors)
+        qp = w.vehicle().quad_params
+        t_hover = (w.vehicle().hover_speed / qp["rotor_speed_max"]) ** 2
+        factors = np.array([rpy_factors(angle, yaw) for _, angle, yaw, _ in ARDUCOPTER_OCTAQUAD_X_DEFS])
+        ccw = np.sign(qp["rotor_directions"]) < 0
+        left = np.array([p[1] > 0 for p in qp["rotor_pos"].values()])
+        for axis, faster in ((None, None), (2, ccw), (0, left)):
+            wait_until(lambda: not served.link.connected, 5.0)
+            with served.lock:
+                w.reset()
+            peer = served.peer(channels=channels)
+            peer.step([1000] * 8)
+            with served.lock:
+                w.reset(position=w.scene.spawn_position + [0.0, 0.0, 3.0], airborne=True)
+            thrust = np.full(8, t_hover)
+            if axis is not None:
+                thrust += 0.05 * factors[:, axis] / np.max(np.abs(factors[:, axis]))
+            cmd = thrust_to_pwm(thrust)
+            for _ in range(HZ // 5):  # 0.2 s
+                state = peer.step(cmd)
+            rates = np.array(state["imu.gyro"])
+            speeds = m.rotor_speeds(cmd)
+            if axis is None:
+                np.testing.assert_allclose(speeds, w.vehicle().hover_speed, rtol=2e-3)
+                assert np.max(np.abs(rates)) < 0.01, rates
+            else:
+                assert np.all(speeds[faster] > speeds[~faster] * 1.02), (axis, speeds)
+                assert rates[axis] > 0.01, (axis, rates)
+                assert rates[axis] > 3 * np.max(np.abs(np.delete(rates, axis))), (axis, rates)
+            peer.close()
+    finally:
+        served.close()
+        w.close()
 
 
 # --------------------------------------------------------------------------- one ArduPilot per port

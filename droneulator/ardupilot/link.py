@@ -39,7 +39,7 @@ from collections import deque
 from collections.abc import Callable, Collection
 from typing import TYPE_CHECKING, Any
 
-from droneulator.ardupilot.mixing import ArduCopterMotors
+from droneulator.ardupilot.mixing import ArduCopterOctaQuadMotors, arducopter_motors
 from droneulator.ardupilot.protocol import FdmState, ProtocolError, ServoPacket, decode_servo
 from droneulator.config import ArduPilotConfig
 from droneulator.controllers.flight import Event
@@ -94,7 +94,7 @@ class ArduPilotLink(RotorHandover):
         self.vehicle = world.vehicle(vehicle)
         self.cfg = cfg = world.config.ardupilot if cfg is None else cfg
         self.instance = cfg.instance if instance is None else instance
-        self.motors = ArduCopterMotors(self.vehicle.quad_params, cfg)
+        self.motors = arducopter_motors(self.vehicle.quad_params, cfg)
         self.sensors: SensorSuite = self.vehicle.rig.suite
         if "imu" not in self.sensors:
             raise ValueError(
@@ -111,8 +111,10 @@ class ArduPilotLink(RotorHandover):
         self.on_change: Callable[[], None] | None = None
         self._refused: set[str] = set()
         self._reset_connection()
+        octa = isinstance(self.motors, ArduCopterOctaQuadMotors)
         log.info(
-            "ArduCopter quad-X motor -> %s rotor of %s: %s",
+            "ArduCopter %s motor -> %s rotor of %s: %s",
+            "octa-quad X (FRAME_CLASS 4, FRAME_TYPE 1)" if octa else "quad X (FRAME_CLASS 1, FRAME_TYPE 1)",
             self.vehicle.spec.params,
             self.vehicle.name,
             ", ".join(f"{n} {name} {spin} -> {r}" for n, name, spin, r in self.motors.table()),
@@ -398,7 +400,7 @@ class ArduPilotLink(RotorHandover):
         """(Under the lock, before the step) apply the pending frame's motor PWMs."""
         pkt = self._pending
         assert pkt is not None
-        pwm = pkt.pwm[:4]
+        pwm = pkt.pwm
         armed = self.motors.armed(pwm)
         if armed != self._armed:
             log.info("ArduPilot %s at t=%.3f s", "armed" if armed else "disarmed", self.world.t)

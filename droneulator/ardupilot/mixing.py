@@ -1,4 +1,4 @@
-"""ArduCopter quad-X servo PWM -> RotorPy rotor speeds.
+"""ArduCopter quad-X (and octa-quad X, for coaxial airframes) servo PWM -> RotorPy rotor speeds.
 
 Motor order
     ArduCopter's quad X (``FRAME_CLASS 1``, ``FRAME_TYPE 1``; ``AP_MotorsMatrix::setup_quad_matrix``)
@@ -29,7 +29,17 @@ Armed
     (0 before its outputs start); armed, at least ``MOT_SPIN_ARM`` (10 % above it by default). A motor
     PWM more than :data:`ARMED_MARGIN` of the range above ``pwm_min`` reads as armed.
 
-The eight-rotor (octo-quad) mapping of the sprayer airframe is not here yet.
+Octa-quad X
+    A coaxial airframe (``coaxial: True``: ``sprayer40``, four pairs flown as four rotors) is ArduCopter's
+    OctaQuad X (``FRAME_CLASS 4``, ``FRAME_TYPE 1``; ``AP_MotorsMatrix::setup_octaquad_matrix``): motors 1-4
+    are a quad X's upper ring (1 front-right CCW, 2 front-left CW, 3 rear-left CCW, 4 rear-right CW) and
+    5-8 the lower one, each under the upper motor of its corner and spinning the other way (5 front-left
+    CCW, 6 front-right CW, 7 rear-right CCW, 8 rear-left CW). The model has one rotor per pair, so
+    :class:`ArduCopterOctaQuadMotors` gives each pair-rotor the speed whose thrust is its two motors'
+    sum, then moves thrust between the CW and the CCW diagonal (which changes neither the total thrust
+    nor roll and pitch) until the four rotors' reaction torque is the eight motors'. The octa-quad yaws
+    only by splitting each pair's thrust between its upper and lower rotor: with the pair's thrust alone
+    ArduCopter could not yaw the model at all.
 """
 
 from __future__ import annotations
@@ -50,6 +60,18 @@ ARDUCOPTER_QUAD_X_DEFS: tuple[tuple[int, float, int], ...] = (
     (4, 135.0, -1),
 )
 
+#: (motor number, angle, yaw factor, testing order), AP_MotorsMatrix.cpp octa-quad X (FRAME_CLASS 4, TYPE 1)
+ARDUCOPTER_OCTAQUAD_X_DEFS: tuple[tuple[int, float, int, int], ...] = (
+    (1, 45.0, +1, 1),
+    (2, -45.0, -1, 7),
+    (3, -135.0, +1, 5),
+    (4, 135.0, -1, 3),
+    (5, -45.0, +1, 8),
+    (6, 45.0, -1, 2),
+    (7, 135.0, +1, 4),
+    (8, -135.0, -1, 6),
+)
+
 #: a motor PWM this fraction of the PWM range above ``pwm_min`` reads as armed (MOT_SPIN_ARM is 0.10)
 ARMED_MARGIN = 0.02
 
@@ -63,6 +85,8 @@ def _motor(number: int, angle_deg: float, yaw_factor: int) -> PX4Motor:
 
 #: ArduCopter's quad X motors 1..4: position signs (FRD) and spin, from :data:`ARDUCOPTER_QUAD_X_DEFS`
 ARDUCOPTER_QUAD_X: tuple[PX4Motor, ...] = tuple(_motor(*d) for d in ARDUCOPTER_QUAD_X_DEFS)
+#: ArduCopter's octa-quad X motors 1..8 (1-4 the upper ring, 5-8 the lower), from its table
+ARDUCOPTER_OCTAQUAD_X: tuple[PX4Motor, ...] = tuple(_motor(*d[:3]) for d in ARDUCOPTER_OCTAQUAD_X_DEFS)
 
 
 class ArduCopterMotors:
@@ -108,3 +132,68 @@ class ArduCopterMotors:
     def table(self) -> list[tuple[int, str, str, str]]:
         """(motor, position, spin, RotorPy rotor) rows, for logs and docs."""
         return self.map.table()
+
+
+class ArduCopterOctaQuadMotors(ArduCopterMotors):
+    """ArduCopter octa-quad X servo PWM (channels 1..8) -> the speeds of a coaxial airframe's four
+    pair-rotors (RotorPy order), each pair one rotor (see the module's text).
+
+    Each motor's thrust fraction ``t`` (of a single rotor's full thrust, half the pair-rotor's) comes from
+    its PWM as for the quad X. Pair ``p`` gets the fraction ``f_p = (t_upper + t_lower) / 2`` of its
+    rotor's full thrust, and its reaction torque would be ``kappa T_max (t_cw - t_ccw) / 2`` about +z up
+    (``kappa = k_m / k_eta``, the same for a single rotor and the pair-rotor). The pair-rotors' torque is
+    ``kappa T_max sum(d_i f_i)`` (``d_i`` = +1 CW, -1 CCW), so ``c = (sum_p (t_cw - t_ccw) / 2 -
+    sum_i d_i f_i) / 4`` is added to the CW pair-rotors and taken from the CCW ones: total thrust, roll and
+    pitch (each spin is a diagonal) stay the pairs', the yaw moment becomes the eight motors'."""
+
+    def __init__(self, quad_params: dict[str, Any], cfg: ArduPilotConfig | None = None) -> None:
+        self.cfg = cfg = cfg or ArduPilotConfig()
+        #: the upper ring (motors 1..4) is a quad X: it fixes each corner's pair-rotor and its spin
+        self.map = MotorMap(quad_params, cfg.thrust_expo, ARDUCOPTER_OCTAQUAD_X[:4], "ArduPilot")
+        corner = {(m.forward, m.right): k for k, m in enumerate(ARDUCOPTER_OCTAQUAD_X[:4])}
+        #: for motors 1..8: the RotorPy index of its pair-rotor and its spin (+1 CW, -1 CCW, RotorPy's sign)
+        self.pair = np.array([self.map.order[corner[m.forward, m.right]] for m in ARDUCOPTER_OCTAQUAD_X])
+        self.spin = np.array([1.0 if m.spin == "CW" else -1.0 for m in ARDUCOPTER_OCTAQUAD_X])
+        dirs = np.asarray(quad_params["rotor_directions"], dtype=float)
+        self.rotor_spin = np.sign(dirs)
+
+    def armed(self, pwm: Any) -> bool:
+        """Whether motor PWMs 1..8 say ArduCopter is armed (see :data:`ARMED_MARGIN`)."""
+        return bool(np.any(self.actuator(np.asarray(pwm)[:8]) > ARMED_MARGIN))
+
+    def pair_fractions(self, pwm: Any) -> tuple[np.ndarray, float]:
+        """(each pair-rotor's thrust fraction ``f``, RotorPy order; the eight motors' yaw torque in units
+        of ``kappa`` times a pair-rotor's full thrust) for a servo packet's PWMs."""
+        r = self.throttle_ratio(np.asarray(pwm, dtype=float)[:8])
+        k = self.map.k
+        t = (1.0 - k) * r + k * r * r
+        f = np.zeros(4)
+        np.add.at(f, self.pair, 0.5 * t)
+        return f, float(np.sum(0.5 * self.spin * t))
+
+    def rotor_speeds(self, pwm: Any) -> np.ndarray:
+        """Pair-rotor speeds (rad/s, RotorPy order) for a servo packet's PWMs (motors 1..8 come first)."""
+        f, yaw = self.pair_fractions(pwm)
+        c = (yaw - float(self.rotor_spin @ f)) / 4.0
+        f = np.clip(f + c * self.rotor_spin, 0.0, 1.0)
+        return self.map.w_min + (self.map.w_max - self.map.w_min) * np.sqrt(f)
+
+    def pwm_for_speed(self, w: Any) -> np.ndarray:
+        """The eight PWMs (motors 1..8) that give pair-rotor speeds ``w`` (RotorPy order) with each pair's
+        two motors equal, for tests and tools."""
+        return super().pwm_for_speed(np.asarray(w, dtype=float)[self.pair])
+
+    def table(self) -> list[tuple[int, str, str, str]]:
+        """(motor, position, spin, RotorPy pair-rotor) rows, for logs and docs."""
+        return [
+            (m.number, f"{m.name} {'upper' if m.number <= 4 else 'lower'}", m.spin, self.map.rotor_names[i])
+            for m, i in zip(ARDUCOPTER_OCTAQUAD_X, self.pair, strict=True)
+        ]
+
+
+def arducopter_motors(quad_params: dict[str, Any], cfg: ArduPilotConfig | None = None) -> ArduCopterMotors:
+    """The ArduCopter frame that flies airframe ``quad_params``: octa-quad X (FRAME_CLASS 4) for a coaxial
+    airframe (``coaxial: True``, four pairs), quad X (FRAME_CLASS 1) for the others."""
+    if quad_params.get("coaxial", False):
+        return ArduCopterOctaQuadMotors(quad_params, cfg)
+    return ArduCopterMotors(quad_params, cfg)
