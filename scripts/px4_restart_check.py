@@ -45,7 +45,11 @@ class PX4Proc:
         self.proc.wait()
 
     def lines(self) -> list[str]:
-        return [ln.strip() for ln in self.console.read_text(errors="replace").splitlines() if any(k in ln for k in KEYS)]
+        return [
+            ln.strip()
+            for ln in self.console.read_text(errors="replace").splitlines()
+            if any(k in ln for k in KEYS)
+        ]
 
 
 def main() -> None:
