@@ -469,7 +469,8 @@ def test_tracking_margin_grows_the_obstacles_by_the_measured_error_bounded_and_n
     assert tm.margin == pytest.approx(0.5)  # bounded
     s = tm.stats()
     assert s["samples"] == 330 and s["max"] == 2.0 and s["margin"] == pytest.approx(0.5)
-    assert not TrackingMargin(limit=0.0, step=0.1).add(1.0)  # 0: off
+    off = TrackingMargin(limit=0.0, step=0.1, min_samples=1)
+    assert not off.add(1.0) and off.margin == 0.0 and off.stats()["max"] == 1.0  # 0: measured, never widened
 
     cfg = PlannerConfig(ceiling=3.0, floor=0.0)
     m = LocalMap(cfg, centre=np.array([0.0, 0.0, 1.5]))

@@ -22,8 +22,8 @@ class TrackingMargin:
 
     ``quantile`` (0-100) of the last ``window`` samples, once ``min_samples`` are in, rounded up to a
     multiple of ``step`` (the map's resolution: a finer change does not move the inflated voxels) and at
-    most ``limit`` (0 disables it). The margin only grows within a flight: it stays at the worst the
-    autopilot has shown, so the map is not rebuilt back and forth as the error wanders.
+    most ``limit`` (0: measured, never widened). The margin only grows within a flight: it stays at the
+    worst the autopilot has shown, so the map is not rebuilt back and forth as the error wanders.
     """
 
     def __init__(
@@ -40,11 +40,11 @@ class TrackingMargin:
 
     def add(self, error: float) -> bool:
         """Take one tracking error sample (metres); True when :attr:`margin` grew."""
-        if not math.isfinite(error) or self.limit == 0:
+        if not math.isfinite(error):
             return False
         self._errors.append(float(error))
         self._all.append(float(error))
-        if len(self._errors) < self.min_samples:
+        if len(self._errors) < self.min_samples or self.limit == 0:
             return False
         high = float(np.percentile(self._errors, self.quantile))
         want = min(self.limit, self.step * math.ceil(high / self.step - 1e-9))
