@@ -198,10 +198,12 @@ def _pct(values: list[float], q: float) -> float:
 
 
 def _planner(endpoint: str, ns: str, bounds: list[float], stats: Path, log: Path,
-             margin: float, px4: bool) -> subprocess.Popen:  # fmt: skip
+             margin: float, px4: bool, tracking_margin_max: float | None) -> subprocess.Popen:  # fmt: skip
     cmd = [sys.executable, "-m", "droneulator.cli", "plan", "--zenoh", endpoint, "--namespace", ns,
            "--bounds", *map(str, bounds), "--ceiling", str(CEILING), "--floor", str(FLOOR),
            "--margin", str(margin), "--stats", str(stats), "-v"] + ["--px4"] * px4  # fmt: skip
+    if tracking_margin_max is not None:
+        cmd += ["--tracking-margin-max", str(tracking_margin_max)]
     out = open(log, "w")  # noqa: SIM115 (closed with the process by the OS)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env)
@@ -259,7 +261,7 @@ def _fly(run, client, goal_pub, goal: np.ndarray, bounds: list[float], workdir: 
          args: argparse.Namespace, index: int, px4: PX4 | None) -> dict:  # fmt: skip
     stats, log = workdir / f"plan_{index}.json", workdir / f"plan_{index}.log"
     proc = _planner(run.zenoh_endpoint, run.config.bridge.namespace, bounds, stats, log, args.margin,
-                    px4 is not None)  # fmt: skip
+                    px4 is not None, args.tracking_margin_max)  # fmt: skip
     try:
         _wait_for_line(log, "first depth image integrated", proc, 120)
         for _ in client.messages(timeout=0.0):  # what queued up meanwhile: the previous flight's landing
@@ -341,6 +343,8 @@ def _fly(run, client, goal_pub, goal: np.ndarray, bounds: list[float], workdir: 
         "collisions": collisions,
         "events": events[:100],
         "states_before_contact": before_contact,
+        # the planner's tracking error (setpoints against the autopilot's estimate) and the margin it added
+        "tracking": planner.get("tracking"),
         "plans": planner.get("plans"),
         "plan_failures": planner.get("failures"),
         "plan_ms_median": _pct(plan_ms, 50),
@@ -404,6 +408,8 @@ def main() -> None:
     ap.add_argument("--timeout", type=float, default=60.0, help="sim seconds allowed per flight")
     ap.add_argument("--repeat", type=int, default=1, help="fly each goal this many times")
     ap.add_argument("--margin", type=float, default=MARGIN, help="planner inflation margin (m)")
+    ap.add_argument("--tracking-margin-max", type=float, default=None, metavar="M",
+                    help="the planner's --tracking-margin-max (default: the planner's; 0: off)")  # fmt: skip
     ap.add_argument("--logs", default=None, help="keep the simulator's and the planner's logs and stats here")
     ap.add_argument("--output", default=None, help="JSON path (default benchmarks/results/planning.json)")
     ap.add_argument("--px4", default=None, metavar="BUILD|scripted",
@@ -465,8 +471,8 @@ def main() -> None:
                       f"length={r['path_length_m']:.2f} error={r['goal_error_m']:.3f} "
                       f"clearance={r['min_clearance_m']:.2f} collisions={r['collisions']} "
                       f"plan median/p99={r['plan_ms_median']:.1f}/{r['plan_ms_p99']:.1f} ms "
-                      f"plans={r['plans']} failures={r['plan_failures']} rtf={r['rtf']:.2f}",
-                      flush=True)  # fmt: skip
+                      f"plans={r['plans']} failures={r['plan_failures']} rtf={r['rtf']:.2f} "
+                      f"tracking={r['tracking']}", flush=True)  # fmt: skip
                 if not r["reached"]:
                     print((Path(tmp) / f"plan_{k + 1}.log").read_text()[-3000:])
         finally:

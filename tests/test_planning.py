@@ -447,3 +447,38 @@ def test_time_reallocation_from_an_accelerating_start_stays_bounded() -> None:
     gentle = np.array([0.0, -0.9, 0.0])  # within reach: the start acceleration is kept too
     traj = reallocate_time(straight_line(p0, v0, gentle, ahead, 0.4, 2.0), p0, v0, gentle, 2.0, 3.0)
     assert np.allclose(traj.acceleration(0.0), gentle)
+
+
+def test_tracking_margin_grows_the_obstacles_by_the_measured_error_bounded_and_not_the_ceiling() -> None:
+    """The node's TrackingMargin takes the p95 of the error between setpoints and the autopilot's estimate,
+    rounded up to voxels, only growing and at most its limit; the map then grows the mapped obstacles by
+    it, and the virtual ceiling and floor keep the planner's inflation (a wider band would close them)."""
+    from droneulator.workflows.planning.tracking import TrackingMargin
+
+    tm = TrackingMargin(limit=0.5, step=0.1, window=100, min_samples=20)
+    assert not any(tm.add(0.05) for _ in range(19)) and tm.margin == 0.0  # too few samples yet
+    assert tm.add(0.05) and tm.margin == pytest.approx(0.1)  # p95 0.05 m -> one voxel
+    for _ in range(10):
+        tm.add(0.27)  # PX4 overshooting a turn: 10 % of the window
+    assert tm.margin == pytest.approx(0.3)
+    for _ in range(200):
+        tm.add(0.02)  # tracks tightly again: the margin stays at the worst shown
+    assert tm.margin == pytest.approx(0.3) and tm.high < 0.05
+    for _ in range(100):
+        tm.add(2.0)
+    assert tm.margin == pytest.approx(0.5)  # bounded
+    s = tm.stats()
+    assert s["samples"] == 330 and s["max"] == 2.0 and s["margin"] == pytest.approx(0.5)
+    off = TrackingMargin(limit=0.0, step=0.1, min_samples=1)
+    assert not off.add(1.0) and off.margin == 0.0 and off.stats()["max"] == 1.0  # 0: measured, never widened
+
+    cfg = PlannerConfig(ceiling=3.0, floor=0.0)
+    m = LocalMap(cfg, centre=np.array([0.0, 0.0, 1.5]))
+    m.insert_points(np.array([[0.0, 0.0, 1.5]]))
+    probe = np.array([cfg.inflation + 0.15, 0.0, 1.5])
+    below_ceiling = np.array([3.0, 3.0, 3.0 - cfg.inflation - 0.15])
+    assert not m.is_occupied(probe) and not m.is_occupied(below_ceiling)
+    m.set_tracking_margin(0.3)
+    assert cfg.obstacle_inflation == pytest.approx(cfg.inflation + 0.3)
+    assert m.is_occupied(probe) and not m.is_occupied(below_ceiling)
+    assert not m.is_occupied(np.array([cfg.obstacle_inflation + 0.15, 0.0, 1.5]))

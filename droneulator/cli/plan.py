@@ -73,6 +73,14 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         default=defaults.inflation_margin,
         help=f"obstacles are inflated by the vehicle radius ({defaults.vehicle_radius} m) plus this (m)",
     )
+    p.add_argument(
+        "--tracking-margin-max",
+        type=float,
+        default=0.5,
+        metavar="M",
+        help="with --px4/--ardupilot, obstacles grow by up to M more (0: never) by the 95th percentile of "
+        "the measured distance between the setpoints and the autopilot's estimate (default 0.5)",
+    )
     p.add_argument("--max-vel", type=float, default=defaults.max_vel, help="planning speed limit (m/s)")
     p.add_argument("--max-acc", type=float, default=defaults.max_acc, help="planning accel. limit (m/s²)")
     p.add_argument(
@@ -222,7 +230,13 @@ def cmd_plan(args: argparse.Namespace) -> int:
     bounds = None if args.bounds is None else (tuple(args.bounds[:3]), tuple(args.bounds[3:]))
     vehicle, run_cfg = resolve_vehicle(args)
     try:
-        cfg = PlanNodeConfig(zenoh=args.zenoh, camera=args.camera, bounds=bounds, vehicle=vehicle)
+        cfg = PlanNodeConfig(
+            zenoh=args.zenoh,
+            camera=args.camera,
+            bounds=bounds,
+            vehicle=vehicle,
+            tracking_margin_max=args.tracking_margin_max,
+        )
     except ValueError as exc:
         raise StartupError(str(exc), preflight.USAGE) from None
     log.info("planning for vehicle %s (%s): goals on /%s/planner/goal", vehicle.name, vehicle.source,

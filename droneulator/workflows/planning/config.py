@@ -67,6 +67,9 @@ class PlannerConfig:
     #: instead of over them
     ceiling: float | None = None
     floor: float | None = None
+    #: extra growth of the mapped obstacles (not of the virtual ceiling and floor) for how far the vehicle
+    #: strays from its setpoints: set while flying from the measured tracking error (:class:`TrackingMargin`)
+    tracking_margin: float = 0.0
 
     def __post_init__(self) -> None:
         if self.resolution <= 0:
@@ -81,8 +84,8 @@ class PlannerConfig:
             raise ValueError("need 0 < p_min < p_miss < 0.5 < p_hit < p_max < 1")
         if not 0.5 < self.p_occupied < self.p_max:
             raise ValueError("need 0.5 < p_occupied < p_max")
-        if self.vehicle_radius < 0 or self.inflation_margin < 0:
-            raise ValueError("vehicle_radius and inflation_margin must be >= 0")
+        if self.vehicle_radius < 0 or self.inflation_margin < 0 or self.tracking_margin < 0:
+            raise ValueError("vehicle_radius, inflation_margin and tracking_margin must be >= 0")
         if self.max_vel <= 0 or self.max_acc <= 0:
             raise ValueError("max_vel and max_acc must be positive")
         if not 0 < self.opt_ftol < 1 or self.opt_max_iters < 1:
@@ -97,5 +100,11 @@ class PlannerConfig:
 
     @property
     def inflation(self) -> float:
-        """Distance by which obstacles are grown for planning (vehicle radius + margin)."""
+        """Distance by which the virtual ceiling and floor are grown (vehicle radius + margin)."""
         return self.vehicle_radius + self.inflation_margin
+
+    @property
+    def obstacle_inflation(self) -> float:
+        """Distance by which mapped obstacles are grown for planning: :attr:`inflation` plus the
+        tracking margin."""
+        return self.inflation + self.tracking_margin

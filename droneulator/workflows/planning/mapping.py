@@ -177,7 +177,7 @@ class LocalMap:
         self.l_hit, self.l_miss = logit(config.p_hit), logit(config.p_miss)
         self.l_min, self.l_max = logit(config.p_min), logit(config.p_max)
         self.l_occ = logit(config.p_occupied)
-        self.offsets = sphere_offsets(config.inflation / self.res)
+        self.offsets = sphere_offsets(config.obstacle_inflation / self.res)
         self.logodds = np.zeros(self.shape, dtype=np.float32)
         self.count = np.zeros(self.shape, dtype=np.int32)
         self.stamp = np.zeros(self.shape, dtype=np.int32)
@@ -231,6 +231,15 @@ class LocalMap:
         self.origin_index = new_origin
         self._rebuild()
         return True
+
+    def set_tracking_margin(self, margin: float) -> None:
+        """Grow the mapped obstacles by ``margin`` beyond ``inflation`` (``cfg.tracking_margin``) and
+        recount the inflation; the virtual ceiling and floor keep theirs."""
+        if margin < 0:
+            raise ValueError(f"tracking margin must be >= 0, got {margin}")
+        self.cfg.tracking_margin = float(margin)
+        self.offsets = sphere_offsets(self.cfg.obstacle_inflation / self.res)
+        self._rebuild()
 
     def _rebuild(self) -> None:
         """Recount the inflation from the log-odds, then block the layers beyond the ceiling and floor."""

@@ -51,6 +51,7 @@ from droneulator.workflows.planning.bspline import BSpline
 from droneulator.workflows.planning.config import PlannerConfig
 from droneulator.workflows.planning.fleet import PlannedVehicle, single_vehicle
 from droneulator.workflows.planning.planner import Planner
+from droneulator.workflows.planning.tracking import TrackingMargin
 
 if TYPE_CHECKING:
     from droneulator.workflows.planning.offboard import Estimate
@@ -62,6 +63,8 @@ GOAL_TYPE = "geometry_msgs/msg/PoseStamped"
 COMMAND_PERIOD_NS = 10_000_000
 #: after a failed plan, the next attempt waits this long (sim time)
 RETRY_PERIOD_NS = 100_000_000
+#: the tracking error is sampled at most this often (sim time; PX4 streams its estimate at 30 Hz)
+TRACK_PERIOD_NS = 50_000_000
 
 
 class Autopilot(Protocol):
@@ -109,6 +112,9 @@ class PlanNodeConfig:
     #: the trajectory no longer describes the vehicle, so the next plan starts from the odometry
     #: (``math.inf``: never, e.g. when something other than these setpoints flies the vehicle)
     max_tracking_error: float = 1.0
+    #: with an autopilot: the mapped obstacles grow by up to this much (metres; 0: never) beyond the
+    #: planner's inflation, by the 95th percentile of the measured tracking error (:class:`TrackingMargin`)
+    tracking_margin_max: float = 0.5
     #: optional box ((xmin, ymin, zmin), (xmax, ymax, zmax)) goals must lie in; without it a goal must
     #: lie inside the local map when it arrives (goals further than the horizon are then approached in steps)
     bounds: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
@@ -127,6 +133,8 @@ class PlanNodeConfig:
             raise ValueError("max_yaw_rate must be positive")
         if self.max_plan_lag_s <= 0 or self.max_tracking_error <= 0:
             raise ValueError("max_plan_lag_s and max_tracking_error must be positive")
+        if self.tracking_margin_max < 0:
+            raise ValueError("tracking_margin_max must be >= 0")
 
 
 class PlanNode:
@@ -146,6 +154,10 @@ class PlanNode:
         self._autopilot = autopilot
         self._setpoint: tuple[np.ndarray, np.ndarray, np.ndarray, float, float] | None = None
         self.planner = Planner(planner)
+        #: the tracking error measured with an autopilot, and the extra obstacle margin it asks for
+        self.tracking = TrackingMargin(self.cfg.tracking_margin_max if autopilot is not None else 0.0,
+                                       self.planner.cfg.resolution)  # fmt: skip
+        self._last_track_ns: int | None = None
         log.info("planner kernels ready in %.1f s", self.planner.warm_up())
         cam = self.cfg.camera
         #: the vehicle's topic names and TF frames
@@ -276,6 +288,7 @@ class PlanNode:
             "off_track": self.off_track,
             "commands": self.commands,
             "last_failure": self.last_failure,
+            "tracking": self.tracking.stats(),
             "plan_s": list(self.cycle_s),
             "map_update_s": list(self.map_s),
         }
@@ -352,6 +365,7 @@ class PlanNode:
                     self._replan(goal, odom, now, traj, t_rel, new_goal, from_odom=True)
                     last_plan_ns = now
                     continue
+                self._track(off, now)
             due = new_goal or last_plan_ns is None or now - last_plan_ns >= self.cfg.replan_period_s * 1e9
             ended = traj is not None and t_rel >= traj.duration and not new_goal
             if ended and self._traj_goal is goal:
@@ -370,6 +384,19 @@ class PlanNode:
                 continue  # after a failed plan, retry at most every RETRY_PERIOD_NS, not in a busy loop
             self._replan(goal, odom, now, traj, t_rel, new_goal)
             last_plan_ns = now
+
+    def _track(self, off: float, now: int) -> None:
+        """Take the tracking error ``off`` (at most one sample per TRACK_PERIOD_NS of sim time) and widen
+        the mapped obstacles when its high percentile asks for more margin (planning thread: owns the map)."""
+        if self._last_track_ns is not None and now - self._last_track_ns < TRACK_PERIOD_NS:
+            return
+        self._last_track_ns = now
+        if self.tracking.add(off):
+            m = self.tracking.margin
+            log.info("the autopilot tracks its setpoints within %.2f m (p%g of %d samples): obstacles grown "
+                     "by %.2f m more (%.2f m in all)", self.tracking.high, self.tracking.quantile,
+                     self.tracking.count, m, self.planner.cfg.inflation + m)  # fmt: skip
+            self.planner.map.set_tracking_margin(m)
 
     def _flown_state(self, odom: tuple | None) -> tuple | None:
         """(stamp, position, attitude, world velocity) of the vehicle in the frame its setpoints are
@@ -450,7 +477,7 @@ class PlanNode:
         if not (np.all(goal >= lo) and np.all(goal <= hi)):
             reason = f"goal {goal.round(2)} is outside {where}"
         elif m.inside(goal) and m.is_occupied(goal):
-            near = self.planner.cfg.inflation
+            near = self.planner.cfg.obstacle_inflation
             reason = f"goal {goal.round(2)} is occupied (within {near:g} m of an obstacle)"
         else:
             return True

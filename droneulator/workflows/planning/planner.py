@@ -61,7 +61,7 @@ class Planner:
         pos = traj.position(t)
         occ = self.map.is_occupied(pos)
         if len(occ) and occ[0]:
-            near = np.linalg.norm(pos - pos[0], axis=1) <= 2 * self.cfg.inflation
+            near = np.linalg.norm(pos - pos[0], axis=1) <= 2 * self.cfg.obstacle_inflation
             exempt = occ & near & ~self.map.is_occupied(pos, inflated=False)
             occ[: int(np.argmin(exempt)) if not exempt.all() else len(occ)] = False
         return t[occ]
@@ -103,7 +103,7 @@ class Planner:
         blocked = self.map.count  # non-zero within the inflation radius; no bool copy of the grid
         # a start (or end) inside the inflation, e.g. after passing close by, is searched from the
         # nearest free voxel: the optimiser then pushes the curve out of the inflation
-        reach = self.cfg.inflation + self.cfg.resolution
+        reach = self.cfg.obstacle_inflation + self.cfg.resolution
         ia, ib = self.map.index(a), self.map.index(b)
         ia = ia if not blocked[tuple(ia)] else self.map.nearest_free(ia, reach)
         ib = ib if not blocked[tuple(ib)] else self.map.nearest_free(ib, reach)
@@ -144,7 +144,7 @@ class Planner:
             return self._fail(f"goal {goal.round(2)} is outside the local map [{lo.round(2)}, {hi.round(2)}]")
         if not self.map.inside(p0):
             return self._fail(f"start {p0.round(2)} is outside the local map")
-        near = f"within {self.cfg.inflation} m of an obstacle"
+        near = f"within {self.cfg.obstacle_inflation:g} m of an obstacle"
         if self.map.is_occupied(goal):
             return self._fail(f"goal {goal.round(2)} is occupied ({near})")
         if self.map.is_occupied(p0, inflated=False):
@@ -208,7 +208,7 @@ class Planner:
         blocked = m.count
         ia, ib = m.index(p0), m.index(goal)
         if blocked[tuple(ia)]:
-            ia = m.nearest_free(ia, c.inflation + c.resolution)
+            ia = m.nearest_free(ia, c.obstacle_inflation + c.resolution)
         if ia is None or blocked[tuple(ib)]:
             return []
         path = astar(blocked, ia, ib, c.astar_max_expansions, int(np.ceil(c.astar_margin / c.resolution)))
@@ -261,7 +261,7 @@ class Planner:
             s_out = np.where(d > 0, (hi - p0) / d, np.where(d < 0, (lo - p0) / d, np.inf))
         target = p0 + d * float(np.clip(np.min(s_out), 0.0, 1.0))
         blocked = m.count
-        reach = 2 * c.inflation
+        reach = 2 * c.obstacle_inflation
         ia = m.index(p0)
         if not m.inside(p0):
             return straight
@@ -286,7 +286,7 @@ class Planner:
         seen[0] = True
         unseen = np.flatnonzero(~seen)
         # stop an inflation radius short of unseen space: an obstacle may start right there
-        limit = min(c.horizon, along[unseen[0]] - c.inflation) if len(unseen) else c.horizon
+        limit = min(c.horizon, along[unseen[0]] - c.obstacle_inflation) if len(unseen) else c.horizon
         ok = np.flatnonzero(along <= limit)
         k = int(ok[-1]) if len(ok) else 0
         if along[k] < c.min_step:
