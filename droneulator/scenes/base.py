@@ -124,10 +124,14 @@ class Scene:
         side = spacing * np.arange(-12, 13)
         grid = np.array([[x, y, 0.0] for x in side for y in side]) + chosen[0] * [1.0, 1.0, 0.0]
         grid = grid[np.argsort(np.linalg.norm(grid - chosen[0], axis=1), kind="stable")]
+        taken = np.empty((len(self.spawn_candidates) + len(grid) + 1, 2))  # the chosen points' x, y
+        taken[0] = chosen[0][:2]
         for p in [*map(np.asarray, self.spawn_candidates), *grid]:
             if len(chosen) >= n:
                 break
-            if min(np.linalg.norm(p[:2] - q[:2]) for q in chosen) >= spacing - 1e-9 and free(p):
+            near = np.hypot(*(taken[: len(chosen)] - p[:2]).T).min()
+            if near >= spacing - 1e-9 and free(p):
+                taken[len(chosen)] = p[:2]
                 chosen.append(np.array([p[0], p[1], 0.0]))
         if len(chosen) < n:
             raise ValueError(
