@@ -11,6 +11,7 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -29,8 +30,10 @@ class LogThrottle:
 
     A burst of ``key`` lasts while repeats arrive within ``gap`` seconds of each other. Its count is logged
     (the ``summary`` given with the first occurrence, ``{n}`` replaced) when the burst ends: at the next
-    occurrence after a gap, on :meth:`end`, or, with ``one_at_a_time``, as soon as another key starts a
-    burst. With ``period`` a burst that never ends also logs its count every ``period`` seconds.
+    occurrence after a gap, on :meth:`end`, or, with ``one_at_a_time``, as soon as another key of its group
+    starts a burst (``group(key)``; every key one group by default: e.g. a topic's rejections, whose code
+    changed, while another topic's burst, interleaved with it, goes on). With ``period`` a burst that never
+    ends also logs its count every ``period`` seconds.
     """
 
     def __init__(
@@ -39,11 +42,13 @@ class LogThrottle:
         gap: float = 1.0,
         period: float | None = None,
         one_at_a_time: bool = False,
+        group: Callable[[Any], Any] = lambda key: None,
     ) -> None:
         self.logger = logger
         self.gap = gap
         self.period = math.inf if period is None else period
         self.one_at_a_time = one_at_a_time
+        self.group = group
         self._bursts: dict[Any, _Burst] = {}
         self._lock = threading.Lock()
 
@@ -61,7 +66,9 @@ class LogThrottle:
                     lines.append((burst.level, burst.summary.replace("{n}", str(burst.count))))
                     burst.count, burst.reported = 0, now
             else:
-                ended = [k for k in self._bursts if k == key or self.one_at_a_time]
+                mine = self.group(key)
+                ended = [k for k in self._bursts
+                         if k == key or (self.one_at_a_time and self.group(k) == mine)]  # fmt: skip
                 lines += self._close(ended)
                 self._bursts[key] = _Burst(now, now, summary, level)
                 lines.append((level, msg % args if args else msg))

@@ -274,3 +274,17 @@ def test_commands_never_interleave_with_a_step():
     worker.join(5)
     assert done.is_set() and sim.vehicle().mode.value == "takeoff"
     sim.close()
+
+
+def test_a_sources_burst_of_rejections_goes_on_while_another_sources_interleave(caplog):
+    """Grouped by source: a second topic's rejections do not end the first one's burst (each would log a
+    line per sample when two topics alternate), a new code from the same source does at once."""
+    from droneulator.logs import LogThrottle
+
+    caplog.set_level(logging.WARNING, logger="test.throttle")
+    throttle = LogThrottle(logging.getLogger("test.throttle"), gap=60.0, one_at_a_time=True,
+                           group=lambda key: key[0])  # fmt: skip
+    for source, code in [("a", "x"), ("b", "x"), ("a", "x"), ("b", "x"), ("a", "x"), ("a", "y")]:
+        more = f"{{n}} more {source} {code}"
+        throttle.log((source, code), logging.WARNING, f"{source} {code}", summary=more)
+    assert [r.getMessage() for r in caplog.records] == ["a x", "b x", "2 more a x", "a y"]

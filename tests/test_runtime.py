@@ -442,18 +442,28 @@ def test_bad_input_gets_errors_and_the_simulation_keeps_running(run):
     run.wait_for(lambda: c.state()["t"] > t0 + 1.0, 30, "sim time to keep advancing")
 
 
-def test_killed_render_server_is_restarted_and_the_flight_goes_on(run):
+def test_killed_render_server_and_bridge_are_restarted_without_a_lost_frame(run):
+    """SIGKILL the render server, then the bridge: the supervisor starts each again, the lockstep clock
+    waits for the new one, which redoes the frames its predecessor left unfinished, so the depth stream's
+    stamps run on at the camera rate without a gap; the flight state is kept."""
     c = run.client
     c.reset(position=[0.0, -8.0, 2.0], yaw=0.0)
-    pid = run.children()["render_server"]
+    key = "droneulator/front/depth/image_raw"
+    n = len(run.msgs[key])
+    run.wait_for(lambda: len(run.msgs[key]) > n + 3, 60, "frames after the reset")
+    first = len(run.msgs[key]) - 1  # a frame of this episode (a reset starts the clock again)
     before = np.array(c.state()["position"])
-    os.kill(pid, signal.SIGKILL)
-    run.wait_for(lambda: run.children().get("render_server", pid) != pid, 30, "the render server to restart")
-    n = len(run.msgs["droneulator/front/depth/image_raw"])
-    run.wait_for(
-        lambda: len(run.msgs["droneulator/front/depth/image_raw"]) > n + 5, 60, "frames after restart"
-    )
-    assert any("render server exited with code -9" in line for line in run.log)
+    for child, name in (("render_server", "render"), ("bridge", "bridge")):
+        pid = run.children()[child]
+        os.kill(pid, signal.SIGKILL)
+        run.wait_for(lambda: run.children().get(child, pid) != pid, 30, f"the {name} process to restart")  # noqa: B023
+        n = len(run.msgs[key])
+        run.wait_for(lambda: len(run.msgs[key]) > n + 5, 60, f"frames after the {name} process restarted")  # noqa: B023
+        assert any(f"{name} server exited with code -9" in line for line in run.log), name
+    with run.lock:
+        stamps = np.unique([stamp_ns(m) for _, m in run.msgs[key][first:]])  # a redone frame may come twice
+    gaps = np.diff(stamps)
+    assert len(stamps) > 10 and np.all(np.abs(gaps - np.median(gaps)) <= 1), gaps  # no frame lost
     st = c.state()
     assert np.linalg.norm(np.array(st["position"]) - before) < 0.05  # flight state kept: still hovering there
     assert run.proc.poll() is None

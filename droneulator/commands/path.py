@@ -45,8 +45,9 @@ class CommandPath:
         self.lock = lock if lock is not None else threading.Lock()
         #: vehicle name (None: every vehicle) -> (reason, the ops refused; None: every flight op)
         self._locks: dict[str | None, tuple[str, frozenset[str] | None]] = {}
-        #: one line per burst of the same (source, op, code) rejection, then how many followed
-        self._rejections = LogThrottle(log, gap=BURST_GAP_S, one_at_a_time=True)
+        #: one line per burst of the same (source, op, code) rejection, then how many followed; a source's new
+        #: code ends its burst at once, another source's rejections (interleaved with it) do not
+        self._rejections = LogThrottle(log, gap=BURST_GAP_S, one_at_a_time=True, group=lambda key: key[0])
 
     # ------------------------------------------------------------------ flight lock
     def refuse_flight(
