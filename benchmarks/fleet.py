@@ -13,19 +13,17 @@ from __future__ import annotations
 
 import argparse
 import os
-import subprocess
 import threading
 import time
 from typing import Any
 
 import zenoh
-from _common import write
+from _common import children, write
 
 from droneulator.config import fleet, load_config
 from droneulator.runtime.launch import launch_run
 
 CLK_TCK = os.sysconf("SC_CLK_TCK")
-ROLES = ("dynamics_server", "render_server", "bridge")
 
 
 def cpu_seconds(pid: int) -> float:
@@ -33,16 +31,6 @@ def cpu_seconds(pid: int) -> float:
     fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()  # noqa: SIM115
     return (int(fields[11]) + int(fields[12])) / CLK_TCK
 
-
-def children(pid: int) -> dict[str, int]:
-    out = subprocess.run(["ps", "-o", "pid=,args=", "--ppid", str(pid)], capture_output=True, text=True)
-    found = {}
-    for line in out.stdout.splitlines():
-        child, args = line.strip().split(None, 1)
-        for role in ROLES:
-            if role in args:
-                found[role] = int(child)
-    return found
 
 
 def measure(n: int, scene: str, seconds: float, warmup: float) -> dict[str, Any]:

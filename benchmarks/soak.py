@@ -50,7 +50,7 @@ from pathlib import Path
 from typing import Any
 
 import zenoh
-from _common import write
+from _common import children, write
 from websockets.sync.client import connect
 
 from droneulator.api.client import ApiError
@@ -62,23 +62,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from scripted_px4 import ScriptedPX4  # noqa: E402  (the test suite's PX4 stand-in, one copy)
 
 PERIOD_NS = round(1e9 / 30)
-ROLES = ("dynamics_server", "render_server", "bridge")
 CLIENTS = {"state": 20, "command": 15, "ui": 10, "dashboard": 5}
 
 
 def log_line(msg: str) -> None:
     print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
-
-def children(pid: int) -> dict[str, int]:
-    out = subprocess.run(["ps", "-o", "pid=,args=", "--ppid", str(pid)], capture_output=True, text=True)
-    found = {}
-    for line in out.stdout.splitlines():
-        child, args = line.strip().split(None, 1)
-        for role in ROLES:
-            if f"droneulator.runtime.{role}" in args:
-                found[role] = int(child)
-    return found
 
 
 def rss_kb(pid: int) -> int | None:
