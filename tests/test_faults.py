@@ -257,6 +257,25 @@ def test_randomisation_draws_a_rotor_fault_and_a_config_carries_it():
         from_dict(type(load_config()), {"faults": [{"at": 1.0}]})
 
 
+def test_the_single_and_vector_envs_fly_their_episodes_on_the_drawn_rotor_efficiency():
+    from droneulator.workflows.rl.env import VineyardNavEnv
+    from droneulator.workflows.rl.vector import VineyardNavVectorEnv
+
+    cfg = load_config(overrides=["randomize.enabled=true", "randomize.rotor_fault_prob=1.0",
+                                 "randomize.rotor_efficiency=[0.6, 0.7]"])  # fmt: skip
+    single = VineyardNavEnv(cfg, depth="raycast")
+    vector = VineyardNavVectorEnv(2, config=cfg, depth="raycast")
+    try:
+        single.reset(seed=4)
+        vector.reset(seed=4)
+        for eff in (single.backend.world.rotor_efficiency[0, 0], *vector.worlds.rotor_efficiency[:, 0]):
+            weak = eff[eff < 1.0]
+            assert len(weak) == 1 and 0.6 <= weak[0] <= 0.7, eff
+    finally:
+        single.close()
+        vector.close()
+
+
 def test_docs_list_every_kind_as_the_code_checks_them():
     assert fault_markdown().split("\n", 2)[2] in (DOCS / "faults.md").read_text()
 

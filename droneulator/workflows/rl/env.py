@@ -150,11 +150,13 @@ class LocalBackend:
         cam = cfg.render.cameras[0]
         self.depth_model = cam.depth_model
         self.depth_scales = np.array([[cam.depth_noise_scale, cam.depth_dropout_scale]])
+        #: the episode's rotor efficiencies (randomisation's draw), set again after the world's reset
+        self.rotor_efficiency = np.ones(4)
 
     def randomize(self, draw: Draw) -> None:
         """Fly the next episode in the conditions of ``draw``: its wind, depth camera and rotor efficiency."""
         self.world.set_wind(draw.wind)
-        self.world.rotor_efficiency[0, 0] = draw.rotor_efficiency
+        self.rotor_efficiency = np.asarray(draw.rotor_efficiency, dtype=float)
         self.depth_model = draw.depth_model
         self.depth_scales = np.array([[draw.depth_noise_scale, draw.depth_dropout_scale]])
 
@@ -167,6 +169,7 @@ class LocalBackend:
 
     def reset(self, position: np.ndarray, yaw: float) -> tuple[np.ndarray, Kinematics]:
         st = self.world.reset(position=np.asarray(position, dtype=float), yaw=float(yaw), airborne=True)
+        self.world.rotor_efficiency[0, 0] = self.rotor_efficiency  # a reset makes every rotor whole
         return self._depth(st.T_world_body), self._kinematics(st)
 
     def step(self, forward: float, yaw_rate: float) -> tuple[np.ndarray, Kinematics, bool]:
