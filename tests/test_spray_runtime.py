@@ -95,6 +95,22 @@ def test_spray_ops_over_the_server_empty_the_tank_and_refuse_bad_input(rig):
             assert rig.world.vehicle().quad_params["mass"] == pytest.approx(16.2, abs=0.011)
 
 
+def test_spray_deposit_sends_the_picture_only_when_it_changed(rig):
+    """Asked with the version it has, a client gets the picture only when more has landed (here the sim
+    is held between the two asks); over the server the picture decodes to the grid's size."""
+    with rig.lock:
+        first = handle_request(rig.world, '{"op": "spray_deposit"}')["result"]
+        again = handle_request(rig.world, json.dumps({"op": "spray_deposit", "since": first["version"]}))
+        cloud = rig.world.spraying.cloud
+    assert first["changed"] and again["result"] == {"version": first["version"], "changed": False}
+    assert (first["width"], first["height"]) == cloud.ground_deposit().shape
+    assert first["origin"] == pytest.approx(cloud.ground_origin.tolist())
+    with DroneulatorClient(rig.server.url, timeout=10.0) as c:
+        stale = c.request("spray_deposit", since=first["version"] + 1000)  # another run's version
+        assert stale["changed"] and stale["version"] >= first["version"]
+        assert _code(c, "spray_deposit", since=-1) == "out_of_range"
+
+
 def test_a_reset_refills_the_tanks_and_clears_the_cloud():
     world = World(load_config(overrides=OVERRIDES), render=False)
     v = world.vehicle()
@@ -103,7 +119,10 @@ def test_a_reset_refills_the_tanks_and_clears_the_cloud():
     world.spraying.system(None).set(1.0)
     world.step(100)
     assert world.spraying.cloud.sprayed > 0 and v.quad_params["mass"] < 26.0
+    sprayed = world.spraying.deposit_image()
     world.reset()
+    cleared = handle_request(world, json.dumps({"op": "spray_deposit", "since": sprayed.version}))["result"]
+    assert cleared["changed"] and cleared["version"] > sprayed.version and cleared["png"] != sprayed.png
     assert world.spraying.cloud.sprayed == 0.0 and world.spraying.cloud.count == 0
     assert world.spraying.system(None).level_l == 10.0 and not world.spraying.system(None).on
     assert v.quad_params["mass"] == pytest.approx(26.0)
@@ -112,6 +131,8 @@ def test_a_reset_refills_the_tanks_and_clears_the_cloud():
 def test_spray_ops_without_spray_systems_are_refused():
     world = World(scene="default", render=False)
     r = handle_request(world, '{"op": "spray", "rate": 1}')
+    assert not r["ok"] and r["error"]["code"] == "no_spray_system"
+    r = handle_request(world, '{"op": "spray_deposit"}')
     assert not r["ok"] and r["error"]["code"] == "no_spray_system"
     assert "spray" not in handle_request(world, '{"op": "state"}')["result"]
 

@@ -278,6 +278,13 @@ def _spray_refill(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
     return {"spray": system.state(), "vehicle": name, **_when(sim)}
 
 
+def _spray_deposit(sim: CommandedWorld, a: dict[str, Any]) -> dict[str, Any]:
+    image = _spraying(sim).deposit_image()
+    if a.get("since") == image.version:
+        return {"version": image.version, "changed": False}
+    return {**image.to_dict(), "changed": True}
+
+
 #: the ``fault`` op's fields that are a kind's parameters (docs/faults.md)
 _FAULT_PARAMS = ("rotor", "efficiency", "noise_m", "satellites", "drift", "offset", "accel", "gyro", "rate",
                  "field")  # fmt: skip
@@ -556,6 +563,21 @@ OPS: dict[str, Op] = {
             (Arg("litres", "number", "how full (L; default: the configured load)", bounds=(0, 1000)),
              _VEHICLE),  # fmt: skip
             _spray_refill,
+        ),
+        Op(
+            "spray_deposit",
+            "The ground deposit of every vehicle's spray (`spray.enabled`) as a small picture: the levels of "
+            "the ROS grid `/<namespace>/spray/deposit` (0 where nothing landed, 1-100 over log10 of 1e-4 "
+            "to 10 uL/cm^2) as an 8-bit greyscale PNG, one pixel a cell, row r the cells at y index r "
+            "from the origin (the ROS grid's order). Give the `version` you have as `since` to get the "
+            "picture only when the deposit changed (the browser UI asks once a second of sim time).",
+            "`changed`: false (then only `version`) when the deposit is still that of version `since`; "
+            "else true with `version` (one higher at each change, across resets too), `t` (s) and "
+            "`stamp_ns` when it was taken, `width` (cells along x), `height` (along y), `cell_m`, "
+            "`origin` [x, y] (m, world: the corner of cell (0, 0)), `range_ul_cm2` [1e-4, 10] (the "
+            "deposits of levels 1 and 100) and `png` (base64)",
+            (Arg("since", "integer", "the `version` already held (default: none)", bounds=(0, 2**53)),),
+            _spray_deposit,
         ),
         Op(
             "fault",

@@ -38,7 +38,6 @@ from droneulator.imaging import encode_jpeg, encode_png
 from droneulator.ros import messages as M
 from droneulator.ros.topics import (
     CLOCK,
-    DEPOSIT_LOG_RANGE,
     MAP_FRAME,
     NS_PER_S,
     SENSOR_TOPICS,
@@ -53,6 +52,7 @@ from droneulator.ros.topics import (
 )
 from droneulator.sensors.camera import Camera
 from droneulator.sensors.mag import TESLA_PER_GAUSS
+from droneulator.spray.deposit import deposit_levels
 
 if TYPE_CHECKING:
     import zenoh
@@ -244,13 +244,11 @@ class StatePublisher:
 
     def publish_deposit(self, t_ns: int, deposit_ul_cm2: np.ndarray, cell: float, origin_xy: Any) -> None:
         """The ground deposit (uL/cm^2 per cell, ``[x, y]``) as an occupancy grid in ``map``: 0 where
-        nothing landed, 1..100 over log10 of :data:`~droneulator.ros.topics.DEPOSIT_LOG_RANGE`."""
+        nothing landed, 1..100 over log10 of :data:`~droneulator.ros.topics.DEPOSIT_LOG_RANGE`
+        (:func:`~droneulator.spray.deposit.deposit_levels`)."""
         if self._deposit is None:
             return
-        lo, hi = DEPOSIT_LOG_RANGE
-        with np.errstate(divide="ignore"):
-            level = (np.log10(deposit_ul_cm2) - lo) / (hi - lo)
-        values = np.where(deposit_ul_cm2 > 0, 1 + np.clip(level, 0.0, 1.0) * 99, 0).astype(np.int8)
+        values = deposit_levels(deposit_ul_cm2).astype(np.int8)
         self._deposit.publish(M.serialize(M.occupancy_grid(t_ns, MAP_FRAME, values, cell, origin_xy)), t_ns)
 
     def publish_sensors(

@@ -21,7 +21,9 @@ from droneulator.config.spray import SprayConfig, WeatherConfig
 from droneulator.config.wind import WindConfig
 from droneulator.frames import quat_to_matrix
 from droneulator.scenes.base import Scene
+from droneulator.spray import kernel
 from droneulator.spray.cloud import Domain, Emitter, SprayCloud
+from droneulator.spray.deposit import DepositImage
 from droneulator.spray.system import SpraySystem
 from droneulator.spray.targets import SprayTargets
 from droneulator.state import STATE
@@ -33,6 +35,8 @@ TANK_OFFSET = (0.0, 0.0, -0.15)
 #: a payload change smaller than this (kg) waits for the next one (re-packing the parameters each step
 #: would cost more than the mass error)
 PAYLOAD_STEP_KG = 0.01
+#: the ledger's column of the liquid on the deposit grid
+_GROUND = kernel.LEDGER.index("ground")
 
 
 def shelter_grid(scene: Scene, targets: SprayTargets, wind: WindConfig) -> np.ndarray:
@@ -110,6 +114,10 @@ class Spraying:
         self.substeps = max(1, math.ceil(period / self.config.dt_s - 1e-9))
         self.every = max(1, round(self.config.dt_s / period))
         self.dt = period / self.substeps if self.substeps > 1 else period * self.every
+        self._episode = 0
+        #: the deposit picture last encoded and what it showed (episode, volume on the grid)
+        self._deposit: DepositImage | None = None
+        self._deposit_key: tuple[int, float] | None = None
         self.reset()
 
     def reset(self) -> None:
@@ -135,6 +143,7 @@ class Spraying:
             self.config, self.weather, wind, self.domain, self.targets, shelter, seed=cfg.seed, dt=self.dt
         )
         self._periods = 0
+        self._episode += 1
         for name, system in self.systems.items():
             system.refill()
             system.rate = 0.0
@@ -154,6 +163,19 @@ class Spraying:
         system.refill(litres)
         self._update_payload(self.world.vehicle(name).name, force=True)
         return system
+
+    def deposit_image(self) -> DepositImage:
+        """The ground deposit as the ``spray_deposit`` op sends it. Encoded again only when more liquid has
+        landed on the grid or after a reset (its ``version`` then one higher), so asking often is cheap."""
+        cloud = self.cloud
+        key = (self._episode, float(cloud.ledger[:, _GROUND].sum()))
+        if self._deposit is None or key != self._deposit_key:
+            version = 1 if self._deposit is None else self._deposit.version + 1
+            grid, w = cloud.ground_deposit_ul_cm2(), self.world
+            at = (version, w.t, w.stamp_ns)
+            self._deposit = DepositImage.of(grid, cloud.ground_cell, cloud.ground_origin, *at)
+            self._deposit_key = key
+        return self._deposit
 
     def _update_payload(self, name: str, force: bool = False) -> None:
         kg = self.systems[name].liquid_kg
