@@ -1,10 +1,13 @@
 // Droneulator's browser UI: level select, then the flight view. Everything it does goes through the
 // simulator's WebSocket API (relayed by the UI server) and every error the API returns is shown. In a
 // world of several vehicles the flight controls, map clicks, telemetry and camera views follow the
-// selected vehicle (docs/ui.md); the map shows them all.
+// selected vehicle (docs/ui.md); the map shows them all. A run that sprays (docs/spray.md) shows each
+// sprayer's spray state and draws the ground deposit on the map, asked for with `spray_deposit` once a
+// second of sim time, only while a vehicle's state carries a spray system.
 
 import { ApiError, Connection, TOKEN_KEY, withToken } from "./connection.js";
 import { CameraViews } from "./cameras.js";
+import { decodeDeposit, legendGradient } from "./deposit.js";
 import { FLEET_COLOURS, MapView } from "./map.js";
 import { painter } from "./painter.js";
 
@@ -18,6 +21,7 @@ const EVENT_LOG = 60;
 const RTF_WINDOW_MS = 3000;
 const STATE_HZ = 5; // state messages per second: the map and the telemetry change at most 4 times a second
 const TELEMETRY_MS = 250;
+const DEPOSIT_EVERY_S = 1; // sim seconds between two asks for the deposit (the ROS grid's period)
 
 const ui = {
   config: null,
@@ -35,6 +39,8 @@ const ui = {
   rtfSamples: [],
   images: null,
   telemetryAt: 0,
+  spray: false, // a vehicle's state carries a spray system: the deposit layer is shown
+  deposit: { version: null, askedT: null, busy: false, error: null, layer: null },
 };
 window.droneulatorUI = ui; // for tests and the benchmark
 
@@ -111,6 +117,7 @@ function buildVehicleList() {
     if (v.controlled_by === "px4") b.insertAdjacentHTML("beforeend", `<span class="tag">PX4</span>`);
     if (v.controlled_by === "ardupilot") b.insertAdjacentHTML("beforeend", `<span class="tag">ArduPilot</span>`);
     b.insertAdjacentHTML("beforeend", `<span class="tag locked" hidden>locked</span>`);
+    b.insertAdjacentHTML("beforeend", `<span class="tag spray" hidden></span>`);
     b.onclick = () => select(v.name);
     list.append(b);
   });
@@ -127,6 +134,11 @@ function renderVehicleList() {
     const lock = b.querySelector(".tag.locked");
     lock.hidden = !ui.locks[name];
     lock.title = ui.locks[name] ?? "";
+    const spray = ui.states[name]?.spray;
+    const tag = b.querySelector(".tag.spray");
+    tag.hidden = !spray;
+    const text = spray ? `${spray.on ? "spraying" : "spray off"} · ${litres(spray.level_l)} L` : "";
+    if (tag.textContent !== text) tag.textContent = text;
   }
 }
 
@@ -348,6 +360,7 @@ function onState(state) {
     if (name === selected()) ui.rtfSamples = [];
   }
   map.setState(name, state);
+  if (state.spray) onSprayState(state);
   if (name !== selected()) return;
   ui.state = state;
   const now = performance.now();
@@ -357,6 +370,47 @@ function onState(state) {
     ui.telemetryAt = now;
     painter.add("telemetry", renderTelemetry);
   }
+}
+
+// ------------------------------------------------------------------------------------------------ spraying
+const litres = (v) => (Number.isFinite(v) ? v.toFixed(2) : "?");
+
+// "on at 100 %, tank 7.42 / 10.00 L" (the spray state of VehicleState.spray)
+function describeSpray(sp) {
+  const rate = Number.isFinite(sp.rate) ? `${Math.round(sp.rate * 100)} %` : "?";
+  return `${sp.on ? `on at ${rate}` : "off"}, tank ${litres(sp.level_l)} / ${litres(sp.tank_l)} L`;
+}
+
+// A state with a spray system: show the deposit layer, and ask for the deposit once a second of sim
+// time (again at once after a reset: sim time went back), one request at a time.
+function onSprayState(state) {
+  if (!ui.spray) {
+    ui.spray = true;
+    $("deposit-bar").hidden = false;
+  }
+  const d = ui.deposit;
+  if (d.busy || (d.askedT !== null && state.t >= d.askedT && state.t - d.askedT < DEPOSIT_EVERY_S)) return;
+  d.busy = true;
+  d.askedT = state.t;
+  const since = d.version === null ? {} : { since: d.version };
+  conn.request("spray_deposit", since)
+    .then(async (res) => {
+      if (!res || !res.changed) return;
+      const layer = await decodeDeposit(res);
+      d.version = layer.version;
+      d.layer = layer;
+      map.setDeposit(layer);
+      $("deposit-info").textContent = layer.cells ? `(${layer.cells} cells)` : "(nothing landed yet)";
+    })
+    .catch((err) => {
+      if (err.code === "not_connected" || err.code === "connection_closed") return;
+      const text = `the spray deposit could not be drawn: ${describe(err)}`;
+      if (d.error !== text) showError(text); // once, not every second
+      d.error = text;
+    })
+    .finally(() => {
+      d.busy = false;
+    });
 }
 
 function renderTelemetry() {
@@ -376,6 +430,7 @@ function renderTelemetry() {
       ["speed", `${speed.toFixed(2)} m/s`], ["altitude", `${z.toFixed(2)} m`],
       ["heading", `${((s.yaw * 180) / Math.PI).toFixed(0)}°`], ["sim time", `${s.t.toFixed(2)} s`],
       ["real-time factor", rtf === null ? "…" : rtf.toFixed(2)]);
+    if (s.spray && typeof s.spray === "object") rows.push(["spray", describeSpray(s.spray)]);
   }
   if (ui.scene) rows.push(["scene", `${ui.scene.name} (seed ${ui.scene.seed})`]);
   if (ui.light) rows.push(["light", describeLight(ui.light)]);
@@ -567,6 +622,8 @@ async function init() {
   ui.config = await res.json();
   cams.config = ui.config;
   if (ui.config.px4) $("px4").hidden = false;
+  $("deposit-scale").style.background = legendGradient();
+  $("deposit-toggle").onchange = (e) => map.setShowDeposit(e.target.checked);
   $("nav-levels").onclick = () => showPage("levels");
   $("nav-fly").onclick = () => showPage("fly");
   const clearGoal = (name) => () => map.setGoal(null, name);

@@ -1,5 +1,6 @@
-// The top-down map: the renderer's orthographic picture of the scene, the flyable box, every vehicle
-// with its heading (in a fleet: each in its own colour, with its name), their trails and active goals.
+// The top-down map: the renderer's orthographic picture of the scene, the flyable box, the spray deposit
+// (a run with spraying: under everything else, toggleable), every vehicle with its heading (in a fleet:
+// each in its own colour, with its name), their trails and active goals.
 // A click reports the world x, y under the pointer, and the vehicle drawn there if any.
 
 import { withToken } from "./connection.js";
@@ -26,6 +27,8 @@ export class MapView {
     this.vehicles = new Map(); // name -> {x, y, yaw, trail, goal}
     this.selected = null; // the vehicle the goal getter and the highlight follow
     this.background = null; // the map picture with the flyable box, drawn once per scene
+    this.deposit = null; // the spray deposit layer (deposit.js), or null
+    this.showDeposit = true;
     this.drawnAt = 0;
     this.drawTimer = 0;
     canvas.addEventListener("click", (e) => {
@@ -168,6 +171,30 @@ export class MapView {
     return bg;
   }
 
+  // The spray deposit layer to draw (decodeDeposit's), or null for none.
+  setDeposit(layer) {
+    this.deposit = layer;
+    this.requestDraw();
+  }
+
+  setShowDeposit(on) {
+    this.showDeposit = on;
+    this.requestDraw();
+  }
+
+  // The deposit picture in the world frame: its row 0 lies at the grid's lowest y, the bottom of the map.
+  drawDeposit() {
+    const { ctx } = this;
+    const { canvas, extent } = this.deposit;
+    const [u0, v0] = this.toCanvas(extent[0], extent[1]);
+    const [u1, v1] = this.toCanvas(extent[2], extent[3]);
+    ctx.save();
+    ctx.translate(u0, v0);
+    ctx.scale((u1 - u0) / canvas.width, (v1 - v0) / canvas.height);
+    ctx.drawImage(canvas, 0, 0);
+    ctx.restore();
+  }
+
   clearTrail(name) {
     const s = this.vehicles.get(name);
     if (s) s.trail = [];
@@ -185,6 +212,7 @@ export class MapView {
     ctx.clearRect(0, 0, canvas.width, canvas.height);
     if (!this.meta) return;
     ctx.drawImage(this.background, 0, 0);
+    if (this.deposit && this.showDeposit) this.drawDeposit();
     // the selected vehicle last: on top of the others
     const order = [...this.vehicles.keys()].sort((a, b) => (a === this.selected) - (b === this.selected));
     for (const name of order) this.drawTrail(name);
