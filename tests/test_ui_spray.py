@@ -68,7 +68,7 @@ def wait(predicate: Any, timeout: float, what: str, log: Any) -> Any:
 @pytest.mark.skipif(CHROMIUM is None, reason="Chromium is not installed (scripts/setup.sh --dev)")
 def test_the_map_draws_the_spray_deposit_where_the_vehicle_sprayed() -> None:
     playwright = pytest.importorskip("playwright.sync_api")
-    sets = ["spray.enabled=true", "vehicle.params=sprayer10", "spray.parcels_per_s=200"]
+    sets = ["spray.enabled=true", "vehicle.params=sprayer10", "spray.parcels_per_s=200", "render.camera_hz=5"]
     cfg = load_config(scene="default", overrides=sets)
     cfg.render.cameras = [CameraConfig(name="front", width=160, height=120)]
     cfg.render.shadows = False
@@ -95,8 +95,7 @@ def test_the_map_draws_the_spray_deposit_where_the_vehicle_sprayed() -> None:
             assert "off, tank 10.00 / 10.00 L" in page.inner_text("#telemetry")
 
             client.request("takeoff", altitude=2.0)
-            wait(lambda: client.state()["mode"] == "hold", 60, "the take-off", run.log)
-            client.request("spray", rate=1.0)
+            client.request("spray", rate=1.0)  # spraying as it climbs
             page.wait_for_function("window.droneulatorUI.deposit.layer.cells > 20", timeout=60000)
             page.wait_for_function(
                 "document.getElementById('telemetry').textContent.includes('on at 100 %')", timeout=10000
@@ -107,7 +106,8 @@ def test_the_map_draws_the_spray_deposit_where_the_vehicle_sprayed() -> None:
             distances = sorted(math.dist((x, y), c) for c in wet)
             assert distances[0] < 0.5 and distances[len(distances) // 2] < 3.0, distances[:5]
             # a short pass, spraying: the deposit follows the vehicle to where it stops
-            client.request("goto", position=[6.0, -1.5, 2.0], speed=1.5)
+            wait(lambda: client.state()["position"][2] > 1.5, 30, "the climb", run.log)
+            client.request("goto", position=[6.0, -1.5, 2.0], speed=2.5)
             wait(lambda: client.state()["mode"] == "hold", 30, "the pass", run.log)
             x, y = client.state()["position"][:2]
             t = client.state()["t"]
