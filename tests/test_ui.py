@@ -396,6 +396,8 @@ def test_map_click_flies_there(stack: Stack) -> None:
     stack.wait(lambda: client.state()["mode"] == "goto", 10, "the goto to start")
     state = stack.wait(lambda: (s := client.state())["mode"] == "hold" and s, 60, "the vehicle to arrive")
     assert math.dist(state["position"][:2], target) < 0.3, state["position"]
+    # no spraying in this run: no deposit layer, and the page never asked for one
+    assert page.is_hidden("#deposit-bar") and page.evaluate("window.droneulatorUI.deposit.askedT") is None
     page.screenshot(path=str(SHOTS / "ui_flight.png"), full_page=True)
 
 
