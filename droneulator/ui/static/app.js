@@ -22,6 +22,7 @@ const RTF_WINDOW_MS = 3000;
 const STATE_HZ = 5; // state messages per second: the map and the telemetry change at most 4 times a second
 const TELEMETRY_MS = 250;
 const DEPOSIT_EVERY_S = 1; // sim seconds between two asks for the deposit (the ROS grid's period)
+const DEPOSIT_GIVE_UP_MS = 10000; // an ask unanswered this long (lost with a dropped API link) is dropped
 
 const ui = {
   config: null,
@@ -40,7 +41,7 @@ const ui = {
   images: null,
   telemetryAt: 0,
   spray: false, // a vehicle's state carries a spray system: the deposit layer is shown
-  deposit: { version: null, askedT: null, busy: false, error: null, layer: null },
+  deposit: { version: null, askedT: null, asking: 0, askedAt: 0, error: null, layer: null },
 };
 window.droneulatorUI = ui; // for tests and the benchmark
 
@@ -382,21 +383,24 @@ function describeSpray(sp) {
 }
 
 // A state with a spray system: show the deposit layer, and ask for the deposit once a second of sim
-// time (again at once after a reset: sim time went back), one request at a time.
+// time (again at once after a reset: sim time went back), one request at a time; only the newest ask's
+// answer is drawn.
 function onSprayState(state) {
   if (!ui.spray) {
     ui.spray = true;
     $("deposit-bar").hidden = false;
   }
   const d = ui.deposit;
-  if (d.busy || (d.askedT !== null && state.t >= d.askedT && state.t - d.askedT < DEPOSIT_EVERY_S)) return;
-  d.busy = true;
+  if (d.asking && performance.now() - d.askedAt < DEPOSIT_GIVE_UP_MS) return;
+  if (d.askedT !== null && state.t >= d.askedT && state.t - d.askedT < DEPOSIT_EVERY_S) return;
+  const ask = (d.asking = d.askedAt = performance.now());
   d.askedT = state.t;
   const since = d.version === null ? {} : { since: d.version };
   conn.request("spray_deposit", since)
     .then(async (res) => {
       if (!res || !res.changed) return;
       const layer = await decodeDeposit(res);
+      if (ask !== d.asking) return; // given up on: a newer ask is out
       d.version = layer.version;
       d.layer = layer;
       map.setDeposit(layer);
@@ -409,7 +413,7 @@ function onSprayState(state) {
       d.error = text;
     })
     .finally(() => {
-      d.busy = false;
+      if (ask === d.asking) d.asking = 0;
     });
 }
 
