@@ -453,7 +453,6 @@ def test_router_link_carries_the_files_to_a_job(pki: dict[str, Path], tmp_path: 
     zenoh_security.check_tls_files(bridge.tls_ca, bridge.tls_cert, bridge.tls_key)
 
 
-@pytest.mark.slow
 def test_a_ray_sweep_job_publishes_through_the_tls_router_under_its_acl(
     pki: dict[str, Path], tmp_path: Path
 ) -> None:
