@@ -4,7 +4,8 @@ Certificates are made here with the ``openssl`` CLI: a CA, a router's (with 127.
 subjectAltName) and one per client identity, plus a rogue CA's for the refusals. Every session is a real
 Zenoh session in this process on ``tls/127.0.0.1:PORT`` links, shared memory and multicast scouting
 off, so samples cross TLS as they would between hosts. The simulator's side is its own session
-(``open_zenoh_hub`` and the camera bridge's ``open_bridge_node``) opened from ``--set bridge.tls_*``.
+(``open_zenoh_hub`` and the camera bridge's ``open_bridge_node``) opened from ``--set bridge.tls_*``,
+or a ``sweep capture --ray local --zenoh-router`` job's simulator (docs/cluster.md).
 """
 
 from __future__ import annotations
@@ -12,7 +13,10 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import os
+import stat
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -24,7 +28,7 @@ import zenoh
 from rosbags.typesys import Stores, get_typestore
 
 from droneulator.cli import main as cli_main
-from droneulator.config import load_config
+from droneulator.config import BridgeConfig, load_config
 from droneulator.runtime import zenoh_security
 from droneulator.runtime.bridge import open_bridge_node
 from droneulator.runtime.dynamics_server import open_zenoh_hub
@@ -372,3 +376,126 @@ def test_the_documented_example_is_what_the_helper_writes_and_zenoh_reads() -> N
     assert json.loads(text) == expected
     conf = zenoh.Config.from_file(str(path))
     assert json.loads(conf.get_json("access_control/default_permission")) == "deny"
+
+
+#: a small capture (test_ray.py's): two views at 160x120
+SMALL_CAPTURE = [
+    "capture.width=160", "capture.height=120", "capture.arc_deg=20", "capture.speed=2",
+    "capture.pitch_deg=10", "render.shadow_map_size=512", "capture.accept_after_s=0.5",
+]  # fmt: skip
+
+
+def tls_sets(pki: dict[str, Path], key: str = "droneulator.key") -> list[str]:
+    """``--set`` values naming the simulator's certificate files (``key``: which file as its key)."""
+    return [
+        f"bridge.tls_ca={pki['ca']}",
+        f"bridge.tls_cert={pki['droneulator.pem']}",
+        f"bridge.tls_key={pki[key]}",
+    ]
+
+
+def set_flags(values: list[str]) -> list[str]:
+    return [a for v in values for a in ("--set", v)]
+
+
+def test_zenoh_router_option_is_checked_before_ray_starts(
+    pki: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``sweep --zenoh-router``: a bad endpoint, missing or unreadable certificate settings and files, a
+    client-mode bridge or a planning sweep are each one line and exit status 2, before Ray starts."""
+    out = ["--out", str(tmp_path / "s"), "--ray", "local", "--no-progress"]
+    sets = set_flags(tls_sets(pki))
+    missing = tmp_path / "missing.pem"
+    client_link = 'bridge.connect=["tcp/10.0.0.2:7447"]'
+    cases = [
+        (["--zenoh-router", "tcp/127.0.0.1:7447", *sets], "give the TLS router's endpoint as tls/HOST:PORT"),
+        (["--zenoh-router", "tls/127.0.0.1", *sets], "tls/HOST:PORT"),
+        (["--zenoh-router", "tls/:7447", *sets], "tls/HOST:PORT"),
+        (["--zenoh-router", "tls/127.0.0.1:70000", *sets], "tls/HOST:PORT"),
+        (["--zenoh-router", "tls/127.0.0.1:7447"], "set bridge.tls_ca, bridge.tls_cert and bridge.tls_key"),
+        (
+            ["--zenoh-router", "tls/127.0.0.1:7447", *sets, "--set", f"bridge.tls_ca={missing}"],
+            f"bridge.tls_ca {missing}: cannot be read (No such file or directory); expected PEM files",
+        ),
+        (
+            ["--zenoh-router", "tls/127.0.0.1:7447", *set_flags(tls_sets(pki, key="droneulator.pem"))],
+            "droneulator.pem: not a PEM file holding a private key; expected PEM files",
+        ),
+        (
+            ["--zenoh-router", "tls/127.0.0.1:7447", *sets, *set_flags(["bridge.mode=client", client_link])],
+            "not with bridge.mode=client",
+        ),
+    ]
+    for args, message in cases:
+        code = cli_main(["sweep", "capture", *out, *args])
+        err = capsys.readouterr().err
+        assert code == 2, (args, err)
+        assert message in err and err.count("\n") == 1, (args, err)
+    code = cli_main(["sweep", "plan", *out, "--zenoh-router", "tls/127.0.0.1:7447"])
+    assert code == 2 and "--zenoh-router goes with sweep capture" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()
+    assert "ray" not in sys.modules or not sys.modules["ray"].is_initialized()
+
+
+def test_router_link_carries_the_files_to_a_job(pki: dict[str, Path], tmp_path: Path) -> None:
+    """The files read where the sweep starts are written, unchanged, for the job (the key private to the
+    user), and the job's bridge links to the router with mutual TLS on them, keeping its own links."""
+    cfg = load_config(overrides=[*tls_sets(pki), 'bridge.connect=["tcp/10.0.0.2:7447"]'])
+    link = zenoh_security.RouterLink.load("tls/[::1]:7447", cfg.bridge)
+    bridge = BridgeConfig(connect=["tcp/10.0.0.2:7447"])
+    link.apply(bridge, tmp_path / "tls")
+    assert bridge.connect == ["tcp/10.0.0.2:7447", "tls/[::1]:7447"] and bridge.tls_mtls
+    for name, source in (("tls_ca", "ca"), ("tls_cert", "droneulator.pem"), ("tls_key", "droneulator.key")):
+        path = Path(getattr(bridge, name))
+        assert path.parent == tmp_path / "tls" and path.read_bytes() == pki[source].read_bytes()
+    assert stat.S_IMODE(os.stat(bridge.tls_key).st_mode) == 0o600
+    assert stat.S_IMODE(os.stat(tmp_path / "tls").st_mode) == 0o700
+    zenoh_security.check_tls_files(bridge.tls_ca, bridge.tls_cert, bridge.tls_key)
+
+
+def test_a_ray_sweep_job_publishes_through_the_tls_router_under_its_acl(
+    pki: dict[str, Path], tmp_path: Path
+) -> None:
+    """``sweep capture --ray local --zenoh-router tls/...``, one small capture: its simulator links to a
+    router with mutual TLS and the simulator's ACL (written by ``python -m droneulator.runtime.
+    zenoh_security`` for the sweep's config, then narrowed to refuse the simulator's ``tf``); a ground
+    client of that router, over TLS with its own certificate, gets the job's odometry and clock, and
+    never its ``tf``. The job ran on the carried copies of the certificate files, since removed."""
+    pytest.importorskip("ray")
+    listen = f"tls/127.0.0.1:{free_port()}"
+    args = ["--listen", listen, "--ca", str(pki["ca"]), "--cert", str(pki["router.pem"])]
+    args += ["--key", str(pki["router.key"]), "--client", "ground-uav1=uav0"]
+    args += set_flags(SMALL_CAPTURE)
+    text = io.StringIO()
+    with contextlib.redirect_stdout(text):
+        zenoh_security.main(args)
+    conf = json.loads(text.getvalue())
+    rule = next(r for r in conf["access_control"]["rules"] if r["id"] == "simulator_publishes_sensors")
+    assert "tf" in rule["key_exprs"] and "droneulator/odom" in rule["key_exprs"]
+    rule["key_exprs"].remove("tf")
+    path = tmp_path / "router.json5"
+    path.write_text(json.dumps(conf))
+    router = zenoh.open(zenoh.Config.from_file(str(path)))
+    ground = zenoh.open(config("client", connect=[listen], tls=client_tls(pki, "ground-uav1")))
+    inbox = Inbox()
+    subs = [ground.declare_subscriber(k, inbox.on(k)) for k in ("droneulator/odom", "clock", "tf")]
+    out = tmp_path / "sweep"
+    cmd = [sys.executable, "-m", "droneulator.cli", "sweep", "capture", "--out", str(out), "--views", "2"]
+    cmd += ["--ray", "local", "--cpus-per-job", "1", "--no-progress", "--zenoh-router", listen]
+    cmd += set_flags([*SMALL_CAPTURE, *tls_sets(pki)])
+    try:
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stdout + done.stderr
+        summary = json.loads((out / "tree_inspection-seed0-views2" / "job.json").read_text())
+        assert summary["zenoh_router"] == listen and summary["views_captured"] == 2
+        assert inbox.get("droneulator/odom") and inbox.get("clock"), "the job's data did not reach the client"
+        assert inbox.get("tf") == []  # refused by the ACL at the router
+        bridge = json.loads((out / "tree_inspection-seed0-views2" / "config.json").read_text())["bridge"]
+        assert bridge["connect"] == [listen] and bridge["tls_mtls"]
+        carried = Path(bridge["tls_cert"])
+        assert carried.name == "cert.pem" and carried != pki["droneulator.pem"] and not carried.exists()
+        for s in subs:
+            s.undeclare()
+    finally:
+        ground.close()
+        router.close()

@@ -50,6 +50,14 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         default=None,
         help="GPUs Ray reserves per job (default: none without GPUs, else a share so every job gets one)",
     )
+    p.add_argument(
+        "--zenoh-router",
+        metavar="tls/HOST:PORT",
+        default=None,
+        help="capture: link every job's simulator to this TLS router (the one with the simulator's ACL, "
+        "docs/security.md) with mutual TLS on bridge.tls_ca, tls_cert and tls_key, files read here and "
+        "carried to each job's node (docs/cluster.md)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_file_args(p, "--set capture.width=320 --set capture.height=240")
     p.set_defaults(func=cmd_sweep)
@@ -58,6 +66,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
 def cmd_sweep(args: argparse.Namespace) -> int:
     from droneulator.runtime import preflight
     from droneulator.runtime.cluster import check_address
+    from droneulator.runtime.zenoh_security import RouterLink
     from droneulator.workflows.sweep import SweepSettings, make_jobs, parse_seeds, sweep, write_summary
 
     if args.ray is not None:
@@ -68,13 +77,19 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         raise ValueError("--reconstruct goes with sweep capture")
     if args.kind == "capture" and args.goals:
         raise ValueError("--goals goes with sweep plan")
+    if args.kind == "plan" and args.zenoh_router:
+        raise ValueError("--zenoh-router goes with sweep capture (the planning benchmark runs no bridge)")
     scenes = args.scenes or (["tree_inspection"] if args.kind == "capture" else ["planning"])
+    router = None
     if args.kind == "capture":
-        views = args.views or [preflight.load(args.config, args.overrides).capture.views]
+        cfg = preflight.load(args.config, args.overrides)
+        views = args.views or [cfg.capture.views]
+        if args.zenoh_router is not None:  # before any Ray work: the endpoint and the files, read here
+            router = RouterLink.load(args.zenoh_router, cfg.bridge)
     else:
         views = args.views or []
     jobs = make_jobs(args.kind, scenes, parse_seeds(args.seeds), views)
-    settings = SweepSettings(args.config, args.overrides, args.reconstruct, args.goals)
+    settings = SweepSettings(args.config, args.overrides, args.reconstruct, args.goals, router)
     out = Path(args.out)
     # Ctrl-C (SIGINT) stops the sweep as described even when it was started in the background, where
     # the shell leaves SIGINT ignored (the simulator's commands install their handlers the same way)

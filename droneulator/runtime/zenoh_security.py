@@ -11,18 +11,23 @@ sensor keys and subscribe to its command keys only, a client may subscribe to th
 publish the commands of its own vehicle only. :func:`router_config` wraps it in a whole router
 configuration (``zenohd -c``, or ``bridge.zenoh_config`` when the simulator's session is the router);
 ``python -m droneulator.runtime.zenoh_security`` prints one (docs/security.md).
+
+:class:`RouterLink` is ``sweep --zenoh-router``: the TLS router every job links to, with the simulator's
+certificate files read once where the command starts and carried to each job's node (docs/cluster.md).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from droneulator.config import SimConfig
+from droneulator.config import BridgeConfig, SimConfig
 from droneulator.ros.publishers import fleet_names
 from droneulator.ros.topics import (
     VehicleNames,
@@ -55,6 +60,67 @@ def check_tls_files(ca: str, cert: str, key: str, prefix: str = "bridge") -> Non
             raise ValueError(f"{prefix}.{name} {path}: cannot be read ({exc.strerror or exc})") from None
         if "-----BEGIN " not in text or f"{marker}-----" not in text:  # "EC PRIVATE KEY-----" too
             raise ValueError(f"{prefix}.{name} {path}: not a PEM file holding a {marker.lower()}")
+
+
+def check_tls_endpoint(endpoint: str, option: str = "--zenoh-router") -> str:
+    """``tls/HOST:PORT`` (an IPv6 host in brackets), else a one-line ValueError naming the form."""
+    host, sep, port = endpoint.removeprefix("tls/").rpartition(":")
+    ok = endpoint.startswith("tls/") and bool(sep and host.strip("[]")) and port.isdigit()
+    if not ok or not 0 < int(port) < 65536 or any(c in host for c in "/ "):
+        raise ValueError(
+            f"{option} {endpoint!r}: give the TLS router's endpoint as tls/HOST:PORT, e.g. "
+            "tls/192.168.1.10:7447 (docs/cluster.md)"
+        )
+    return endpoint
+
+
+@dataclass(frozen=True)
+class RouterLink:
+    """A TLS router with the simulator's ACL that every job of a Ray command links to, and the PEM files
+    of ``bridge.tls_ca``, ``tls_cert`` and ``tls_key`` themselves: read where the command starts, so the
+    jobs' nodes need no copy of them at the same paths (they share no file system)."""
+
+    endpoint: str
+    ca: bytes
+    cert: bytes
+    key: bytes
+
+    @classmethod
+    def load(cls, endpoint: str, bridge: BridgeConfig) -> RouterLink:
+        """Check ``endpoint`` and the bridge's three TLS files (a one-line ValueError for the first bad
+        one), then read them. Mutual TLS needs all three: the router's ACL knows the jobs by the common
+        name of the certificate they present."""
+        check_tls_endpoint(endpoint)
+        if not (bridge.tls_ca and bridge.tls_cert and bridge.tls_key):
+            raise ValueError(
+                f"--zenoh-router {endpoint}: set bridge.tls_ca, bridge.tls_cert and bridge.tls_key (the CA "
+                "and the simulator's certificate and key, PEM files; docs/security.md)"
+            )
+        if bridge.mode == "client":
+            raise ValueError(
+                "--zenoh-router links each job's own router to it: not with bridge.mode=client (a job's "
+                "capture reads its run's topics on the run's listen endpoint)"
+            )
+        try:
+            check_tls_files(bridge.tls_ca, bridge.tls_cert, bridge.tls_key)
+        except ValueError as exc:
+            raise ValueError(f"{exc}; expected PEM files (docs/security.md)") from None
+        files = (Path(bridge.tls_ca), Path(bridge.tls_cert), Path(bridge.tls_key))
+        return cls(endpoint, *(f.read_bytes() for f in files))
+
+    def apply(self, bridge: BridgeConfig, folder: Path) -> None:
+        """Write the carried files into ``folder`` (the key readable by this user only) and link
+        ``bridge`` to the router with mutual TLS on them; the bridge keeps its own listen endpoint."""
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+        paths = {name: folder / name for name in ("ca.pem", "cert.pem", "cert.key")}
+        for (name, path), data in zip(paths.items(), (self.ca, self.cert, self.key), strict=True):
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600 if name == "cert.key" else 0o644)
+            with os.fdopen(fd, "wb") as f:
+                f.write(data)
+        bridge.tls_ca, bridge.tls_cert, bridge.tls_key = (str(p) for p in paths.values())
+        bridge.tls_mtls = True
+        if self.endpoint not in bridge.connect:
+            bridge.connect = [*bridge.connect, self.endpoint]
 
 
 def key_expr(cfg: SimConfig, topic: str) -> str:

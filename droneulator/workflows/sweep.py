@@ -11,6 +11,10 @@ On Ray a job runs in a scratch folder on whichever node Ray places it, and its f
 driver through Ray's object store, so the nodes need no shared file system. Each task asks Ray for
 ``cpus`` cores (a capture runs the simulator's three processes) and, when the cluster has GPUs, a share
 of one (``gpus``) so the renderer and COLMAP get it.
+
+With a :class:`~droneulator.runtime.zenoh_security.RouterLink` (``sweep --zenoh-router``) each job's
+simulator links to that TLS router with mutual TLS, on the certificate files the settings carry: they are
+written to a private temporary folder of the job's node for the job's lifetime, never into its output.
 """
 
 from __future__ import annotations
@@ -28,9 +32,12 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from droneulator.config import to_dict
+
+if TYPE_CHECKING:
+    from droneulator.runtime.zenoh_security import RouterLink
 
 KINDS = ("capture", "plan")
 #: the file that marks a job done (written last, atomically)
@@ -55,12 +62,14 @@ class Job:
 @dataclass
 class SweepSettings:
     """What every job of a sweep shares: the config file and ``--set`` overrides (capture settings such as
-    ``capture.width=320`` among them), whether to reconstruct each capture, the planning benchmark's goals."""
+    ``capture.width=320`` among them), whether to reconstruct each capture, the planning benchmark's goals,
+    and the TLS router every capture's simulator links to (``--zenoh-router``)."""
 
     config: str | None = None
     overrides: list[str] = field(default_factory=list)
     reconstruct: bool = False
     goals: list[int] | None = None
+    router: RouterLink | None = None
 
 
 def parse_seeds(tokens: Sequence[str]) -> list[int]:
@@ -99,10 +108,13 @@ def make_jobs(kind: str, scenes: Sequence[str], seeds: Sequence[int], views: Seq
     return [Job(kind, s, seed) for s in scenes for seed in seeds]
 
 
-def _config(job: Job, settings: SweepSettings) -> Any:
+def _config(job: Job, settings: SweepSettings, tls_dir: Path) -> Any:
+    """The job's config; linked to ``settings.router`` with its carried files written in ``tls_dir``."""
     from droneulator.runtime import preflight
 
     cfg = preflight.load(settings.config, settings.overrides, scene=job.scene, seed=job.seed)
+    if settings.router is not None:
+        settings.router.apply(cfg.bridge, tls_dir)
     preflight.check_zenoh_tls(cfg)  # on the node the job runs on: its certificate files must be there too
     if job.kind == "capture":
         cfg.capture.views = job.views
@@ -123,7 +135,11 @@ def _planning_script() -> Path:
 def run_job(job: Job, settings: SweepSettings, folder: Path) -> dict[str, Any]:
     """Run ``job`` into ``folder`` (created); returns its summary (without writing :data:`DONE`)."""
     folder.mkdir(parents=True, exist_ok=True)
-    cfg = _config(job, settings)
+    with tempfile.TemporaryDirectory(prefix="droneulator-tls-") as tls_dir:
+        return _run_job(job, settings, folder, _config(job, settings, Path(tls_dir)))
+
+
+def _run_job(job: Job, settings: SweepSettings, folder: Path, cfg: Any) -> dict[str, Any]:
     (folder / "config.json").write_text(json.dumps(to_dict(cfg), indent=2))
     t0 = time.perf_counter()
     summary: dict[str, Any] = {**asdict(job), "name": job.name}
@@ -167,6 +183,8 @@ def run_job(job: Job, settings: SweepSettings, folder: Path) -> dict[str, Any]:
             )
     summary["wall_s"] = round(time.perf_counter() - t0, 2)
     summary["host"] = os.uname().nodename
+    if settings.router is not None:
+        summary["zenoh_router"] = settings.router.endpoint
     return summary
 
 
@@ -229,8 +247,11 @@ def sweep(
     """
     from tqdm import tqdm
 
-    if any(j.kind == "plan" for j in jobs) and (settings.config or settings.overrides):
-        raise ValueError("sweep plan runs the planning benchmark's own configuration: no --config or --set")
+    if any(j.kind == "plan" for j in jobs) and (settings.config or settings.overrides or settings.router):
+        raise ValueError(
+            "sweep plan runs the planning benchmark's own configuration: no --config or --set, "
+            "nor --zenoh-router"
+        )
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     todo = [j for j in jobs if not is_done(out, j)]

@@ -208,7 +208,12 @@ def capture(
             client.reset(scene=cfg.scene, seed=cfg.seed)
             info = client.scene_info()
         center, _ = tree_landmarks(info)
-        node = stack.enter_context(RosZenohNode.from_config(cfg.bridge, listen=(), connect=(zenoh_endpoint,)))
+        # a client of the run's session, not a router of its own: as a router it joined the routers the
+        # run links to (bridge.connect), and one with an ACL (docs/security.md) then cut it off the run's
+        # topics (a sweep job behind --zenoh-router got no camera_info)
+        node = stack.enter_context(
+            RosZenohNode.from_config(cfg.bridge, mode="client", listen=(), connect=(zenoh_endpoint,))
+        )
         pilots = _pilots(cfg, info, node, client, api_url, stack)
         topics = pilots[0].topics
         if info.get("camera_trigger") == "command":  # one frame set each for the camera's calibration
