@@ -12,6 +12,7 @@ from pettingzoo.test import parallel_api_test
 
 from droneulator.config import load_config
 from droneulator.workflows.rl.env import VineyardNavEnv
+from droneulator.workflows.rl.levels import Actuator
 from droneulator.workflows.rl.multi import VineyardMultiVectorEnv, VineyardNavParallelEnv
 from droneulator.workflows.rl.vector import VineyardNavVectorEnv
 
@@ -64,7 +65,7 @@ def test_a_positive_roll_action_rolls_the_vehicle_positive(level):
         obs, *_ = env.step(action)
     finally:
         env.close()
-    if level == "ctbr":  # 0.2 of 720 deg/s: 2.5 rad/s, 0.49 of the observation's scale (12.6 rad/s)
+    if level == "ctbr":  # 0.2 of 720 deg/s: 2.5 rad/s, which the observation reads as 0.2
         assert min(rates) > 0.05 and rates[-1] == pytest.approx(0.2, abs=0.03)
     # rolled right side down (about body x, positive): gravity leans toward body -y
     assert obs[GRAVITY][1] < -0.05
@@ -136,6 +137,25 @@ def test_a_faster_camera_lets_the_policy_act_every_control_period():
     finally:
         env.close()
     assert info["t"] == pytest.approx(0.01, abs=1e-12)
+
+
+def test_the_actions_span_the_airframe_or_the_rl_scale_within_it():
+    weight = 0.5 * 9.81  # the Hummingbird: it lifts ten times that with every rotor at full speed
+    full = Actuator(load_config(None, ["rl.action=ctbr"]), 1)
+    command = full.map(np.array([0]), np.array([[1.0, 1.0, -1.0, 0.5]]))[0]
+    assert command[0] == pytest.approx(full.airframe.max_thrust) and command[0] > 9.0 * weight
+    np.testing.assert_allclose(command[1:], np.radians([720.0, -720.0, 270.0]), rtol=1e-12)
+    scaled = Actuator(load_config(None, ["rl.action=ctbr", "rl.max_thrust_to_weight=2",
+                                         "rl.max_body_rate_deg_s=[1000, 90, 90]"]), 1)  # fmt: skip
+    command = scaled.map(np.array([0]), np.ones((1, 4)))[0]
+    assert command[0] == pytest.approx(2.0 * weight, rel=1e-9)
+    np.testing.assert_allclose(command[1:], np.radians([720.0, 90.0, 90.0]), rtol=1e-12)  # within flight's
+    rotors = Actuator(load_config(None, ["rl.action=rotors", "rl.max_thrust_to_weight=2"]), 1)
+    speeds = rotors.map(np.array([0]), np.ones((1, 4)))[0]
+    np.testing.assert_allclose(rotors.airframe.k_eta * speeds**2, 0.5 * weight, rtol=1e-9)  # 2 x hover
+    for bad in ("rl.max_thrust_to_weight=1", "rl.max_body_rate_deg_s=[90, 0, 90]"):
+        with pytest.raises(ValueError, match=bad.split("=")[0]):
+            load_config(None, [bad])
 
 
 def test_a_bad_level_is_a_clear_config_error():

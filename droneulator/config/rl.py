@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from droneulator.config.camera_presets import DEPTH_PRESETS
@@ -60,6 +61,13 @@ class RLConfig:
     #: episode time limit (truncation): base seconds plus the initial path length over this speed
     time_limit_base_s: float = 10.0
     min_average_speed: float = 0.75
+    #: the scale of the actions below velocity: the collective thrust (``ctbr``, ``attitude``) or a
+    #: rotor's thrust times four (``rotors``) at +1 as a multiple of the weight, capped at every rotor at
+    #: full speed; and the body rates at +-1 (``ctbr``; deg/s: roll, pitch, yaw), capped at the airframe's
+    #: ``flight.max_body_rate_deg_s``, which the levels' observation also reads as +-1. null: the
+    #: airframe's whole range (a Hummingbird lifts ten times its weight and turns at 720 deg/s)
+    max_thrust_to_weight: float | None = None
+    max_body_rate_deg_s: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
         if self.action not in ACTIONS:
@@ -72,6 +80,17 @@ class RLConfig:
             raise ValueError("rl.camera_width must be at least 32 (one pixel per strip sample)")
         if not 0 < self.min_separation < self.max_path_length:
             raise ValueError("rl.min_separation must be positive and below rl.max_path_length")
+        if self.max_thrust_to_weight is not None and not (
+            math.isfinite(self.max_thrust_to_weight) and self.max_thrust_to_weight > 1.0
+        ):
+            ratio = self.max_thrust_to_weight
+            raise ValueError(f"rl.max_thrust_to_weight must be a number above 1 or null, got {ratio}")
+        if self.max_body_rate_deg_s is not None and (
+            len(self.max_body_rate_deg_s) != 3
+            or not all(math.isfinite(r) and r > 0 for r in self.max_body_rate_deg_s)
+        ):
+            rates = self.max_body_rate_deg_s
+            raise ValueError(f"rl.max_body_rate_deg_s must be three positive numbers or null, got {rates}")
         if self.depth_model not in DEPTH_PRESETS:
             choices = ", ".join(DEPTH_PRESETS)
             raise ValueError(f"rl.depth_model must be one of {choices}, got {self.depth_model!r}")

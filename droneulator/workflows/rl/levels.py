@@ -4,19 +4,21 @@ Every env of the task (single, vector, multi-agent) maps its actions through one
 batch of envs (the single env is a batch of one), and hands the commands to its vehicles: the batched
 rows of a :class:`~droneulator.world.World` (:meth:`Actuator.send_rows`) or one vehicle's flight
 controller (:meth:`Actuator.send_vehicle`), which run the same compiled inner loops
-(:mod:`droneulator.controllers.inner`). Actions lie in [-1, 1]; the limits are the airframe's
-(:meth:`~droneulator.vehicles.vehicle.Vehicle.control_limits`):
+(:mod:`droneulator.controllers.inner`). Actions lie in [-1, 1], scaled by the ``rl`` section within the
+airframe's limits (:meth:`~droneulator.vehicles.vehicle.Vehicle.control_limits`):
 
 * ``velocity`` (2): forward speed ``mid + a0 * half`` over ``[rl.forward_min, rl.forward_max]`` and yaw
   rate ``a1 * rl.max_yaw_rate``; the velocity mode holds the altitude;
-* ``ctbr`` (4): collective thrust ``a0`` (0: the weight, -1: none, +1: every rotor at full speed; linear
-  on each side) and body rates ``a1..a3`` times ``flight.max_body_rate_deg_s``;
+* ``ctbr`` (4): collective thrust ``a0`` (0: the weight, -1: none, +1: every rotor at full speed, or
+  ``rl.max_thrust_to_weight`` times the weight; linear on each side) and body rates ``a1..a3`` times
+  the airframe's ``flight.max_body_rate_deg_s`` (or ``rl.max_body_rate_deg_s`` within it);
 * ``attitude`` (4): collective thrust as ``ctbr``; a tilt ``(a1, a2) * flight.max_attitude_tilt_deg``
   (a rotation vector in the heading frame: about body x, a roll, and y, a pitch; its length clipped to
   the largest tilt); yaw rate ``a3 * rl.max_yaw_rate``, which advances a yaw setpoint held from the
   episode's start heading;
 * ``rotors`` (4): each rotor's thrust (RotorPy's order), 0 at a quarter of the weight (hover), -1 at the
-  slowest and +1 at the fastest rotor speed, linear on each side; flown directly, no loop in between.
+  slowest and +1 at the fastest rotor speed (or at a quarter of ``rl.max_thrust_to_weight`` times the
+  weight), linear on each side; flown directly, no loop in between.
 """
 
 from __future__ import annotations
@@ -40,7 +42,8 @@ assert tuple(ACTION_SIZE) == ACTIONS
 
 
 class Airframe:
-    """The limits an action is scaled by, of ``config``'s first vehicle (every env's vehicle flies it)."""
+    """The scale an action is mapped by: ``config.rl``'s (:func:`action_rates`, ``rl.max_thrust_to_weight``)
+    within the limits of ``config``'s first vehicle (every env's vehicle flies it)."""
 
     def __init__(self, config: SimConfig) -> None:
         spec = config.vehicle_specs()[0]
@@ -50,8 +53,21 @@ class Airframe:
         self.weight = float(q["mass"]) * GRAVITY
         self.rotor_speed = np.array([q["rotor_speed_min"], q["rotor_speed_max"]], dtype=float)
         self.max_thrust = 4.0 * self.k_eta * self.rotor_speed[1] ** 2
-        self.max_rate = np.radians(np.asarray(spec.flight.max_body_rate_deg_s, dtype=float))
+        if config.rl.max_thrust_to_weight is not None:
+            self.max_thrust = min(self.max_thrust, config.rl.max_thrust_to_weight * self.weight)
+        self.max_rate = action_rates(config)
         self.max_tilt = math.radians(spec.flight.max_attitude_tilt_deg)
+
+
+def action_rates(config: SimConfig) -> np.ndarray:
+    """The body rates (rad/s: roll, pitch, yaw) a ``ctbr`` action of +-1 commands and the levels'
+    observation reads as +-1: ``rl.max_body_rate_deg_s`` within the airframe's
+    ``flight.max_body_rate_deg_s``."""
+    flight = config.vehicle_specs()[0].flight
+    assert flight is not None
+    limit = np.asarray(flight.max_body_rate_deg_s, dtype=float)
+    wanted = config.rl.max_body_rate_deg_s
+    return np.radians(limit if wanted is None else np.minimum(wanted, limit))
 
 
 def _around(a: np.ndarray, low: float, mid: float, high: float) -> np.ndarray:
@@ -97,7 +113,7 @@ class Actuator:
             out[:, 0] = self._mid + a[:, 0] * self._half
             out[:, 1] = a[:, 1] * self._max_yaw_rate
         elif self.level == "rotors":
-            thrust = _around(a, af.k_eta * af.rotor_speed[0] ** 2, 0.25 * af.weight, af.max_thrust / 4.0)
+            thrust = _around(a, af.k_eta * af.rotor_speed[0] ** 2, 0.25 * af.weight, 0.25 * af.max_thrust)
             out[:] = np.clip(np.sqrt(thrust / af.k_eta), af.rotor_speed[0], af.rotor_speed[1])
         else:
             out[:, 0] = np.clip(_around(a[:, 0], 0.0, af.weight, af.max_thrust), 0.0, af.max_thrust)

@@ -15,8 +15,9 @@ For each env at its camera instant (a state row in RotorPy's layout, :data:`~dro
 * the observation tail: the heading error to the steering target (a carrot ``rl.lookahead`` m along the
   shortest path, or the goal) over pi, the forward speed and the yaw rate normalised like the velocity
   action, each clipped to [-1, 1]; at the levels below velocity (``rl.action`` other than ``"velocity"``,
-  :data:`LEVEL_TAIL` more): the body rates over the airframe's largest, the direction of gravity in the
-  body frame (the attitude's roll and pitch), the lateral (body y) and vertical (world z) speeds over
+  :data:`LEVEL_TAIL` more): the body rates over the ``ctbr`` action's
+  (:func:`~droneulator.workflows.rl.levels.action_rates`), the direction of gravity in the body frame
+  (the attitude's roll and pitch), the lateral (body y) and vertical (world z) speeds over
   :data:`SPEED_SCALE` and the height above ``rl.altitude`` over :data:`HEIGHT_SCALE`, clipped likewise.
 """
 
@@ -33,6 +34,7 @@ from droneulator.frames_numba import quat_to_matrix_into
 from droneulator.scenes.base import Scene
 from droneulator.state import STATE, STATE_SIZE
 from droneulator.workflows.rl.astar import DistanceField, OccupancyGrid, bilinear, carrot
+from droneulator.workflows.rl.levels import action_rates
 
 #: where position, velocity, attitude and body rates start in a state row (plain ints for the kernel)
 _X, _V, _Q, _W = STATE.x.start, STATE.v.start, STATE.q.start, STATE.w.start
@@ -68,8 +70,8 @@ def _task_rows(
     ``reason``, ``dist``, ``goal_dist``, counting the step); always its observation tail (``tail``); from
     its state at the camera instant (``rows``) and its goal's distance field (``values``, ``nxt``,
     ``reach``). ``k``: progress scale, step penalty, goal reward, collision penalty, goal radius, lookahead
-    (m; 0: steer at the goal), forward mid, forward half-range, max yaw rate, the airframe's largest body
-    rates (3), the flight altitude; a ``tail`` wider than :data:`TAIL` takes the levels' part too."""
+    (m; 0: steer at the goal), forward mid, forward half-range, max yaw rate, the body rates that read 1
+    (3), the flight altitude; a ``tail`` wider than :data:`TAIL` takes the levels' part too."""
     nx, ny = free.shape
     for b in numba.prange(run.shape[0]):
         if not run[b]:
@@ -154,7 +156,7 @@ class TaskRows:
         self.k = np.array([
             rl.progress_scale, rl.step_penalty, rl.goal_reward, rl.collision_penalty, rl.goal_radius,
             rl.lookahead if rl.heading == "path" else 0.0, mid, half, rl.max_yaw_rate,
-            *np.radians(config.vehicle_specs()[0].flight.max_body_rate_deg_s), rl.altitude,
+            *action_rates(config), rl.altitude,
         ])  # fmt: skip
         shape = (n, *grid.shape) if n > 1 else (1, 1, 1)  # one env flies on its field's own arrays
         self.values = np.zeros(shape)
