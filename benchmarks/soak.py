@@ -368,6 +368,7 @@ def main() -> None:
     px4s = [ScriptedPX4(cfg.px4.base_port + k, s.getsockname()[1], sysid=k + 1) for k, s in enumerate(sinks)]
     samples: list[tuple[float, str, int, int]] = []
     result: dict[str, Any] = {}
+    measured_lines: int | None = None  # the run's log lines by the soak's end: later ones are the shutdown
     try:
         with run.client(timeout=300) as c:
             c.subscribe(["state"], vehicle="*", rate_hz=5)
@@ -432,6 +433,7 @@ def main() -> None:
                 time.sleep(0.2)
             sim_s = probe.state()["t"] - sim0
         wall = time.monotonic() - t0
+        measured_lines = len(run.log.lines())
         stop.set()
         for t in threads:
             t.join(timeout=30)
@@ -486,7 +488,10 @@ def main() -> None:
                 rec.wait(60)
         rec_out.close()
         run.stop(timeout=30)
-    result["errors_run_log"] = scan_log(run_log.read_text(errors="replace").splitlines())
+    run_lines = run_log.read_text(errors="replace").splitlines()
+    end = len(run_lines) if measured_lines is None else measured_lines
+    result["errors_run_log"] = scan_log(run_lines[:end])
+    result["run_log_after_the_soak"] = run_lines[end:][:20]  # the peers closed, the run stopped: not scanned
     result["errors_recorder_log"] = scan_log(rec_log.read_text(errors="replace").splitlines())
     result["unhandled_errors"] = (
         result["errors_run_log"]["unhandled"]

@@ -173,8 +173,9 @@ class ScriptedPX4:
                 for msg in self._rx.parse_buffer(bytes(buf)) or []:
                     self._on_sim(msg)
                 buf.clear()
-        except OSError:
+        except OSError as exc:
             if not self._stop.is_set():
+                self.error = exc  # e.g. the simulator never listened within connect_timeout
                 raise
         except BaseException as exc:  # a test reads it: the thread must not die silently
             self.error = exc

@@ -279,7 +279,10 @@ def test_config_file_is_authoritative_except_endpoints(tmp_path: Path) -> None:
     plain = ZenohNodeConfig(listen=(ep,)).zenoh_config()
     assert json.loads(plain.get_json("mode")) == "peer"
     assert json.loads(plain.get_json("scouting/multicast/enabled")) is False
-    assert json.loads(plain.get_json("transport/shared_memory/enabled")) is True
+    assert json.loads(plain.get_json("transport/shared_memory/enabled")) is False  # docs/reliability.md
+    with RosZenohNode.from_config(BridgeConfig(shared_memory=True), listen=()) as node:
+        shm = node.config.zenoh_config()
+    assert json.loads(shm.get_json("transport/shared_memory/enabled")) is True
 
 
 def test_ros2dds_announcement_qos() -> None:

@@ -398,6 +398,10 @@ class BridgeConfig:
     #: mutual TLS: listening on tls/, accept only peers whose certificate tls_ca signed; connecting,
     #: present tls_cert (a router with mutual TLS refuses a client without one)
     tls_mtls: bool = False
+    #: Zenoh's shared-memory transport between the run's processes and local subscribers: about six
+    #: times the image throughput through a router, but each crash of a publishing process (the bridge)
+    #: leaves its 16 MiB pool mapped in every local subscriber for good (docs/reliability.md): off
+    shared_memory: bool = False
     #: ros2dds key mode: zenoh-bridge-ros2dds' own namespace option ("-n /ns" -> keys "ns/..."), so a
     #: bridge started with it routes the simulator's topics
     ros2dds_namespace: str = "/"

@@ -54,9 +54,12 @@ through explicit ``connect``/``listen`` endpoints (gossip through a router still
 that are not up yet never block or fail the open in peer and router mode: zenoh retries them in the
 background (``connect/timeout_ms`` -1 with ``exit_on_failure`` false, set explicitly); a client has
 nothing to do without its router, so it tries once and the open fails with a clear error. Zenoh's shared
-memory transport optimisation is left on (zenoh 1.x default: samples above 3 KiB to a peer on the same
-host go through a 16 MiB ``/dev/shm`` pool instead of the socket), which is what moves camera images
-between local processes cheaply; ``shared_memory=False`` turns it off.
+memory transport optimisation (samples above 3 KiB to a process on the same host through the
+publisher's 16 MiB ``/dev/shm`` pool instead of the socket) is off unless ``shared_memory`` (the
+``bridge.shared_memory`` setting): it moves camera images between local processes about six times
+faster, but every local subscriber keeps a crashed publisher's pool mapped for good, so each restart
+of the bridge after a crash left 20 to 40 MB more resident in every process of a run
+(docs/reliability.md).
 """
 
 from __future__ import annotations
@@ -229,6 +232,7 @@ class _BridgeConfigLike(Protocol):
     tls_cert: str
     tls_key: str
     tls_mtls: bool
+    shared_memory: bool
 
 
 def tls_entries(ca: str = "", cert: str = "", key: str = "", mtls: bool = False) -> dict[str, Any]:
@@ -273,7 +277,7 @@ class ZenohNodeConfig:
     #: optional Zenoh JSON5 configuration file
     config_file: str | None = None
     multicast_scouting: bool = False
-    shared_memory: bool = True
+    shared_memory: bool = False
     key_mode: KeyMode = "ros2dds"
     domain_id: int = 0
     #: ros2dds: key prefix exactly like zenoh-bridge-ros2dds' ``namespace`` option ("/ns" -> "ns/...")
@@ -542,8 +546,8 @@ class RosZenohNode:
         """A node from a ``droneulator.config.BridgeConfig``; ``overrides`` replace any field.
 
         Uses mode, key_mode, domain_id, listen, connect (empty: the key mode's default, see
-        :class:`ZenohNodeConfig`), zenoh_config, ros2dds_namespace (the bridge-style key prefix) and the
-        ``tls_*`` files.
+        :class:`ZenohNodeConfig`), zenoh_config, ros2dds_namespace (the bridge-style key prefix), the
+        ``tls_*`` files and shared_memory.
         ``BridgeConfig.namespace`` is not used: the simulator already puts it into its topic names.
         A second session of the same run passes e.g. ``mode="client", listen=(), connect=(...)``.
         """
@@ -559,6 +563,7 @@ class RosZenohNode:
             "tls_cert": bridge.tls_cert,
             "tls_key": bridge.tls_key,
             "tls_mtls": bridge.tls_mtls,
+            "shared_memory": bridge.shared_memory,
         }
         fields.update(overrides)
         return cls(ZenohNodeConfig(**fields))
