@@ -206,8 +206,12 @@ def air_velocity(
         px = rx + depth * ax - rotors[r, 8] * lag
         py = ry + depth * ay - rotors[r, 9] * lag
         pz = rz + depth * az
-        w = disk_wake_speed(vh, r0, depth, math.sqrt(px * px + py * py + pz * pz))
-        w *= rotors[r, 11]
+        w = 0.0
+        if depth <= Z_MAX:  # within 3 widths of the axis (disk_wake_speed's own cut, without a root)
+            b = r0 / math.sqrt(2.0) + SPREAD * depth
+            r2 = px * px + py * py + pz * pz
+            if r2 <= 9.0 * b * b:
+                w = disk_wake_speed(vh, r0, depth, math.sqrt(r2)) * rotors[r, 11]
         if w > 0.0:
             out[7] = max(out[7], r0 / math.sqrt(2.0) + SPREAD * depth)
         # the ground: where the wake's axis (down the thrust axis) meets it, the jet stops and spreads
