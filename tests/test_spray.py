@@ -390,8 +390,10 @@ def test_a_droplet_dries_to_its_non_volatile_residue_and_flies_on():
 
 def test_a_rotor_wake_turns_into_a_wall_jet_at_the_ground():
     """Under a hovering rotor (thrust axis up) the air at the ground flows out, not down; above it, down."""
-    rows = np.array([[0.0, 0.0, 2.5, 0.0, 0.0, 1.0, 7.0, 0.4, 0.0, 0.0, 0.0, 1.0]])
+    rows = np.zeros((1, kernel.ROTOR_SIZE))
+    rows[0, :12] = [0.0, 0.0, 2.5, 0.0, 0.0, 1.0, 7.0, 0.4, 0.0, 0.0, 0.0, 1.0]
     rows[:, 10] = kernel.reach(rows)
+    kernel.ground_jets(rows)
     out = np.empty(kernel.AIR_SIZE)
     wind = kernel.wind_row(WindConfig(speed_m_s=0.0))
     none = np.zeros((0, kernel.VORTEX_SIZE))

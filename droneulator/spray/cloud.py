@@ -263,6 +263,7 @@ class SprayCloud:
             n = len(e.rotors)
             out[k : k + n, 11] = 1.0 if v is None else 1.0 - v[13]
             k += n
+        kernel.ground_jets(out)
         return out
 
     def _vortices(self, emitters: list[Emitter], rows: np.ndarray | None = None) -> list[np.ndarray | None]:

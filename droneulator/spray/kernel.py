@@ -54,8 +54,11 @@ LEDGER = ("canopy", "trunks", "branches", "posts", "wires", "ground", "ground_of
 #: a rotor row: position (3), thrust axis (3, unit, world), its induced velocity at the disk (m/s), its
 #: radius (m), the horizontal velocity of the air relative to the rotor (2, m/s) that skews its wake, the
 #: horizontal distance (m) beyond which neither its wake nor its wall jet reaches (:func:`reach`), and the
-#: share of the vehicle's wake still a jet (the rest has rolled up into its trailing vortex pair)
-ROTOR_SIZE = 12
+#: share of the vehicle's wake still a jet (the rest has rolled up into its trailing vortex pair); then its
+#: wall jet, the same for every parcel of a step (:func:`ground_jets`): where the wake's axis meets the
+#: ground (x, y), the jet's width and its layer's thickness there (m), its speed at one width out (m/s)
+#: and whether the wake turns into a wall jet at all (1 or 0)
+ROTOR_SIZE = 18
 #: a vehicle's trailing vortex pair: its position (x, y), the unit direction it moves through the air
 #: (2), its airspeed (m/s), the pair's starting height (m), circulation (m^2/s), half separation (m),
 #: descent speed (m/s), lowest height (m) and the constant C of its path beside the ground, decay rate
@@ -203,25 +206,24 @@ def air_velocity(
         px = rx + depth * ax - rotors[r, 8] * lag
         py = ry + depth * ay - rotors[r, 9] * lag
         pz = rz + depth * az
-        w = disk_wake_speed(vh, r0, depth, math.sqrt(px * px + py * py + pz * pz))
-        w *= rotors[r, 11]
+        w = 0.0
+        if depth <= Z_MAX:  # within 3 widths of the axis (disk_wake_speed's own cut, without a root)
+            b = r0 / math.sqrt(2.0) + SPREAD * depth
+            r2 = px * px + py * py + pz * pz
+            if r2 <= 9.0 * b * b:
+                w = disk_wake_speed(vh, r0, depth, math.sqrt(r2)) * rotors[r, 11]
         if w > 0.0:
             out[7] = max(out[7], r0 / math.sqrt(2.0) + SPREAD * depth)
         # the ground: where the wake's axis (down the thrust axis) meets it, the jet stops and spreads
-        # out as a wall jet
-        reach = rotors[r, 2] / max(az, 1e-3)
-        if az > 0.2 and reach < 15.0:
-            b_g = r0 / math.sqrt(2.0) + SPREAD * reach
-            delta = 0.5 * b_g
+        # out as a wall jet (:func:`ground_jets`)
+        if rotors[r, 17] > 0.0:
+            b_g, delta = rotors[r, 14], rotors[r, 15]
             fade = math.exp(-h / delta) if h < 8.0 * delta else 0.0
             w *= 1.0 - fade
-            lag_g = reach / (1.5 * vh)
-            gx = rotors[r, 0] - reach * ax + rotors[r, 8] * lag_g
-            gy = rotors[r, 1] - reach * ay + rotors[r, 9] * lag_g
-            ex, ey = x - gx, y - gy
+            ex, ey = x - rotors[r, 12], y - rotors[r, 13]
             rg = math.sqrt(ex * ex + ey * ey)
             if fade > 0.0 and rg > 1e-6 and rg < WALL_JET_REACH * b_g:
-                ug = disk_wake_speed(vh, r0, reach, 0.0) * fade * rotors[r, 11]
+                ug = rotors[r, 16] * fade
                 ug *= rg / b_g if rg < b_g else b_g / rg
                 out[3] += ug * ex / rg
                 out[4] += ug * ey / rg
@@ -242,6 +244,28 @@ def air_velocity(
         out[6] = max(out[6], math.sqrt(sq))
     for k in range(vortices.shape[0]):
         _vortex_pair(x, y, h, vortices[k], out)
+
+
+@numba.njit(cache=True)
+def ground_jets(rotors: np.ndarray) -> None:
+    """Fill each rotor row's wall-jet columns (12 to 17, :data:`ROTOR_SIZE`) from its first twelve: a
+    wake whose axis points down (its thrust axis more than 0.2 up) and meets the ground within 15 m turns
+    there, where it has drifted with the air on its way down, into a wall jet of the wake's width, its
+    layer half as thick, at the speed the wake has at the ground (its jet share's)."""
+    for r in range(rotors.shape[0]):
+        vh, r0, az = rotors[r, 6], rotors[r, 7], rotors[r, 5]
+        reach = rotors[r, 2] / max(az, 1e-3)
+        rotors[r, 12:18] = 0.0
+        if vh <= 0.0 or not (az > 0.2 and reach < 15.0):
+            continue
+        b_g = r0 / math.sqrt(2.0) + SPREAD * reach
+        lag_g = reach / (1.5 * vh)
+        rotors[r, 12] = rotors[r, 0] - reach * rotors[r, 3] + rotors[r, 8] * lag_g
+        rotors[r, 13] = rotors[r, 1] - reach * rotors[r, 4] + rotors[r, 9] * lag_g
+        rotors[r, 14] = b_g
+        rotors[r, 15] = 0.5 * b_g
+        rotors[r, 16] = disk_wake_speed(vh, r0, reach, 0.0) * rotors[r, 11]
+        rotors[r, 17] = 1.0
 
 
 @numba.njit(cache=True, fastmath=True)
