@@ -7,18 +7,15 @@ Screenshot: out/screenshots/ui_fleet.png (tests/screenshots.py).
 from __future__ import annotations
 
 import math
-import shutil
 import time
 from typing import Any
 
 import pytest
 from screenshots import SHOTS
+from ui_session import CHROMIUM, ui_page, wait
 
 from droneulator.config import CameraConfig, fleet, load_config
-from droneulator.runtime.launch import free_port, launch_run
 from droneulator.ui.images import vehicle_streams
-
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 #: RGB of the map's pixel where world point (x, y) is drawn
 MAP_PIXEL = """([x, y]) => {
@@ -43,15 +40,6 @@ def test_vehicle_streams_come_from_scene_info_or_the_vehicles_names() -> None:
     assert vehicle_streams({}, "droneulator") == {}
 
 
-def wait(predicate: Any, timeout: float, what: str, log: Any) -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if value := predicate():
-            return value
-        time.sleep(0.1)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}\n" + log.tail(25))
-
-
 def click_map(page: Any, x: float, y: float) -> None:
     """A mouse click on the map where world point (x, y) is drawn."""
     u, v = page.evaluate(f"window.droneulatorUI.map.toCanvas({x}, {y})")
@@ -70,78 +58,56 @@ def colour_near(got: list[int], want: str) -> bool:
 def test_ui_flies_the_second_vehicle_by_a_map_click() -> None:
     """Select uav1 in the selector: the camera views and telemetry follow it; a map click flies uav1
     there while uav0 stays put; both are drawn in their colours; a click on uav0's arrow selects it."""
-    playwright = pytest.importorskip("playwright.sync_api")
     cfg = load_config(scene="default")
     cfg.vehicles = fleet(2)
     cfg.render.cameras = [CameraConfig(name="front", width=160, height=120)]
     cfg.render.shadows = False
-    ui_port = free_port()
-    run = launch_run(cfg, ["--realtime", "--ui-port", str(ui_port)], start_timeout=120)
-    client = None
-    try:
-        client = run.client()
-        wait(lambda: any(line.startswith("UI: http") for line in run.log.lines()), 60, "the UI", run.log)
-        with playwright.sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
-            page = browser.new_page(viewport={"width": 1500, "height": 1000})
-            errors: list[str] = []
-            page.on("pageerror", lambda e: errors.append(str(e)))
-            page.goto(f"http://127.0.0.1:{ui_port}/#fly")
-            page.wait_for_function(
-                "window.droneulatorUI.map.meta && window.droneulatorUI.cameras.count > 2", timeout=60000
+    ready = "window.droneulatorUI.map.meta && window.droneulatorUI.cameras.count > 2"
+    with ui_page(cfg, ["--realtime"], ready) as (run, client, page, errors):
+        # both vehicles in the selector, the first selected; its cameras shown
+        names = page.eval_on_selector_all("#vehicle-list button", "bs => bs.map(b => b.dataset.vehicle)")
+        assert names == ["uav0", "uav1"]
+        assert page.get_attribute("#vehicle-list [data-vehicle=uav0]", "aria-checked") == "true"
+        assert "uav0" in page.inner_text("figure.camera.rgb figcaption")
+
+        page.click("#vehicle-list [data-vehicle=uav1]")
+        assert page.get_attribute("#vehicle-list [data-vehicle=uav1]", "aria-checked") == "true"
+        page.wait_for_function(
+            "window.droneulatorUI.cameras.shown.some(s => s.vehicle === 'uav1')", timeout=20000
+        )
+        assert "uav1" in page.inner_text("figure.camera.rgb figcaption")
+        page.wait_for_function("window.droneulatorUI.state?.vehicle === 'uav1'", timeout=10000)
+        assert "uav1" in page.inner_text("#telemetry")
+
+        before = client.state(vehicle="*")["vehicles"]
+        target = (-3.0, 4.0)  # clear of the meadow's trees, 4 m from uav1's start
+        click_map(page, *target)
+        goal = wait(lambda: page.evaluate("window.droneulatorUI.map.goal"), 10, "the goal", run.log)
+        assert math.dist(goal[:2], target) < 0.25
+        arrived = lambda: (s := client.state(vehicle="uav1"))["mode"] == "hold" and s  # noqa: E731
+        uav1 = wait(arrived, 40, "uav1 to arrive", run.log)
+        assert math.dist(uav1["position"][:2], target) < 0.3, uav1["position"]
+        uav0 = client.state(vehicle="uav0")
+        assert uav0["mode"] == "idle"
+        assert math.dist(uav0["position"], before["uav0"]["position"]) < 0.05
+        # every image shown since the selection is uav1's
+        shown = page.evaluate("window.droneulatorUI.cameras.shown.map(s => s.vehicle)")
+        assert shown[shown.index("uav1") :] == ["uav1"] * (len(shown) - shown.index("uav1"))
+
+        # both drawn on the map, each in its colour, where the API says they are
+        def drawn() -> bool:
+            return all(
+                colour_near(page.evaluate(MAP_PIXEL, s["position"][:2]), colour)
+                for s, colour in ((uav0, "#00e5ff"), (uav1, "#ffb000"))
             )
-            # both vehicles in the selector, the first selected; its cameras shown
-            names = page.eval_on_selector_all("#vehicle-list button", "bs => bs.map(b => b.dataset.vehicle)")
-            assert names == ["uav0", "uav1"]
-            assert page.get_attribute("#vehicle-list [data-vehicle=uav0]", "aria-checked") == "true"
-            assert "uav0" in page.inner_text("figure.camera.rgb figcaption")
 
-            page.click("#vehicle-list [data-vehicle=uav1]")
-            assert page.get_attribute("#vehicle-list [data-vehicle=uav1]", "aria-checked") == "true"
-            page.wait_for_function(
-                "window.droneulatorUI.cameras.shown.some(s => s.vehicle === 'uav1')", timeout=20000
-            )
-            assert "uav1" in page.inner_text("figure.camera.rgb figcaption")
-            page.wait_for_function("window.droneulatorUI.state?.vehicle === 'uav1'", timeout=10000)
-            assert "uav1" in page.inner_text("#telemetry")
+        wait(drawn, 5, "both vehicles drawn on the map", run.log)
+        page.screenshot(path=str(SHOTS / "ui_fleet.png"), full_page=True)
 
-            before = client.state(vehicle="*")["vehicles"]
-            target = (-3.0, 4.0)  # clear of the meadow's trees, 4 m from uav1's start
-            click_map(page, *target)
-            goal = wait(lambda: page.evaluate("window.droneulatorUI.map.goal"), 10, "the goal", run.log)
-            assert math.dist(goal[:2], target) < 0.25
-            arrived = lambda: (s := client.state(vehicle="uav1"))["mode"] == "hold" and s  # noqa: E731
-            uav1 = wait(arrived, 40, "uav1 to arrive", run.log)
-            assert math.dist(uav1["position"][:2], target) < 0.3, uav1["position"]
-            uav0 = client.state(vehicle="uav0")
-            assert uav0["mode"] == "idle"
-            assert math.dist(uav0["position"], before["uav0"]["position"]) < 0.05
-            # every image shown since the selection is uav1's
-            shown = page.evaluate("window.droneulatorUI.cameras.shown.map(s => s.vehicle)")
-            assert shown[shown.index("uav1") :] == ["uav1"] * (len(shown) - shown.index("uav1"))
-
-            # both drawn on the map, each in its colour, where the API says they are
-            def drawn() -> bool:
-                return all(
-                    colour_near(page.evaluate(MAP_PIXEL, s["position"][:2]), colour)
-                    for s, colour in ((uav0, "#00e5ff"), (uav1, "#ffb000"))
-                )
-
-            wait(drawn, 5, "both vehicles drawn on the map", run.log)
-            page.screenshot(path=str(SHOTS / "ui_fleet.png"), full_page=True)
-
-            # a click on the other vehicle's arrow selects it and flies nothing
-            click_map(page, *uav0["position"][:2])
-            page.wait_for_function("window.droneulatorUI.selected === 'uav0'", timeout=5000)
-            time.sleep(0.5)
-            assert client.state(vehicle="uav0")["mode"] == "idle"
-            assert client.state(vehicle="uav1")["mode"] == "hold"
-            assert not errors, f"JavaScript errors in the page: {errors}"
-            browser.close()
-    except BaseException:
-        print(run.log.tail(40))
-        raise
-    finally:
-        if client is not None:
-            client.close()
-        run.stop()
+        # a click on the other vehicle's arrow selects it and flies nothing
+        click_map(page, *uav0["position"][:2])
+        page.wait_for_function("window.droneulatorUI.selected === 'uav0'", timeout=5000)
+        time.sleep(0.5)
+        assert client.state(vehicle="uav0")["mode"] == "idle"
+        assert client.state(vehicle="uav1")["mode"] == "hold"
+        assert not errors, f"JavaScript errors in the page: {errors}"

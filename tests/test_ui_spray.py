@@ -7,17 +7,12 @@ reply is refused without breaking the page. Screenshot: out/screenshots/ui_spray
 from __future__ import annotations
 
 import math
-import shutil
-import time
-from typing import Any
 
 import pytest
 from screenshots import SHOTS
+from ui_session import CHROMIUM, ui_page, wait
 
 from droneulator.config import CameraConfig, load_config
-from droneulator.runtime.launch import free_port, launch_run
-
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 
 #: the deposit layer's visible cells as world x, y (cell centres), from the layer's own canvas
 WET_CELLS = """() => {
@@ -55,81 +50,53 @@ BAD_REPLIES = """async () => {
 }"""
 
 
-def wait(predicate: Any, timeout: float, what: str, log: Any) -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if value := predicate():
-            return value
-        time.sleep(0.1)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}\n" + log.tail(25))
-
-
 @pytest.mark.slow
 @pytest.mark.skipif(CHROMIUM is None, reason="Chromium is not installed (scripts/setup.sh --dev)")
 def test_the_map_draws_the_spray_deposit_where_the_vehicle_sprayed() -> None:
-    playwright = pytest.importorskip("playwright.sync_api")
     sets = ["spray.enabled=true", "vehicle.params=sprayer10", "spray.parcels_per_s=200", "render.camera_hz=5"]
     cfg = load_config(scene="default", overrides=sets)
     cfg.render.cameras = [CameraConfig(name="front", width=160, height=120)]
     cfg.render.shadows = False
-    ui_port = free_port()
-    run = launch_run(cfg, ["--ui-port", str(ui_port)], start_timeout=120)
-    client = None
-    try:
-        client = run.client()
-        wait(lambda: any(line.startswith("UI: http") for line in run.log.lines()), 60, "the UI", run.log)
-        with playwright.sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
-            page = browser.new_page(viewport={"width": 1500, "height": 1000})
-            errors: list[str] = []
-            page.on("pageerror", lambda e: errors.append(str(e)))
-            page.goto(f"http://127.0.0.1:{ui_port}/#fly")
-            page.wait_for_function(
-                "window.droneulatorUI.map.meta && window.droneulatorUI.deposit.layer", timeout=60000
-            )
-            # before spraying: the layer and its legend are there, with nothing drawn
-            assert page.is_visible("#deposit-bar") and page.is_checked("#deposit-toggle")
-            assert page.evaluate("window.droneulatorUI.deposit.layer.cells") == 0
-            assert page.evaluate(WET_CELLS) == []
-            page.wait_for_function("document.getElementById('telemetry').textContent.includes('spray')")
-            assert "off, tank 10.00 / 10.00 L" in page.inner_text("#telemetry")
+    ready = "window.droneulatorUI.map.meta && window.droneulatorUI.deposit.layer"
+    with ui_page(cfg, [], ready) as (run, client, page, errors):
+        # before spraying: the layer and its legend are there, with nothing drawn
+        assert page.is_visible("#deposit-bar") and page.is_checked("#deposit-toggle")
+        assert page.evaluate("window.droneulatorUI.deposit.layer.cells") == 0
+        assert page.evaluate(WET_CELLS) == []
+        page.wait_for_function("document.getElementById('telemetry').textContent.includes('spray')")
+        assert "off, tank 10.00 / 10.00 L" in page.inner_text("#telemetry")
 
-            client.request("takeoff", altitude=2.0)
-            client.request("spray", rate=1.0)  # spraying as it climbs
-            page.wait_for_function("window.droneulatorUI.deposit.layer.cells > 20", timeout=60000)
-            page.wait_for_function(
-                "document.getElementById('telemetry').textContent.includes('on at 100 %')", timeout=10000
-            )
-            x, y = client.state()["position"][:2]
-            wet = page.evaluate(WET_CELLS)
-            assert len(wet) > 20
-            distances = sorted(math.dist((x, y), c) for c in wet)
-            assert distances[0] < 0.5 and distances[len(distances) // 2] < 3.0, distances[:5]
-            # a short pass, spraying: the deposit follows the vehicle to where it stops
-            wait(lambda: client.state()["position"][2] > 1.5, 30, "the climb", run.log)
-            client.request("goto", position=[6.0, -1.5, 2.0], speed=2.5)
-            wait(lambda: client.state()["mode"] == "hold", 30, "the pass", run.log)
-            x, y = client.state()["position"][:2]
-            t = client.state()["t"]
-            page.wait_for_function(f"window.droneulatorUI.deposit.layer.t > {t + 0.5}", timeout=20000)
-            assert min(math.dist((x, y), c) for c in page.evaluate(WET_CELLS)) < 0.5
-            page.screenshot(path=str(SHOTS / "ui_spray_deposit.png"), full_page=True)
+        client.request("takeoff", altitude=2.0)
+        client.request("spray", rate=1.0)  # spraying as it climbs
+        page.wait_for_function("window.droneulatorUI.deposit.layer.cells > 20", timeout=60000)
+        page.wait_for_function(
+            "document.getElementById('telemetry').textContent.includes('on at 100 %')", timeout=10000
+        )
+        x, y = client.state()["position"][:2]
+        wet = page.evaluate(WET_CELLS)
+        assert len(wet) > 20
+        distances = sorted(math.dist((x, y), c) for c in wet)
+        assert distances[0] < 0.5 and distances[len(distances) // 2] < 3.0, distances[:5]
+        # a short pass, spraying: the deposit follows the vehicle to where it stops
+        wait(lambda: client.state()["position"][2] > 1.5, 30, "the climb", run.log)
+        client.request("goto", position=[6.0, -1.5, 2.0], speed=2.5)
+        wait(lambda: client.state()["mode"] == "hold", 30, "the pass", run.log)
+        x, y = client.state()["position"][:2]
+        t = client.state()["t"]
+        page.wait_for_function(f"window.droneulatorUI.deposit.layer.t > {t + 0.5}", timeout=20000)
+        assert min(math.dist((x, y), c) for c in page.evaluate(WET_CELLS)) < 0.5
+        page.screenshot(path=str(SHOTS / "ui_spray_deposit.png"), full_page=True)
 
-            # the toggle hides the layer: a wet cell clear of the vehicle's arrow shows the map again
-            spot = max((c for c in page.evaluate(WET_CELLS) if math.dist((x, y), c) < 4.0),
-                       key=lambda c: math.dist((x, y), c))  # fmt: skip
-            shown = page.evaluate(MAP_PIXEL, spot)
-            page.click("#deposit-toggle")
-            wait(lambda: page.evaluate(MAP_PIXEL, spot) != shown, 5, "the layer to go", run.log)
-            hidden = page.evaluate(MAP_PIXEL, spot)
-            page.click("#deposit-toggle")
-            wait(lambda: page.evaluate(MAP_PIXEL, spot) != hidden, 5, "the layer to come back", run.log)
+        # the toggle hides the layer: a wet cell clear of the vehicle's arrow shows the map again
+        spot = max((c for c in page.evaluate(WET_CELLS) if math.dist((x, y), c) < 4.0),
+                   key=lambda c: math.dist((x, y), c))  # fmt: skip
+        shown = page.evaluate(MAP_PIXEL, spot)
+        page.click("#deposit-toggle")
+        wait(lambda: page.evaluate(MAP_PIXEL, spot) != shown, 5, "the layer to go", run.log)
+        hidden = page.evaluate(MAP_PIXEL, spot)
+        page.click("#deposit-toggle")
+        wait(lambda: page.evaluate(MAP_PIXEL, spot) != hidden, 5, "the layer to come back", run.log)
 
-            refused = page.evaluate(BAD_REPLIES)
-            assert "accepted" not in refused, refused
-            assert not errors, f"JavaScript errors in the page: {errors}"
-            browser.close()
-    finally:
-        if client is not None:
-            client.close()
-        run.stop()
+        refused = page.evaluate(BAD_REPLIES)
+        assert "accepted" not in refused, refused
+        assert not errors, f"JavaScript errors in the page: {errors}"
