@@ -27,9 +27,11 @@ What it does as PX4 does, because the simulator and the planner depend on it:
   commander does; DENIED without a mission): NAV_TAKEOFF climbs straight up to the item's altitude,
   each NAV_WAYPOINT is flown to in a straight line at the cruise speed (MPC_XY_CRUISE, 5 m/s, or the
   last DO_CHANGE_SPEED) and reached within the item's acceptance radius (NAV_ACC_RAD, 10 m, where it
-  is 0) and NAV_MC_ALT_RAD, each reached with a MISSION_ITEM_REACHED; DO_SET_ACTUATOR sets its
+  is 0) and NAV_MC_ALT_RAD; MISSION_ITEM_REACHED carries the last item done (a waypoint's DO items are
+  done with it: PX4 reports the last of them), sent when it changes and again once a second, as
+  PX4 v1.16 does; DO_SET_ACTUATOR sets its
   actuator 1 ("Peripheral via Actuator Set 1"), which HIL_ACTUATOR_CONTROLS output 5 carries while
-  ``HIL_ACT_FUNC5`` is 301 (PARAM_SET, answered with PARAM_VALUE, integers bytewise as PX4 does);
+  ``PWM_MAIN_FUNC5`` is 301 (PARAM_SET, answered with PARAM_VALUE, integers bytewise as PX4 does);
   NAV_RETURN_TO_LAUNCH is PX4's RTL: climb to the return altitude of ``RTL::
   calculate_return_alt_from_cone_half_angle`` (RTL_RETURN_ALT above home beyond NAV_ACC_RAD), fly
   home, land and disarm;
@@ -135,7 +137,7 @@ class ScriptedPX4:
         self._hold_yaw = 0.0
         self._climb_to = 0.0
         self._setpoint: tuple[float, np.ndarray, np.ndarray, np.ndarray, float, float] | None = None
-        self._next = {"heartbeat": 0.0, "local": 0.0, "attitude": 0.0}
+        self._next = {"heartbeat": 0.0, "local": 0.0, "attitude": 0.0, "reached": 0.0}
         self._last_t_us: int | None = None
         #: the stored mission (MISSION_ITEM_INT messages) and the upload under way
         self.mission: list[Any] = []
@@ -143,14 +145,15 @@ class ScriptedPX4:
         self._upload_count = 0
         self._max_items = mission_max_items
         #: PX4 parameters it answers PARAM_SET for
-        self.params: dict[str, float] = {"HIL_ACT_FUNC5": 0, "RTL_RETURN_ALT": rtl_return_alt}
+        self.params: dict[str, float] = {"PWM_MAIN_FUNC5": 0, "RTL_RETURN_ALT": rtl_return_alt}
         #: the mission item flown, the cruise speed, actuator set 1 (DO_SET_ACTUATOR), home, the RTL's phase
         self._seq = 0
         self._cruise = CRUISE
         self._actuator1 = 0.0
         self._home = np.zeros(3)
         self._rtl: tuple[str, np.ndarray] | None = None
-        self._reached: list[int] = []
+        #: the last mission item done (MISSION_ITEM_REACHED), and whether it is new
+        self._reached: tuple[int, bool] | None = None
         #: every (sim t, mode, armed) change and every command result, for tests
         self.log: list[tuple[float, str, Any]] = []
         self.error: BaseException | None = None
@@ -260,7 +263,7 @@ class ScriptedPX4:
             u = self._control(dt)
             armed = self.armed
         self._offboard_tx()
-        spray = self._actuator1 if self.params["HIL_ACT_FUNC5"] == 301 else 0.0
+        spray = self._actuator1 if self.params["PWM_MAIN_FUNC5"] == 301 else 0.0
         controls = [float(x) for x in u] + [spray] + [0.0] * 11
         out = self._tx.hil_actuator_controls_encode(msg.time_usec, controls, 128 * armed, 1)
         self._sock.sendall(out.pack(self._tx))
@@ -352,7 +355,7 @@ class ScriptedPX4:
                                and abs(self.p[2] - target[2]) <= NAV_MC_ALT_RAD)  # fmt: skip
                 if not reached:
                     return self._towards(target, TAKEOFF_SPEED if takeoff else self._cruise, dt, f)
-                self._reached.append(self._seq)
+            self._reached = (self._seq, True)
             self._seq += 1
         self._set_mode(custom_mode(MAIN_AUTO, SUB_LOITER), "mission done")
         f[0:3], f[9] = self._hold, self._hold_yaw
@@ -416,9 +419,11 @@ class ScriptedPX4:
         with self.lock:
             t, mode, armed, origin = self.t, self.mode, self.armed, self.origin
             p, v, q = self.p.copy(), self.v.copy(), self.q.copy()
-            reached, self._reached = self._reached, []
-        for seq in reached:
-            self._send(self._tx.mission_item_reached_encode(seq))
+            reached = self._reached
+            if reached is not None:
+                self._reached = (reached[0], False)
+        if reached is not None and (reached[1] or self._due("reached", 1.0)):
+            self._send(self._tx.mission_item_reached_encode(reached[0]))
         if self._due("heartbeat", 1.0):
             base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED * armed)
             kind, autopilot = mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4

@@ -55,7 +55,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--px4",
         action="store_true",
         help="fly the plan with PX4 SITL (start it as docs/px4.md says): listen on TCP 4560+N for PX4's "
-        "simulator link, set PX4's HIL_ACT_FUNC5=301 (the spray output), upload the plan as a mission on "
+        "simulator link, set PX4's PWM_MAIN_FUNC5=301 (the spray output), upload the plan as a mission on "
         "PX4's onboard MAVLink (UDP 14540+N), start it, and wait until PX4 has landed and disarmed",
     )
     p.add_argument("--px4-instance", type=int, default=None, metavar="N",

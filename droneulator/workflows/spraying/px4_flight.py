@@ -5,13 +5,14 @@ also switches the spray with PX4's spray output). Beside it, a ground-station li
 MAVLink (:class:`~droneulator.workflows.planning.offboard.OffboardLink`, identity "gcs", never taking
 offboard control) runs the mission in a thread:
 
-1. wait for PX4's HEARTBEAT, set ``HIL_ACT_FUNC5 = 301`` (the fifth simulator output follows
+1. wait for PX4's HEARTBEAT, set ``PWM_MAIN_FUNC5 = 301`` (the fifth simulator output follows
    DO_SET_ACTUATOR's actuator 1, the spray) with PARAM_SET and check PX4's PARAM_VALUE;
 2. upload the plan's mission (:mod:`.px4_mission`; a refusal ends the flight with its MAV_MISSION_RESULT);
 3. MAV_CMD_MISSION_START (PX4's commander switches to AUTO.MISSION and arms in one), repeated while PX4
    answers TEMPORARILY_REJECTED (its preflight checks pass only once EKF2 has a position and a home);
 4. wait until PX4 has flown the mission and its closing RTL and disarmed on the ground
-   (COM_DISARM_LAND), noting each MISSION_ITEM_REACHED at sim time.
+   (COM_DISARM_LAND), noting each new MISSION_ITEM_REACHED at sim time (PX4 reports the last item
+   done, a waypoint's DO items included, and repeats it once a second).
 
 Then the cloud settles and the report is the internal controller's (:func:`.mission.report`), with a
 ``px4`` section: the spray's switches at sim time with where the vehicle was, and the items reached.
@@ -39,7 +40,7 @@ from droneulator.workflows.spraying.px4_mission import mission_items, upload_mis
 log = logging.getLogger(__name__)
 
 #: the PX4 parameter that makes the fifth simulator output the spray's: "Peripheral via Actuator Set 1"
-SPRAY_PARAM, SPRAY_FUNCTION = "HIL_ACT_FUNC5", 301
+SPRAY_PARAM, SPRAY_FUNCTION = "PWM_MAIN_FUNC5", 301
 #: sim time PX4 may take beyond the plan's flying time (take-off, turns, RTL, landing) before giving up
 SIM_SLACK_S = 180.0
 #: wall seconds OffboardLink waits for PX4's HEARTBEAT before it logs its own error (this module reports it)
@@ -212,7 +213,7 @@ def _mission_steps(gcs: Any, items: list[Any], state: _Mission, world: Any, time
     state.stage = "flying the mission"
     while True:
         msg = port.recv_match(type="MISSION_ITEM_REACHED", blocking=True, timeout=0.1)
-        if msg is not None:
+        if msg is not None and (not state.reached or state.reached[-1][1] != msg.seq):  # repeated at 1 Hz
             state.reached.append((world.t, int(msg.seq)))
             log.info("PX4 reached mission item %d at t=%.2f s", msg.seq, world.t)
         if gcs.armed:

@@ -12,7 +12,7 @@ Why DO_SET_ACTUATOR and not DO_SET_SERVO: since v1.13 PX4 maps DO_SET_ACTUATOR's
 outputs assigned the functions "Peripheral via Actuator Set 1-6" (``PWM_MAIN_FUNCn`` and the like), in
 missions and as commands; its DO_SET_SERVO mission item is reported ignored (PX4-Autopilot issue 20554,
 open). The spray follows that output: with PX4's fifth simulator output set to "Peripheral via Actuator
-Set 1" (``HIL_ACT_FUNC5 = 301``), the PX4 link reads it from the HIL_ACTUATOR_CONTROLS PX4 already sends
+Set 1" (``PWM_MAIN_FUNC5 = 301``), the PX4 link reads it from the HIL_ACTUATOR_CONTROLS PX4 already sends
 and switches the vehicle's spray system on above +0.5 and off below -0.5
 (:func:`droneulator.px4.link.spray_switch`).
 
