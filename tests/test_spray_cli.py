@@ -11,7 +11,7 @@ import pytest
 from droneulator.cli import main
 from droneulator.config import load_config
 from droneulator.scenes import get_scene
-from droneulator.workflows.spraying.coverage import CoveragePlan, Leg, coverage_plan
+from droneulator.workflows.spraying.coverage import CoveragePlan, Leg, coverage_plan, first_lanes
 from droneulator.workflows.spraying.mission import fly_plan
 
 
@@ -56,6 +56,10 @@ def test_the_coverage_plan_covers_the_rows():
     assert all(leg.start[0] != spraying[0].start[0] for leg in spraying[1::2])  # back and forth
     with pytest.raises(ValueError, match="height and speed"):
         coverage_plan(scene, height=0.0)
+    two = first_lanes(plan, 2)  # a short flight: the first two rows and the turn between them
+    assert [leg.spray for leg in two.legs] == [True, False, True]
+    assert two.target[2:] == pytest.approx((rows[0] - 1.65, rows[1] + 1.65))
+    assert first_lanes(plan, 99) is plan
 
 
 def test_a_short_mission_balances_and_doses_the_row_it_flew():
