@@ -159,6 +159,8 @@ def _px4_config(args: argparse.Namespace, cfg: SimConfig) -> None:
     cfg.px4.enabled = True
     cfg.px4.instance = args.px4_instance or 0
     cfg.vehicle.control_hz = 250.0  # PX4 SITL's lockstep rate (IMU_INTEG_RATE)
+    if not any(item.startswith("px4.speed_factor=") for item in args.overrides):
+        cfg.px4.speed_factor = 0.0  # a batch run: as fast as PX4 answers, not paced by the wall clock
     try:
         cfg.check_autopilots()
     except ValueError as exc:
