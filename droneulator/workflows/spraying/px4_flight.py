@@ -72,6 +72,8 @@ class _Mission:
     """The mission thread's progress, read by the stepping loop."""
 
     done: threading.Event = field(default_factory=threading.Event)
+    #: set by the stepping loop when it ends: the mission thread gives up
+    stop: threading.Event = field(default_factory=threading.Event)
     #: set once PX4 steps the world (past its first sim second): PX4 boots in sim time, so its HEARTBEAT
     #: is waited for from then on, however long the first steps took (the spray kernels compile)
     booting: threading.Event = field(default_factory=threading.Event)
@@ -125,29 +127,31 @@ def fly_plan_px4(
         worker.start()
         wall0 = time.monotonic()
         on = False
-        while not state.done.is_set():
-            if not link.connected and world.t == 0.0 and time.monotonic() - wall0 > opts.timeout_s:
-                raise PX4FlightError(
-                    f"no PX4 connected to the simulator port tcp://{link.cfg.host}:{link.port} within "
-                    f"{opts.timeout_s:.0f} s: start PX4 SITL instance {opts.instance} (docs/px4.md)"
-                )
-            if world.t > sim_limit:
-                raise PX4FlightError(f"PX4 has not finished the mission after {sim_limit:.0f} s of sim time "
-                                     f"({state.stage})")  # fmt: skip
-            stepped = link.serve_once(0.05)
-            if stepped is None:
-                continue
-            if world.t >= 1.0:
-                state.booting.set()
-            now_on = system.rate > 0.0
-            if now_on != on:
-                on = now_on
-                p = v.state.position
-                switches.append({"t": world.t, "on": on, "position": [round(float(x), 3) for x in p],
-                                 "tank_l": system.level_l})  # fmt: skip
-            if progress and world.t_ns % 250_000_000 == 0:
-                progress(min(world.t / (flying_s + 60.0), 0.99), f"t={world.t:.0f}s {state.stage} "
-                         f"tank={system.level_l:.2f}L")  # fmt: skip
+        try:
+            while not state.done.is_set():
+                if not link.connected and world.t == 0.0 and time.monotonic() - wall0 > opts.timeout_s:
+                    raise PX4FlightError(
+                        f"no PX4 connected to the simulator port tcp://{link.cfg.host}:{link.port} within "
+                        f"{opts.timeout_s:.0f} s: start PX4 SITL instance {opts.instance} (docs/px4.md)"
+                    )
+                if world.t > sim_limit:
+                    raise PX4FlightError(f"PX4 has not finished the mission after {sim_limit:.0f} s of sim "
+                                         f"time ({state.stage})")  # fmt: skip
+                if link.serve_once(0.05) is None:
+                    continue
+                if world.t >= 1.0:
+                    state.booting.set()
+                if (system.rate > 0.0) != on:
+                    on = not on
+                    p = v.state.position
+                    switches.append({"t": world.t, "on": on, "position": [round(float(x), 3) for x in p],
+                                     "tank_l": system.level_l})  # fmt: skip
+                if progress and world.t_ns % 250_000_000 == 0:
+                    progress(min(world.t / (flying_s + 60.0), 0.99), f"t={world.t:.0f}s {state.stage} "
+                             f"tank={system.level_l:.2f}L")  # fmt: skip
+        finally:
+            state.stop.set()  # the mission thread ends too, whatever ended the flight
+            worker.join(timeout=5.0)
         if state.error:
             raise PX4FlightError(state.error)
     system.set(0.0)
@@ -178,15 +182,18 @@ def _mission_steps(gcs: Any, items: list[Any], state: _Mission, world: Any, time
     from droneulator.workflows.planning.offboard import MavlinkPort
 
     while not state.booting.wait(0.1):
-        pass
+        if state.stop.is_set():
+            return
     end = time.monotonic() + timeout_s
-    while not gcs.connected:
+    while not gcs.connected and not state.stop.is_set():
         if time.monotonic() > end:
             where = f"udp {gcs.address[0]}:{gcs.address[1]}"
             raise PX4FlightError(f"PX4 steps the simulator but sent no HEARTBEAT on {where} within "
                                  f"{timeout_s:.0f} s: is its onboard MAVLink (mavlink start -u 14580+N -o "
                                  "14540+N) on, or another --px4-port?")  # fmt: skip
         time.sleep(0.05)
+    if state.stop.is_set():
+        return
     port = MavlinkPort(gcs, ["MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK", "PARAM_VALUE",
                              "MISSION_ITEM_REACHED"])  # fmt: skip
     state.stage = f"setting {SPRAY_PARAM}"
@@ -195,7 +202,7 @@ def _mission_steps(gcs: Any, items: list[Any], state: _Mission, world: Any, time
     upload_mission(port, items, gcs.sysid, gcs.compid)
     log.info("PX4 accepted the mission (%d items)", len(items))
     state.stage = "starting the mission"
-    while True:
+    while not state.stop.is_set():
         result = gcs.command(mavlink.MAV_CMD_MISSION_START, "mission start", 0.0, float(len(items) - 1))
         if result == mavlink.MAV_RESULT_ACCEPTED:
             break
@@ -211,7 +218,7 @@ def _mission_steps(gcs: Any, items: list[Any], state: _Mission, world: Any, time
         time.sleep(START_RETRY_S)
     log.info("PX4 started the mission at t=%.2f s", world.t)
     state.stage = "flying the mission"
-    while True:
+    while not state.stop.is_set():
         msg = port.recv_match(type="MISSION_ITEM_REACHED", blocking=True, timeout=0.1)
         if msg is not None and (not state.reached or state.reached[-1][1] != msg.seq):  # repeated at 1 Hz
             state.reached.append((world.t, int(msg.seq)))
