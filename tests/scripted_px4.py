@@ -23,6 +23,18 @@ What it does as PX4 does, because the simulator and the planner depend on it:
   landed, accepts OFFBOARD only while setpoints stream (its offboard signal: one within 0.5 s of
   sim time), falls back to holding (AUTO.LOITER) when they stop, and flies MAV_CMD_NAV_TAKEOFF up to
   ``MIS_TAKEOFF_ALT`` (2.5 m) at PX4's climb speed;
+* it flies **an uploaded mission** on MAV_CMD_MISSION_START (AUTO.MISSION and armed in one, as PX4's
+  commander does; DENIED without a mission): NAV_TAKEOFF climbs straight up to the item's altitude,
+  each NAV_WAYPOINT is flown to in a straight line at the cruise speed (MPC_XY_CRUISE, 5 m/s, or the
+  last DO_CHANGE_SPEED) and reached within the item's acceptance radius (NAV_ACC_RAD, 10 m, where it
+  is 0) and NAV_MC_ALT_RAD; MISSION_ITEM_REACHED carries the last item done (a waypoint's DO items are
+  done with it: PX4 reports the last of them), sent when it changes and again once a second, as
+  PX4 v1.16 does; DO_SET_ACTUATOR sets its
+  actuator 1 ("Peripheral via Actuator Set 1"), which HIL_ACTUATOR_CONTROLS output 5 carries while
+  ``PWM_MAIN_FUNC5`` is 301 (PARAM_SET, answered with PARAM_VALUE, integers bytewise as PX4 does);
+  NAV_RETURN_TO_LAUNCH is PX4's RTL: climb to the return altitude of ``RTL::
+  calculate_return_alt_from_cone_half_angle`` (RTL_RETURN_ALT above home beyond NAV_ACC_RAD), fly
+  home, land and disarm;
 * its position controller is the simulator's own SE(3) controller with PX4-like tilt and thrust
   bounds on its estimated state, allocated to motor outputs through the inverse of the simulator's
   output -> rotor speed map, so its outputs are what PX4 with its default mixer would send for
@@ -36,6 +48,7 @@ from __future__ import annotations
 
 import contextlib
 import socket
+import struct
 import threading
 import time
 from typing import Any
@@ -52,10 +65,13 @@ from droneulator.vehicles.params import get_params
 
 #: PX4 custom main modes (px4_custom_mode.h) and the AUTO sub modes used here
 MAIN_AUTO, MAIN_OFFBOARD = 4, 6
-SUB_TAKEOFF, SUB_LOITER, SUB_LAND = 2, 3, 6
+SUB_TAKEOFF, SUB_LOITER, SUB_MISSION, SUB_RTL, SUB_LAND = 2, 3, 4, 5, 6
 G = 9.80665
 #: MIS_TAKEOFF_ALT, MPC_TKO_SPEED, MPC_LAND_SPEED of PX4's defaults
 TAKEOFF_ALT, TAKEOFF_SPEED, LAND_SPEED = 2.5, 1.5, 0.7
+#: MPC_XY_CRUISE, MPC_Z_V_AUTO_UP, MPC_Z_V_AUTO_DN (above MPC_LAND_ALT1), NAV_ACC_RAD, NAV_MC_ALT_RAD
+CRUISE, CLIMB_SPEED, DESCEND_SPEED, LAND_ALT1 = 5.0, 3.0, 1.5, 10.0
+NAV_ACC_RAD, NAV_MC_ALT_RAD = 10.0, 0.8
 #: PX4's offboard signal: a setpoint within this much sim time (COM_OF_LOSS_T is 1 s; the mode check 0.5 s)
 OFFBOARD_SIGNAL_S = 0.5
 #: the mission items PX4 stores (its dataman's default capacity), and the commands and frames its mission
@@ -84,7 +100,8 @@ class ScriptedPX4:
     thread until :meth:`close`. ``params``: the run's vehicle parameter set (``px4_quadx`` with --px4)."""
 
     def __init__(self, sim_port: int, offboard_port: int, params: str = "px4_quadx", sysid: int = 1,
-                 connect_timeout: float = 60.0, gcs_port: int | None = None) -> None:  # fmt: skip
+                 connect_timeout: float = 60.0, gcs_port: int | None = None, rtl_return_alt: float = 60.0,
+                 mission_max_items: int = MISSION_MAX_ITEMS) -> None:  # fmt: skip
         quad = get_params(params)
         self.motors = MotorMap(quad)
         self.se3 = FastSE3Control(quad, max_tilt_deg=35.0, min_lift=0.2)
@@ -120,12 +137,23 @@ class ScriptedPX4:
         self._hold_yaw = 0.0
         self._climb_to = 0.0
         self._setpoint: tuple[float, np.ndarray, np.ndarray, np.ndarray, float, float] | None = None
-        self._next = {"heartbeat": 0.0, "local": 0.0, "attitude": 0.0}
+        self._next = {"heartbeat": 0.0, "local": 0.0, "attitude": 0.0, "reached": 0.0}
         self._last_t_us: int | None = None
         #: the stored mission (MISSION_ITEM_INT messages) and the upload under way
         self.mission: list[Any] = []
         self._upload: list[Any] | None = None
         self._upload_count = 0
+        self._max_items = mission_max_items
+        #: PX4 parameters it answers PARAM_SET for
+        self.params: dict[str, float] = {"PWM_MAIN_FUNC5": 0, "RTL_RETURN_ALT": rtl_return_alt}
+        #: the mission item flown, the cruise speed, actuator set 1 (DO_SET_ACTUATOR), home, the RTL's phase
+        self._seq = 0
+        self._cruise = CRUISE
+        self._actuator1 = 0.0
+        self._home = np.zeros(3)
+        self._rtl: tuple[str, np.ndarray] | None = None
+        #: the last mission item done (MISSION_ITEM_REACHED), and whether it is new
+        self._reached: tuple[int, bool] | None = None
         #: every (sim t, mode, armed) change and every command result, for tests
         self.log: list[tuple[float, str, Any]] = []
         self.error: BaseException | None = None
@@ -167,6 +195,8 @@ class ScriptedPX4:
                     data = self._sock.recv(65536)
                 except TimeoutError:
                     continue
+                except ConnectionResetError:
+                    return  # the simulator closed the link, as at EOF
                 if not data:
                     return
                 buf += data
@@ -233,7 +263,8 @@ class ScriptedPX4:
             u = self._control(dt)
             armed = self.armed
         self._offboard_tx()
-        controls = [float(x) for x in u] + [0.0] * 12
+        spray = self._actuator1 if self.params["PWM_MAIN_FUNC5"] == 301 else 0.0
+        controls = [float(x) for x in u] + [spray] + [0.0] * 11
         out = self._tx.hil_actuator_controls_encode(msg.time_usec, controls, 128 * armed, 1)
         self._sock.sendall(out.pack(self._tx))
 
@@ -258,18 +289,95 @@ class ScriptedPX4:
             f[5] = TAKEOFF_SPEED if self._hold[2] < self._climb_to else 0.0
             if self._hold[2] >= self._climb_to and abs(self.p[2] - self._climb_to) < 0.1:
                 self._set_mode(custom_mode(MAIN_AUTO, SUB_LOITER), "take-off done")
+        elif main == MAIN_AUTO and sub == SUB_MISSION:
+            return self._fly_mission(dt, f)
+        elif main == MAIN_AUTO and sub == SUB_RTL:
+            return self._fly_rtl(dt, f)
         elif main == MAIN_AUTO and sub == SUB_LAND:
-            self._hold[2] -= LAND_SPEED * dt
-            f[5] = -LAND_SPEED
-            if self.p[2] < 0.05 and abs(self.v[2]) < 0.2:
-                self.landed = True
-                self.armed = False
-                self._set_mode(custom_mode(MAIN_AUTO, SUB_LOITER), "landed: disarmed")
-                return None
+            return self._descend(dt, f)
         elif self.landed:
             return None  # armed on the ground with nothing to do: idle
         f[0:3], f[9] = self._hold, self._hold_yaw
         return f
+
+    def _descend(self, dt: float, f: np.ndarray) -> np.ndarray | None:
+        """Land where it is (MPC_Z_V_AUTO_DN above MPC_LAND_ALT1 over home, MPC_LAND_SPEED below), then
+        disarm."""
+        speed = LAND_SPEED if self.p[2] - self._home[2] < LAND_ALT1 else DESCEND_SPEED
+        self._hold[2] -= speed * dt
+        f[5] = -speed
+        if self.p[2] < 0.05 and abs(self.v[2]) < 0.2:
+            self.landed = True
+            self.armed = False
+            self._set_mode(custom_mode(MAIN_AUTO, SUB_LOITER), "landed: disarmed")
+            return None
+        f[0:3], f[9] = self._hold, self._hold_yaw
+        return f
+
+    def _towards(self, target: np.ndarray, speed: float, dt: float, f: np.ndarray) -> np.ndarray:
+        """Move the reference along the straight line to ``target`` at ``speed`` (velocity fed forward)."""
+        d = target - self._hold
+        n = float(np.linalg.norm(d))
+        if n <= speed * dt:
+            self._hold = target.copy()
+        else:
+            self._hold = self._hold + d / n * speed * dt
+            f[3:6] = d / n * speed
+        f[0:3], f[9] = self._hold, self._hold_yaw
+        return f
+
+    def _item_enu(self, m: Any) -> np.ndarray:
+        return frames.geodetic_to_enu(m.x * 1e-7, m.y * 1e-7, m.z, *self.origin)
+
+    def _fly_mission(self, dt: float, f: np.ndarray) -> np.ndarray | None:
+        """AUTO.MISSION: the current item (see the module docstring); DO items take no time."""
+        while self._seq < len(self.mission):
+            m = self.mission[self._seq]
+            if m.command == mavlink.MAV_CMD_DO_CHANGE_SPEED:
+                if m.param2 > 0:
+                    self._cruise = float(m.param2)
+            elif m.command == mavlink.MAV_CMD_DO_SET_ACTUATOR:
+                if np.isfinite(m.param1):
+                    self._actuator1 = float(m.param1)
+            elif m.command == mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH:
+                self._seq += 1
+                self._set_mode(custom_mode(MAIN_AUTO, SUB_RTL), "mission: RTL")
+                return self._fly_rtl(dt, f)
+            elif m.command in (mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_NAV_WAYPOINT):
+                target = self._item_enu(m)
+                takeoff = m.command == mavlink.MAV_CMD_NAV_TAKEOFF
+                if takeoff:
+                    target[:2] = self._hold[:2]  # a multicopter climbs straight up
+                    reached = self.p[2] >= target[2] - NAV_MC_ALT_RAD
+                else:
+                    radius = m.param2 if m.param2 > 0 else NAV_ACC_RAD
+                    reached = (np.hypot(*(self.p[:2] - target[:2])) <= radius
+                               and abs(self.p[2] - target[2]) <= NAV_MC_ALT_RAD)  # fmt: skip
+                if not reached:
+                    return self._towards(target, TAKEOFF_SPEED if takeoff else self._cruise, dt, f)
+            self._reached = (self._seq, True)
+            self._seq += 1
+        self._set_mode(custom_mode(MAIN_AUTO, SUB_LOITER), "mission done")
+        f[0:3], f[9] = self._hold, self._hold_yaw
+        return f
+
+    def _fly_rtl(self, dt: float, f: np.ndarray) -> np.ndarray | None:
+        """AUTO.RTL: climb to the return altitude, fly home at it, land."""
+        if self._rtl is None:
+            d = float(np.hypot(*(self.p[:2] - self._home[:2])))
+            top = self._home[2] + self.params["RTL_RETURN_ALT"]
+            alt = self._home[2] + 2.0 * d if d <= NAV_ACC_RAD else top
+            self._rtl = ("climb", np.array([*self._hold[:2], min(max(alt, self.p[2]), max(top, self.p[2]))]))
+        phase, target = self._rtl
+        if phase == "climb":
+            if self.p[2] < target[2] - NAV_MC_ALT_RAD:
+                return self._towards(target, CLIMB_SPEED, dt, f)
+            self._rtl = phase, target = ("return", np.array([*self._home[:2], target[2]]))
+        if phase == "return":
+            if np.hypot(*(self.p[:2] - target[:2])) > NAV_ACC_RAD or np.linalg.norm(self._hold - target) > 0:
+                return self._towards(target, self._cruise, dt, f)
+            self._rtl = ("land", target)
+        return self._descend(dt, f)
 
     def _control(self, dt: float) -> np.ndarray:
         flat = self._flat(dt)
@@ -311,6 +419,11 @@ class ScriptedPX4:
         with self.lock:
             t, mode, armed, origin = self.t, self.mode, self.armed, self.origin
             p, v, q = self.p.copy(), self.v.copy(), self.q.copy()
+            reached = self._reached
+            if reached is not None:
+                self._reached = (reached[0], False)
+        if reached is not None and (reached[1] or self._due("reached", 1.0)):
+            self._send(self._tx.mission_item_reached_encode(reached[0]))
         if self._due("heartbeat", 1.0):
             base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED * armed)
             kind, autopilot = mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4
@@ -337,6 +450,8 @@ class ScriptedPX4:
                         self._mission(msg, link)
                     elif msg.get_type() == "SET_POSITION_TARGET_LOCAL_NED":
                         self._on_setpoint(msg)
+                    elif msg.get_type() == "PARAM_SET":
+                        self._param_set(msg, link)
 
     def _on_setpoint(self, m: Any) -> None:
         mask = m.type_mask
@@ -357,7 +472,7 @@ class ScriptedPX4:
         if msg.mission_type != mavlink.MAV_MISSION_TYPE_MISSION:
             return self._mission_ack(msg, mavlink.MAV_MISSION_UNSUPPORTED, link)
         if msg.get_type() == "MISSION_COUNT":
-            if msg.count > MISSION_MAX_ITEMS:
+            if msg.count > self._max_items:
                 return self._mission_ack(msg, mavlink.MAV_MISSION_NO_SPACE, link)
             self._upload = []
             self._upload_count = msg.count
@@ -382,6 +497,20 @@ class ScriptedPX4:
             self.mission, self._upload = self._upload, None
             self.log.append((self.t, "mission", len(self.mission)))
         self._mission_ack(msg, mavlink.MAV_MISSION_ACCEPTED, link)
+
+    def _param_set(self, msg: Any, link: list[Any]) -> None:
+        """PARAM_SET of a known parameter: stored and echoed with PARAM_VALUE (an INT32's bytes in the
+        float, as PX4 encodes it); an unknown one is ignored."""
+        name = msg.param_id
+        if name not in self.params:
+            return
+        integer = msg.param_type == mavlink.MAV_PARAM_TYPE_INT32
+        value = struct.unpack("<i", struct.pack("<f", msg.param_value))[0] if integer else msg.param_value
+        with self.lock:
+            self.params[name] = value
+        index = list(self.params).index(name)
+        self._send(self._tx.param_value_encode(name.encode(), msg.param_value, msg.param_type,
+                                               len(self.params), index), link)  # fmt: skip
 
     def _mission_request(self, msg: Any, link: list[Any]) -> None:
         self._send(self._tx.mission_request_int_encode(msg.get_srcSystem(), msg.get_srcComponent(),
@@ -436,6 +565,13 @@ class ScriptedPX4:
                 result = ok if self.origin is not None and self.armed else denied  # PX4: arm first
                 if result == ok:
                     self._takeoff()
+            elif c == mavlink.MAV_CMD_MISSION_START:
+                result = ok if self.mission and self.origin is not None else denied
+                if result == ok:
+                    self.armed, self.landed = True, False
+                    self._hold, self._hold_yaw = self.p.copy(), frames.yaw_of(self.q)
+                    self._home, self._seq, self._rtl = self.p.copy(), int(msg.param1), None
+                    self._set_mode(custom_mode(MAIN_AUTO, SUB_MISSION), "mission start")
             elif c == mavlink.MAV_CMD_NAV_LAND:
                 result = ok if self.armed else denied
                 if result == ok:

@@ -11,7 +11,7 @@ import pytest
 from droneulator.cli import main
 from droneulator.config import load_config
 from droneulator.scenes import get_scene
-from droneulator.workflows.spraying.coverage import CoveragePlan, Leg, coverage_plan
+from droneulator.workflows.spraying.coverage import CoveragePlan, Leg, coverage_plan, first_lanes
 from droneulator.workflows.spraying.mission import fly_plan
 
 
@@ -56,6 +56,10 @@ def test_the_coverage_plan_covers_the_rows():
     assert all(leg.start[0] != spraying[0].start[0] for leg in spraying[1::2])  # back and forth
     with pytest.raises(ValueError, match="height and speed"):
         coverage_plan(scene, height=0.0)
+    two = first_lanes(plan, 2)  # a short flight: the first two rows and the turn between them
+    assert [leg.spray for leg in two.legs] == [True, False, True]
+    assert two.target[2:] == pytest.approx((rows[0] - 1.65, rows[1] + 1.65))
+    assert first_lanes(plan, 99) is plan
 
 
 def test_a_short_mission_balances_and_doses_the_row_it_flew():
@@ -136,3 +140,89 @@ def test_the_spray_follows_px4s_spray_output_with_a_dead_band():
     assert spray_switch(1.0, True) is None and spray_switch(-1.0, False) is None
     for idle in (0.0, 0.3, -0.3, float("nan")):  # unassigned or not sent: the API's setting stands
         assert spray_switch(idle, True) is None and spray_switch(idle, False) is None
+
+
+def _free_port(kind: int) -> int:
+    import socket
+
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _px4_args(tmp_path, sim: int, udp: int, *more: str) -> list[str]:
+    return ["spray", "--px4", "--rows", "2", "--px4-port", str(udp), "--set", f"px4.base_port={sim}",
+            "--set", "spray.parcels_per_s=300", "--set", "spray.load_l=2", "--out", str(tmp_path / "px4"),
+            *more]  # fmt: skip
+
+
+@pytest.mark.slow
+def test_spray_px4_flies_the_plan_as_a_mission_and_sprays_only_its_rows(tmp_path, capsys):
+    """`spray --px4` against the scripted PX4: the two-row plan goes up as a mission, PX4 sets its spray
+    output from DO_SET_ACTUATOR, flies take-off, both rows and the turn at 3 m/s, RTLs and disarms; the
+    spray is on only along the two rows (the tank drops only then) and the deposit lies under them."""
+    import socket
+
+    from scripted_px4 import ScriptedPX4
+
+    sim, udp = _free_port(socket.SOCK_STREAM), _free_port(socket.SOCK_DGRAM)
+    px4 = ScriptedPX4(sim, udp, params="sprayer10")
+    try:
+        code = main(_px4_args(tmp_path, sim, udp))
+    finally:
+        px4.close()
+    assert code == 0 and px4.error is None
+    out = tmp_path / "px4"
+    assert all((out / name).stat().st_size > 1000 for name in
+               ("report.json", "deposit_map.png", "canopy_dose.png", "drift_curve.png"))  # fmt: skip
+    report = json.loads((out / "report.json").read_text())
+    rows = get_scene("vineyard", 0).landmarks["row_y"][:2]
+    assert px4.params["PWM_MAIN_FUNC5"] == 301 and not px4.armed and px4.landed
+    switches = report["px4"]["spray_switches"]
+    assert [s["on"] for s in switches] == [True, False, True, False]
+    for (on, off), row in zip(zip(switches[::2], switches[1::2], strict=True), rows, strict=True):
+        assert abs(on["position"][1] - row) < 1.1 and abs(off["position"][1] - row) < 1.1
+        assert abs(off["position"][0] - on["position"][0]) > 33.0  # the row and its run-ins
+        assert on["tank_l"] - off["tank_l"] == pytest.approx(1.8 / 60.0 * (off["t"] - on["t"]), rel=0.02)
+    assert switches[1]["tank_l"] == pytest.approx(switches[2]["tank_l"], abs=1e-3)  # off in the turn
+    assert report["tank"]["level_l"] == pytest.approx(switches[-1]["tank_l"], abs=1e-3)
+    assert report["mass_balance_error"] < 1e-9
+    dose = np.asarray(report["plants"]["dose_ul"]).sum(1)
+    plants = np.asarray(report["plants"]["positions"])
+    sprayed = np.min(np.abs(plants[:, 1:2] - np.asarray(rows)[None, :]), axis=1) < 0.5
+    assert dose[sprayed].min() > 0.0 and dose[sprayed].sum() > 5 * dose[~sprayed].sum()
+    assert report["ground_in_target_l"] > report["ground_off_target_l"]
+    assert "sprayed" in capsys.readouterr().out
+
+
+def test_spray_px4_refusals_are_one_clear_error(tmp_path, capsys):
+    """No PX4 within --px4-timeout, a vehicle that is not a sprayer, --px4 with a trial: one line each."""
+    import socket
+
+    sim, udp = _free_port(socket.SOCK_STREAM), _free_port(socket.SOCK_DGRAM)
+    cases = [
+        (["--px4-timeout", "1"], 1, "no PX4 connected to the simulator port"),
+        (["--set", "vehicle.params=px4_quadx"], 2, "is not a sprayer"),
+        (["--trial", "hover"], 2, "not a --trial"),
+    ]
+    for more, want, message in cases:
+        assert main(_px4_args(tmp_path, sim, udp, *more)) == want
+        err = capsys.readouterr().err
+        assert message in err and err.count("error:") == 1
+
+
+def test_spray_px4_reports_a_refused_mission_with_px4s_result(tmp_path, capsys):
+    """PX4 with room for fewer items than the mission holds answers MAV_MISSION_NO_SPACE: the command
+    stops with it before arming anything."""
+    import socket
+
+    from scripted_px4 import ScriptedPX4
+
+    sim, udp = _free_port(socket.SOCK_STREAM), _free_port(socket.SOCK_DGRAM)
+    px4 = ScriptedPX4(sim, udp, params="sprayer10", mission_max_items=5)
+    try:
+        code = main(_px4_args(tmp_path, sim, udp))
+    finally:
+        px4.close()
+    assert code == 1 and not px4.armed
+    assert "mission upload refused: MAV_MISSION_NO_SPACE" in capsys.readouterr().err

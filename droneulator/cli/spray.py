@@ -30,7 +30,9 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--trial, run a standard trial instead over bare ground: a hover spraying over a line of "
         "collectors 5 m upwind to 50 m downwind, or one pass across the wind (swath CV, effective swath, "
         "drift curve of a field of such passes). Wind, weather and the spray system come from the config "
-        "(wind.*, weather.*, spray.*).",
+        "(wind.*, weather.*, spray.*). With --px4, PX4 SITL flies the plan instead of the internal "
+        "controller: the plan goes up as a mission (spray on and off by DO_SET_ACTUATOR) and PX4 flies it "
+        "in lockstep, from take-off to its RTL landing (docs/spray.md).",
     )
     add_config_args(p, "vineyard")
     p.add_argument("--out", required=True, help="output folder")
@@ -47,6 +49,21 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--speed", type=float, default=None, help="flight speed (m/s; default 3 for the plan, 5 "
                    "for the pass trial)")  # fmt: skip
     p.add_argument("--duration", type=float, default=10.0, help="hover trial: spraying time (s)")
+    p.add_argument("--rows", type=int, default=None, metavar="N",
+                   help="fly only the plan's first N rows (or swaths), with the turns between")  # fmt: skip
+    p.add_argument(
+        "--px4",
+        action="store_true",
+        help="fly the plan with PX4 SITL (start it as docs/px4.md says): listen on TCP 4560+N for PX4's "
+        "simulator link, set PX4's PWM_MAIN_FUNC5=301 (the spray output), upload the plan as a mission on "
+        "PX4's onboard MAVLink (UDP 14540+N), start it, and wait until PX4 has landed and disarmed",
+    )
+    p.add_argument("--px4-instance", type=int, default=None, metavar="N",
+                   help="PX4 instance N (implies --px4; default 0)")  # fmt: skip
+    p.add_argument("--px4-port", type=int, default=None, metavar="PORT",
+                   help="UDP port PX4's onboard MAVLink sends to (implies --px4; 14540+N)")  # fmt: skip
+    p.add_argument("--px4-timeout", type=float, default=120.0, metavar="S",
+                   help="wall seconds to wait for PX4 to connect before giving up (default 120)")  # fmt: skip
     p.set_defaults(func=cmd_spray)
 
 
@@ -71,9 +88,13 @@ def cmd_spray(args: argparse.Namespace) -> int:
             data = apply_override(data, item)
     data["spray"].setdefault("parcels_per_s", PARCELS_PER_S)  # a finer cloud than a live run's
     cfg.spray = from_dict(SprayConfig, data["spray"], "spray")
-    for name, value in (("height", args.height), ("speed", args.speed), ("duration", args.duration)):
+    sizes = (("height", args.height), ("speed", args.speed), ("duration", args.duration), ("rows", args.rows))
+    for name, value in sizes:
         if value is not None and not value > 0:
             raise preflight.StartupError(f"--{name} must be > 0, got {value}", preflight.USAGE)
+    px4 = args.px4 or args.px4_instance is not None or args.px4_port is not None
+    if px4:
+        _px4_config(args, cfg)
     preflight.check_output_dir(args.out)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -90,13 +111,24 @@ def cmd_spray(args: argparse.Namespace) -> int:
         if args.trial:
             return _trial(args, cfg, out, progress)
         from droneulator.scenes import get_scene
-        from droneulator.workflows.spraying.coverage import coverage_plan
+        from droneulator.workflows.spraying.coverage import coverage_plan, first_lanes
         from droneulator.workflows.spraying.mission import fly_plan
         from droneulator.workflows.spraying.report import mission_figures, write_json
 
         plan = coverage_plan(get_scene(cfg.scene, cfg.seed, cfg.vegetation), height=args.height or 1.5,
                              speed=args.speed or 3.0)  # fmt: skip
-        report, spraying = fly_plan(cfg, plan, progress=progress)
+        if args.rows is not None:
+            plan = first_lanes(plan, args.rows)
+        if px4:
+            from droneulator.workflows.spraying.px4_flight import PX4FlightError, PX4Options, fly_plan_px4
+
+            opts = PX4Options(args.px4_instance or 0, args.px4_port, args.px4_timeout)
+            try:
+                report, spraying = fly_plan_px4(cfg, plan, opts, progress=progress)
+            except PX4FlightError as exc:
+                raise preflight.StartupError(f"--px4: {exc}") from None
+        else:
+            report, spraying = fly_plan(cfg, plan, progress=progress)
         report["plan"] = {"legs": len(plan.legs), "altitude_m": plan.altitude, "target": list(plan.target),
                           "spray_length_m": plan.spray_length_m}  # fmt: skip
         write_json(out / "report.json", report)
@@ -107,6 +139,32 @@ def cmd_spray(args: argparse.Namespace) -> int:
     for path in [out / "report.json", *figures]:
         print(path)
     return 0
+
+
+def _px4_config(args: argparse.Namespace, cfg: SimConfig) -> None:
+    """Hand the sprayer to PX4 (``px4.enabled``, instance N) at PX4's 250 Hz lockstep; refuse a trial or
+    a vehicle that is not a sprayer."""
+    from droneulator.vehicles.sprayers import SPRAYERS
+
+    if args.trial:
+        raise preflight.StartupError("--px4 flies the coverage plan, not a --trial", preflight.USAGE)
+    params = cfg.vehicles[0].params if cfg.vehicles and cfg.vehicles[0].params else cfg.vehicle.params
+    if params not in SPRAYERS:
+        raise preflight.StartupError(
+            f"--px4: the vehicle ({params}) is not a sprayer: fly one of {', '.join(SPRAYERS)} (--airframe)",
+            preflight.USAGE,
+        )
+    if args.px4_timeout is None or not args.px4_timeout > 0:
+        raise preflight.StartupError(f"--px4-timeout must be > 0, got {args.px4_timeout}", preflight.USAGE)
+    cfg.px4.enabled = True
+    cfg.px4.instance = args.px4_instance or 0
+    cfg.vehicle.control_hz = 250.0  # PX4 SITL's lockstep rate (IMU_INTEG_RATE)
+    if not any(item.startswith("px4.speed_factor=") for item in args.overrides):
+        cfg.px4.speed_factor = 0.0  # a batch run: as fast as PX4 answers, not paced by the wall clock
+    try:
+        cfg.check_autopilots()
+    except ValueError as exc:
+        raise preflight.StartupError(f"--px4: {exc}", preflight.USAGE) from None
 
 
 def _trial(args: argparse.Namespace, cfg: SimConfig, out: Path, progress: Callable[..., None]) -> int:

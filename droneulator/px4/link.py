@@ -62,8 +62,9 @@ LOCKSTEP_FLAG = mavlink.HIL_ACTUATOR_CONTROLS_FLAGS_LOCKSTEP
 ARMED_FLAG = mavlink.MAV_MODE_FLAG_SAFETY_ARMED
 
 #: the HIL_ACTUATOR_CONTROLS output a sprayer's pump follows: PX4's fifth simulator output, set to
-#: "Peripheral via Actuator Set 1" (``HIL_ACT_FUNC5 = 301``), which a mission's MAV_CMD_DO_SET_ACTUATOR
-#: (actuator 1) drives (:mod:`droneulator.workflows.spraying.px4_mission`)
+#: "Peripheral via Actuator Set 1" (``PWM_MAIN_FUNC5 = 301``: SITL's pwm_out_sim, whose outputs
+#: simulator_mavlink sends, takes PWM_MAIN_FUNCn; HIL_ACT_FUNCn are HITL's), which a mission's
+#: MAV_CMD_DO_SET_ACTUATOR (actuator 1) drives (:mod:`droneulator.workflows.spraying.px4_mission`)
 SPRAY_OUTPUT = 4
 #: the output switches the spray on above this and off below its negative (a dead band for an output
 #: that is unassigned, 0, or not sent, NaN: then the spray stays as the API set it)

@@ -42,10 +42,11 @@ from __future__ import annotations
 import errno
 import logging
 import math
+import queue
 import socket
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -272,6 +273,8 @@ class OffboardLink:
         self.engaged = threading.Event()
         self.error: str | None = None
         self.setpoints_sent = 0
+        #: (message kinds, queue) of :meth:`tap`: PX4's messages of those kinds are put on the queue
+        self._taps: list[tuple[frozenset[str], queue.Queue[Any]]] = []
         self._threads = [
             threading.Thread(target=self._rx_loop, name="offboard_rx", daemon=True),
             threading.Thread(target=self._tx_loop, name="offboard_tx", daemon=True),
@@ -357,6 +360,29 @@ class OffboardLink:
             self._lock.notify_all()
         self._want.set()
 
+    def tap(self, kinds: Collection[str]) -> queue.Queue[Any]:
+        """A queue that gets every message of ``kinds`` PX4 (the system followed) sends from now on: for a
+        protocol beside offboard control, such as the mission upload (:class:`MavlinkPort`)."""
+        q: queue.Queue[Any] = queue.Queue()
+        with self._lock:
+            self._taps.append((frozenset(kinds), q))
+        return q
+
+    def send(self, msg: Any) -> None:
+        """Send one MAVLink message to PX4 (packed with this link's identity; dropped before PX4's first
+        HEARTBEAT)."""
+        self._send(msg)
+
+    def command(self, command: int, name: str, *params: float) -> int | None:
+        """COMMAND_LONG ``command`` (``name`` for the logs) until PX4 acknowledges it: its MAV_RESULT, or
+        None after ``retries`` tries without an answer."""
+        return self._command(command, name, *params)
+
+    @property
+    def encoder(self) -> mavlink.MAVLink:
+        """This link's MAVLink codec (its source system and component), to build messages for :meth:`send`."""
+        return self._mav
+
     def local_ned(self, p_enu: np.ndarray) -> np.ndarray:
         """An ENU world point in PX4's local NED frame (needs the origin)."""
         if self.origin_enu is None:
@@ -407,6 +433,10 @@ class OffboardLink:
 
     def _handle(self, msg: Any, addr: tuple[str, int]) -> None:
         kind = msg.get_type()
+        if self._taps and self.sysid is not None and msg.get_srcSystem() == self.sysid:
+            for kinds, q in self._taps:
+                if kind in kinds:
+                    q.put(msg)
         if kind == "HEARTBEAT" and msg.autopilot == mavlink.MAV_AUTOPILOT_PX4:
             src = msg.get_srcSystem()
             if src != self.cfg.px4_sysid:
@@ -487,13 +517,19 @@ class OffboardLink:
 
     # ------------------------------------------------------------------ send
     def _send(self, msg: Any) -> None:
+        with self._send_lock:
+            data = msg.pack(self._mav)
+        self.send_bytes(data)
+
+    def send_bytes(self, data: bytes) -> None:
+        """Send an already packed MAVLink message to PX4 (dropped before PX4's first HEARTBEAT)."""
         with self._lock:
             peer = self._peer
         if peer is None:
             return
         try:
             with self._send_lock:
-                self._sock.sendto(msg.pack(self._mav), peer)
+                self._sock.sendto(data, peer)
         except OSError as exc:
             if not self._stop.is_set():
                 log.error("send to PX4 at %s:%d failed: %s", *peer, exc)
@@ -764,3 +800,35 @@ class OffboardLink:
                         self._streaming = False
                     log.info("setpoints are back, but PX4 was sent to land: not taking control again")
                     return
+
+
+class MavlinkPort:
+    """What a pymavlink connection offers a protocol that sends and waits for answers (``mav.send``,
+    ``recv_match``), over an :class:`OffboardLink`'s socket: so the mission upload
+    (:func:`droneulator.workflows.spraying.px4_mission.upload_mission`) runs beside the link without a
+    second MAVLink client on PX4's port."""
+
+    def __init__(self, link: OffboardLink, kinds: Collection[str]) -> None:
+        self._link = link
+        self._queue = link.tap(kinds)
+        enc = link.encoder
+        self.mav = mavlink.MAVLink(self, enc.srcSystem, enc.srcComponent)
+
+    def write(self, data: bytes) -> None:
+        """``mav.send``'s output: the packed message, sent to PX4 by the link."""
+        self._link.send_bytes(data)
+
+    def recv_match(self, type: Collection[str] | str | None = None, blocking: bool = False,
+                   timeout: float | None = None) -> Any:  # fmt: skip
+        """The next tapped message of ``type`` (None: any), waiting up to ``timeout`` s when ``blocking``;
+        None when none came."""
+        kinds = {type} if isinstance(type, str) else (None if type is None else set(type))
+        end = time.monotonic() + (timeout if timeout is not None else 1e9)
+        while True:
+            left = end - time.monotonic()
+            try:
+                msg = self._queue.get(timeout=left) if blocking and left > 0 else self._queue.get_nowait()
+            except queue.Empty:
+                return None
+            if kinds is None or msg.get_type() in kinds:
+                return msg

@@ -78,3 +78,19 @@ def coverage_plan(
             legs.append(Leg(legs[-1].end, start, speed, False))
         legs.append(Leg(start, end, speed, True))
     return CoveragePlan(legs, target, z)
+
+
+def first_lanes(plan: CoveragePlan, n: int) -> CoveragePlan:
+    """``plan`` cut to its first ``n`` spraying legs (rows or swaths) and the turns between them, its target
+    area to those lanes (their spacing's half beyond the outer ones): a short flight over part of a field."""
+    if n < 1:
+        raise ValueError(f"coverage plan: the number of lanes must be >= 1, got {n}")
+    spraying = [k for k, leg in enumerate(plan.legs) if leg.spray]
+    if n >= len(spraying):
+        return plan
+    legs = plan.legs[: spraying[n - 1] + 1]
+    ys = sorted(float(leg.start[1]) for leg in legs if leg.spray)
+    all_ys = sorted(float(leg.start[1]) for leg in plan.legs if leg.spray)
+    x0, x1, y0, y1 = plan.target
+    half = (all_ys[1] - all_ys[0]) / 2.0
+    return CoveragePlan(legs, (x0, x1, max(y0, ys[0] - half), min(y1, ys[-1] + half)), plan.altitude)

@@ -12,7 +12,7 @@ Why DO_SET_ACTUATOR and not DO_SET_SERVO: since v1.13 PX4 maps DO_SET_ACTUATOR's
 outputs assigned the functions "Peripheral via Actuator Set 1-6" (``PWM_MAIN_FUNCn`` and the like), in
 missions and as commands; its DO_SET_SERVO mission item is reported ignored (PX4-Autopilot issue 20554,
 open). The spray follows that output: with PX4's fifth simulator output set to "Peripheral via Actuator
-Set 1" (``HIL_ACT_FUNC5 = 301``), the PX4 link reads it from the HIL_ACTUATOR_CONTROLS PX4 already sends
+Set 1" (``PWM_MAIN_FUNC5 = 301``), the PX4 link reads it from the HIL_ACTUATOR_CONTROLS PX4 already sends
 and switches the vehicle's spray system on above +0.5 and off below -0.5
 (:func:`droneulator.px4.link.spray_switch`).
 
@@ -38,6 +38,9 @@ from droneulator.workflows.spraying.coverage import CoveragePlan
 
 #: the DO_SET_ACTUATOR actuator (1-6) the spray follows: PX4's "Peripheral via Actuator Set 1"
 SPRAY_ACTUATOR = 1
+#: a waypoint's acceptance radius (m): PX4's default for a multicopter (NAV_ACC_RAD) is 10 m, which would
+#: turn onto the next row 10 m before a row's end; a multicopter takes an item's own radius instead
+ACCEPTANCE_RADIUS_M = 1.0
 #: how long to wait for the vehicle's next request or ack (s), and how often to send the count again
 TIMEOUT_S, RETRIES = 1.5, 3
 
@@ -78,7 +81,7 @@ def mission_items(plan: CoveragePlan, site: SiteConfig) -> list[MissionItem]:
 
     def at(p: Any, command: int = mavlink.MAV_CMD_NAV_WAYPOINT) -> MissionItem:
         lat, lon, alt = enu_to_geodetic(p, site.latitude_deg, site.longitude_deg, site.altitude_m)
-        params = (0.0, 0.0, 0.0, math.nan)  # no hold, PX4's acceptance radius, no pass-by, keep the yaw
+        params = (0.0, ACCEPTANCE_RADIUS_M, 0.0, math.nan)  # no hold, a row's end, no pass-by, keep the yaw
         return MissionItem(command, mavlink.MAV_FRAME_GLOBAL, params, lat, lon, alt)
 
     items = [at(plan.legs[0].start, mavlink.MAV_CMD_NAV_TAKEOFF), at(plan.legs[0].start)]
