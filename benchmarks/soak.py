@@ -160,19 +160,27 @@ def gaps(stamps: list[int]) -> dict[str, Any]:
 
 
 def bag_frames(path: Path) -> dict[str, dict[str, Any]]:
-    """The same stamp check on the recorder's bag (log time = the sample's stamp)."""
-    from mcap.reader import make_reader
+    """The same stamp check on the recorder's bag (log time = the sample's stamp), read from the bag's
+    message indexes (each chunk's log times per channel) without decompressing a chunk: an hour's bag is
+    gigabytes of images, which reading message by message held in memory until the machine ran out."""
+    from mcap.records import Channel, MessageIndex
+    from mcap.stream_reader import StreamReader
 
     stamps: dict[str, list[int]] = defaultdict(list)
     files = sorted(path.glob("*.mcap")) if path.is_dir() else [path]
     for file in files:
+        times: dict[int, list[int]] = defaultdict(list)
+        topics: dict[int, str] = {}
         with open(file, "rb") as f:
-            reader = make_reader(f)
-            channels = {}
-            for _schema, channel, message in reader.iter_messages(log_time_order=False):
-                topic = channels.setdefault(channel.id, channel.topic)
-                if topic.endswith(("depth/image_raw", "color/image_raw/compressed")):
-                    stamps[topic].append(message.log_time)
+            for record in StreamReader(f, emit_chunks=True).records:
+                if isinstance(record, MessageIndex):
+                    times[record.channel_id].extend(t for t, _ in record.records)
+                elif isinstance(record, Channel):  # the summary repeats every channel
+                    topics[record.id] = record.topic
+        for channel, ts in times.items():
+            topic = topics.get(channel, "")
+            if topic.endswith(("depth/image_raw", "color/image_raw/compressed")):
+                stamps[topic].extend(ts)
     return {t: gaps(sorted(s)) for t, s in sorted(stamps.items())}
 
 
@@ -285,7 +293,10 @@ def rss_growth(samples: list[tuple[float, str, int, int]], warm_s: float) -> dic
 
 
 #: what an unhandled error leaves in a run's log (its format carries no level: a traceback, an exception)
-ERROR_MARKS = ("Traceback", "Error:", "Exception", " failed", "ERROR", "CRITICAL", "Fatal", "panicked")
+#: what marks a line as an error; a child the supervisor saw exit ("exited with code N") is one unless it
+#: is one of the deliberate SIGKILLs (-9)
+ERROR_MARKS = ("Traceback", "Error:", "Exception", " failed", "ERROR", "CRITICAL", "Fatal", "panicked",
+               "exited with code")  # fmt: skip
 
 
 def scan_log(lines: list[str], expected: tuple[str, ...] = ("exited with code -9",)) -> dict[str, Any]:
