@@ -17,7 +17,8 @@ from rosbags.typesys import Stores, get_typestore
 from droneulator.api import ApiError, ApiServer, DroneulatorClient, handle_request
 from droneulator.commands import CommandPath
 from droneulator.config import load_config
-from droneulator.ros.topics import DEPOSIT_LOG_RANGE, SPRAY_FIELDS, spray_deposit_topic
+from droneulator.ros.topics import SPRAY_FIELDS, spray_deposit_topic
+from droneulator.spray.deposit import DEPOSIT_LOG_RANGE
 from droneulator.world import World
 
 TS = get_typestore(Stores.ROS2_JAZZY)

@@ -244,7 +244,7 @@ class StatePublisher:
 
     def publish_deposit(self, t_ns: int, deposit_ul_cm2: np.ndarray, cell: float, origin_xy: Any) -> None:
         """The ground deposit (uL/cm^2 per cell, ``[x, y]``) as an occupancy grid in ``map``: 0 where
-        nothing landed, 1..100 over log10 of :data:`~droneulator.ros.topics.DEPOSIT_LOG_RANGE`
+        nothing landed, 1..100 over log10 of :data:`~droneulator.spray.deposit.DEPOSIT_LOG_RANGE`
         (:func:`~droneulator.spray.deposit.deposit_levels`)."""
         if self._deposit is None:
             return

@@ -136,8 +136,6 @@ def topic_names(ns: str, cam: str) -> dict[str, str]:
 
 #: the spray state's fields, in order, as its layout labels them
 SPRAY_FIELDS = ("rate", "level_l", "tank_l", "flow_l_min", "sprayed_l")
-#: the deposit grid: cell values 1..100 span log10 of the deposit from 1e-4 to 1e1 uL/cm^2 (0: none)
-DEPOSIT_LOG_RANGE = (-4.0, 1.0)
 
 
 def spray_state_topic(ns: str) -> str:

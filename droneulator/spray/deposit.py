@@ -1,7 +1,7 @@
 """The ground deposit as levels and as a small picture: what the ROS grid and the ``spray_deposit`` op carry.
 
 Both use one log scale (:func:`deposit_levels`): 0 where nothing landed, 1..100 over log10 of
-:data:`~droneulator.ros.topics.DEPOSIT_LOG_RANGE` (1e-4 to 10 uL/cm^2). The op sends the levels as an
+:data:`DEPOSIT_LOG_RANGE` (1e-4 to 10 uL/cm^2). The op sends the levels as an
 8-bit greyscale PNG (one pixel a cell, its value the level), base64 in the JSON reply, with the grid's
 origin, cell and size, so a browser draws it in the world frame with a colour map of its own. A grid of
 a few hundred cells a side compresses to a few kB, mostly zeros.
@@ -16,7 +16,10 @@ from typing import Any
 import numpy as np
 
 from droneulator.imaging import encode_png
-from droneulator.ros.topics import DEPOSIT_LOG_RANGE
+
+#: the deposit grid's scale (the ROS grid's and the UI's): cell values 1..100 span log10 of the deposit
+#: from 1e-4 to 1e1 uL/cm^2 (0: none)
+DEPOSIT_LOG_RANGE = (-4.0, 1.0)
 
 
 def deposit_levels(deposit_ul_cm2: np.ndarray) -> np.ndarray:
