@@ -36,6 +36,7 @@ import contextlib
 import json
 import os
 import random
+import resource
 import signal
 import socket
 import statistics
@@ -341,7 +342,20 @@ def main() -> None:
     ap.add_argument("--sample", type=float, default=None, help="RSS sample period, s (default minutes/6)")
     ap.add_argument("--keep", action="store_true", help="keep the run's log and bag (default: deleted)")
     ap.add_argument("--json", default=None, help="output path (default benchmarks/results/soak.json)")
+    ap.add_argument(
+        "--max-bag-size",
+        default="1G",
+        help="the recorder's bag splits into files of this size (default 1G; 0: one file, whose chunk "
+        "index the writer holds in memory until the end)",
+    )
+    ap.add_argument(
+        "--core-dumps",
+        action="store_true",
+        help="let a crashing child write a core file (core_pattern decides where) for gdb",
+    )
     args = ap.parse_args()
+    if args.core_dumps:
+        resource.setrlimit(resource.RLIMIT_CORE, (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
     minutes = 3.0 if args.quick else args.minutes
     duration = 60.0 * minutes
     warm = min(300.0, 0.1 * duration)
@@ -359,7 +373,7 @@ def main() -> None:
         VehicleSpec(name="uav1"),
     ]
     work = Path(tempfile.mkdtemp(prefix="droneulator-soak-"))
-    run_log, rec_log, bag = work / "run.log", work / "record.log", work / "soak.mcap"
+    run_log, rec_log, bag = work / "run.log", work / "record.log", work / "soak"
     ui_port = free_port()
     log_line(f"starting the run (log {run_log}); {minutes:g} min soak")
     run = launch_run(cfg, ["--ui-port", str(ui_port)], log=run_log, start_timeout=300)
@@ -367,7 +381,10 @@ def main() -> None:
     stats = Stats()
     rec_out = open(rec_log, "w")  # noqa: SIM115 (closed at the end)
     rec = subprocess.Popen(
-        [sys.executable, "-m", "droneulator.cli", "record", "-o", str(bag), "--zenoh", run.zenoh_endpoint],
+        [
+            *(sys.executable, "-m", "droneulator.cli", "record", "-o", str(bag)),
+            *("--zenoh", run.zenoh_endpoint, "--max-bag-size", args.max_bag_size),
+        ],
         stdout=rec_out,
         stderr=subprocess.STDOUT,
         env={**os.environ, "PYTHONUNBUFFERED": "1"},
@@ -475,6 +492,7 @@ def main() -> None:
                 "recorder_exit_code": rec_code,
                 "frames_subscriber": stream,
                 "frames_bag": recorded,
+                "bag_files": len(list(bag.glob("*.mcap"))) if bag.is_dir() else int(bag.exists()),
                 "lost_frames_subscriber": sum(v["lost_frames"] for v in stream.values()),
                 "irregular_steps_subscriber": sum(v["irregular_steps"] for v in stream.values()),
                 "lost_frames_bag": sum(v["lost_frames"] for v in recorded.values()),

@@ -93,6 +93,22 @@ def test_hidden_child_command_runs_a_module_or_code(tmp_path):
     assert "run" in help_text and "_child" not in help_text
 
 
+def test_a_server_process_that_crashes_in_native_code_leaves_its_python_stack():
+    """A segfault in EGL, Zenoh or a kernel must say where: the servers enable faulthandler."""
+    code = (
+        "from droneulator.runtime.spawn import start_server_process\n"
+        "import ctypes\n"
+        "def render_frame():\n"
+        "    ctypes.string_at(0)\n"
+        "start_server_process()\n"
+        "render_frame()\n"
+    )
+    out = subprocess.run(spawn.code_command(code), capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert out.returncode == -signal.SIGSEGV
+    assert "Fatal Python error: Segmentation fault" in out.stderr
+    assert "in render_frame" in out.stderr, out.stderr
+
+
 def test_frozen_numba_cache_falls_back_when_unusable(monkeypatch, tmp_path, capsys):
     blocker = tmp_path / "not-a-folder"
     blocker.write_text("")

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 import zenoh
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
@@ -136,6 +137,57 @@ def test_bag_reads_back_with_mcap_ros2_and_rosbags(tmp_path: Path, layout: str) 
     assert stamps == [t for t, _ in written[f"/{NS}/odom"]]
 
 
+@pytest.mark.parametrize("split", ["size", "duration"])
+def test_a_bag_that_splits_reads_back_whole_with_rosbags_and_each_file_alone(
+    tmp_path: Path, split: str
+) -> None:
+    path = tmp_path / "long"
+    limits = {"max_bytes": 64 * 1024} if split == "size" else {"max_duration_s": 0.05}
+    bag = BagWriter(path, "none", chunk_size=16 * 1024, **limits)
+    written: list[tuple[str, int, bytes]] = []
+    big = np.arange(64 * 64, dtype=np.float32).reshape(64, 64)  # a 16 kB depth image per step
+    for i in range(30):
+        t = 1_000_000_000 + i * STATE_PERIOD
+        msgs = {
+            **sample_messages(t),
+            f"/{NS}/down/depth/image_raw": (TYPES["depth"], M.image(t, "down", big)),
+        }
+        for topic, (typename, msg) in msgs.items():
+            if topic == "/tf_static" and i:
+                continue
+            raw = bytes(M.serialize(msg))
+            bag.write(bag.channel(topic, typename), t, raw, i + 1)
+            written.append((topic, t, raw))
+    bag.close()
+
+    files = sorted(path.glob("*.mcap"), key=lambda f: int(f.stem.rsplit("_", 1)[1]))
+    assert (
+        [f.name for f in files]
+        == [f"long_{k}.mcap" for k in range(len(files))]
+        == [f.name for f in bag.files]
+    )
+    assert len(files) >= 4
+    per_file = []
+    for f in files:  # each file stands alone: its own schemas, channels, summary and rosbag2 record
+        summary, got = read_mcap(f)
+        assert {c.topic for c in summary.channels.values()} == {t for t, _, _ in written}
+        spans = [t for items in got.values() for t, _, _ in items]
+        if split == "size":  # the limit, passed by at most a chunk and a message
+            assert sum(len(raw) for items in got.values() for _, raw, _ in items) < (64 + 16 + 17) * 1024
+            assert f == files[-1] or f.stat().st_size >= 64 * 1024
+        else:
+            assert max(spans) - min(spans) <= 50_000_000
+        per_file.append(sum(len(v) for v in got.values()))
+    assert sum(per_file) == len(written)
+    with Reader(path) as rb:  # metadata.yaml lists every file; rosbags reads them as one bag
+        assert rb.message_count == len(written)
+        got_all = sorted((c.topic, t, bytes(raw)) for c, t, raw in rb.messages())
+    assert got_all == sorted(written)
+    info = yaml.safe_load((path / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert info["relative_file_paths"] == [f.name for f in files]
+    assert [f["message_count"] for f in info["files"]] == per_file
+
+
 def test_existing_output_is_refused(tmp_path: Path) -> None:
     (tmp_path / "a.mcap").write_bytes(b"keep me")
     with pytest.raises(ValueError, match="already exists"):
@@ -144,7 +196,27 @@ def test_existing_output_is_refused(tmp_path: Path) -> None:
         check_output(tmp_path / "missing" / "b.mcap")
     with pytest.raises(ValueError, match="compression"):
         BagWriter(tmp_path / "c.mcap", "gzip")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="must be a bag directory"):
+        BagWriter(tmp_path / "c.mcap", max_bytes=1 << 20)
+    with pytest.raises(ValueError, match=">= 0"):
+        BagWriter(tmp_path / "c", max_duration_s=-1.0)
+    assert not (tmp_path / "c.mcap").exists() and not (tmp_path / "c").exists()
     assert (tmp_path / "a.mcap").read_bytes() == b"keep me"
+    for argv, said in (
+        (["record", "-o", str(tmp_path / "d.mcap"), "--max-bag-size", "1G"], "must be a bag directory"),
+        (["record", "-o", str(tmp_path / "d"), "--max-bag-size", "lots"], "not a size"),
+        (["run", "--max-bag-duration", "60"], "add --record BAG"),
+    ):
+        out = subprocess.run(
+            [sys.executable, "-m", "droneulator.cli", *argv],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            env={**os.environ, "PYTHONPATH": str(ROOT)},
+            timeout=60,
+        )
+        assert out.returncode == 2 and said in out.stderr, (argv, out.stderr)
+    assert not (tmp_path / "d").exists() and not (tmp_path / "d.mcap").exists()
     out = subprocess.run(
         [sys.executable, "-m", "droneulator.cli", "record", "-o", str(tmp_path / "a.mcap")],
         capture_output=True,
@@ -279,9 +351,10 @@ def test_cli_record_stops_on_sigint_with_a_finalised_file(tmp_path: Path) -> Non
 
 
 # --------------------------------------------------------------------------- replay
-def test_replay_reproduces_stamps_in_order_at_the_recorded_rate(tmp_path: Path) -> None:
-    path = tmp_path / "r.mcap"
-    bag = BagWriter(path)
+@pytest.mark.parametrize("layout", ["file", "split"])
+def test_replay_reproduces_stamps_in_order_at_the_recorded_rate(tmp_path: Path, layout: str) -> None:
+    path = tmp_path / ("r.mcap" if layout == "file" else "r")
+    bag = BagWriter(path, max_duration_s=0.0 if layout == "file" else 0.25)
     expected: dict[str, list[int]] = defaultdict(list)
     for i in range(100):  # 1 s of sim time
         t = 5_000_000_000 + i * STATE_PERIOD
@@ -306,6 +379,7 @@ def test_replay_reproduces_stamps_in_order_at_the_recorded_rate(tmp_path: Path) 
         t0 = time.monotonic()
         counts = replay(path, ReplayConfig(listen=(ep,), rate=2.0, wait_subscriber_s=10.0))
         wall = time.monotonic() - t0
+        assert len(bag.files) == (1 if layout == "file" else 4)
         deadline = time.monotonic() + 5
         while len(got[f"/{NS}/odom"]) < 100 and time.monotonic() < deadline:
             time.sleep(0.05)
@@ -369,13 +443,14 @@ TOPICS = {
 
 @pytest.mark.slow
 def test_run_record_keeps_every_message_of_a_10s_lockstep_run(tmp_path: Path) -> None:
-    """``run --record``: 10 s of lockstep; per topic the bag holds exactly what an independent
-    subscriber received in its window (same bytes), stamps have no gap from the run's first /clock on,
-    and SIGINT leaves a finalised file."""
+    """``run --record`` into a bag directory split every 3 s of sim time: 10 s of lockstep; per topic
+    the bag's files, in order, hold exactly what an independent subscriber received in its window (same
+    bytes, nothing lost at a split), stamps have no gap from the run's first /clock on, and SIGINT leaves
+    finalised files."""
     cfg = load_config(scene="default")
     cfg.render.cameras = [CameraConfig(name="front", width=320, height=240)]
     cfg.render.shadow_map_size = 1024
-    out = tmp_path / "run.mcap"
+    out = tmp_path / "run"
     seen: dict[str, list[bytes]] = defaultdict(list)
     lock = threading.Lock()
 
@@ -386,7 +461,7 @@ def test_run_record_keeps_every_message_of_a_10s_lockstep_run(tmp_path: Path) ->
 
         return cb
 
-    run = launch_run(cfg, ["--record", str(out)])
+    run = launch_run(cfg, ["--record", str(out), "--max-bag-duration", "3"])
     try:
         conf = zenoh.Config()
         conf.insert_json5("mode", '"peer"')
@@ -410,8 +485,12 @@ def test_run_record_keeps_every_message_of_a_10s_lockstep_run(tmp_path: Path) ->
         run.stop()
     log = "\n".join(run.log.lines())
     assert "recorded" in log and str(out) in log
-
-    _summary, got = read_mcap(out)
+    files = yaml.safe_load((out / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert len(files["relative_file_paths"]) >= 4, log
+    got: dict[str, list[tuple[int, bytes, object]]] = defaultdict(list)
+    for name in files["relative_file_paths"]:
+        for topic, items in read_mcap(out / name)[1].items():
+            got[topic] += items
     for key in TOPICS:
         topic = "/" + key
         raws = [raw for _t, raw, _m in got[topic]]

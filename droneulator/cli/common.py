@@ -87,6 +87,38 @@ def add_compression_arg(p: argparse.ArgumentParser) -> None:
     )
 
 
+def bag_size(text: str) -> int:
+    """``--max-bag-size``'s value: bytes, or with a K/M/G suffix (KiB, MiB, GiB)."""
+    units = {"K": 1024, "M": 1024**2, "G": 1024**3}
+    t = text.strip().upper().removesuffix("B").removesuffix("I")
+    try:
+        n = float(t[:-1]) * units[t[-1]] if t and t[-1] in units else float(t)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a size: {text!r} (bytes, or e.g. 500M, 2G)") from None
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"a size must be >= 0, got {text!r}")
+    return int(n)
+
+
+def add_bag_split_args(p: argparse.ArgumentParser, when: str = "") -> None:
+    """``--max-bag-size`` and ``--max-bag-duration``, as ``ros2 bag record`` names them."""
+    p.add_argument(
+        "--max-bag-size",
+        type=bag_size,
+        default=0,
+        metavar="SIZE",
+        help=f"{when}split the bag directory into files of about SIZE (bytes, or 500M, 2G; default 0: one "
+        "file). An hour of images should split: the writer holds each file's chunk index until it closes",
+    )
+    p.add_argument(
+        "--max-bag-duration",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help=f"{when}split the bag directory every SECONDS of simulated time (default 0: never)",
+    )
+
+
 def add_key_mode_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--key-mode", choices=("ros2dds", "rmw_zenoh"), default="ros2dds", help="the run's bridge.key_mode"
@@ -97,12 +129,13 @@ def add_key_mode_args(p: argparse.ArgumentParser) -> None:
     )
 
 
-def check_bag_output(path: str, option: str) -> None:
-    """A bag that cannot be written at ``path`` is a usage error naming ``option``."""
-    from droneulator.recording.bag import check_output
+def check_bag_output(path: str, option: str, max_bytes: int = 0, max_duration_s: float = 0.0) -> None:
+    """A bag that cannot be written at ``path`` (or split as asked) is a usage error naming ``option``."""
+    from droneulator.recording.bag import check_output, check_split
 
     try:
         check_output(path)
+        check_split(path, max_bytes, max_duration_s)
     except ValueError as exc:
         raise StartupError(f"{option}: {exc}", preflight.USAGE) from None
 
@@ -113,9 +146,10 @@ def report_recording(stats: object) -> None:
 
     assert isinstance(stats, RecordingStats)
     total = sum(stats.written.values())
+    files = f" in {len(stats.files)} files" if len(stats.files) > 1 else ""
     print(
         f"recorded {total} messages on {len(stats.written)} topics to {stats.path} "
-        f"({stats.bytes / 1e6:.1f} MB)",
+        f"({stats.bytes / 1e6:.1f} MB{files})",
         flush=True,
     )
     for topic, n in sorted(stats.written.items()):

@@ -7,6 +7,7 @@ import threading
 
 from droneulator.cli.common import (
     DEFAULT_ZENOH,
+    add_bag_split_args,
     add_compression_arg,
     add_key_mode_args,
     check_bag_output,
@@ -35,6 +36,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--namespace", default="droneulator", help="the run's ROS namespace (bridge.namespace)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
     add_compression_arg(p)
+    add_bag_split_args(p)
     p.set_defaults(func=cmd_record)
 
 
@@ -51,10 +53,12 @@ def cmd_record(args: argparse.Namespace) -> int:
             domain_id=args.domain_id,
             ros2dds_namespace=args.ros2dds_namespace,
             compression=args.compression,
+            max_bag_bytes=args.max_bag_size,
+            max_bag_duration_s=args.max_bag_duration,
         )
     except ValueError as exc:
         raise StartupError(str(exc), preflight.USAGE) from None
-    check_bag_output(args.out, "-o")
+    check_bag_output(args.out, "-o", args.max_bag_size, args.max_bag_duration)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

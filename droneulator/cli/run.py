@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from droneulator.cli.common import (
+    add_bag_split_args,
     add_compression_arg,
     add_config_args,
     check_bag_output,
@@ -81,6 +82,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "like `ros2 bag record -o`); see docs/recording.md",
     )
     add_compression_arg(p)
+    add_bag_split_args(p, "with --record: ")
     p.add_argument(
         "--ui", action="store_true", help="also serve the browser UI (http://127.0.0.1:8080, see docs/ui.md)"
     )
@@ -142,7 +144,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.demo:
         preflight.check_output_dir(args.out)
     if args.record:
-        check_bag_output(args.record, "--record")
+        check_bag_output(args.record, "--record", args.max_bag_size, args.max_bag_duration)
+    elif args.max_bag_size or args.max_bag_duration:
+        raise StartupError(
+            "--max-bag-size and --max-bag-duration split a recording: add --record BAG", preflight.USAGE
+        )
 
     from droneulator.runtime.supervisor import Supervisor
 
@@ -152,7 +158,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.record:
         from droneulator.recording.recorder import Recorder, run_recorder_config
 
-        rec_cfg = run_recorder_config(cfg.bridge, sup.zenoh_endpoint, args.compression)
+        rec_cfg = run_recorder_config(
+            cfg.bridge, sup.zenoh_endpoint, args.compression, args.max_bag_size, args.max_bag_duration
+        )
         recorder = Recorder(args.record, rec_cfg)
     try:
         # the recorder subscribes once the dynamics server's Zenoh session is up and before the render

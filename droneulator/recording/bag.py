@@ -18,6 +18,12 @@ The file a :class:`BagWriter` produces has:
 Output: a path ending in ``.mcap`` is written as that single file (``ros2 bag play out.mcap``, Foxglove
 and Lichtblick open it); any other path is a bag directory like ``ros2 bag record -o`` makes,
 ``<dir>/<name>_0.mcap`` plus ``<dir>/metadata.yaml``.
+
+Splitting, as ``ros2 bag record --max-bag-size/--max-bag-duration`` does it (bag directories only): once
+the current file holds ``max_bytes`` or spans ``max_duration_s`` of the bag's clock (the log times,
+simulation time here), it is finalised and ``<name>_1.mcap`` (then ``_2`` ...) starts with every schema
+and channel registered again; ``metadata.yaml`` lists the files in order. A long recording must split:
+an MCAP writer keeps every chunk's index in memory until its file is finished (for the summary).
 """
 
 from __future__ import annotations
@@ -45,7 +51,15 @@ from ruamel.yaml import YAML
 from droneulator.ros import messages
 from droneulator.ros.zenoh_node import QosProfile, default_qos
 
-__all__ = ["BagWriter", "Compression", "check_output", "message_definition", "qos_yaml", "stamp_reader"]
+__all__ = [
+    "BagWriter",
+    "Compression",
+    "check_output",
+    "check_split",
+    "message_definition",
+    "qos_yaml",
+    "stamp_reader",
+]
 
 Compression = Literal["zstd", "lz4", "none"]
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
@@ -138,6 +152,19 @@ def check_output(path: str | Path) -> None:
         raise ValueError(f"folder {parent} for {path} is not writable")
 
 
+def check_split(path: str | Path, max_bytes: int, max_duration_s: float) -> None:
+    """Raise ``ValueError`` unless the split limits are valid for ``path`` (``ros2 bag`` splits only bag
+    directories)."""
+    if max_bytes < 0 or not max_duration_s >= 0:
+        raise ValueError(
+            f"bag split limits must be >= 0 (0: no split), got {max_bytes} B, {max_duration_s} s"
+        )
+    if (max_bytes or max_duration_s) and Path(path).suffix == ".mcap":
+        raise ValueError(
+            f"{path}: a bag that splits must be a bag directory (a name without .mcap), as with ros2 bag"
+        )
+
+
 @dataclass
 class _Channel:
     id: int
@@ -152,16 +179,28 @@ class BagWriter:
     """An MCAP ROS 2 bag being written; not thread-safe (one writer thread owns it).
 
     ``path`` ending in ``.mcap``: that file; otherwise a new bag directory (see the module docstring).
-    ``chunk_size`` is the uncompressed chunk size in bytes.
+    ``chunk_size`` is the uncompressed chunk size in bytes. ``max_bytes`` / ``max_duration_s`` (0: never)
+    split a bag directory into files of about that size (a file may pass it by one chunk, checked after
+    each message) or span of log time.
     """
 
     def __init__(
-        self, path: str | Path, compression: Compression = "zstd", chunk_size: int = 4 * 1024 * 1024
+        self,
+        path: str | Path,
+        compression: Compression = "zstd",
+        chunk_size: int = 4 * 1024 * 1024,
+        max_bytes: int = 0,
+        max_duration_s: float = 0.0,
     ) -> None:
         if compression not in _COMPRESSION:
             raise ValueError(f"compression must be one of {sorted(_COMPRESSION)}, got {compression!r}")
+        check_split(path, max_bytes, max_duration_s)
         path = Path(path)
         check_output(path)
+        self._compression = compression
+        self._chunk_size = chunk_size
+        self._max_bytes = int(max_bytes)
+        self._max_duration_ns = round(max_duration_s * 1e9)
         if path.suffix == ".mcap":
             self.directory: Path | None = None
             self.file = path
@@ -169,15 +208,61 @@ class BagWriter:
             path.mkdir()
             self.directory = path
             self.file = path / f"{path.name}_0.mcap"
-        self._stream = open(self.file, "xb")  # noqa: SIM115 (closed in close())
-        self._writer = Writer(self._stream, chunk_size=chunk_size, compression=_COMPRESSION[compression])
-        self._writer.start(profile="ros2", library=f"droneulator {_version()}")
-        self._schemas: dict[str, int] = {}
+        #: the finished files before the current one: (file, first log time, last log time, messages)
+        self._done: list[tuple[Path, int, int, int]] = []
+        self._schemas: dict[str, tuple[int, bytes]] = {}  # type -> (our schema id, definition)
         self._channels: dict[tuple[str, str], _Channel] = {}
         self._by_id: dict[int, _Channel] = {}
         self.start_ns: int | None = None
         self.end_ns = 0
         self.closed = False
+        self._open_file()
+
+    def _open_file(self) -> None:
+        """Start ``self.file`` with every schema and channel known so far (all of them again after a split:
+        each file of a bag directory stands alone, as rosbag2 writes them)."""
+        self._stream = open(self.file, "xb")  # noqa: SIM115 (closed in _finish_file())
+        self._writer = Writer(
+            self._stream, chunk_size=self._chunk_size, compression=_COMPRESSION[self._compression]
+        )
+        self._writer.start(profile="ros2", library=f"droneulator {_version()}")
+        self._file_schema: dict[str, int] = {}
+        self._file_channel: dict[int, int] = {}  # our channel id -> this file's
+        self._file_start_ns: int | None = None
+        self._file_end_ns = 0
+        self._file_count = 0
+        for ch in self._by_id.values():
+            self._register(ch)
+
+    def _register(self, ch: _Channel) -> None:
+        schema_id = self._file_schema.get(ch.typename)
+        if schema_id is None:
+            schema_id = self._writer.register_schema(ch.typename, "ros2msg", self._schemas[ch.typename][1])
+            self._file_schema[ch.typename] = schema_id
+        meta = {"offered_qos_profiles": qos_yaml(ch.qos), "topic_type_hash": ch.type_hash}
+        self._file_channel[ch.id] = self._writer.register_channel(ch.topic, "cdr", schema_id, meta)
+
+    def _finish_file(self) -> None:
+        """Finalise the current file: the ``rosbag2`` metadata record, summary and footer."""
+        self._done.append((self.file, self._file_start_ns or 0, self._file_end_ns, self._file_count))
+        meta = self._metadata()
+        self._writer.add_metadata("rosbag2", {"serialized_metadata": _yaml(meta).strip()})
+        self._writer.finish()
+        self._stream.close()
+
+    def _split_due(self) -> bool:
+        if self._max_bytes and self._stream.tell() >= self._max_bytes:
+            return True
+        return bool(
+            self._max_duration_ns
+            and self._file_start_ns is not None
+            and self._file_end_ns - self._file_start_ns >= self._max_duration_ns
+        )
+
+    @property
+    def files(self) -> list[Path]:
+        """The bag's MCAP files so far, in order (one, unless it split)."""
+        return [f for f, *_ in self._done] + ([] if self.closed else [self.file])
 
     def channel(self, topic: str, typename: str, qos: QosProfile | None = None) -> int:
         """The channel id of ``topic`` with type ``typename``, registered (with its schema) on first use."""
@@ -185,27 +270,32 @@ class BagWriter:
         ch = self._channels.get(key)
         if ch is not None:
             return ch.id
-        schema_id = self._schemas.get(typename)
-        if schema_id is None:
-            text = message_definition(typename)
-            schema_id = self._writer.register_schema(typename, "ros2msg", text.encode())
-            self._schemas[typename] = schema_id
-        qos = qos or default_qos(topic)
-        thash = messages.type_hash(typename)
-        meta = {"offered_qos_profiles": qos_yaml(qos), "topic_type_hash": thash}
-        cid = self._writer.register_channel(topic, "cdr", schema_id, meta)
-        self._channels[key] = self._by_id[cid] = _Channel(cid, topic, typename, thash, qos)
-        return cid
+        if typename not in self._schemas:
+            self._schemas[typename] = (len(self._schemas) + 1, message_definition(typename).encode())
+        ch = _Channel(
+            len(self._by_id) + 1, topic, typename, messages.type_hash(typename), qos or default_qos(topic)
+        )
+        self._register(ch)
+        self._channels[key] = self._by_id[ch.id] = ch
+        return ch.id
 
     def write(self, channel_id: int, log_ns: int, payload: bytes, sequence: int = 0) -> None:
         """Add one CDR sample; ``log_ns`` is its sim time (log and publish time)."""
         ch = self._by_id.get(channel_id)
         if ch is None:
             raise KeyError(f"no channel {channel_id}: register it with channel() first")
-        self._writer.add_message(channel_id, log_ns, payload, log_ns, sequence)
+        self._writer.add_message(self._file_channel[channel_id], log_ns, payload, log_ns, sequence)
         ch.count += 1
         self.start_ns = log_ns if self.start_ns is None else min(self.start_ns, log_ns)
         self.end_ns = max(self.end_ns, log_ns)
+        self._file_start_ns = log_ns if self._file_start_ns is None else min(self._file_start_ns, log_ns)
+        self._file_end_ns = max(self._file_end_ns, log_ns)
+        self._file_count += 1
+        if self._split_due():
+            assert self.directory is not None
+            self._finish_file()
+            self.file = self.directory / f"{self.directory.name}_{len(self._done)}.mcap"
+            self._open_file()
 
     def counts(self) -> dict[str, int]:
         """Messages written per topic."""
@@ -239,14 +329,15 @@ class BagWriter:
             ],
             "compression_format": "",
             "compression_mode": "",
-            "relative_file_paths": [self.file.name],
+            "relative_file_paths": [f.name for f, *_ in self._done],
             "files": [
                 {
-                    "path": self.file.name,
-                    "starting_time": {"nanoseconds_since_epoch": start},
-                    "duration": {"nanoseconds": duration},
-                    "message_count": total,
+                    "path": f.name,
+                    "starting_time": {"nanoseconds_since_epoch": t0},
+                    "duration": {"nanoseconds": max(0, t1 - t0)},
+                    "message_count": n,
                 }
+                for f, t0, t1, n in self._done
             ],
             "custom_data": {"recorded_by": f"droneulator {_version()}", "clock": "simulation time"},
             "ros_distro": "jazzy",
@@ -257,10 +348,8 @@ class BagWriter:
         if self.closed:
             return
         self.closed = True
+        self._finish_file()
         meta = self._metadata()
-        self._writer.add_metadata("rosbag2", {"serialized_metadata": _yaml(meta).strip()})
-        self._writer.finish()
-        self._stream.close()
         if self.directory is not None:
             tmp = self.directory / "metadata.yaml.tmp"
             tmp.write_text(_yaml({"rosbag2_bagfile_information": meta}))

@@ -68,6 +68,10 @@ class RecorderConfig:
     compression: Compression = "zstd"
     #: samples queued for the writer before the Zenoh callback blocks (back-pressure, no loss)
     max_queue_bytes: int = 512 * 1024 * 1024
+    #: split a bag directory into files of this many bytes / seconds of sim time (0: one file), as
+    #: ``ros2 bag record --max-bag-size / --max-bag-duration``; an hour's recording should split
+    max_bag_bytes: int = 0
+    max_bag_duration_s: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "connect", tuple(self.connect))
@@ -76,6 +80,8 @@ class RecorderConfig:
             raise ValueError(f"recorder mode must be 'client' or 'peer', got {self.mode!r}")
         if self.max_queue_bytes < 16 * 1024 * 1024:
             raise ValueError("max_queue_bytes must be at least 16 MiB (one depth image is 1.2 MB)")
+        if self.max_bag_bytes < 0 or not self.max_bag_duration_s >= 0:
+            raise ValueError("max_bag_bytes and max_bag_duration_s must be >= 0 (0: no split)")
 
 
 @dataclass
@@ -86,6 +92,8 @@ class RecordingStats:
     untyped: dict[str, int] = field(default_factory=dict)
     path: Path | None = None
     bytes: int = 0
+    #: the MCAP files written, in order (more than one when the bag split)
+    files: list[Path] = field(default_factory=list)
 
 
 def _rmw_type(dds_name: str) -> str | None:
@@ -216,7 +224,9 @@ class Recorder:
         if self._thread is not None:
             raise RuntimeError("recorder already started")
         cfg = self.cfg
-        self._bag = BagWriter(self.path, cfg.compression)
+        self._bag = BagWriter(
+            self.path, cfg.compression, max_bytes=cfg.max_bag_bytes, max_duration_s=cfg.max_bag_duration_s
+        )
         try:
             self._node = RosZenohNode(
                 ZenohNodeConfig(
@@ -280,7 +290,8 @@ class Recorder:
             log.warning("%d samples on %s not recorded: no publisher announced their type", len(items), key)
         self._bag.close()
         self.stats.written = self._bag.counts()
-        self.stats.bytes = self._bag.file.stat().st_size
+        self.stats.files = self._bag.files
+        self.stats.bytes = sum(f.stat().st_size for f in self.stats.files)
         if self.error is not None:
             raise RuntimeError(f"the recording writer failed: {self.error}") from self.error
         return self.stats
@@ -385,7 +396,11 @@ class Recorder:
 
 
 def run_recorder_config(
-    bridge: Any, hub_endpoint: str | None, compression: Compression = "zstd"
+    bridge: Any,
+    hub_endpoint: str | None,
+    compression: Compression = "zstd",
+    max_bag_bytes: int = 0,
+    max_bag_duration_s: float = 0.0,
 ) -> RecorderConfig:
     """The recorder of a ``droneulator run`` with these ``bridge`` settings (a ``BridgeConfig``): a
     client of the run's private Zenoh endpoint (the one its bridge process uses), or of the user's
@@ -399,4 +414,6 @@ def run_recorder_config(
         ros2dds_namespace=bridge.ros2dds_namespace,
         zenoh_config=(bridge.zenoh_config or None) if external else None,
         compression=compression,
+        max_bag_bytes=max_bag_bytes,
+        max_bag_duration_s=max_bag_duration_s,
     )

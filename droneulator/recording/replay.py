@@ -14,6 +14,7 @@ Types the Jazzy typestore does not know (a bag from elsewhere) are registered fr
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -27,11 +28,12 @@ from mcap.reader import make_reader
 from rosbags.interfaces import QosDurability, QosHistory, QosReliability
 from rosbags.rosbag2.metadata import parse_qos
 from rosbags.typesys import get_types_from_msg
+from ruamel.yaml import YAML
 
 from droneulator.ros import messages
 from droneulator.ros.zenoh_node import KeyMode, QosProfile, RosPublisher, RosZenohNode, ZenohNodeConfig
 
-__all__ = ["ReplayConfig", "bag_file", "replay"]
+__all__ = ["ReplayConfig", "bag_files", "replay"]
 
 log = logging.getLogger("droneulator.replay")
 
@@ -61,19 +63,31 @@ class ReplayConfig:
             raise ValueError("wait_subscriber_s must be >= 0")
 
 
-def bag_file(path: str | Path) -> Path:
-    """The MCAP file of ``path``: the file itself, or the one ``.mcap`` in a bag directory."""
+def bag_files(path: str | Path) -> list[Path]:
+    """The MCAP files of ``path`` in order: the file itself, or a bag directory's files (as its
+    ``metadata.yaml`` lists them, else by their ``_N`` index: a bag that split holds several)."""
     path = Path(path)
     if path.is_dir():
-        files = sorted(path.glob("*.mcap"))
-        if len(files) != 1:
-            raise ValueError(f"bag directory {path} holds {len(files)} .mcap files; expected one")
-        return files[0]
+        meta = path / "metadata.yaml"
+        if meta.exists():
+            info = YAML(typ="safe").load(meta.read_text()).get("rosbag2_bagfile_information", {})
+            names = info.get("relative_file_paths") or []
+            files = [path / n for n in names if n.endswith(".mcap")]
+            missing = [f.name for f in files if not f.exists()]
+            if missing:
+                raise FileNotFoundError(
+                    f"bag directory {path} lacks {', '.join(missing)} (metadata.yaml lists them)"
+                )
+        else:
+            files = sorted(path.glob("*.mcap"), key=lambda f: (len(f.stem), f.stem))
+        if not files:
+            raise ValueError(f"bag directory {path} holds no .mcap file")
+        return files
     if not path.exists():
         raise FileNotFoundError(f"no bag at {path}")
     if path.suffix != ".mcap":
         raise ValueError(f"{path} is not an .mcap file or a bag directory")
-    return path
+    return [path]
 
 
 def _ensure_type(name: str, encoding: str, data: bytes) -> None:
@@ -133,16 +147,18 @@ def replay(
     """
     cfg = cfg or ReplayConfig()
     stop = stop or threading.Event()
-    file = bag_file(path)
     counts: dict[str, int] = {}
-    with open(file, "rb") as f:
-        reader = make_reader(f)
-        summary = reader.get_summary()
-        if summary is None:
-            raise ValueError(f"{file} has no summary (not finalised?): run `mcap recover` on it first")
-        header = reader.get_header()
-        if header.profile != "ros2":
-            raise ValueError(f"{file} has MCAP profile {header.profile!r}, not a ROS 2 bag ('ros2')")
+    with contextlib.ExitStack() as files:
+        readers = []
+        for file in bag_files(path):
+            reader = make_reader(files.enter_context(open(file, "rb")))
+            summary = reader.get_summary()
+            if summary is None:
+                raise ValueError(f"{file} has no summary (not finalised?): run `mcap recover` on it first")
+            header = reader.get_header()
+            if header.profile != "ros2":
+                raise ValueError(f"{file} has MCAP profile {header.profile!r}, not a ROS 2 bag ('ros2')")
+            readers.append((reader, summary))
         node = RosZenohNode(
             ZenohNodeConfig(
                 mode=cfg.mode,  # type: ignore[arg-type]
@@ -156,25 +172,39 @@ def replay(
             )
         )
         try:
-            pubs: dict[int, RosPublisher] = {}
-            for cid, ch in summary.channels.items():
-                if ch.message_encoding != "cdr":
-                    log.warning("skipping %s: message encoding %r is not cdr", ch.topic, ch.message_encoding)
-                    continue
-                schema = summary.schemas[ch.schema_id]
-                _ensure_type(schema.name, schema.encoding, schema.data)
-                pubs[cid] = node.publisher(
-                    ch.topic,
-                    schema.name,
-                    qos=_qos(ch.metadata),
-                    congestion_control=zenoh.CongestionControl.BLOCK,
-                )
-                counts.setdefault(ch.topic, 0)
+            by_topic: dict[tuple[str, str], RosPublisher] = {}
+            per_file: list[dict[int, RosPublisher]] = []
+            for _reader, summary in readers:
+                pubs: dict[int, RosPublisher] = {}
+                for cid, ch in summary.channels.items():
+                    if ch.message_encoding != "cdr":
+                        log.warning(
+                            "skipping %s: message encoding %r is not cdr", ch.topic, ch.message_encoding
+                        )
+                        continue
+                    schema = summary.schemas[ch.schema_id]
+                    key = (ch.topic, schema.name)
+                    if key not in by_topic:
+                        _ensure_type(schema.name, schema.encoding, schema.data)
+                        by_topic[key] = node.publisher(
+                            ch.topic,
+                            schema.name,
+                            qos=_qos(ch.metadata),
+                            congestion_control=zenoh.CongestionControl.BLOCK,
+                        )
+                        counts.setdefault(ch.topic, 0)
+                    pubs[cid] = by_topic[key]
+                per_file.append(pubs)
             if on_ready is not None:
                 on_ready(node)
-            if cfg.wait_subscriber_s and not _wait_matching(list(pubs.values()), cfg.wait_subscriber_s):
+            if cfg.wait_subscriber_s and not _wait_matching(list(by_topic.values()), cfg.wait_subscriber_s):
                 log.warning("no subscriber matched within %.1f s; replaying anyway", cfg.wait_subscriber_s)
-            _publish(_messages(reader, pubs), cfg.rate, stop, counts)
+            items = (
+                m
+                for (reader, _), pubs in zip(readers, per_file, strict=True)
+                for m in _messages(reader, pubs)
+            )
+            _publish(items, cfg.rate, stop, counts)
         finally:
             node.close()
     return counts

@@ -35,6 +35,7 @@ from droneulator.runtime.ipc import (
     hub_connect,
 )
 from droneulator.runtime.latency import LatencyLog
+from droneulator.runtime.spawn import start_server_process
 
 log = logging.getLogger("droneulator.bridge")
 
@@ -99,7 +100,7 @@ class Bridge:
 
 
 def main() -> None:
-    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
+    start_server_process()
     signal.signal(signal.SIGTERM, lambda *_: os._exit(0))
     signal.signal(signal.SIGINT, lambda *_: os._exit(0))
     cfg = from_dict(SimConfig, json.loads(os.environ[ENV_CONFIG]))

@@ -59,6 +59,7 @@ from droneulator.runtime.latency import LatencyLog
 from droneulator.runtime.pacing import Pacer
 from droneulator.runtime.publishing import StatePublishing
 from droneulator.runtime.scene_sync import SceneSync
+from droneulator.runtime.spawn import start_server_process
 from droneulator.vehicles.vehicle import NS, VehicleState
 from droneulator.world import World
 from droneulator.world.world import StepResult
@@ -369,7 +370,7 @@ class DynamicsServer:
 
 
 def main() -> None:
-    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
+    start_server_process()
     cfg = from_dict(SimConfig, json.loads(os.environ[ENV_CONFIG]))
     server = DynamicsServer(
         cfg, os.environ[ENV_ADDRESS], bytes.fromhex(os.environ[ENV_AUTHKEY]), os.environ.get(ENV_ZENOH)

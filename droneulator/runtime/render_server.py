@@ -30,6 +30,7 @@ from droneulator.runtime.ipc import (
     Rendered,
     hub_connect,
 )
+from droneulator.runtime.spawn import start_server_process
 from droneulator.scenes import get_scene
 
 log = logging.getLogger("droneulator.render")
@@ -89,7 +90,7 @@ def serve(cfg: SimConfig) -> None:
 
 
 def main() -> None:
-    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
+    start_server_process()
     signal.signal(signal.SIGTERM, lambda *_: os._exit(0))
     signal.signal(signal.SIGINT, lambda *_: os._exit(0))
     try:

@@ -12,6 +12,8 @@ its command here, so the same code runs in both.
 
 from __future__ import annotations
 
+import faulthandler
+import logging
 import os
 import runpy
 import sys
@@ -51,6 +53,14 @@ def cli_command(args: Sequence[str] = ()) -> list[str]:
     if frozen():
         return [sys.executable, *args]
     return [sys.executable, "-m", "droneulator.cli", *args]
+
+
+def start_server_process() -> None:
+    """What a server process (dynamics, render, bridge) does first: log ``name: message`` lines at INFO
+    and, should native code (EGL, Zenoh, a numba kernel) crash it, write every thread's Python stack to
+    stderr, which the supervisor keeps in the run's log: a bare exit -11 says nothing of where."""
+    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s")
+    faulthandler.enable()
 
 
 def run_child(argv: Sequence[str]) -> int:
