@@ -326,15 +326,17 @@ def test_every_vehicles_topics_decode_with_their_frames_and_stamps(key_mode: str
             field_ned = earth_field_ned(world.config.px4, home)
             states.publish_sensors(shot.states, {n: v.rig.suite.latest for n, v in world.vehicles.items()})
         end = time.monotonic() + 10
-        # per vehicle odom, odom_world, wind, battery, 4 sensor and 7 camera keys; /clock and the tf keys
-        # (shared /tf and /tf_static with prefixed frames, each vehicle's own two in Nav2's convention)
-        keys = 2 * (4 + 4 + 7) + 1 + (2 if fleet_tf == "prefix" else 4)
+        # per vehicle odom, odom_world, wind, battery, faults, 4 sensor and 7 camera keys; /clock and the tf
+        # keys (shared /tf and /tf_static with prefixed frames, each vehicle's own two in Nav2's convention);
+        # a count short of them ends the wait before the last images arrive, which a loaded machine shows
+        keys = 2 * (5 + 4 + 7) + 1 + (2 if fleet_tf == "prefix" else 4)
         while time.monotonic() < end and len(got) < keys:
             time.sleep(0.05)
     finally:
         sub.undeclare()
         session.close()
         node.close()
+    assert len(got) == keys, sorted(got)
     decoded: dict[str, Any] = {}
     for key, payloads in got.items():
         topic, typename = _type_of(key, key_mode)
