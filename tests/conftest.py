@@ -1,4 +1,5 @@
-"""Suite-wide guard: a test that fails before closing its Zenoh session must not hang the whole run.
+"""Suite-wide guards: a test that fails before closing its Zenoh session must not hang the whole run,
+and a test marked ``alone`` has the machine to itself while pytest-xdist's other worker waits.
 
 zenoh-python serves a session on non-daemon Python threads that live until the session is closed,
 so a session left open (say by an assertion that fires before its ``close()``) makes the interpreter
@@ -9,11 +10,16 @@ thread still alive then is named, and the run exits without waiting for it, as a
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import os
 import sys
+import tempfile
 import threading
 import time
 import uuid
+from collections.abc import Iterator
+from pathlib import Path
 
 import pytest
 import zenoh
@@ -41,6 +47,44 @@ def pytest_configure(config: pytest.Config) -> None:
     """Name this test run once (pytest-xdist's workers inherit the name): its bundle build is shared."""
     if not _is_xdist_worker(config):
         os.environ["DRONEULATOR_TEST_RUN"] = uuid.uuid4().hex
+
+
+def _lock_base() -> Path:
+    return Path(tempfile.gettempdir()) / f"droneulator-tests-{os.environ['DRONEULATOR_TEST_RUN']}"
+
+
+@contextlib.contextmanager
+def _machine_share(alone: bool) -> Iterator[None]:
+    """Hold the machine shared (every test) or alone (a test marked ``alone``) across pytest-xdist's
+    workers: a reader-writer lock of two ``flock`` files. A test that wants it alone takes the turnstile
+    first, so the other worker cannot start test after test ahead of it, then waits for that worker's
+    current test to end."""
+    base = _lock_base()
+    with open(f"{base}.turnstile", "a") as turnstile, open(f"{base}.share", "a") as share:
+        fcntl.flock(turnstile, fcntl.LOCK_EX)
+        try:
+            fcntl.flock(share, fcntl.LOCK_EX if alone else fcntl.LOCK_SH)
+        finally:
+            if not alone:
+                fcntl.flock(turnstile, fcntl.LOCK_UN)
+        try:
+            yield
+        finally:
+            fcntl.flock(share, fcntl.LOCK_UN)
+            if alone:
+                fcntl.flock(turnstile, fcntl.LOCK_UN)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
+    """Under pytest-xdist, a test marked ``alone`` (a check of wall-clock timing: pacing, rate limits,
+    a link's gaps) runs, set-up and tear-down included, while the other worker runs nothing; the rest
+    share the two cores. In one process there is nothing to wait for."""
+    if not _is_xdist_worker(item.config):
+        yield
+        return
+    with _machine_share(item.get_closest_marker("alone") is not None):
+        yield
 
 
 def pytest_collection_modifyitems(
@@ -72,6 +116,8 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
         from test_bundle import stop_build  # the run's owner stops and removes its bundle build, if any
 
         stop_build()
+        for suffix in (".turnstile", ".share"):
+            Path(f"{_lock_base()}{suffix}").unlink(missing_ok=True)
     left = [s for s in _sessions if not s.is_closed()]
     for s in left:
         s.close()

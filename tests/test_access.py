@@ -254,6 +254,7 @@ def test_the_ui_over_tls_relays_to_an_api_over_tls(world: World, certificate: tu
             ui.stop()
 
 
+@pytest.mark.alone
 def test_a_flooding_client_is_rate_limited_and_does_not_slow_another(world: World):
     rate, burst, flood_s = 50.0, 20, 1.5
     with (

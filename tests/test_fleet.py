@@ -166,6 +166,7 @@ def test_a_triggered_frame_in_flight_holds_the_lockstep_clock() -> None:
         assert not lockstep_may_step({1: (stage, {}, ("uav1",))}, 2)
 
 
+@pytest.mark.alone
 @pytest.mark.slow
 def test_a_triggered_run_publishes_one_frame_set_of_the_asking_vehicle_with_its_states(
     tmp_path: Path,

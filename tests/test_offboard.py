@@ -158,6 +158,7 @@ def _stream_hover(link: OffboardLink, p: np.ndarray, stop: threading.Event) -> N
 PX4_AT = {"peer": {"local_ned": (2.0, 1.0, -3.0), "yaw_ned": 0.3}}
 
 
+@pytest.mark.alone
 @pytest.mark.parametrize("px4_pair", [PX4_AT], indirect=True)
 def test_holds_where_px4_is_until_offboard_shows_then_flies_the_planner(px4_pair):
     """Asked for control, the link streams a hold at PX4's own position and heading, switches to OFFBOARD,

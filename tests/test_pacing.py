@@ -32,6 +32,7 @@ def run(
     return steps
 
 
+@pytest.mark.alone
 def test_the_clock_keeps_the_rate_and_makes_up_a_short_hold_at_once() -> None:
     pacer = Pacer(1.0, catch_up_s=1.0)
     steps = run(pacer, 0.0, 100.0, 103.0, hold=(101.0, 101.3))

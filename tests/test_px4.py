@@ -369,6 +369,7 @@ def test_state_quaternion_is_frd_to_ned_with_matching_yaw(served, sim):
     np.testing.assert_allclose(np.abs(q), [1.0, 0.0, 0.0, 0.0], atol=1e-6)  # nose north = identity
 
 
+@pytest.mark.alone
 def test_free_runs_until_the_first_actuator_message_then_waits_for_each(sim, monkeypatch):
     monkeypatch.setattr("droneulator.px4.link.BOOT_GRACE_S", BOOT_GRACE)
     sim.reset()

@@ -351,6 +351,7 @@ def test_cli_record_stops_on_sigint_with_a_finalised_file(tmp_path: Path) -> Non
 
 
 # --------------------------------------------------------------------------- replay
+@pytest.mark.alone
 @pytest.mark.parametrize("layout", ["file", "split"])
 def test_replay_reproduces_stamps_in_order_at_the_recorded_rate(tmp_path: Path, layout: str) -> None:
     path = tmp_path / ("r.mcap" if layout == "file" else "r")

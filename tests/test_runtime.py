@@ -758,6 +758,7 @@ def test_px4_lost_mid_air_is_landed_and_a_restarted_px4_gets_the_rotors_only_on_
         r.close()
 
 
+@pytest.mark.alone
 def test_a_fresh_run_sends_px4_its_sensor_data_without_a_boot_stall():
     """On a fresh ``run --px4`` PX4 (here a pymavlink peer that boots, then answers in lockstep) must get
     HIL_SENSOR without a pause: PX4's simulator_mavlink logs ``poll timeout`` after 1 s without data.
