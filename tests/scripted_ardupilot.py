@@ -27,6 +27,8 @@ from typing import Any
 
 import numpy as np
 
+from droneulator.px4.transport import pack_next
+
 MAGIC_16, MAGIC_32 = 18458, 29569
 
 #: SIM_JSON.h's keytable: (section, key, type, required), in its order
@@ -219,6 +221,9 @@ class ScriptedArduCopterMavlink:
         self.target: np.ndarray | None = None
         self.targets: list[Any] = []
         self.commands: list[int] = []
+        #: messages from the client missed by their MAVLink sequence numbers
+        self.missed = 0
+        self._last_seq: int | None = None
         self._tx = mavlink.MAVLink(None, 1, 1)
         self._rx = mavlink.MAVLink(None)
         self._stop = False
@@ -230,7 +235,7 @@ class ScriptedArduCopterMavlink:
 
     def _send(self, conn: socket.socket, msg: Any) -> None:
         with self._lock:
-            conn.sendall(msg.pack(self._tx))
+            conn.sendall(pack_next(self._tx, msg))
 
     def _run(self) -> None:
         self.server.settimeout(10.0)
@@ -246,6 +251,9 @@ class ScriptedArduCopterMavlink:
                 if not data:
                     return
                 for msg in self._rx.parse_buffer(data) or []:
+                    if self._last_seq is not None:  # ArduPilot's link statistics: sequence gaps are losses
+                        self.missed += (msg.get_seq() - self._last_seq - 1) % 256
+                    self._last_seq = msg.get_seq()
                     self._handle(conn, msg)
             except TimeoutError:
                 pass

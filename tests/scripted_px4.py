@@ -60,6 +60,7 @@ from scipy.spatial.transform import Rotation
 from droneulator import frames
 from droneulator.controllers.se3 import FastSE3Control
 from droneulator.px4.mixing import MotorMap
+from droneulator.px4.transport import pack_next
 from droneulator.state import FLAT_SIZE, STATE, STATE_SIZE
 from droneulator.vehicles.params import get_params
 
@@ -154,6 +155,9 @@ class ScriptedPX4:
         self._rtl: tuple[str, np.ndarray] | None = None
         #: the last mission item done (MISSION_ITEM_REACHED), and whether it is new
         self._reached: tuple[int, bool] | None = None
+        #: MAVLink messages missed per (system, component) on the offboard port, by their sequence numbers
+        self.rx_missed: dict[tuple[int, int], int] = {}
+        self._last_rx_seq: dict[tuple[int, int], int] = {}
         #: every (sim t, mode, armed) change and every command result, for tests
         self.log: list[tuple[float, str, Any]] = []
         self.error: BaseException | None = None
@@ -224,7 +228,7 @@ class ScriptedPX4:
         self._sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self._sock.settimeout(0.05)
         hello = self._tx.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, 0, 0, 0)
-        self._sock.sendall(hello.pack(self._tx))
+        self._sock.sendall(pack_next(self._tx, hello))
 
     def _on_sim(self, msg: Any) -> None:
         kind = msg.get_type()
@@ -266,7 +270,7 @@ class ScriptedPX4:
         spray = self._actuator1 if self.params["PWM_MAIN_FUNC5"] == 301 else 0.0
         controls = [float(x) for x in u] + [spray] + [0.0] * 11
         out = self._tx.hil_actuator_controls_encode(msg.time_usec, controls, 128 * armed, 1)
-        self._sock.sendall(out.pack(self._tx))
+        self._sock.sendall(pack_next(self._tx, out))
 
     # ------------------------------------------------------------------ control (lock held)
     def _flat(self, dt: float) -> np.ndarray | None:
@@ -404,7 +408,7 @@ class ScriptedPX4:
     # ------------------------------------------------------------------ offboard link
     def _send(self, msg: Any, link: list[Any] | None = None) -> None:
         """To one MAVLink instance's peer, or to every instance's."""
-        data = msg.pack(self._tx)
+        data = pack_next(self._tx, msg)
         for sock, peer, _ in [link] if link is not None else self._links:
             with contextlib.suppress(OSError):
                 sock.sendto(data, peer)
@@ -444,6 +448,7 @@ class ScriptedPX4:
                     break
                 link[1] = addr  # PX4 answers whoever talks to it
                 for msg in link[2].parse_buffer(data) or []:
+                    self._count_sequence(msg)
                     if msg.get_type() == "COMMAND_LONG":
                         self._command(msg, link)
                     elif msg.get_type() in ("MISSION_COUNT", "MISSION_ITEM_INT"):
@@ -452,6 +457,15 @@ class ScriptedPX4:
                         self._on_setpoint(msg)
                     elif msg.get_type() == "PARAM_SET":
                         self._param_set(msg, link)
+
+    def _count_sequence(self, msg: Any) -> None:
+        """PX4's receive statistics (MavlinkReceiver::updateRxStats): per sending system and component, the
+        messages missed by the MAVLink sequence numbers; one sender packing with two codecs shows as loss."""
+        key = (msg.get_srcSystem(), msg.get_srcComponent())
+        last = self._last_rx_seq.get(key)
+        if last is not None:
+            self.rx_missed[key] = self.rx_missed.get(key, 0) + (msg.get_seq() - last - 1) % 256
+        self._last_rx_seq[key] = msg.get_seq()
 
     def _on_setpoint(self, m: Any) -> None:
         mask = m.type_mask

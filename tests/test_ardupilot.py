@@ -655,6 +655,7 @@ def test_guided_link_flies_planner_setpoints_in_guided_through_the_ekf_origin():
         time.sleep(0.8)  # no sample for stale_s: position-only holds at the last one
         held = peer.targets[-1]
         assert held.type_mask & 0b111111000 == 0b111111000 and (held.x, held.y) == pytest.approx((2.0, 3.0))
+        assert len(peer.targets) > 50 and peer.missed == 0  # every message the next sequence number
     finally:
         link.close()
         assert peer.mode == ScriptedArduCopterMavlink.LAND

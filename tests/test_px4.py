@@ -537,6 +537,8 @@ def test_messages_arrive_at_their_rates(served, sim):
     assert len(gps) == 21 and np.all(np.diff(gps) == 100_000)  # gps_hz = 10 in sim time
     beats = by_type(msgs, "HEARTBEAT")
     assert len(beats) == 3 and all(b.autopilot == mavlink.MAV_AUTOPILOT_INVALID for b in beats)  # 1 Hz
+    seqs = np.array([m.get_seq() for m in msgs])  # one sender: every message the next number, mod 256
+    assert len(seqs) > 1000 and np.all(np.diff(seqs) % 256 == 1), seqs[:10]
     n_mag = sum(bool(m.fields_updated & SENSOR_MAG == SENSOR_MAG) for m in sensor)
     n_baro = sum(bool(m.fields_updated & SENSOR_BARO == SENSOR_BARO) for m in sensor)
     assert abs(n_mag - 200) <= 2 and abs(n_baro - 100) <= 2  # 100 Hz and 50 Hz

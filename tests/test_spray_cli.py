@@ -178,6 +178,8 @@ def test_spray_px4_flies_the_plan_as_a_mission_and_sprays_only_its_rows(tmp_path
     report = json.loads((out / "report.json").read_text())
     rows = get_scene("vineyard", 0).landmarks["row_y"][:2]
     assert px4.params["PWM_MAIN_FUNC5"] == 301 and not px4.armed and px4.landed
+    # the mission's and the link's messages are one sender's: one sequence, nothing counted as lost
+    assert px4.rx_missed and not any(px4.rx_missed.values()), px4.rx_missed
     switches = report["px4"]["spray_switches"]
     assert [s["on"] for s in switches] == [True, False, True, False]
     for (on, off), row in zip(zip(switches[::2], switches[1::2], strict=True), rows, strict=True):

@@ -16,6 +16,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from droneulator.config import PX4Config, SiteConfig
 from droneulator.frames import enu_to_geodetic, enu_to_ned, xyzw_to_wxyz
+from droneulator.px4.transport import pack_next
 from droneulator.sensors import SensorSuite, Truth
 from droneulator.sensors.baro import BaroSample
 from droneulator.sensors.suite import Schedule
@@ -97,7 +98,7 @@ class HilEncoder:
                 msgs.append(gps)
         msgs.append(self._state_message(truth, t_us))
         msgs.append(self._sensor_message(truth, t_us))
-        return b"".join(m.pack(self._tx) for m in msgs)
+        return b"".join(pack_next(self._tx, m) for m in msgs)
 
     def _due(self, name: str, t_ns: int, hz: float) -> bool:
         """True when sensor ``name`` (sampled at ``hz`` in sim time) has a sample due at ``t_ns``."""

@@ -42,6 +42,16 @@ SEND_TIMEOUT_S = 5.0
 _STX = bytes([mavlink.PROTOCOL_MARKER_V2, mavlink.PROTOCOL_MARKER_V1])
 
 
+def pack_next(mav: mavlink.MAVLink, msg: Any) -> bytes:
+    """``msg`` packed with ``mav``'s identity and its next sequence number. pymavlink's ``pack`` stamps the
+    codec's ``seq`` but only ``send`` advances it: packed alone, every message would carry the same number,
+    which a receiver (PX4's ``updateRxStats``, ArduPilot's link statistics) counts as 255 lost messages
+    each. Not thread-safe: one codec per sender, packed under its sender's lock."""
+    data = msg.pack(mav)
+    mav.seq = (mav.seq + 1) % 256
+    return data
+
+
 def _next_stx(buf: bytearray, start: int) -> int | None:
     """Index of the next byte at or after ``start`` that can begin a MAVLink 1 or 2 frame."""
     hits = [i for i in (buf.find(stx, start) for stx in _STX) if i >= 0]

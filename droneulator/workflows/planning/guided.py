@@ -40,6 +40,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from droneulator import frames
 from droneulator.config import SiteConfig
+from droneulator.px4.transport import pack_next
 from droneulator.workflows.planning.offboard import Estimate
 
 log = logging.getLogger("droneulator.plan.guided")
@@ -231,7 +232,7 @@ class GuidedLink:
     def _send(self, msg: Any) -> None:
         with self._send_lock:
             try:
-                self._sock.sendall(msg.pack(self._mav))
+                self._sock.sendall(pack_next(self._mav, msg))
             except OSError as exc:
                 self.failed = self.failed or f"MAVLink send failed: {exc}"
 

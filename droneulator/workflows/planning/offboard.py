@@ -55,6 +55,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from droneulator import frames
 from droneulator.config import SiteConfig
+from droneulator.px4.transport import pack_next
 
 log = logging.getLogger("droneulator.plan.offboard")
 
@@ -518,7 +519,7 @@ class OffboardLink:
     # ------------------------------------------------------------------ send
     def _send(self, msg: Any) -> None:
         with self._send_lock:
-            data = msg.pack(self._mav)
+            data = pack_next(self._mav, msg)
         self.send_bytes(data)
 
     def send_bytes(self, data: bytes) -> None:
@@ -802,6 +803,22 @@ class OffboardLink:
                     return
 
 
+class _LinkCodec:
+    """``mav`` of a :class:`MavlinkPort`: the link's own codec (``*_encode``, ``srcSystem``), whose ``send``
+    packs and sends through the link. One codec, one sequence: PX4 counts the gaps between a sender's
+    MAVLink sequence numbers as lost messages (MavlinkReceiver::updateRxStats), and a second codec for
+    the same system and component would show as loss on every message."""
+
+    def __init__(self, link: OffboardLink) -> None:
+        self._link = link
+
+    def send(self, msg: Any) -> None:
+        self._link.send(msg)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._link.encoder, name)
+
+
 class MavlinkPort:
     """What a pymavlink connection offers a protocol that sends and waits for answers (``mav.send``,
     ``recv_match``), over an :class:`OffboardLink`'s socket: so the mission upload
@@ -811,12 +828,7 @@ class MavlinkPort:
     def __init__(self, link: OffboardLink, kinds: Collection[str]) -> None:
         self._link = link
         self._queue = link.tap(kinds)
-        enc = link.encoder
-        self.mav = mavlink.MAVLink(self, enc.srcSystem, enc.srcComponent)
-
-    def write(self, data: bytes) -> None:
-        """``mav.send``'s output: the packed message, sent to PX4 by the link."""
-        self._link.send_bytes(data)
+        self.mav = _LinkCodec(link)
 
     def recv_match(self, type: Collection[str] | str | None = None, blocking: bool = False,
                    timeout: float | None = None) -> Any:  # fmt: skip
