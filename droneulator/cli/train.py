@@ -28,9 +28,11 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.add_argument(
         "--algo",
-        choices=("sac", "ppo"),
+        choices=("sac", "ppo", "distil"),
         default=None,
-        help="algorithm (default sac; with --ray ppo; see docs/rl.md and docs/cluster.md)",
+        help="algorithm (default sac; with --ray ppo; see docs/rl.md and docs/cluster.md); distil: a ctbr "
+        "policy (--set rl.action=ctbr, --num-envs B) imitating a scripted path follower flown through the "
+        "CTBR tracker, by DAgger (docs/rl.md, 'Does a policy learn at ctbr?')",
     )
     p.add_argument("--steps", type=int, default=50_000, help="environment steps (default 50000)")
     p.add_argument(
@@ -82,7 +84,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--check-every",
         type=int,
         default=None,
-        help="steps between --stop-at checks (default 10000 for SAC, 100000 for PPO)",
+        help="steps between --stop-at checks (default 10000 for SAC, 100000 for PPO and distil)",
     )
     p.add_argument(
         "--vec",
@@ -129,6 +131,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     rllib = args.ray is not None and args.ray_backend == "rllib"  # its final check flies them
     if args.check_episodes is not None and args.stop_at is None and not rllib:
         raise ValueError("--check-episodes goes with --stop-at (or --ray's RLlib run)")
+    if args.algo == "distil" and args.ray is not None:
+        raise ValueError("--algo distil trains here on the batched env (--num-envs B), not with --ray")
     cfg = preflight.load(args.config, args.overrides, seed=args.scene_seed)
     if args.ray is not None:
         return _train_on_ray(args, cfg)
