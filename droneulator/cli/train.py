@@ -24,15 +24,18 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "With --ray: PPO (or SAC) on Ray RLlib, --env-runners runners of --num-envs worlds each, placed "
         "by Ray over the cluster; writes checkpoint/, progress.csv, tb/ and train_summary.json; with "
         "--ray-backend sb3, Stable-Baselines3 here with the --num-envs worlds split over --env-runners Ray "
-        "actors, writing what a run without --ray writes (see docs/cluster.md).",
+        "actors, writing what a run without --ray writes (see docs/cluster.md). --algo distil --set "
+        "rl.action=ctbr --num-envs B: no RL; a ctbr policy imitating an expert by DAgger, written as "
+        "model.zip (a PPO actor that evaluate reads), monitor.csv, config.json and train_summary.json, "
+        "with no checkpoints, progress.csv or tb/ (docs/rl.md).",
     )
     p.add_argument(
         "--algo",
         choices=("sac", "ppo", "distil"),
         default=None,
         help="algorithm (default sac; with --ray ppo; see docs/rl.md and docs/cluster.md); distil: a ctbr "
-        "policy (--set rl.action=ctbr, --num-envs B) imitating a scripted path follower flown through the "
-        "CTBR tracker, by DAgger (docs/rl.md, 'Does a policy learn at ctbr?')",
+        "policy (needs --set rl.action=ctbr and --num-envs B; not with --ray) imitating a scripted A*-path "
+        "follower flown through the CTBR tracker, by DAgger (docs/rl.md, 'Does a policy learn at ctbr?')",
     )
     p.add_argument("--steps", type=int, default=50_000, help="environment steps (default 50000)")
     p.add_argument(
@@ -94,7 +97,9 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.add_argument("--out", default="out/rl", help="run folder (default out/rl)")
     p.add_argument("--learning-starts", type=int, default=None, help="random warm-up steps (default 2000)")
-    p.add_argument("--checkpoint-every", type=int, default=10_000, help="checkpoint period in steps")
+    p.add_argument(
+        "--checkpoint-every", type=int, default=10_000, help="checkpoint period in steps (not distil)"
+    )
     p.add_argument("--threads", type=int, default=None, help="torch threads for the learner (default 1)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     ray = p.add_argument_group("on a Ray cluster (the ray extra)")

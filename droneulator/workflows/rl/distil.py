@@ -184,12 +184,13 @@ def weighted_error(policy: Any, obs: np.ndarray, labels: np.ndarray, weights: np
 def distil(
     cfg: SimConfig, out: Path, steps: int, seed: int, n_envs: int, hyper: dict[str, Any],
     stop_at: float | None, check_every: int, held_out: list[int], depth: str = "raycast",
-    progress: bool = True,
+    progress: bool = True, max_wall_s: float | None = None,
 ) -> dict[str, Any]:  # fmt: skip
     """DAgger for ``steps`` env steps (rounded up to whole iterations of ``n_envs`` x ``rollout_steps``) on
     ``n_envs`` batched worlds seeded ``seed + i``; writes ``model.zip``, ``monitor.csv`` and
     ``train_summary.json`` to ``out`` and returns the summary (:func:`~droneulator.workflows.rl.train.train`
-    checks the arguments and calls this)."""
+    checks the arguments and calls this); ``max_wall_s`` ends it after the iteration that passes that much
+    training time (the checks' left out)."""
     import torch
 
     from droneulator.workflows.rl.train import held_out_env, held_out_successes, make_vec_env, passes
@@ -263,6 +264,8 @@ def distil(
                 if passes(k, len(held_out), stop_at):
                     reached = checks[-1]
                     break
+            if max_wall_s is not None and wall > max_wall_s:
+                break
         wall = time.perf_counter() - t0 - check_s
         model.num_timesteps = filled
         model.save(out / "model.zip")

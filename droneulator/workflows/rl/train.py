@@ -1,4 +1,5 @@
-"""``droneulator train``: Stable-Baselines3 SAC or PPO on ``droneulator/VineyardNav-v0``.
+"""``droneulator train``: Stable-Baselines3 SAC or PPO on ``droneulator/VineyardNav-v0``, or a ``ctbr``
+policy distilled from an expert (``algo="distil"``, :mod:`~droneulator.workflows.rl.distil`).
 
 Writes to ``out``: ``model.zip`` (final policy), ``checkpoints/``, ``monitor.csv`` (one row per
 episode: return, length, wall time, success, termination), ``progress.csv`` and ``tb/`` (SB3's
@@ -297,6 +298,10 @@ def train(
     ends it after that much training time in any case. The check seeds may not meet the training seeds.
     ``agents`` > 1 (``vec="native"``): ``n_envs`` worlds of that many agents train one shared policy (one
     row per agent); a held-out episode is then a world's, a success every agent reaching its goal.
+    ``algo="distil"`` (``vec="native"``, ``rl.action="ctbr"``): DAgger instead of RL
+    (:func:`~droneulator.workflows.rl.distil.distil`; ``overrides`` replace entries of its
+    :data:`~droneulator.workflows.rl.distil.DISTIL_HYPERPARAMETERS`); it writes ``model.zip``,
+    ``monitor.csv``, ``config.json`` and ``train_summary.json``, no checkpoints or TensorBoard log.
     """
     import torch
 
@@ -348,7 +353,9 @@ def train(
     if distilling:
         from droneulator.workflows.rl.distil import distil
 
-        return distil(cfg, out, steps, seed, n_envs, hyper, stop_at, check_every, held_out, depth, progress)
+        return distil(
+            cfg, out, steps, seed, n_envs, hyper, stop_at, check_every, held_out, depth, progress, max_wall_s
+        )
 
     with contextlib.ExitStack() as stack:
         if on_ray:
