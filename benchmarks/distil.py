@@ -4,12 +4,13 @@ For each seed: ``droneulator train --algo distil --set rl.action=ctbr --num-envs
 from the scripted path follower flown through the CTBR tracker, :mod:`droneulator.workflows.rl.distil`),
 its held-out checks (50 episodes from seed 2,500,000) every ``--check-every`` steps; then the student,
 and the expert it imitates, on the 50 evaluation episodes (seeds from 1,000,000, never trained on nor used
-to stop), both on the batched env (depth by ray casting, as the checks). ``--velocity`` adds the velocity
-level's SAC (``droneulator train --num-envs 16 --stop-at 0.9``) trained and evaluated the same way, beside
-it. The pipeline's wall time counts everything from the start of training to the saved model, the checks
-included; the training time leaves the checks out, as ``train`` reports it.
+to stop), both on the batched env (depth by ray casting, as the checks). ``--algos distil sac`` adds the
+velocity level's SAC (``droneulator train --num-envs 16 --stop-at 0.9``, capped at ``--cap`` s of training)
+trained and evaluated the same way, beside it. The pipeline's wall time counts everything from the start
+of training to the saved model, the checks included; the training time leaves the checks out, as
+``train`` reports it.
 
-Reproduce: ``python benchmarks/distil.py`` (about 10 min per seed on a quiet 2-core CPU).
+Reproduce: ``python benchmarks/distil.py`` (about 11 min per seed on this 2-core CPU under load).
 """
 
 from __future__ import annotations
@@ -104,7 +105,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="training seeds (default 0)")
     ap.add_argument("--envs", type=int, default=128, help="batched worlds of the distillation (default 128)")
     ap.add_argument("--check-every", type=int, default=50_000, help="distillation steps between checks")
-    ap.add_argument("--velocity", action="store_true", help="also train SAC at the velocity level beside it")
+    ap.add_argument("--algos", nargs="+", choices=("distil", "sac"), default=["distil"],
+                    help="distil (ctbr) and/or sac (velocity level, B = 16) (default distil)")  # fmt: skip
     ap.add_argument("--cap", type=float, default=600.0, help="SAC's training time cap per seed (s)")
     ap.add_argument("--out", default="out/distil-bench", help="training runs folder")
     ap.add_argument("--json", default=None, help="output path (default benchmarks/results/distil.json)")
@@ -116,10 +118,9 @@ def main() -> None:
     print(f"expert (path follower through the CTBR tracker): {rate_text(k, len(seeds))}", flush=True)
     runs = []
     for seed in args.seeds:
-        jobs = [("distil", args.envs, args.check_every, None)]
-        if args.velocity:
-            jobs.append(("sac", 16, 10_000, args.cap))
-        for algo, envs, every, cap in jobs:
+        jobs = {"distil": (args.envs, args.check_every, None), "sac": (16, 10_000, args.cap)}
+        for algo in args.algos:
+            envs, every, cap = jobs[algo]
             r = run(Path(args.out) / f"{algo}{seed}", algo, seed, envs, every, cap)
             runs.append(r)
             when = "45/50 checks not reached"
