@@ -16,6 +16,7 @@ Reproduce: ``python benchmarks/distil.py`` (about 11 min per seed on this 2-core
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -111,6 +112,7 @@ def main() -> None:
     ap.add_argument("--out", default="out/distil-bench", help="training runs folder")
     ap.add_argument("--json", default=None, help="output path (default benchmarks/results/distil.json)")
     args = ap.parse_args()
+    load_start = os.getloadavg()
     seeds = list(range(EVAL_SEED, EVAL_SEED + EVAL_EPISODES))
     t = time.perf_counter()
     k = expert_successes(seeds)
@@ -130,7 +132,8 @@ def main() -> None:
             rate = rate_text(ev["successes"], ev["episodes"])
             print(f"{algo} ({r['level']}), seed {seed}: {when} ({r['pipeline_wall_s']:.0f} s with the "
                   f"checks); evaluation {rate}", flush=True)  # fmt: skip
-    write("distil", {"expert": expert, "runs": runs, "settings": vars(args)}, args.json)
+    load = {"start": load_start, "end": os.getloadavg()}  # 1, 5 and 15 min: the machine may be shared
+    write("distil", {"expert": expert, "runs": runs, "load_average": load, "settings": vars(args)}, args.json)
 
 
 if __name__ == "__main__":

@@ -103,3 +103,17 @@ def test_distil_refuses_what_it_cannot_train(tmp_path):
         train(_ctbr(), tmp_path, steps=10, n_envs=2, algo="distil", vec="dummy")
     with pytest.raises(ValueError, match="unknown distil hyperparameters"):
         train(_ctbr(), tmp_path, steps=10, n_envs=2, algo="distil", vec="native", overrides={"gamma": 0.9})
+
+
+def test_the_command_line_refuses_distil_without_its_level_or_batched_env(capsys, tmp_path):
+    from droneulator.cli import main
+
+    out = str(tmp_path / "run")
+    for args, message in (
+        (["--num-envs", "2"], "distil trains a ctbr policy (--set rl.action=ctbr)"),
+        (["--set", "rl.action=ctbr"], "distil trains on the batched env (--num-envs B)"),
+        (["--set", "rl.action=ctbr", "--num-envs", "2", "--ray", "local"], "not with --ray"),
+    ):
+        assert main(["train", "--algo", "distil", "--out", out, *args]) == 2
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1, (args, err)

@@ -12,6 +12,9 @@ from droneulator.config import SimConfig
 from droneulator.runtime import preflight
 from droneulator.workflows.rl.heldout import CHECK_EPISODES, CHECK_SEED
 
+#: steps between ``--stop-at`` checks by default, per algorithm
+CHECK_EVERY = {"sac": 10_000, "ppo": 100_000, "distil": 50_000}
+
 
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
@@ -87,7 +90,8 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--check-every",
         type=int,
         default=None,
-        help="steps between --stop-at checks (default 10000 for SAC, 100000 for PPO and distil)",
+        help="steps between --stop-at checks (default 10000 for SAC, 100000 for PPO, 50000 for distil, "
+        "checked after the DAgger iteration that passes them)",
     )
     p.add_argument(
         "--vec",
@@ -162,7 +166,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         vec="native" if native else args.vec,
         depth=args.depth,
         stop_at=args.stop_at,
-        check_every=args.check_every or (10_000 if algo == "sac" else 100_000),
+        check_every=args.check_every or CHECK_EVERY[algo],
         check_episodes=args.check_episodes or CHECK_EPISODES,
         checkpoint_every=args.checkpoint_every,
         threads=args.threads,

@@ -243,7 +243,7 @@ def distil(
             wall = time.perf_counter() - t0 - check_s
             goals = sum(o == "goal" for o in outcomes)
             history.append({
-                "iteration": it, "beta": beta, "steps": filled, "wall_s": wall, "samples": filled,
+                "iteration": it, "beta": beta, "steps": filled, "wall_s": wall,
                 "loss": loss, "episodes_ended": len(outcomes), "goals": goals,
             })  # fmt: skip
             if progress:
