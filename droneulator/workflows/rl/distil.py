@@ -206,9 +206,9 @@ def distil(
         rng = np.random.default_rng(seed)
         per_iteration = n_envs * hyper["rollout_steps"]
         iterations = max(1, math.ceil(steps / per_iteration))
-        size = iterations * per_iteration
-        data_obs = np.empty((size, env.single_observation_space.shape[0]), dtype=np.float32)
-        data_act = np.empty((size, 4), dtype=np.float32)
+        # the data set grows by doubling: a long --steps must not allocate all of it up front
+        data_obs = np.empty((per_iteration, env.single_observation_space.shape[0]), dtype=np.float32)
+        data_act = np.empty((per_iteration, 4), dtype=np.float32)
         venv.seed(seed)
         obs = venv.reset()
         history: list[dict[str, Any]] = []
@@ -218,6 +218,9 @@ def distil(
         t0 = time.perf_counter()
         for it in range(iterations):
             beta = hyper["beta"] * hyper["beta_decay"] ** it
+            if filled + per_iteration > len(data_obs):
+                data_obs = np.concatenate([data_obs[:filled], np.empty_like(data_obs)])
+                data_act = np.concatenate([data_act[:filled], np.empty_like(data_act)])
             outcomes: list[str] = []
             for _ in range(hyper["rollout_steps"]):
                 t = time.perf_counter()
