@@ -12,6 +12,9 @@ from droneulator.config import SimConfig
 from droneulator.runtime import preflight
 from droneulator.workflows.rl.heldout import CHECK_EPISODES, CHECK_SEED
 
+#: steps between ``--stop-at`` checks by default, per algorithm
+CHECK_EVERY = {"sac": 10_000, "ppo": 100_000, "distil": 50_000}
+
 
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
@@ -24,13 +27,18 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "With --ray: PPO (or SAC) on Ray RLlib, --env-runners runners of --num-envs worlds each, placed "
         "by Ray over the cluster; writes checkpoint/, progress.csv, tb/ and train_summary.json; with "
         "--ray-backend sb3, Stable-Baselines3 here with the --num-envs worlds split over --env-runners Ray "
-        "actors, writing what a run without --ray writes (see docs/cluster.md).",
+        "actors, writing what a run without --ray writes (see docs/cluster.md). --algo distil --set "
+        "rl.action=ctbr --num-envs B: no RL; a ctbr policy imitating an expert by DAgger, written as "
+        "model.zip (a PPO actor that evaluate reads), monitor.csv, config.json and train_summary.json, "
+        "with no checkpoints, progress.csv or tb/ (docs/rl.md).",
     )
     p.add_argument(
         "--algo",
-        choices=("sac", "ppo"),
+        choices=("sac", "ppo", "distil"),
         default=None,
-        help="algorithm (default sac; with --ray ppo; see docs/rl.md and docs/cluster.md)",
+        help="algorithm (default sac; with --ray ppo; see docs/rl.md and docs/cluster.md); distil: a ctbr "
+        "policy (needs --set rl.action=ctbr and --num-envs B; not with --ray) imitating a scripted A*-path "
+        "follower flown through the CTBR tracker, by DAgger (docs/rl.md, 'Does a policy learn at ctbr?')",
     )
     p.add_argument("--steps", type=int, default=50_000, help="environment steps (default 50000)")
     p.add_argument(
@@ -82,7 +90,8 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--check-every",
         type=int,
         default=None,
-        help="steps between --stop-at checks (default 10000 for SAC, 100000 for PPO)",
+        help="steps between --stop-at checks (default 10000 for SAC, 100000 for PPO, 50000 for distil, "
+        "checked after the DAgger iteration that passes them)",
     )
     p.add_argument(
         "--vec",
@@ -92,7 +101,9 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.add_argument("--out", default="out/rl", help="run folder (default out/rl)")
     p.add_argument("--learning-starts", type=int, default=None, help="random warm-up steps (default 2000)")
-    p.add_argument("--checkpoint-every", type=int, default=10_000, help="checkpoint period in steps")
+    p.add_argument(
+        "--checkpoint-every", type=int, default=10_000, help="checkpoint period in steps (not distil)"
+    )
     p.add_argument("--threads", type=int, default=None, help="torch threads for the learner (default 1)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     ray = p.add_argument_group("on a Ray cluster (the ray extra)")
@@ -129,6 +140,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     rllib = args.ray is not None and args.ray_backend == "rllib"  # its final check flies them
     if args.check_episodes is not None and args.stop_at is None and not rllib:
         raise ValueError("--check-episodes goes with --stop-at (or --ray's RLlib run)")
+    if args.algo == "distil" and args.ray is not None:
+        raise ValueError("--algo distil trains here on the batched env (--num-envs B), not with --ray")
     cfg = preflight.load(args.config, args.overrides, seed=args.scene_seed)
     if args.ray is not None:
         return _train_on_ray(args, cfg)
@@ -153,7 +166,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         vec="native" if native else args.vec,
         depth=args.depth,
         stop_at=args.stop_at,
-        check_every=args.check_every or (10_000 if algo == "sac" else 100_000),
+        check_every=args.check_every or CHECK_EVERY[algo],
         check_episodes=args.check_episodes or CHECK_EPISODES,
         checkpoint_every=args.checkpoint_every,
         threads=args.threads,

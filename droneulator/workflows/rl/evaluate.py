@@ -298,10 +298,11 @@ def evaluate(
     zenoh: str | None = None,
     deterministic: bool = True,
 ) -> dict[str, Any]:
-    """Evaluate the SAC or PPO policy in ``model`` (a .zip, or a run folder holding ``model.zip``) on seeds
-    ``seed .. seed + episodes - 1``; returns (and writes) the summary, its success rate with the 95 %
-    Wilson interval (``success_interval_95``). Seeds the run trained on or its stop check flew are
-    refused. ``logs`` is the training run folder for the curves (default: the model's)."""
+    """Evaluate the SAC, PPO or distilled policy in ``model`` (a .zip, or a run folder holding
+    ``model.zip``) on seeds ``seed .. seed + episodes - 1``; returns (and writes) the summary, its
+    success rate with the 95 % Wilson interval (``success_interval_95``). Seeds the run trained on or
+    its stop check flew are refused. ``logs`` is the training run folder for the curves (default: the
+    model's)."""
     from stable_baselines3 import PPO, SAC
 
     model = resolve_model(model)
@@ -321,7 +322,8 @@ def evaluate(
     cfg = cfg or load_run_config(model)
     # a saved run records the n-step buffer SB3 chose for it; let SB3 choose again instead of warning
     # that the saved buffer class overrides n_steps (evaluation never samples the buffer)
-    policy = (PPO if trained_algorithm(model) == "ppo" else SAC).load(
+    # a distilled student (``train --algo distil``) is saved as a PPO actor-critic
+    policy = (PPO if trained_algorithm(model) in ("ppo", "distil") else SAC).load(
         model, device="cpu", custom_objects={"replay_buffer_class": None}
     )
     env = VineyardNavEnv(config=cfg, mode=mode, url=url, zenoh=zenoh)

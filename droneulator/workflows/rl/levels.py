@@ -126,6 +126,21 @@ class Actuator:
         self.commands[idx] = out
         return out
 
+    def actions(self, commands: np.ndarray) -> np.ndarray:
+        """The actions (``(k, 4)`` float32, clipped to [-1, 1]) that :meth:`map` turns into the ``ctbr``
+        ``commands`` (``(k, 4)``: thrust N, body rates rad/s): the inverse of its scaling, for labelling a
+        policy's states with an expert's commands (:mod:`.distil`)."""
+        if self.level != "ctbr":
+            raise ValueError(f"actions() inverts the ctbr level's scaling, not {self.level!r}")
+        af, c = self.airframe, np.asarray(commands, dtype=np.float64).reshape(-1, 4)
+        out = np.empty(c.shape)
+        thrust = c[:, 0]
+        out[:, 0] = np.where(
+            thrust < af.weight, thrust / af.weight - 1.0, (thrust - af.weight) / (af.max_thrust - af.weight)
+        )
+        out[:, 1:4] = c[:, 1:4] / af.max_rate
+        return np.clip(out, -1.0, 1.0).astype(np.float32)
+
     def send_rows(self, world: Any, worlds: np.ndarray, vehicles: np.ndarray, commands: np.ndarray) -> None:
         """Hand ``commands`` to rows ``(worlds[j], vehicles[j])`` of a batched
         :class:`~droneulator.world.World`."""

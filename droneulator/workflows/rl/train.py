@@ -1,4 +1,5 @@
-"""``droneulator train``: Stable-Baselines3 SAC or PPO on ``droneulator/VineyardNav-v0``.
+"""``droneulator train``: Stable-Baselines3 SAC or PPO on ``droneulator/VineyardNav-v0``, or a ``ctbr``
+policy distilled from an expert (``algo="distil"``, :mod:`~droneulator.workflows.rl.distil`).
 
 Writes to ``out``: ``model.zip`` (final policy), ``checkpoints/``, ``monitor.csv`` (one row per
 episode: return, length, wall time, success, termination), ``progress.csv`` and ``tb/`` (SB3's
@@ -44,7 +45,7 @@ from droneulator.workflows.rl import ENV_ID
 from droneulator.workflows.rl.env import env_config
 from droneulator.workflows.rl.heldout import CHECK_EPISODES, check_seeds, interval_record, refuse_overlap
 
-ALGORITHMS = ("sac", "ppo")
+ALGORITHMS = ("sac", "ppo", "distil")
 VEC_KINDS = ("auto", "dummy", "subproc", "native", "ray")
 
 #: SAC hyperparameters (Stable-Baselines3 names) for ~50k environment steps
@@ -297,6 +298,10 @@ def train(
     ends it after that much training time in any case. The check seeds may not meet the training seeds.
     ``agents`` > 1 (``vec="native"``): ``n_envs`` worlds of that many agents train one shared policy (one
     row per agent); a held-out episode is then a world's, a success every agent reaching its goal.
+    ``algo="distil"`` (``vec="native"``, ``rl.action="ctbr"``): DAgger instead of RL
+    (:func:`~droneulator.workflows.rl.distil.distil`; ``overrides`` replace entries of its
+    :data:`~droneulator.workflows.rl.distil.DISTIL_HYPERPARAMETERS`); it writes ``model.zip``,
+    ``monitor.csv``, ``config.json`` and ``train_summary.json``, no checkpoints or TensorBoard log.
     """
     import torch
 
@@ -308,6 +313,9 @@ def train(
         raise ValueError(
             f"agents must be at least 1, and more than one train on vec='native' (got {agents})"
         )
+    distilling = algo == "distil"
+    if distilling and (vec != "native" or agents != 1):
+        raise ValueError("distil trains on the batched env (--num-envs B), one agent per world")
     if stop_at is not None and not 0.0 < stop_at <= 1.0:
         raise ValueError(f"stop_at must be a share in (0, 1], got {stop_at}")
     held_out = check_seeds(check_episodes)  # refuses fewer than one
@@ -321,11 +329,18 @@ def train(
     if on_ray and not 1 <= actors <= n_envs:
         raise ValueError(f"need 1 to {n_envs} Ray actors (one world each at least), got {actors}")
     cfg = env_config(cfg)
+    if distilling and cfg.rl.action != "ctbr":
+        raise ValueError(f"distil trains a ctbr policy (--set rl.action=ctbr), not {cfg.rl.action!r}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     threads = threads or DEFAULT_THREADS
     torch.set_num_threads(threads)
-    defaults = SAC_HYPERPARAMETERS if algo == "sac" else PPO_HYPERPARAMETERS
+    if distilling:
+        from droneulator.workflows.rl.distil import DISTIL_HYPERPARAMETERS
+
+        defaults = DISTIL_HYPERPARAMETERS
+    else:
+        defaults = SAC_HYPERPARAMETERS if algo == "sac" else PPO_HYPERPARAMETERS
     unknown = set(overrides or {}) - set(defaults)
     if unknown:
         raise ValueError(f"unknown {algo} hyperparameters: {', '.join(sorted(unknown))}")
@@ -335,6 +350,12 @@ def train(
     if algo == "ppo":  # a minibatch never exceeds the rollout: B x n_steps transitions
         hyper["batch_size"] = min(hyper["batch_size"], hyper["n_steps"] * n_envs * agents)
     (out / "config.json").write_text(json.dumps(to_dict(cfg), indent=2))
+    if distilling:
+        from droneulator.workflows.rl.distil import distil
+
+        return distil(
+            cfg, out, steps, seed, n_envs, hyper, stop_at, check_every, held_out, depth, progress, max_wall_s
+        )
 
     with contextlib.ExitStack() as stack:
         if on_ray:

@@ -1,0 +1,119 @@
+"""``droneulator train --algo distil``: the CTBR expert's labels round-trip through the env's actuator, the
+expert reaches the goal, and a tiny DAgger run leaves a student that imitates the expert better than an
+untrained one and that ``evaluate`` loads."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from droneulator.config import load_config
+from droneulator.workflows.rl.distil import CTBRExpert, student_model, weighted_error
+from droneulator.workflows.rl.env import env_config
+from droneulator.workflows.rl.evaluate import trained_algorithm
+from droneulator.workflows.rl.levels import Actuator
+from droneulator.workflows.rl.train import train
+from droneulator.workflows.rl.vector import VineyardNavVectorEnv
+
+
+def _ctbr():
+    cfg = load_config(None)
+    cfg.rl.action = "ctbr"
+    return env_config(cfg)
+
+
+@pytest.mark.parametrize("scale", [None, 2.0])
+def test_expert_commands_round_trip_through_the_actuator(scale):
+    cfg = _ctbr()
+    cfg.rl.max_thrust_to_weight = scale
+    act = Actuator(cfg, 64)
+    af = act.airframe
+    rng = np.random.default_rng(0)
+    commands = np.column_stack([
+        rng.uniform(0.0, af.max_thrust, 64), rng.uniform(-1.0, 1.0, (64, 3)) * af.max_rate
+    ])  # fmt: skip
+    commands[0] = (af.weight, 0.0, 0.0, 0.0)  # hover is the zero action
+    actions = act.actions(commands)
+    np.testing.assert_array_equal(actions[0], 0.0)
+    np.testing.assert_allclose(
+        act.map(np.arange(64), actions.astype(np.float64)), commands, rtol=1e-6, atol=1e-5
+    )
+    np.testing.assert_array_equal(act.actions([[2 * af.max_thrust, 0.0, 0.0, 0.0]])[0, 0], 1.0)  # clipped
+    with pytest.raises(ValueError, match="ctbr"):
+        Actuator(env_config(load_config(None)), 1).actions(commands)
+
+
+def test_the_expert_flies_its_episodes_to_the_goal():
+    cfg = _ctbr()
+    env = VineyardNavVectorEnv(3, cfg)
+    expert = CTBRExpert(cfg, env.actuator)
+    obs, _ = env.reset(seed=[11, 12, 13])
+    done, success = np.zeros(3, dtype=bool), np.zeros(3, dtype=bool)
+    while not done.all():
+        obs, _, terminated, truncated, info = env.step(expert.actions(obs, env.states))
+        ended = (terminated | truncated) & ~done
+        success |= ended & info["is_success"]
+        done |= ended
+    env.close()
+    assert success.all()
+
+
+def test_a_tiny_distillation_imitates_the_expert(tmp_path):
+    from stable_baselines3 import PPO
+
+    cfg = _ctbr()
+    hyper = {"rollout_steps": 100, "gradient_steps": 300}
+    summary = train(cfg, tmp_path, steps=1600, seed=0, n_envs=8, algo="distil", vec="native",
+                    progress=False, overrides=hyper)  # fmt: skip
+    assert summary["steps"] == 1600 and len(summary["iterations"]) == 2
+    assert trained_algorithm(tmp_path / "model.zip") == "distil"
+    assert json.loads((tmp_path / "train_summary.json").read_text())["train_seeds"] == list(range(8))
+    # states the expert visits from the training seeds, labelled by it
+    env = VineyardNavVectorEnv(8, cfg)
+    expert = CTBRExpert(cfg, env.actuator)
+    obs, _ = env.reset(seed=0)
+    seen, labels = [], []
+    for _ in range(60):
+        a = expert.actions(obs, env.states)
+        seen.append(obs)
+        labels.append(a)
+        obs, *_ = env.step(a)
+    env.close()
+    x, y = np.concatenate(seen), np.concatenate(labels)
+    weights = np.asarray(summary["label_weights"])
+    student = PPO.load(tmp_path / "model.zip", device="cpu").policy
+    untrained = student_model(_sb3_env(cfg), {"net_arch": [256, 256], "log_std_init": -2.0}, 1).policy
+    assert weighted_error(student, x, y, weights) < 0.5 * weighted_error(untrained, x, y, weights)
+
+
+def _sb3_env(cfg):
+    from gymnasium.vector import AutoresetMode
+
+    from droneulator.workflows.rl.sb3 import SB3VectorEnv
+
+    return SB3VectorEnv(VineyardNavVectorEnv(1, cfg, autoreset_mode=AutoresetMode.SAME_STEP))
+
+
+def test_distil_refuses_what_it_cannot_train(tmp_path):
+    with pytest.raises(ValueError, match="rl.action=ctbr"):
+        train(load_config(None), tmp_path, steps=10, n_envs=2, algo="distil", vec="native")
+    with pytest.raises(ValueError, match="batched env"):
+        train(_ctbr(), tmp_path, steps=10, n_envs=2, algo="distil", vec="dummy")
+    with pytest.raises(ValueError, match="unknown distil hyperparameters"):
+        train(_ctbr(), tmp_path, steps=10, n_envs=2, algo="distil", vec="native", overrides={"gamma": 0.9})
+
+
+def test_the_command_line_refuses_distil_without_its_level_or_batched_env(capsys, tmp_path):
+    from droneulator.cli import main
+
+    out = str(tmp_path / "run")
+    for args, message in (
+        (["--num-envs", "2"], "distil trains a ctbr policy (--set rl.action=ctbr)"),
+        (["--set", "rl.action=ctbr"], "distil trains on the batched env (--num-envs B)"),
+        (["--set", "rl.action=ctbr", "--num-envs", "2", "--ray", "local"], "not with --ray"),
+    ):
+        assert main(["train", "--algo", "distil", "--out", out, *args]) == 2
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1, (args, err)
