@@ -480,7 +480,13 @@ def test_plan_node_sends_its_trajectory_to_px4_as_ned_setpoints_on_a_real_run(ca
                     and np.linalg.norm([m.vx, m.vy, m.vz]) < 0.01
                 )
 
-            wait_until(at_goal, timeout=45, what=f"setpoints at the goal; planner: {node.last_failure!r}")
+            # judged in sim time (30 s to plan and fly 3 m), not wall time: a loaded machine slows the
+            # lockstep run, and with it the trajectory the setpoints follow
+            t0, wall_end = client.state()["t"], time.monotonic() + 600
+            while not at_goal():
+                late = client.state()["t"] - t0 > 30.0 or time.monotonic() > wall_end
+                assert not late, f"no setpoints at the goal in 30 s sim time; planner {node.last_failure!r}"
+                time.sleep(0.1)
             assert link.engaged.wait(5), f"{link.error!r}; {caplog.text}"
             assert peer.armed and peer.custom_mode == OFFBOARD
             sps = [m for m, _, _ in peer.messages("SET_POSITION_TARGET_LOCAL_NED")]
