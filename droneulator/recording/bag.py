@@ -210,7 +210,7 @@ class BagWriter:
             self.file = path / f"{path.name}_0.mcap"
         #: the finished files before the current one: (file, first log time, last log time, messages)
         self._done: list[tuple[Path, int, int, int]] = []
-        self._schemas: dict[str, tuple[int, bytes]] = {}  # type -> (our schema id, definition)
+        self._schemas: dict[str, bytes] = {}  # type -> its ros2msg definition
         self._channels: dict[tuple[str, str], _Channel] = {}
         self._by_id: dict[int, _Channel] = {}
         self.start_ns: int | None = None
@@ -237,7 +237,7 @@ class BagWriter:
     def _register(self, ch: _Channel) -> None:
         schema_id = self._file_schema.get(ch.typename)
         if schema_id is None:
-            schema_id = self._writer.register_schema(ch.typename, "ros2msg", self._schemas[ch.typename][1])
+            schema_id = self._writer.register_schema(ch.typename, "ros2msg", self._schemas[ch.typename])
             self._file_schema[ch.typename] = schema_id
         meta = {"offered_qos_profiles": qos_yaml(ch.qos), "topic_type_hash": ch.type_hash}
         self._file_channel[ch.id] = self._writer.register_channel(ch.topic, "cdr", schema_id, meta)
@@ -271,7 +271,7 @@ class BagWriter:
         if ch is not None:
             return ch.id
         if typename not in self._schemas:
-            self._schemas[typename] = (len(self._schemas) + 1, message_definition(typename).encode())
+            self._schemas[typename] = message_definition(typename).encode()
         ch = _Channel(
             len(self._by_id) + 1, topic, typename, messages.type_hash(typename), qos or default_qos(topic)
         )
