@@ -21,7 +21,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from _common import write
 
 
@@ -36,21 +35,9 @@ def _ctbr_config() -> Any:
 
 def expert_successes(seeds: list[int]) -> int:
     """Episodes of the distillation's expert reaching the goal, one per seed, on the batched env."""
-    from droneulator.workflows.rl.distil import CTBRExpert
-    from droneulator.workflows.rl.vector import VineyardNavVectorEnv
+    from droneulator.workflows.rl.distil import expert_successes as flown
 
-    cfg = _ctbr_config()
-    env = VineyardNavVectorEnv(len(seeds), cfg)
-    expert = CTBRExpert(cfg, env.actuator)
-    obs, _ = env.reset(seed=seeds)
-    done, success = np.zeros(len(seeds), dtype=bool), np.zeros(len(seeds), dtype=bool)
-    while not done.all():
-        obs, _, terminated, truncated, info = env.step(expert.actions(obs, env.states))
-        ended = (terminated | truncated) & ~done
-        success |= ended & info["is_success"]
-        done |= ended
-    env.close()
-    return int(success.sum())
+    return flown(_ctbr_config(), seeds)
 
 
 def run(out: Path, algo: str, seed: int, envs: int, every: int, cap_s: float | None) -> dict[str, Any]:

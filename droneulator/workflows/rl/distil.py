@@ -129,6 +129,25 @@ class CTBRExpert:
         return self.actuator.actions(self.commands(obs, states))
 
 
+def expert_successes(cfg: SimConfig, seeds: list[int]) -> int:
+    """Episodes the expert flies to the goal, one per seed, on the batched env of ``cfg`` (``ctbr``)."""
+    from droneulator.workflows.rl.vector import VineyardNavVectorEnv
+
+    env = VineyardNavVectorEnv(len(seeds), cfg)
+    try:
+        expert = CTBRExpert(cfg, env.actuator)
+        obs, _ = env.reset(seed=seeds)
+        done, success = np.zeros(len(seeds), dtype=bool), np.zeros(len(seeds), dtype=bool)
+        while not done.all():
+            obs, _, terminated, truncated, info = env.step(expert.actions(obs, env.states))
+            ended = (terminated | truncated) & ~done
+            success |= ended & info["is_success"]
+            done |= ended
+    finally:
+        env.close()
+    return int(success.sum())
+
+
 def actor_mean(policy: Any, obs: Any) -> Any:
     """The mean action (a torch tensor, not clipped) of an SB3 actor-critic ``policy`` for ``obs``."""
     features = policy.extract_features(obs, policy.pi_features_extractor)
