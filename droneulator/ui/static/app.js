@@ -39,6 +39,7 @@ const ui = {
   lastVelocity: null,
   rtfSamples: [],
   images: null,
+  apiConnected: false, // the UI server's link to the simulator's API, as it last reported it
   telemetryAt: 0,
   spray: false, // a vehicle's state carries a spray system: the deposit layer is shown
   deposit: { version: null, askedT: null, asking: 0, askedAt: 0, error: null, layer: null },
@@ -563,6 +564,7 @@ async function onApiConnected() {
 
 function onUiMessage(msg) {
   if (msg.api) {
+    ui.apiConnected = msg.api.connected;
     if (msg.api.connected) {
       setConnection(`simulator: ${msg.api.url}`, true);
       onApiConnected();
@@ -573,7 +575,8 @@ function onUiMessage(msg) {
   }
   if (msg.images) {
     ui.images = msg.images;
-    if (msg.images.error) setConnection(`simulator connected; ${msg.images.error}`, false);
+    // the images' trouble is news only while the simulator is connected: it must not say so when it is not
+    if (msg.images.error && ui.apiConnected) setConnection(`simulator connected; ${msg.images.error}`, false);
   }
 }
 
