@@ -17,10 +17,13 @@ Reproduce: ``python benchmarks/multi.py`` (about 3 min), ``--train`` adds up to 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import os
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -66,11 +69,27 @@ def agent_steps(worlds: int, agents: int, steps: int = STEPS) -> dict[str, Any]:
     }
 
 
-def in_subprocess(fn: str, *args: Any) -> dict[str, Any]:
+def in_subprocess(fn: str, *args: Any, wait_policy: str = "PASSIVE") -> dict[str, Any]:
+    """``multi.fn(*args)`` in a fresh process whose OpenMP threads wait by ``wait_policy`` (``default``:
+    libgomp's own, spinning 300,000 times before sleeping; the package sets PASSIVE unless told)."""
     code = f"import json, sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); import multi; "
     code += f"print(json.dumps(multi.{fn}(*{args!r})))"
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    # an empty value is not one libgomp knows: it keeps its default (and says so on stderr)
+    env = os.environ | {"OMP_WAIT_POLICY": "" if wait_policy == "default" else wait_policy}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
     return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+@contextlib.contextmanager
+def busy_cores(n: int) -> Iterator[None]:
+    """``n`` processes each keeping a core busy (``python -c 'while 1: pass'``) while the block runs."""
+    procs = [subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(n)]
+    try:
+        yield
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()
 
 
 def train_team(out: Path, seed: int, worlds: int, every: int, cap_s: float, stop_at: float) -> dict[str, Any]:
@@ -123,18 +142,32 @@ def main() -> None:
     ap.add_argument("--stop-at", type=float, default=0.9, help="check share that ends training (default 0.9)")
     ap.add_argument("--out", default="out/multi-bench", help="training runs folder")
     ap.add_argument("--json", default=None, help="output path (default benchmarks/results/multi.json)")
+    ap.add_argument("--wait-policies", nargs="+", default=["PASSIVE"],
+                    help="OMP_WAIT_POLICY values to measure every figure under, in turn (PASSIVE, ACTIVE, "
+                         "or 'default': libgomp's own, spinning before it sleeps; default: PASSIVE, the "
+                         "package's)")
+    ap.add_argument("--busy", type=int, default=0,
+                    help="processes keeping a core busy beside the figures (python -c 'while 1: pass')")
+    ap.add_argument("--rounds", type=int, default=1, help="rounds of every figure, alternated (default 1)")
     args = ap.parse_args()
     sizes = [tuple(int(v) for v in s.lower().split("x")) for s in args.sizes]
-    base = in_subprocess("agent_steps", 256, 0, args.steps)
-    print(f"one-agent vector env, B = 256: {base['agent_steps_per_s']:,.0f} steps/s", flush=True)
-    figures = []
-    for w, n in sizes:
-        r = in_subprocess("agent_steps", w, n, args.steps)
-        r["vs_one_agent_env_256"] = r["agent_steps_per_s"] / base["agent_steps_per_s"]
-        figures.append(r)
-        print(f"{w} worlds x {n} agents: {r['agent_steps_per_s']:,.0f} agent-steps/s "
-              f"({r['vs_one_agent_env_256']:.2f} x the one-agent env), {r['episodes_ended']} episodes ended",
-              flush=True)  # fmt: skip
+    bases, figures = [], []
+    with busy_cores(args.busy):
+        for rnd in range(args.rounds):
+            for policy in args.wait_policies:
+                base = in_subprocess("agent_steps", 256, 0, args.steps, wait_policy=policy)
+                base.update({"round": rnd, "wait_policy": policy, "busy": args.busy})
+                bases.append(base)
+                print(f"[round {rnd}, OMP_WAIT_POLICY {policy}, {args.busy} busy] one-agent vector env, "
+                      f"B = 256: {base['agent_steps_per_s']:,.0f} steps/s", flush=True)  # fmt: skip
+                for w, n in sizes:
+                    r = in_subprocess("agent_steps", w, n, args.steps, wait_policy=policy)
+                    r.update({"round": rnd, "wait_policy": policy, "busy": args.busy})
+                    r["vs_one_agent_env_256"] = r["agent_steps_per_s"] / base["agent_steps_per_s"]
+                    figures.append(r)
+                    print(f"  {w} worlds x {n} agents: {r['agent_steps_per_s']:,.0f} agent-steps/s "
+                          f"({r['vs_one_agent_env_256']:.2f} x the one-agent env), {r['episodes_ended']} "
+                          "episodes ended", flush=True)  # fmt: skip
     teams = []
     if args.train:
         from droneulator.workflows.rl.heldout import rate_text
@@ -149,7 +182,7 @@ def main() -> None:
                 when = f"{args.stop_at:.0%} of the checks after {r['wall_s_to_target']:.0f} s ({steps} steps)"
             ev = r["evaluation"]
             print(f"seed {seed}: {when}; evaluation {rate_text(ev['successes'], ev['episodes'])}", flush=True)
-    write("multi", {"one_agent_256": base, "throughput": figures, "teams": teams,
+    write("multi", {"one_agent_256": bases, "throughput": figures, "teams": teams,
                     "settings": vars(args)}, args.json)  # fmt: skip
 
 

@@ -513,6 +513,7 @@ def test_lockstep_loses_no_image_to_a_slow_subscriber():
     assert wall >= 0.9 * 60 * 0.04  # the clock waited for the subscriber (60 frames, 40 ms each)
 
 
+@pytest.mark.alone
 def test_sigterm_stops_everything_within_its_grace_period():
     from droneulator.runtime.supervisor import STOP_GRACE_S
 
@@ -522,9 +523,11 @@ def test_sigterm_stops_everything_within_its_grace_period():
         assert set(kids) == {"dynamics_server", "render_server", "bridge"}
         t0 = time.monotonic()
         r.proc.send_signal(signal.SIGTERM)
-        r.proc.wait(5)
-        # the children get STOP_GRACE_S before SIGKILL; then the supervisor's own exit (slow on a loaded CPU)
-        assert time.monotonic() - t0 < STOP_GRACE_S + 1.5
+        r.proc.wait(10)
+        # the children get STOP_GRACE_S before SIGKILL; then the supervisor's own interpreter exits, which
+        # took 2.2 s beyond the grace on a machine with both cores kept busy (a supervisor that waited
+        # for a child without the grace would take the wait's 10 s)
+        assert time.monotonic() - t0 < STOP_GRACE_S + 4.0
         time.sleep(0.2)
         for pid in kids.values():
             with pytest.raises(ProcessLookupError):

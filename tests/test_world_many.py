@@ -139,3 +139,47 @@ def test_bad_batched_input_is_a_clear_error_and_the_world_goes_on():
     w.velocity(None, np.ones((2, 2)), np.zeros((2, 2)))
     w.step_frame()
     assert w.frame_t_ns().tolist() == [w.camera_period_ns] * 2
+
+
+_PARALLEL_WORLD = """
+import numpy as np
+from droneulator.config import load_config
+from droneulator.vehicles.dynamics import PARALLEL_ROWS
+from droneulator.world import World
+
+cfg = load_config(scene="default")
+cfg.vehicle.wind = "none"
+world = World(cfg, render=False, worlds=PARALLEL_ROWS)
+world.step_frame(np.ones(PARALLEL_ROWS, dtype=bool))
+print("stepped", world.states.shape[0])
+"""
+
+
+@pytest.mark.parametrize(
+    ("given", "expected"),
+    [
+        (None, ["OMP_WAIT_POLICY = 'PASSIVE'", "GOMP_SPINCOUNT = '0'"]),
+        ("ACTIVE", ["OMP_WAIT_POLICY = 'ACTIVE'"]),
+    ],
+)
+def test_the_parallel_physics_threads_sleep_between_regions_unless_told(
+    given: str | None, expected: list[str]
+) -> None:
+    """Importing the package makes libgomp's threads (numba's OpenMP layer, the many-world physics and the
+    ray cast) wait passively: spinning threads took the cores a loaded machine needed (docs/rl.md). libgomp
+    itself reports its setting (``OMP_DISPLAY_ENV``) once a parallel world step loads it (unset, it spins
+    300,000 times before it sleeps, and reports that as ``GOMP_SPINCOUNT``); a value in the environment wins.
+    """
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"} | {"OMP_DISPLAY_ENV": "VERBOSE"}
+    if given is not None:
+        env["OMP_WAIT_POLICY"] = given
+    done = subprocess.run([sys.executable, "-c", _PARALLEL_WORLD], env=env, capture_output=True, text=True,
+                          timeout=600)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "stepped" in done.stdout
+    for line in expected:
+        assert line in done.stderr, done.stderr[-2000:]

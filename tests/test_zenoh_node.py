@@ -99,7 +99,9 @@ PEER_SCRIPT = textwrap.dedent(
         sub = session.declare_subscriber(args["key"], on_sample)
         peers, routers = wait_for_peer()
         out(ready=True, peers=peers, routers=routers)
-        deadline = time.monotonic() + args.get("wait", 10)
+        # "count" samples end the wait early; its limit is generous, as a loaded machine can take seconds
+        # between this report and the test's first publication
+        deadline = time.monotonic() + args.get("wait", 30)
         while len(got) < args["count"] and time.monotonic() < deadline:
             time.sleep(0.01)
         gone = set()
