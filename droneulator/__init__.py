@@ -4,13 +4,11 @@ Importing the package registers the Gymnasium environment ``droneulator/Vineyard
 Gymnasium is installed (by name only: the environment, torch and the renderer load on ``gym.make``).
 """
 
-import os
 from importlib.util import find_spec
 
-# numba's OpenMP threads (the physics and the ray cast) sleep between parallel regions instead of spinning:
-# no slower on an idle machine, and 1.3 to 6.8 times faster with another process keeping a core busy
-# (docs/rl.md, "Measured: many worlds of many agents"). Set before libgomp loads; the environment wins.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+from droneulator.threads import sleeping_openmp_threads
+
+sleeping_openmp_threads()  # before any parallel kernel loads libgomp
 
 if find_spec("gymnasium") is not None:
     from droneulator.workflows.rl import register_envs
