@@ -154,6 +154,20 @@ world.step_frame(np.ones(PARALLEL_ROWS, dtype=bool))
 print("stepped", world.states.shape[0])
 """
 
+#: one world of PARALLEL_ROWS vehicles stepped by its flight controllers: the parallel period kernel called
+#: from Python (and so cached), ``step_to_frame`` not compiled
+_PARALLEL_FLEET = """
+from droneulator.config import fleet, load_config
+from droneulator.vehicles.dynamics import PARALLEL_ROWS
+from droneulator.world import World
+
+cfg = load_config(scene="default")
+cfg.vehicles = fleet(PARALLEL_ROWS)
+world = World(cfg, render=False)
+world.step(2)
+print("stepped", world.states.shape[1])
+"""
+
 
 @pytest.mark.parametrize(
     ("given", "expected"),
@@ -183,3 +197,29 @@ def test_the_parallel_physics_threads_sleep_between_regions_unless_told(
     assert "stepped" in done.stdout
     for line in expected:
         assert line in done.stderr, done.stderr[-2000:]
+
+
+def test_a_cached_step_compiled_against_a_cached_parallel_kernel_runs_in_the_next_process(tmp_path):
+    """The race two test workers ran on a fresh clone: one process caches the parallel period kernel, the
+    next compiles (and caches) ``step_to_frame``, which calls it, while it is in the cache, and the third
+    loads ``step_to_frame`` and steps. Numba cached the second's ``step_to_frame`` broken and the third
+    segfaulted (every time, in any later process) until ``step_to_frame`` called a dispatcher of the
+    kernel compiled in its own process (``world/step.py``)."""
+    import os
+    import subprocess
+    import sys
+
+    env = os.environ | {"NUMBA_CACHE_DIR": str(tmp_path), "PYTHONFAULTHANDLER": "1"}
+
+    def run(code: str) -> None:
+        cmd = [sys.executable, "-c", code]
+        done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900)
+        assert done.returncode == 0, done.stderr[-3000:]
+        assert "stepped" in done.stdout
+
+    run(_PARALLEL_FLEET)  # caches the period kernel
+    assert list(tmp_path.glob("world_*/step.run_period_parallel-*.nbc"))
+    assert not list(tmp_path.glob("world_*/step.step_to_frame-*"))
+    run(_PARALLEL_WORLD)  # compiles step_to_frame with the kernel in the cache, and caches it
+    assert list(tmp_path.glob("world_*/step.step_to_frame-*.nbc"))
+    run(_PARALLEL_WORLD)  # loads it

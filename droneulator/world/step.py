@@ -214,6 +214,14 @@ def run_period_parallel(go, begin, t_to, t_ns, states, cmds, active, substep, P,
     return hits
 
 
+#: :func:`run_period_parallel` as :func:`step_to_frame` calls it: the same function, compiled in each process
+#: that compiles its caller and never loaded from numba's cache. A cached function compiled against a
+#: parallel kernel loaded from the cache is cached broken: the next process that loads it segfaults
+#: (numba 0.68; numba/numba#8578 is the same family). Two test workers on a fresh clone did that (one
+#: cached the kernel while the other compiled ``step_to_frame``); ``tests/test_world_many.py`` replays it.
+_run_period_parallel_here = numba.njit(parallel=True)(run_period_parallel.py_func)
+
+
 @numba.njit(cache=True)
 def _nearest_rotors(s, geom, other, R):  # fmt: skip
     """Bit mask of the rotors of a vehicle in state ``s`` nearest the point ``other`` (those within
@@ -332,10 +340,10 @@ def step_to_frame(run, parallel, period_ns, camera_ns, t_ns, next_frame, states,
             if not left:
                 break
             if parallel:
-                run_period_parallel(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx,
-                                    sdfs, wood, off, shapes, origins, res, variant, radius, model, eff, dead,
-                                    out, hit, hit_t, hit_kind, work, R, now, period_start, mode, flats, vref,
-                                    dt, lim, gains)  # fmt: skip
+                _run_period_parallel_here(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D,
+                                          pidx, sdfs, wood, off, shapes, origins, res, variant, radius, model,
+                                          eff, dead, out, hit, hit_t, hit_kind, work, R, now, period_start,
+                                          mode, flats, vref, dt, lim, gains)  # fmt: skip
             else:
                 run_period_serial(go, begin, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs,
                                   wood, off, shapes, origins, res, variant, radius, model, eff, dead, out,
