@@ -1,6 +1,7 @@
 """``droneulator train --algo distil``: the CTBR expert's labels round-trip through the env's actuator, the
 expert reaches the goal, and a tiny DAgger run leaves a student that imitates the expert better than an
-untrained one and that ``evaluate`` loads."""
+untrained one and that ``evaluate`` loads; SAC from demonstrations fills its replay buffer's warm-up with the
+path teacher's velocity actions (which round-trip through the actuator) and trains on one or two agents."""
 
 from __future__ import annotations
 
@@ -148,3 +149,10 @@ def test_sac_from_demonstrations_fills_the_buffer_with_the_teachers_actions(tmp_
     assert np.isfinite(written["demonstration_bc_loss"])
     with pytest.raises(ValueError, match="velocity"):
         train(_ctbr(), tmp_path, steps=10, n_envs=2, vec="native", overrides={"demonstrations": 10})
+
+
+def test_the_command_line_takes_demonstrations_for_sac_only(capsys):
+    from droneulator.cli import main
+
+    assert main(["train", "--num-envs", "4", "--algo", "ppo", "--demonstrations", "10"]) == 2
+    assert "SAC settings" in capsys.readouterr().err

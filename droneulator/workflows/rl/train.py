@@ -9,7 +9,9 @@ training log as CSV and TensorBoard), ``config.json`` (the SimConfig the environ
 The SAC settings are tuned for a 50k-step budget on a small CPU: two gradient steps per transition
 (update-to-data ratio 2) on small 2x64 MLPs (cheap updates, so the ratio is affordable), 5-step
 returns with gamma 0.99 (a 3 s horizon at 30 Hz, long enough to see a vine row before reaching it),
-a 2k-step uniform-random warm-up, batch 256. The learner uses one torch thread by default;
+a 2k-step uniform-random warm-up, batch 256. ``demonstrations`` (``--demonstrations N``, velocity level,
+off by default) has the scripted path teacher fly the first N steps instead (:func:`demonstrated_sac`;
+measured in docs/rl.md: not better enough to be the default). The learner uses one torch thread by default;
 environment stepping and learning alternate (SB3 is synchronous), and vectorised environments step
 in parallel subprocesses, each single-threaded.
 
