@@ -42,8 +42,10 @@ def test_expert_commands_round_trip_through_the_actuator(scale):
         act.map(np.arange(64), actions.astype(np.float64)), commands, rtol=1e-6, atol=1e-5
     )
     np.testing.assert_array_equal(act.actions([[2 * af.max_thrust, 0.0, 0.0, 0.0]])[0, 0], 1.0)  # clipped
-    with pytest.raises(ValueError, match="ctbr"):
-        Actuator(env_config(load_config(None)), 1).actions(commands)
+    attitude = load_config(None)
+    attitude.rl.action = "attitude"
+    with pytest.raises(ValueError, match="velocity and ctbr"):
+        Actuator(env_config(attitude), 1).actions(commands)
 
 
 def test_the_expert_flies_its_episodes_to_the_goal():
