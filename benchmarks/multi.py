@@ -30,6 +30,8 @@ from typing import Any
 import numpy as np
 from _common import write
 
+#: the train command's flag for each SAC demonstration setting
+FLAGS = {"demonstrations": "demonstrations", "demonstration_bc_steps": "bc-steps"}
 #: steps per figure: every agent flies this many frames (10 s), so restarts are part of the figure
 STEPS = 300
 
@@ -92,9 +94,11 @@ def busy_cores(n: int) -> Iterator[None]:
             p.wait()
 
 
-def train_team(out: Path, seed: int, worlds: int, every: int, cap_s: float, stop_at: float) -> dict[str, Any]:
+def train_team(
+    out: Path, seed: int, worlds: int, every: int, cap_s: float, stop_at: float, demo: dict[str, int]
+) -> dict[str, Any]:
     """A shared policy for two agents per world to ``stop_at`` of 50 check team episodes (or ``cap_s``),
-    then the 50 evaluation team episodes."""
+    then the 50 evaluation team episodes; ``demo``: SAC hyperparameters (the demonstrations')."""
     from stable_baselines3 import SAC
 
     from droneulator.workflows.rl.env import env_config
@@ -102,7 +106,8 @@ def train_team(out: Path, seed: int, worlds: int, every: int, cap_s: float, stop
     from droneulator.workflows.rl.train import held_out_env, held_out_successes, train
 
     summary = train(None, out, steps=50_000_000, seed=seed, n_envs=worlds, vec="native", agents=2,
-                    progress=False, stop_at=stop_at, check_every=every, max_wall_s=cap_s)  # fmt: skip
+                    progress=False, stop_at=stop_at, check_every=every, max_wall_s=cap_s,
+                    overrides=demo)  # fmt: skip
     policy = SAC.load(out / "model.zip", device="cpu", custom_objects={"replay_buffer_class": None})
     seeds = list(range(EVAL_SEED, EVAL_SEED + EVAL_EPISODES))
     assert not set(seeds) & set(summary["check_seeds"])
@@ -125,14 +130,15 @@ def train_team(out: Path, seed: int, worlds: int, every: int, cap_s: float, stop
         "evaluation_seeds": [seeds[0], seeds[-1]],
         "evaluation": interval_record(successes, len(seeds)),
         "stop_at": stop_at,
+        "hyperparameters": summary["hyperparameters"],
         "command": f"droneulator train --num-envs {worlds} --agents 2 --seed {seed} --stop-at {stop_at} "
-        f"--check-every {every} --out {out}",
+        f"--check-every {every} --out {out}" + "".join(f" --{FLAGS[k]} {v}" for k, v in demo.items()),
     }
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--sizes", nargs="+", default=["64x4", "128x2", "256x1"], help="W x N configurations")
+    ap.add_argument("--sizes", nargs="*", default=["64x4", "128x2", "256x1"], help="W x N (none: skip)")
     ap.add_argument("--steps", type=int, default=STEPS, help=f"steps per figure (default {STEPS})")
     ap.add_argument("--train", action="store_true", help="also train a shared policy for teams of two")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="training seeds (default 0)")
@@ -140,6 +146,8 @@ def main() -> None:
     ap.add_argument("--check-every", type=int, default=10_000, help="SAC steps between checks")
     ap.add_argument("--cap", type=float, default=600.0, help="training time cap per seed (s, default 600)")
     ap.add_argument("--stop-at", type=float, default=0.9, help="check share that ends training (default 0.9)")
+    ap.add_argument("--demonstrations", type=int, default=None, help="teacher warm-up steps (SAC's default)")
+    ap.add_argument("--bc-steps", type=int, default=None, help="actor cloning steps after them")
     ap.add_argument("--out", default="out/multi-bench", help="training runs folder")
     ap.add_argument("--json", default=None, help="output path (default benchmarks/results/multi.json)")
     ap.add_argument("--wait-policies", nargs="+", default=["PASSIVE"],
@@ -153,7 +161,7 @@ def main() -> None:
     sizes = [tuple(int(v) for v in s.lower().split("x")) for s in args.sizes]
     bases, figures = [], []
     with busy_cores(args.busy):
-        for rnd in range(args.rounds):
+        for rnd in range(args.rounds if sizes else 0):
             for policy in args.wait_policies:
                 base = in_subprocess("agent_steps", 256, 0, args.steps, wait_policy=policy)
                 base.update({"round": rnd, "wait_policy": policy, "busy": args.busy})
@@ -169,12 +177,14 @@ def main() -> None:
                           f"({r['vs_one_agent_env_256']:.2f} x the one-agent env), {r['episodes_ended']} "
                           "episodes ended", flush=True)  # fmt: skip
     teams = []
+    given = {"demonstrations": args.demonstrations, "demonstration_bc_steps": args.bc_steps}
+    demo = {k: v for k, v in given.items() if v is not None}
     if args.train:
         from droneulator.workflows.rl.heldout import rate_text
 
         for seed in args.seeds:
             out = Path(args.out) / f"seed{seed}"
-            r = train_team(out, seed, args.worlds, args.check_every, args.cap, args.stop_at)
+            r = train_team(out, seed, args.worlds, args.check_every, args.cap, args.stop_at, demo)
             teams.append(r)
             when = f"{args.stop_at:.0%} of the checks not reached within {args.cap:.0f} s"
             if r["reached_target"]:

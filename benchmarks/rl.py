@@ -125,6 +125,10 @@ def batched_throughput(n_envs: int, steps: int) -> dict[str, Any]:
     }
 
 
+#: the train command's flag for each SAC demonstration setting
+FLAGS = {"demonstrations": "demonstrations", "demonstration_bc_steps": "bc-steps"}
+
+
 def in_subprocess(fn: str, *args: Any) -> dict[str, Any]:
     """``fn(*args)`` of this script in a fresh Python process (clean memory figures, no shared caches)."""
     code = f"import json, sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); import rl; "
@@ -133,15 +137,18 @@ def in_subprocess(fn: str, *args: Any) -> dict[str, Any]:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def train_to_target(out: Path, seed: int, algo: str, n_envs: int, every: int, cap_s: float) -> dict[str, Any]:
+def train_to_target(
+    out: Path, seed: int, algo: str, n_envs: int, every: int, cap_s: float, demo: dict[str, int] | None = None
+) -> dict[str, Any]:
     """Train until 45 of the 50 check episodes succeed (or ``cap_s`` s), then the policy on the 50
-    evaluation episodes (seeds apart from the check's)."""
+    evaluation episodes (seeds apart from the check's); ``demo``: SAC's demonstration settings."""
     from droneulator.workflows.rl.heldout import EVAL_EPISODES, EVAL_SEED, interval_record
     from droneulator.workflows.rl.train import held_out_successes, train
     from droneulator.workflows.rl.vector import VineyardNavVectorEnv
 
     summary = train(None, out, steps=50_000_000, seed=seed, n_envs=n_envs, algo=algo, vec="native",
-                    progress=False, stop_at=0.9, check_every=every, max_wall_s=cap_s)  # fmt: skip
+                    progress=False, stop_at=0.9, check_every=every, max_wall_s=cap_s,
+                    overrides=demo or None)  # fmt: skip
     from stable_baselines3 import PPO, SAC
 
     policy = (PPO if algo == "ppo" else SAC).load(out / "model.zip", device="cpu")
@@ -169,8 +176,9 @@ def train_to_target(out: Path, seed: int, algo: str, n_envs: int, every: int, ca
         "checks": summary["checks"],
         "evaluation_seeds": [seeds[0], seeds[-1]],
         "evaluation": interval_record(successes, len(seeds)),
+        "hyperparameters": summary["hyperparameters"],
         "command": f"droneulator train --num-envs {n_envs} --algo {algo} --seed {seed} --stop-at 0.9 "
-        f"--check-every {every} --out {out}",
+        f"--check-every {every} --out {out}" + "".join(f" --{FLAGS[k]} {v}" for k, v in (demo or {}).items()),
     }
 
 
@@ -199,6 +207,8 @@ def main() -> None:
     ap.add_argument("--ppo-envs", type=int, default=256, help="B for the PPO comparison (0: skip it)")
     ap.add_argument("--baseline-training", action="store_true", help="also SAC 50k on one single env")
     ap.add_argument("--quick", action="store_true", help="smoke run: small sizes, no training")
+    ap.add_argument("--demonstrations", type=int, default=None, help="SAC: teacher warm-up steps")
+    ap.add_argument("--bc-steps", type=int, default=None, help="SAC: actor cloning steps after them")
     ap.add_argument("--json", default=None, help="output path (default benchmarks/results/rl.json)")
     args = ap.parse_args()
     if args.quick:
@@ -219,9 +229,11 @@ def main() -> None:
             f"resets {100 * r['reset_share']:4.1f} % of the time"
         )
     out = Path(args.out)
+    given = {"demonstrations": args.demonstrations, "demonstration_bc_steps": args.bc_steps}
+    demo = {k: v for k, v in given.items() if v is not None}
     res["training"] = []
     for seed in args.seeds:
-        r = train_to_target(out / f"sac-{seed}", seed, "sac", args.num_envs, args.check_every, args.cap)
+        r = train_to_target(out / f"sac-{seed}", seed, "sac", args.num_envs, args.check_every, args.cap, demo)
         res["training"].append(r)
         print(
             f"SAC x{args.num_envs} seed {seed}: {_reached(r, args.cap)}; 50 evaluation episodes: {_rate(r)}"

@@ -1,6 +1,7 @@
 """``droneulator train --algo distil``: the CTBR expert's labels round-trip through the env's actuator, the
 expert reaches the goal, and a tiny DAgger run leaves a student that imitates the expert better than an
-untrained one and that ``evaluate`` loads."""
+untrained one and that ``evaluate`` loads; SAC from demonstrations fills its replay buffer's warm-up with the
+path teacher's velocity actions (which round-trip through the actuator) and trains on one or two agents."""
 
 from __future__ import annotations
 
@@ -41,8 +42,10 @@ def test_expert_commands_round_trip_through_the_actuator(scale):
         act.map(np.arange(64), actions.astype(np.float64)), commands, rtol=1e-6, atol=1e-5
     )
     np.testing.assert_array_equal(act.actions([[2 * af.max_thrust, 0.0, 0.0, 0.0]])[0, 0], 1.0)  # clipped
-    with pytest.raises(ValueError, match="ctbr"):
-        Actuator(env_config(load_config(None)), 1).actions(commands)
+    attitude = load_config(None)
+    attitude.rl.action = "attitude"
+    with pytest.raises(ValueError, match="velocity and ctbr"):
+        Actuator(env_config(attitude), 1).actions(commands)
 
 
 def test_the_expert_flies_its_episodes_to_the_goal():
@@ -106,3 +109,52 @@ def test_the_command_line_refuses_distil_without_its_level_or_batched_env(capsys
         assert main(["train", "--algo", "distil", "--out", out, *args]) == 2
         err = capsys.readouterr().err
         assert message in err and err.count("\n") == 1, (args, err)
+
+
+def test_teacher_velocity_actions_round_trip_through_the_actuator():
+    cfg = env_config()
+    act = Actuator(cfg, 64)
+    rng = np.random.default_rng(1)
+    forward = rng.uniform(cfg.rl.forward_min, cfg.rl.forward_max, 64)
+    commands = np.column_stack([forward, rng.uniform(-1.0, 1.0, 64) * cfg.rl.max_yaw_rate])
+    actions = act.actions(commands)
+    assert actions.dtype == np.float32 and actions.shape == (64, 2)
+    np.testing.assert_allclose(act.map(np.arange(64), actions.astype(np.float64)), commands, atol=1e-5)
+    np.testing.assert_array_equal(act.actions([[99.0, -99.0]]), [[1.0, -1.0]])  # clipped to the space
+
+
+def test_sac_from_demonstrations_fills_the_buffer_with_the_teachers_actions(tmp_path):
+    from droneulator.workflows.rl.distil import PathTeacher
+    from droneulator.workflows.rl.train import demonstrated_sac, make_vec_env, teacher_actions
+
+    cfg = env_config()
+    venv = make_vec_env(cfg, 2, "native", agents=2)
+    try:
+        cls = demonstrated_sac(cfg, steps=80, noise=0.0, bc_steps=5, seed=0)
+        model = cls("MlpPolicy", venv, seed=0, device="cpu", learning_starts=40, batch_size=16, n_steps=1)
+        model.learn(total_timesteps=120)
+        buf = model.replay_buffer
+        teacher, act = PathTeacher(cfg), Actuator(cfg, 1)
+        obs, actions = buf.observations[:20].reshape(-1, 35), buf.actions[:20].reshape(-1, 2)
+        np.testing.assert_allclose(actions, teacher_actions(teacher, act, obs), atol=1e-6)
+        later = buf.actions[20:30].reshape(-1, 2)  # the actor's, once the teacher handed over
+        wanted = teacher_actions(teacher, act, buf.observations[20:30].reshape(-1, 35))
+        assert not np.allclose(later, wanted, atol=1e-3)
+        assert model.bc_loss is not None and np.isfinite(model.bc_loss)
+    finally:
+        venv.close()
+    summary = train(None, tmp_path, steps=160, n_envs=2, agents=2, vec="native", progress=False,
+                    overrides={"learning_starts": 40, "batch_size": 16, "demonstrations": 80,
+                               "demonstration_bc_steps": 5})  # fmt: skip
+    written = json.loads((tmp_path / "train_summary.json").read_text())
+    assert written["hyperparameters"]["demonstrations"] == 80 and summary["steps"] >= 160
+    assert np.isfinite(written["demonstration_bc_loss"])
+    with pytest.raises(ValueError, match="velocity"):
+        train(_ctbr(), tmp_path, steps=10, n_envs=2, vec="native", overrides={"demonstrations": 10})
+
+
+def test_the_command_line_takes_demonstrations_for_sac_only(capsys):
+    from droneulator.cli import main
+
+    assert main(["train", "--num-envs", "4", "--algo", "ppo", "--demonstrations", "10"]) == 2
+    assert "SAC settings" in capsys.readouterr().err

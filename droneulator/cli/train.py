@@ -102,6 +102,21 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--out", default="out/rl", help="run folder (default out/rl)")
     p.add_argument("--learning-starts", type=int, default=None, help="random warm-up steps (default 2000)")
     p.add_argument(
+        "--demonstrations",
+        type=int,
+        default=None,
+        metavar="N",
+        help="SAC from demonstrations: the first N env steps flown by the scripted path teacher instead of "
+        "random actions (velocity level; default 0: off)",
+    )
+    p.add_argument(
+        "--bc-steps",
+        type=int,
+        default=None,
+        metavar="K",
+        help="with --demonstrations: K behaviour-cloning steps of the actor on them before it flies",
+    )
+    p.add_argument(
         "--checkpoint-every", type=int, default=10_000, help="checkpoint period in steps (not distil)"
     )
     p.add_argument("--threads", type=int, default=None, help="torch threads for the learner (default 1)")
@@ -153,9 +168,14 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.agents < 1 or (args.agents > 1 and not native):
         raise ValueError(f"--agents must be at least 1, and more than one need --num-envs, got {args.agents}")
     algo = args.algo or "sac"
-    overrides = {} if args.learning_starts is None else {"learning_starts": args.learning_starts}
+    given = {
+        "learning_starts": args.learning_starts,
+        "demonstrations": args.demonstrations,
+        "demonstration_bc_steps": args.bc_steps,
+    }
+    overrides = {k: v for k, v in given.items() if v is not None}
     if overrides and algo != "sac":
-        raise ValueError("--learning-starts is a SAC setting, not PPO's")
+        raise ValueError("--learning-starts, --demonstrations and --bc-steps are SAC settings")
     summary = train(
         cfg,
         Path(args.out),
@@ -266,9 +286,14 @@ def _train_sb3_on_ray(args: argparse.Namespace, cfg: SimConfig) -> int:
     if ignored:
         raise ValueError(f"{', '.join(ignored)}: not with --ray-backend sb3 (see droneulator train --help)")
     algo = args.algo or "ppo"
-    overrides = {} if args.learning_starts is None else {"learning_starts": args.learning_starts}
+    given = {
+        "learning_starts": args.learning_starts,
+        "demonstrations": args.demonstrations,
+        "demonstration_bc_steps": args.bc_steps,
+    }
+    overrides = {k: v for k, v in given.items() if v is not None}
     if overrides and algo != "sac":
-        raise ValueError("--learning-starts is a SAC setting, not PPO's")
+        raise ValueError("--learning-starts, --demonstrations and --bc-steps are SAC settings")
     worlds = args.num_envs or 64
     if not 1 <= args.env_runners <= worlds:
         raise ValueError(f"--env-runners must be between 1 and --num-envs ({worlds}), got {args.env_runners}")

@@ -127,11 +127,15 @@ class Actuator:
         return out
 
     def actions(self, commands: np.ndarray) -> np.ndarray:
-        """The actions (``(k, 4)`` float32, clipped to [-1, 1]) that :meth:`map` turns into the ``ctbr``
-        ``commands`` (``(k, 4)``: thrust N, body rates rad/s): the inverse of its scaling, for labelling a
-        policy's states with an expert's commands (:mod:`.distil`)."""
+        """The actions (float32, clipped to [-1, 1]) that :meth:`map` turns into ``commands``: the inverse
+        of its scaling, for an expert's or teacher's commands (:mod:`.distil`). ``velocity``: ``(k, 2)``
+        forward speed m/s and yaw rate rad/s; ``ctbr``: ``(k, 4)`` thrust N and body rates rad/s."""
+        if self.level == "velocity":
+            v = np.asarray(commands, dtype=np.float64).reshape(-1, 2)
+            a = np.column_stack([(v[:, 0] - self._mid) / self._half, v[:, 1] / self._max_yaw_rate])
+            return np.clip(a, -1.0, 1.0).astype(np.float32)
         if self.level != "ctbr":
-            raise ValueError(f"actions() inverts the ctbr level's scaling, not {self.level!r}")
+            raise ValueError(f"actions() inverts the velocity and ctbr levels' scaling, not {self.level!r}")
         af, c = self.airframe, np.asarray(commands, dtype=np.float64).reshape(-1, 4)
         out = np.empty(c.shape)
         thrust = c[:, 0]

@@ -9,7 +9,9 @@ training log as CSV and TensorBoard), ``config.json`` (the SimConfig the environ
 The SAC settings are tuned for a 50k-step budget on a small CPU: two gradient steps per transition
 (update-to-data ratio 2) on small 2x64 MLPs (cheap updates, so the ratio is affordable), 5-step
 returns with gamma 0.99 (a 3 s horizon at 30 Hz, long enough to see a vine row before reaching it),
-a 2k-step uniform-random warm-up, batch 256. The learner uses one torch thread by default;
+a 2k-step uniform-random warm-up, batch 256. ``demonstrations`` (``--demonstrations N``, velocity level,
+off by default) has the scripted path teacher fly the first N steps instead (:func:`demonstrated_sac`;
+measured in docs/rl.md: not better enough to be the default). The learner uses one torch thread by default;
 environment stepping and learning alternate (SB3 is synchronous), and vectorised environments step
 in parallel subprocesses, each single-threaded.
 
@@ -62,7 +64,17 @@ SAC_HYPERPARAMETERS: dict[str, Any] = {
     "ent_coef": "auto_0.1",
     # torch's fused CPU Adam: a gradient step in 3.7 ms instead of 4.3 (batch 256, 2x64, one thread)
     "policy_kwargs": {"net_arch": [64, 64], "optimizer_kwargs": {"fused": True}},
+    # SAC from demonstrations (velocity level, not SB3 names): the first ``demonstrations`` env steps are
+    # flown by the scripted teacher (:class:`~droneulator.workflows.rl.distil.PathTeacher`, its actions
+    # plus Gaussian noise of std ``demonstration_noise``) instead of uniform random actions, then
+    # ``demonstration_bc_steps`` Adam steps regress the actor's mean action on the replay buffer's
+    # actions (behaviour cloning) before the actor flies; 0: off
+    "demonstrations": 0,
+    "demonstration_noise": 0.1,
+    "demonstration_bc_steps": 0,
 }
+#: the entries of :data:`SAC_HYPERPARAMETERS` that are the demonstrations', not SB3's
+DEMONSTRATION_KEYS = ("demonstrations", "demonstration_noise", "demonstration_bc_steps")
 
 #: PPO hyperparameters (Stable-Baselines3 names) for the batched env (hundreds of environments)
 PPO_HYPERPARAMETERS: dict[str, Any] = {
@@ -368,6 +380,56 @@ def train(
         )  # fmt: skip
 
 
+def demonstrated_sac(cfg: SimConfig, steps: int, noise: float, bc_steps: int, seed: int) -> Any:
+    """SB3's SAC whose first ``steps`` env steps (counted over every env) fly the scripted teacher's
+    velocity actions plus N(0, ``noise``) (clipped) instead of uniform random ones, and whose actor is
+    then regressed on the replay buffer's actions for ``bc_steps`` Adam steps (its mean action, squared
+    error) before it flies; the buffer keeps the teacher's transitions and SAC learns on the reward."""
+    import numpy as np
+    import torch
+    from stable_baselines3 import SAC
+
+    from droneulator.workflows.rl.distil import PathTeacher
+    from droneulator.workflows.rl.levels import Actuator
+
+    teacher, actuator = PathTeacher(cfg), Actuator(cfg, 1)
+    rng = np.random.default_rng(seed)
+
+    class DemonstratedSAC(SAC):
+        bc_loss: float | None = None
+
+        def _sample_action(self, learning_starts: int, action_noise: Any = None, n_envs: int = 1) -> Any:
+            if self.num_timesteps < steps:
+                action = teacher_actions(teacher, actuator, self._last_obs)
+                action = np.clip(action + rng.normal(0.0, noise, action.shape), -1.0, 1.0).astype(np.float32)
+                return action, action
+            if bc_steps > 0 and self.bc_loss is None:
+                self.bc_loss = self._clone(bc_steps)
+            return super()._sample_action(learning_starts, action_noise, n_envs)
+
+        def _clone(self, n: int) -> float:
+            """``n`` Adam steps of the actor's mean action on the buffer's actions; the last loss."""
+            actor, loss = self.actor, torch.zeros(())
+            for _ in range(n):
+                batch = self.replay_buffer.sample(self.batch_size, env=self._vec_normalize_env)
+                mean, _, _ = actor.get_action_dist_params(batch.observations)
+                loss = ((torch.tanh(mean) - batch.actions) ** 2).sum(dim=1).mean()
+                actor.optimizer.zero_grad()
+                loss.backward()
+                actor.optimizer.step()
+            return float(loss.detach())
+
+    return DemonstratedSAC
+
+
+def teacher_actions(teacher: Any, actuator: Any, obs: Any) -> Any:
+    """The teacher's velocity actions (``(B, 2)`` float32) for the observations ``obs``."""
+    import numpy as np
+
+    forward, yaw_rate = teacher(np.asarray(obs))
+    return actuator.actions(np.column_stack([forward, yaw_rate]))
+
+
 def _learn(
     cfg: SimConfig, out: Path, steps: int, seed: int, n_envs: int, algo: str, vec: str, checkpoint_every: int,
     threads: int, progress: bool, hyper: dict[str, Any], depth: str, stop_at: float | None, check_every: int,
@@ -378,12 +440,18 @@ def _learn(
     from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
     from stable_baselines3.common.logger import Logger, make_output_format
 
+    demo = {key: hyper.pop(key) for key in DEMONSTRATION_KEYS if key in hyper}
+    if demo.get("demonstrations", 0) > 0 and cfg.rl.action != "velocity":
+        raise ValueError(f"demonstrations fly the velocity level, not {cfg.rl.action!r}")
     venv = make_vec_env(
         cfg, n_envs, vec, monitor=out / "monitor.csv", depth=depth, actors=actors, agents=agents
     )
     restarts, nodes, ray_seeds = 0, None, []
     try:
         cls = SAC if algo == "sac" else PPO
+        if demo.get("demonstrations", 0) > 0:
+            cls = demonstrated_sac(cfg, demo["demonstrations"], demo["demonstration_noise"],
+                                   demo["demonstration_bc_steps"], seed)  # fmt: skip
         model = cls("MlpPolicy", venv, seed=seed, device="cpu", verbose=0, **hyper)
         model.set_logger(
             Logger(
@@ -427,9 +495,11 @@ def _learn(
         "torch_threads": threads,
         "seed": seed,
         "train_seeds": sorted({seed + i for i in range(n_envs)} | set(ray_seeds)),
-        "hyperparameters": hyper,
+        "hyperparameters": {**hyper, **demo},
         "model": str(out / "model.zip"),
     }
+    if getattr(model, "bc_loss", None) is not None:
+        summary["demonstration_bc_loss"] = model.bc_loss
     if vec == "ray":
         summary.update({"ray_actors": actors, "ray_nodes": nodes, "actor_restarts": restarts})
     if check is not None:
