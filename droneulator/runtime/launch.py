@@ -36,7 +36,7 @@ from typing import IO
 from websockets.exceptions import WebSocketException
 
 from droneulator.api.access import generate_token, needs_token
-from droneulator.api.client import DroneulatorClient
+from droneulator.api.client import ConnectionLostError, DroneulatorClient
 from droneulator.config import SimConfig, load_config, to_dict
 from droneulator.runtime.spawn import cli_command
 
@@ -212,8 +212,8 @@ class LaunchedRun:
                 with self.client(timeout=min(10.0, max(1.0, timeout))) as c:
                     c.ping()
                 return
-            except (OSError, WebSocketException) as exc:  # refused, reset or a half-done handshake
-                last = exc
+            except (OSError, WebSocketException, ConnectionLostError) as exc:
+                last = exc  # refused, reset, a half-done handshake, or closed by a run that is exiting
             if time.monotonic() > deadline:
                 raise LaunchError(self._failure(f"did not answer on {self.url} within {timeout:g} s: {last}"))
             time.sleep(0.2)
