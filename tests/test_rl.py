@@ -235,7 +235,8 @@ def test_remote_mode_against_a_running_simulator():
             for _ in range(8):
                 obs, reward, terminated, truncated, info = env.step(np.array([0.6, 0.0]))
                 assert env.observation_space.contains(obs) and not terminated
-            assert info["position"][0] > -8.0 + 0.3  # it flew along the alley
+            # it flew along the alley (a hover stays within 0.05 m; 0.29 m in 8 frames with a core kept busy)
+            assert info["position"][0] > -8.0 + 0.15
             assert env.kinematics.mode == "velocity" and obs[33] > -0.2  # moving forward
             assert reward > 0.0
         finally:
