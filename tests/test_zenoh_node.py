@@ -216,6 +216,25 @@ def wait_until(pred: Callable[[], bool], timeout: float = 10.0) -> bool:
     return pred()
 
 
+def sending(send: Callable[[], None], wait: Callable[[], Any], period: float = 0.1) -> Any:
+    """``wait()``'s result while ``send()`` repeats every ``period`` s on a thread: a sample sent the moment a
+    route matched was lost on a loaded machine (the subscriber's side not yet ready for it)."""
+    stop = threading.Event()
+
+    def loop() -> None:
+        while not stop.is_set():
+            send()
+            stop.wait(period)
+
+    sender = threading.Thread(target=loop)
+    sender.start()
+    try:
+        return wait()
+    finally:
+        stop.set()
+        sender.join()
+
+
 def watcher(**session: Any) -> dict[str, Any]:
     """Peer-process arguments for a session that only reports who connected and which tokens it sees."""
     return {"role": "listen", "key": "unused", "type": "std_msgs/msg/Header", "count": 0, **session}
@@ -587,21 +606,7 @@ def test_rmw_zenoh_node_reaches_a_router_on_the_default_endpoint(
         )
         assert node.zid in router.expect("peers")
         assert wait_until(lambda: pub.matching)
-        # until the router reports a sample: one sent the moment the route matched can be lost under load
-        stop = threading.Event()
-
-        def send() -> None:
-            while not stop.is_set():
-                pub.publish(twist_cdr(0.5, 0.0))
-                stop.wait(0.1)
-
-        sender = threading.Thread(target=send)
-        sender.start()
-        try:
-            (sample,) = router.expect("samples")
-        finally:
-            stop.set()
-            sender.join()
+        (sample,) = sending(lambda: pub.publish(twist_cdr(0.5, 0.0)), lambda: router.expect("samples"))
         token = (
             f"@ros2_lv/0/{node.zid}/0/1/MP/%/%/droneulator/%droneulator%cmd_vel/{TWIST_DDS}/{TWIST_HASH}/::,10:,:,:,,"
         )
@@ -663,22 +668,13 @@ def test_rmw_zenoh_qos_in_token(spawn: Callable[[dict[str, Any]], Peer]) -> None
         probe = node.session.declare_publisher(static.key)
         assert wait_until(lambda: probe.matching_status)
         probe.undeclare()
-        # until the peer reports: one sent the moment the route matched was lost with a core kept busy
-        stop, sent = threading.Event(), [0]
+        sent = [0]
 
-        def send() -> None:
-            while not stop.is_set():
-                static.publish(M.serialize(tf), 5)
-                sent[0] += 1
-                stop.wait(0.2)
+        def publish() -> None:
+            static.publish(M.serialize(tf), 5)
+            sent[0] += 1
 
-        sender = threading.Thread(target=send)
-        sender.start()
-        try:
-            (sample,) = peer.expect("samples")
-        finally:
-            stop.set()
-            sender.join()
+        (sample,) = sending(publish, lambda: peer.expect("samples"), period=0.2)
         assert sample["key"] == f"0/tf_static/tf2_msgs::msg::dds_::TFMessage_/{tf_hash}"
         assert 1 <= sample["attachment"]["seq"] <= sent[0]  # rmw_zenoh numbers a publisher's samples from 1
         assert sample["msg"]["transforms"][0]["child_frame_id"] == "cam_link"
