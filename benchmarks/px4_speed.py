@@ -6,7 +6,8 @@ at once, armed, holding 2 m with a vertical PD loop on HIL_STATE_QUATERNION), fo
 Real PX4 answers in well under a millisecond per 4 ms step, so the peer's reply time stands in for it
 (no PX4 here). Per speed factor it prints: simulated seconds per wall second, the PX4 step (must stay
 exactly 4000 us of HIL_SENSOR time per actuator message), camera frames received on Zenoh against the
-frames the simulated time calls for (lockstep: none may be lost), and the altitude held.
+frames the simulated time calls for (lockstep: none may be lost), the altitude held, and the wall-clock
+gaps between HIL_SENSOR messages (PX4 logs a poll timeout after 1 s without one).
 """
 
 from __future__ import annotations
@@ -53,6 +54,7 @@ class Px4Peer:
         self.hover = float(np.sqrt(qp["mass"] * 9.81 / (4 * qp["k_eta"])))
         self.z = self.vz = 0.0
         self.t_us: list[int] = []
+        self.arrivals: list[float] = []  # wall time of each HIL_SENSOR
         hb = self.tx.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, 0, 0, 0)
         self.sock.sendall(hb.pack(self.tx))
 
@@ -72,6 +74,7 @@ class Px4Peer:
                     self.z, self.vz = m.alt / 1000.0 - self.home_alt_m, -m.vz / 100.0  # alt MSL mm, vz down
                 elif kind == "HIL_SENSOR":
                     self.t_us.append(m.time_usec)
+                    self.arrivals.append(time.monotonic())
                     msg = self.tx.hil_actuator_controls_encode(m.time_usec, self._outputs(), 129, 1)
                     self.sock.sendall(msg.pack(self.tx))
 
@@ -115,6 +118,7 @@ def measure(speed_factor: float, seconds: float, scene: str) -> dict[str, Any]:
             sub.undeclare()
     t_us = np.array(peer.t_us, dtype=np.int64)
     steps = np.diff(t_us)
+    gaps = np.diff(peer.arrivals)
     sim_s = (t_us[-1] - t_us[0]) / 1e6
     with lock:
         got = np.unique(stamps)
@@ -131,6 +135,10 @@ def measure(speed_factor: float, seconds: float, scene: str) -> dict[str, Any]:
         "frames_received": int(inside.size),
         "frames_expected": expected,
         "altitude_m": float(state["position"][2]),
+        # PX4's simulator_mavlink logs "poll timeout" after 1 s without sensor data
+        "sensor_gap_median_s": float(np.median(gaps)),
+        "sensor_gap_max_s": float(gaps.max()),
+        "sensor_gaps_over_1s": int((gaps > 1.0).sum()),
     }
 
 
@@ -149,7 +157,8 @@ def main() -> None:
             f"in {r['wall_seconds']:.1f} s "
             f"(real-time factor {r['real_time_factor']:.2f}); {r['px4_steps']} PX4 steps, all 4000 us: "
             f"{r['step_us_all_4000']}; depth frames {r['frames_received']}/{r['frames_expected']}; "
-            f"altitude {r['altitude_m']:.2f} m"
+            f"altitude {r['altitude_m']:.2f} m; sensor gaps median {r['sensor_gap_median_s'] * 1e3:.1f} ms, "
+            f"max {r['sensor_gap_max_s']:.2f} s, {r['sensor_gaps_over_1s']} over PX4's 1 s poll timeout"
         )
     write("px4_speed", {"scene": args.scene, "runs": rows}, args.json)
 

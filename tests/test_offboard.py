@@ -201,8 +201,10 @@ def test_holds_where_px4_is_until_offboard_shows_then_flies_the_planner(px4_pair
     sps = peer.messages("SET_POSITION_TARGET_LOCAL_NED")
     t_mode = next(t for m, _, t in peer.messages("COMMAND_LONG") if m.command == mavlink.MAV_CMD_DO_SET_MODE)
     before = [(m, t) for m, _, t in sps if t < t_mode]
-    # streamed for prestream_s (0.3 s) at 50 Hz before the switch: a hold at PX4's position and heading
-    assert len(before) >= 10 and before[-1][1] - before[0][1] >= 0.25
+    # streamed for prestream_s (0.3 s, at 50 Hz on a quiet machine; 5 seen with the machine overloaded)
+    # before the switch, faster than PX4's "> 2 Hz before OFFBOARD": a hold at PX4's position and heading
+    times = [t for _, t in before]
+    assert len(before) >= 2 and times[-1] - times[0] >= 0.25 and np.max(np.diff(times)) < 0.5, times
     for m, _ in before:
         assert m.type_mask == TYPE_MASK_HOLD
         np.testing.assert_allclose([m.x, m.y, m.z, m.yaw], [2.0, 1.0, -3.0, 0.3], atol=1e-5)
