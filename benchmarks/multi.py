@@ -31,7 +31,11 @@ import numpy as np
 from _common import write
 
 #: the train command's flag for each SAC demonstration setting
-FLAGS = {"demonstrations": "demonstrations", "demonstration_bc_steps": "bc-steps"}
+FLAGS = {
+    "demonstrations": "demonstrations",
+    "demonstration_bc_steps": "bc-steps",
+    "demonstration_anchor": "anchor",
+}
 #: steps per figure: every agent flies this many frames (10 s), so restarts are part of the figure
 STEPS = 300
 
@@ -95,7 +99,7 @@ def busy_cores(n: int) -> Iterator[None]:
 
 
 def train_team(
-    out: Path, seed: int, worlds: int, every: int, cap_s: float, stop_at: float, demo: dict[str, int]
+    out: Path, seed: int, worlds: int, every: int, cap_s: float, stop_at: float, demo: dict[str, float]
 ) -> dict[str, Any]:
     """A shared policy for two agents per world to ``stop_at`` of 50 check team episodes (or ``cap_s``),
     then the 50 evaluation team episodes; ``demo``: SAC hyperparameters (the demonstrations')."""
@@ -148,14 +152,23 @@ def main() -> None:
     ap.add_argument("--stop-at", type=float, default=0.9, help="check share that ends training (default 0.9)")
     ap.add_argument("--demonstrations", type=int, default=None, help="teacher warm-up steps (SAC's default)")
     ap.add_argument("--bc-steps", type=int, default=None, help="actor cloning steps after them")
+    ap.add_argument("--anchor", type=float, default=None, help="pull to the teacher after them")
     ap.add_argument("--out", default="out/multi-bench", help="training runs folder")
     ap.add_argument("--json", default=None, help="output path (default benchmarks/results/multi.json)")
-    ap.add_argument("--wait-policies", nargs="+", default=["PASSIVE"],
-                    help="OMP_WAIT_POLICY values to measure every figure under, in turn (PASSIVE, ACTIVE, "
-                         "or 'default': libgomp's own, spinning before it sleeps; default: PASSIVE, the "
-                         "package's)")
-    ap.add_argument("--busy", type=int, default=0,
-                    help="processes keeping a core busy beside the figures (python -c 'while 1: pass')")
+    ap.add_argument(
+        "--wait-policies",
+        nargs="+",
+        default=["PASSIVE"],
+        help="OMP_WAIT_POLICY values to measure every figure under, in turn (PASSIVE, ACTIVE, "
+        "or 'default': libgomp's own, spinning before it sleeps; default: PASSIVE, the "
+        "package's)",
+    )
+    ap.add_argument(
+        "--busy",
+        type=int,
+        default=0,
+        help="processes keeping a core busy beside the figures (python -c 'while 1: pass')",
+    )
     ap.add_argument("--rounds", type=int, default=1, help="rounds of every figure, alternated (default 1)")
     args = ap.parse_args()
     sizes = [tuple(int(v) for v in s.lower().split("x")) for s in args.sizes]
@@ -177,7 +190,11 @@ def main() -> None:
                           f"({r['vs_one_agent_env_256']:.2f} x the one-agent env), {r['episodes_ended']} "
                           "episodes ended", flush=True)  # fmt: skip
     teams = []
-    given = {"demonstrations": args.demonstrations, "demonstration_bc_steps": args.bc_steps}
+    given = {
+        "demonstrations": args.demonstrations,
+        "demonstration_bc_steps": args.bc_steps,
+        "demonstration_anchor": args.anchor,
+    }
     demo = {k: v for k, v in given.items() if v is not None}
     if args.train:
         from droneulator.workflows.rl.heldout import rate_text

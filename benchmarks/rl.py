@@ -126,7 +126,11 @@ def batched_throughput(n_envs: int, steps: int) -> dict[str, Any]:
 
 
 #: the train command's flag for each SAC demonstration setting
-FLAGS = {"demonstrations": "demonstrations", "demonstration_bc_steps": "bc-steps"}
+FLAGS = {
+    "demonstrations": "demonstrations",
+    "demonstration_bc_steps": "bc-steps",
+    "demonstration_anchor": "anchor",
+}
 
 
 def in_subprocess(fn: str, *args: Any) -> dict[str, Any]:
@@ -138,7 +142,13 @@ def in_subprocess(fn: str, *args: Any) -> dict[str, Any]:
 
 
 def train_to_target(
-    out: Path, seed: int, algo: str, n_envs: int, every: int, cap_s: float, demo: dict[str, int] | None = None
+    out: Path,
+    seed: int,
+    algo: str,
+    n_envs: int,
+    every: int,
+    cap_s: float,
+    demo: dict[str, float] | None = None,
 ) -> dict[str, Any]:
     """Train until 45 of the 50 check episodes succeed (or ``cap_s`` s), then the policy on the 50
     evaluation episodes (seeds apart from the check's); ``demo``: SAC's demonstration settings."""
@@ -209,6 +219,7 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="smoke run: small sizes, no training")
     ap.add_argument("--demonstrations", type=int, default=None, help="SAC: teacher warm-up steps")
     ap.add_argument("--bc-steps", type=int, default=None, help="SAC: actor cloning steps after them")
+    ap.add_argument("--anchor", type=float, default=None, help="SAC: weight pulling the actor to the teacher")
     ap.add_argument("--json", default=None, help="output path (default benchmarks/results/rl.json)")
     args = ap.parse_args()
     if args.quick:
@@ -229,7 +240,11 @@ def main() -> None:
             f"resets {100 * r['reset_share']:4.1f} % of the time"
         )
     out = Path(args.out)
-    given = {"demonstrations": args.demonstrations, "demonstration_bc_steps": args.bc_steps}
+    given = {
+        "demonstrations": args.demonstrations,
+        "demonstration_bc_steps": args.bc_steps,
+        "demonstration_anchor": args.anchor,
+    }
     demo = {k: v for k, v in given.items() if v is not None}
     res["training"] = []
     for seed in args.seeds:

@@ -158,3 +158,35 @@ def test_the_command_line_takes_demonstrations_for_sac_only(capsys):
 
     assert main(["train", "--num-envs", "4", "--algo", "ppo", "--demonstrations", "10"]) == 2
     assert "SAC settings" in capsys.readouterr().err
+    assert main(["train", "--num-envs", "4", "--algo", "ppo", "--anchor", "1"]) == 2
+    assert "--anchor are SAC settings, not ppo's" in capsys.readouterr().err
+
+
+def _teacher_gap(anchor: float) -> tuple[float, float | None]:
+    """SAC from 40 demonstration steps on 2 worlds x 2 agents, then 60 of its own with ``anchor``: the mean
+    squared distance of its deterministic actions from the teacher's on every observation it stored."""
+    from droneulator.workflows.rl.distil import PathTeacher
+    from droneulator.workflows.rl.train import demonstrated_sac, make_vec_env, teacher_actions
+
+    cfg = env_config()
+    venv = make_vec_env(cfg, 2, "native", agents=2)
+    try:
+        cls = demonstrated_sac(cfg, steps=40 * 4, noise=0.0, bc_steps=0, seed=0, anchor=anchor)
+        model = cls("MlpPolicy", venv, seed=0, device="cpu", learning_starts=20, batch_size=32, n_steps=1,
+                    gradient_steps=4, learning_rate=3e-3)  # fmt: skip
+        model.learn(total_timesteps=100 * 4)
+        obs = model.replay_buffer.observations[:100].reshape(-1, 35)
+        own, _ = model.predict(obs, deterministic=True)
+        wanted = teacher_actions(PathTeacher(cfg), Actuator(cfg, 1), obs)
+        return float(((own - wanted) ** 2).sum(axis=1).mean()), model.anchor_loss
+    finally:
+        venv.close()
+
+
+def test_the_anchor_keeps_sacs_actor_near_the_teacher():
+    free, none = _teacher_gap(0.0)
+    anchored, last = _teacher_gap(20.0)
+    assert none is None and last is not None and np.isfinite(last)
+    assert anchored < 0.5 * free, (anchored, free)
+    with pytest.raises(ValueError, match="demonstration_anchor"):
+        _teacher_gap(-1.0)

@@ -117,6 +117,14 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="with --demonstrations: K behaviour-cloning steps of the actor on them before it flies",
     )
     p.add_argument(
+        "--anchor",
+        type=float,
+        default=None,
+        metavar="W",
+        help="with --demonstrations: after them every SAC actor update also pulls the actor's mean action "
+        "towards the teacher's, weight W (default 0: off)",
+    )
+    p.add_argument(
         "--checkpoint-every", type=int, default=10_000, help="checkpoint period in steps (not distil)"
     )
     p.add_argument("--threads", type=int, default=None, help="torch threads for the learner (default 1)")
@@ -168,14 +176,7 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.agents < 1 or (args.agents > 1 and not native):
         raise ValueError(f"--agents must be at least 1, and more than one need --num-envs, got {args.agents}")
     algo = args.algo or "sac"
-    given = {
-        "learning_starts": args.learning_starts,
-        "demonstrations": args.demonstrations,
-        "demonstration_bc_steps": args.bc_steps,
-    }
-    overrides = {k: v for k, v in given.items() if v is not None}
-    if overrides and algo != "sac":
-        raise ValueError("--learning-starts, --demonstrations and --bc-steps are SAC settings")
+    overrides = _sac_overrides(args, algo)
     summary = train(
         cfg,
         Path(args.out),
@@ -286,14 +287,7 @@ def _train_sb3_on_ray(args: argparse.Namespace, cfg: SimConfig) -> int:
     if ignored:
         raise ValueError(f"{', '.join(ignored)}: not with --ray-backend sb3 (see droneulator train --help)")
     algo = args.algo or "ppo"
-    given = {
-        "learning_starts": args.learning_starts,
-        "demonstrations": args.demonstrations,
-        "demonstration_bc_steps": args.bc_steps,
-    }
-    overrides = {k: v for k, v in given.items() if v is not None}
-    if overrides and algo != "sac":
-        raise ValueError("--learning-starts, --demonstrations and --bc-steps are SAC settings")
+    overrides = _sac_overrides(args, algo)
     worlds = args.num_envs or 64
     if not 1 <= args.env_runners <= worlds:
         raise ValueError(f"--env-runners must be between 1 and --num-envs ({worlds}), got {args.env_runners}")
@@ -314,3 +308,23 @@ def _train_sb3_on_ray(args: argparse.Namespace, cfg: SimConfig) -> int:
     if args.stop_at is not None:
         _print_checks(summary, args.stop_at)
     return 0
+
+
+#: the train command's SAC-only flags and the :data:`~droneulator.workflows.rl.train.SAC_HYPERPARAMETERS`
+#: entry each sets
+SAC_FLAGS = {
+    "learning_starts": "learning_starts",
+    "demonstrations": "demonstrations",
+    "bc_steps": "demonstration_bc_steps",
+    "anchor": "demonstration_anchor",
+}
+
+
+def _sac_overrides(args: argparse.Namespace, algo: str) -> dict[str, Any]:
+    """The SAC hyperparameters the SAC-only flags set; a clear error when they meet another algorithm."""
+    given = {key: getattr(args, flag) for flag, key in SAC_FLAGS.items()}
+    overrides = {key: value for key, value in given.items() if value is not None}
+    if overrides and algo != "sac":
+        flags = ", ".join("--" + flag.replace("_", "-") for flag in SAC_FLAGS)
+        raise ValueError(f"{flags} are SAC settings, not {algo}'s")
+    return overrides

@@ -68,13 +68,22 @@ SAC_HYPERPARAMETERS: dict[str, Any] = {
     # flown by the scripted teacher (:class:`~droneulator.workflows.rl.distil.PathTeacher`, its actions
     # plus Gaussian noise of std ``demonstration_noise``) instead of uniform random actions, then
     # ``demonstration_bc_steps`` Adam steps regress the actor's mean action on the replay buffer's
-    # actions (behaviour cloning) before the actor flies; 0: off
+    # actions (behaviour cloning) before the actor flies; ``demonstration_anchor`` > 0 then adds that
+    # weight times the squared distance of the actor's mean action from the teacher's action to every
+    # SAC actor loss (on the batch's observations: the teacher is a function of the observation), so
+    # that the cloned actor is not unlearnt while the critic catches up; 0: off
     "demonstrations": 0,
     "demonstration_noise": 0.1,
     "demonstration_bc_steps": 0,
+    "demonstration_anchor": 0.0,
 }
 #: the entries of :data:`SAC_HYPERPARAMETERS` that are the demonstrations', not SB3's
-DEMONSTRATION_KEYS = ("demonstrations", "demonstration_noise", "demonstration_bc_steps")
+DEMONSTRATION_KEYS = (
+    "demonstrations",
+    "demonstration_noise",
+    "demonstration_bc_steps",
+    "demonstration_anchor",
+)
 
 #: PPO hyperparameters (Stable-Baselines3 names) for the batched env (hundreds of environments)
 PPO_HYPERPARAMETERS: dict[str, Any] = {
@@ -322,9 +331,7 @@ def train(
     if steps < 1 or n_envs < 1:
         raise ValueError("steps and envs must be at least 1")
     if agents < 1 or (agents > 1 and vec != "native"):
-        raise ValueError(
-            f"agents must be at least 1, and more than one train on vec='native' (got {agents})"
-        )
+        raise ValueError(f"agents must be at least 1, and more than one train on vec='native' (got {agents})")
     distilling = algo == "distil"
     if distilling and (vec != "native" or agents != 1):
         raise ValueError("distil trains on the batched env (--num-envs B), one agent per world")
@@ -380,11 +387,17 @@ def train(
         )  # fmt: skip
 
 
-def demonstrated_sac(cfg: SimConfig, steps: int, noise: float, bc_steps: int, seed: int) -> Any:
+def demonstrated_sac(
+    cfg: SimConfig, steps: int, noise: float, bc_steps: int, seed: int, anchor: float = 0.0
+) -> Any:
     """SB3's SAC whose first ``steps`` env steps (counted over every env) fly the scripted teacher's
     velocity actions plus N(0, ``noise``) (clipped) instead of uniform random ones, and whose actor is
     then regressed on the replay buffer's actions for ``bc_steps`` Adam steps (its mean action, squared
-    error) before it flies; the buffer keeps the teacher's transitions and SAC learns on the reward."""
+    error) before it flies; the buffer keeps the teacher's transitions and SAC learns on the reward.
+    ``anchor`` > 0: from then on every actor update also descends ``anchor`` times the squared distance
+    of the actor's mean action from the teacher's action on a replay batch's observations (the
+    DDPGfD / TD3+BC idea with the teacher asked anew, as in DAgger), added to SAC's actor gradient
+    before its optimiser steps."""
     import numpy as np
     import torch
     from stable_baselines3 import SAC
@@ -392,11 +405,26 @@ def demonstrated_sac(cfg: SimConfig, steps: int, noise: float, bc_steps: int, se
     from droneulator.workflows.rl.distil import PathTeacher
     from droneulator.workflows.rl.levels import Actuator
 
+    if anchor < 0.0:
+        raise ValueError(f"demonstration_anchor is a weight >= 0, got {anchor}")
     teacher, actuator = PathTeacher(cfg), Actuator(cfg, 1)
     rng = np.random.default_rng(seed)
 
     class DemonstratedSAC(SAC):
         bc_loss: float | None = None
+        anchor_loss: float | None = None
+
+        def _setup_model(self) -> None:
+            super()._setup_model()
+            if anchor > 0.0:  # SAC.train calls the actor optimiser's step() right after its loss's backward()
+                step = self.actor.optimizer.step
+
+                def anchored_step(*args: Any, **kwargs: Any) -> Any:
+                    if self.num_timesteps >= steps and (bc_steps == 0 or self.bc_loss is not None):
+                        self._anchor_gradient()
+                    return step(*args, **kwargs)
+
+                self.actor.optimizer.step = anchored_step
 
         def _sample_action(self, learning_starts: int, action_noise: Any = None, n_envs: int = 1) -> Any:
             if self.num_timesteps < steps:
@@ -407,17 +435,28 @@ def demonstrated_sac(cfg: SimConfig, steps: int, noise: float, bc_steps: int, se
                 self.bc_loss = self._clone(bc_steps)
             return super()._sample_action(learning_starts, action_noise, n_envs)
 
+        def _cloning_loss(self, observations: Any, actions: Any) -> Any:
+            mean, _, _ = self.actor.get_action_dist_params(observations)
+            return ((torch.tanh(mean) - actions) ** 2).sum(dim=1).mean()
+
         def _clone(self, n: int) -> float:
             """``n`` Adam steps of the actor's mean action on the buffer's actions; the last loss."""
-            actor, loss = self.actor, torch.zeros(())
+            loss = torch.zeros(())
             for _ in range(n):
                 batch = self.replay_buffer.sample(self.batch_size, env=self._vec_normalize_env)
-                mean, _, _ = actor.get_action_dist_params(batch.observations)
-                loss = ((torch.tanh(mean) - batch.actions) ** 2).sum(dim=1).mean()
-                actor.optimizer.zero_grad()
+                loss = self._cloning_loss(batch.observations, batch.actions)
+                self.actor.optimizer.zero_grad()
                 loss.backward()
-                actor.optimizer.step()
+                self.actor.optimizer.step()  # not anchored: bc_loss is set once the cloning ends
             return float(loss.detach())
+
+        def _anchor_gradient(self) -> None:
+            """Add ``anchor`` x the cloning loss on the teacher's actions to the actor's gradient."""
+            batch = self.replay_buffer.sample(self.batch_size, env=self._vec_normalize_env)
+            labels = torch.as_tensor(teacher_actions(teacher, actuator, batch.observations.cpu().numpy()))
+            loss = self._cloning_loss(batch.observations, labels)
+            (anchor * loss).backward()
+            self.anchor_loss = float(loss.detach())
 
     return DemonstratedSAC
 
@@ -450,8 +489,14 @@ def _learn(
     try:
         cls = SAC if algo == "sac" else PPO
         if demo.get("demonstrations", 0) > 0:
-            cls = demonstrated_sac(cfg, demo["demonstrations"], demo["demonstration_noise"],
-                                   demo["demonstration_bc_steps"], seed)  # fmt: skip
+            cls = demonstrated_sac(
+                cfg,
+                demo["demonstrations"],
+                demo["demonstration_noise"],
+                demo["demonstration_bc_steps"],
+                seed,
+                demo.get("demonstration_anchor", 0.0),
+            )
         model = cls("MlpPolicy", venv, seed=seed, device="cpu", verbose=0, **hyper)
         model.set_logger(
             Logger(
@@ -500,6 +545,8 @@ def _learn(
     }
     if getattr(model, "bc_loss", None) is not None:
         summary["demonstration_bc_loss"] = model.bc_loss
+    if getattr(model, "anchor_loss", None) is not None:
+        summary["demonstration_anchor_loss"] = model.anchor_loss
     if vec == "ray":
         summary.update({"ray_actors": actors, "ray_nodes": nodes, "actor_restarts": restarts})
     if check is not None:
