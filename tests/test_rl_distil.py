@@ -124,6 +124,8 @@ def test_teacher_velocity_actions_round_trip_through_the_actuator():
 
 
 def test_sac_from_demonstrations_fills_the_buffer_with_the_teachers_actions(tmp_path):
+    from stable_baselines3.common.callbacks import BaseCallback
+
     from droneulator.workflows.rl.distil import PathTeacher
     from droneulator.workflows.rl.train import demonstrated_sac, make_vec_env, teacher_actions
 
@@ -132,7 +134,16 @@ def test_sac_from_demonstrations_fills_the_buffer_with_the_teachers_actions(tmp_
     try:
         cls = demonstrated_sac(cfg, steps=80, noise=0.0, bc_steps=5, seed=0)
         model = cls("MlpPolicy", venv, seed=0, device="cpu", learning_starts=40, batch_size=16, n_steps=1)
-        model.learn(total_timesteps=120)
+        cloned: dict[int, bool] = {}
+
+        class Watch(BaseCallback):
+            def _on_step(self) -> bool:
+                cloned[self.num_timesteps] = self.model.bc_loss is not None
+                return True
+
+        model.learn(total_timesteps=120, callback=Watch())
+        # cloned in the last teacher step: a held-out check at the hand-over (80) flies the cloned actor
+        assert not cloned[76] and cloned[80]
         buf = model.replay_buffer
         teacher, act = PathTeacher(cfg), Actuator(cfg, 1)
         obs, actions = buf.observations[:20].reshape(-1, 35), buf.actions[:20].reshape(-1, 2)

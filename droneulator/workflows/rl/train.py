@@ -392,8 +392,9 @@ def demonstrated_sac(
 ) -> Any:
     """SB3's SAC whose first ``steps`` env steps (counted over every env) fly the scripted teacher's
     velocity actions plus N(0, ``noise``) (clipped) instead of uniform random ones, and whose actor is
-    then regressed on the replay buffer's actions for ``bc_steps`` Adam steps (its mean action, squared
-    error) before it flies; the buffer keeps the teacher's transitions and SAC learns on the reward.
+    regressed on the replay buffer's actions for ``bc_steps`` Adam steps (its mean action, squared
+    error) in the last of those steps, before it flies; the buffer keeps the teacher's transitions and
+    SAC learns on the reward.
     ``anchor`` > 0: from then on every actor update also descends ``anchor`` times the squared distance
     of the actor's mean action from the teacher's action on a replay batch's observations (the
     DDPGfD / TD3+BC idea with the teacher asked anew, as in DAgger), added to SAC's actor gradient
@@ -420,7 +421,7 @@ def demonstrated_sac(
                 step = self.actor.optimizer.step
 
                 def anchored_step(*args: Any, **kwargs: Any) -> Any:
-                    if self.num_timesteps >= steps and (bc_steps == 0 or self.bc_loss is not None):
+                    if self.num_timesteps >= steps:
                         self._anchor_gradient()
                     return step(*args, **kwargs)
 
@@ -430,9 +431,11 @@ def demonstrated_sac(
             if self.num_timesteps < steps:
                 action = teacher_actions(teacher, actuator, self._last_obs)
                 action = np.clip(action + rng.normal(0.0, noise, action.shape), -1.0, 1.0).astype(np.float32)
+                if bc_steps > 0 and self.num_timesteps + n_envs >= steps:
+                    # cloned during the last demonstration step, so that the callbacks after it (a held-out
+                    # check at the hand-over) see the actor that flies next
+                    self.bc_loss = self._clone(bc_steps)
                 return action, action
-            if bc_steps > 0 and self.bc_loss is None:
-                self.bc_loss = self._clone(bc_steps)
             return super()._sample_action(learning_starts, action_noise, n_envs)
 
         def _cloning_loss(self, observations: Any, actions: Any) -> Any:
@@ -447,7 +450,7 @@ def demonstrated_sac(
                 loss = self._cloning_loss(batch.observations, batch.actions)
                 self.actor.optimizer.zero_grad()
                 loss.backward()
-                self.actor.optimizer.step()  # not anchored: bc_loss is set once the cloning ends
+                self.actor.optimizer.step()  # not anchored: num_timesteps is still below steps
             return float(loss.detach())
 
         def _anchor_gradient(self) -> None:
