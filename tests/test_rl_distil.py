@@ -171,6 +171,9 @@ def test_the_command_line_takes_demonstrations_for_sac_only(capsys):
     assert "SAC settings" in capsys.readouterr().err
     assert main(["train", "--num-envs", "4", "--algo", "ppo", "--anchor", "1"]) == 2
     assert "--anchor are SAC settings, not ppo's" in capsys.readouterr().err
+    for flags in (["--anchor", "1"], ["--bc-steps", "10"]):  # nothing to clone or anchor to
+        assert main(["train", "--num-envs", "4", *flags]) == 2
+        assert "set demonstrations (--demonstrations N) as well" in capsys.readouterr().err
 
 
 def _teacher_gap(anchor: float) -> tuple[float, float | None]:

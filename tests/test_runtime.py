@@ -320,9 +320,13 @@ def test_fly_and_decode_every_topic(run):
     complete = sorted(set(rgb) & set(infos) & set(depth) & set(seg))
     assert len(complete) >= 0.9 * len(rgb) - 2
     for stream in (infos, depth, seg):
-        # either side may have dropped a few (3 first depth frames had no colour image with a core kept busy)
-        assert len(set(stream) - set(rgb)) <= 0.1 * len(rgb) + 2
-        assert len(set(rgb) - set(stream)) <= 0.1 * len(rgb) + 2
+        # over the time both streams cover, either side may have dropped a few (3 first depth frames had no
+        # colour image with a core kept busy; on an overloaded machine the colour stream's first frame
+        # reached this subscriber 1.4 s of sim time after the depth stream's)
+        lo, hi = max(min(rgb), min(stream)), min(max(rgb), max(stream))
+        a = {t for t in stream if lo <= t <= hi}
+        b = {t for t in rgb if lo <= t <= hi}
+        assert len(a - b) <= 0.1 * len(b) + 2 and len(b - a) <= 0.1 * len(b) + 2, (len(a), len(b), lo, hi)
     for t in complete[:5]:
         m, info = rgb[t], infos[t]
         img = PILImage.open(io.BytesIO(bytes(m.data)))

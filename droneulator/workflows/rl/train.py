@@ -364,6 +364,10 @@ def train(
     if unknown:
         raise ValueError(f"unknown {algo} hyperparameters: {', '.join(sorted(unknown))}")
     hyper = {**defaults, **(overrides or {})}
+    cloning = algo == "sac" and (hyper["demonstration_bc_steps"] or hyper["demonstration_anchor"])
+    if cloning and hyper["demonstrations"] <= 0:
+        raise ValueError("demonstration_bc_steps and demonstration_anchor (--bc-steps, --anchor) act on "
+                         "demonstrations: set demonstrations (--demonstrations N) as well")  # fmt: skip
     if algo == "sac" and vec in ("native", "ray") and "gradient_steps" not in (overrides or {}):
         hyper["gradient_steps"] = n_envs * agents  # one update per transition, as one env, train_freq 1
     if algo == "ppo":  # a minibatch never exceeds the rollout: B x n_steps transitions
