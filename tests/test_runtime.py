@@ -821,6 +821,6 @@ def test_a_fresh_run_sends_px4_its_sensor_data_without_a_boot_stall():
         # for PX4's first actuator message sends one and then nothing for the 2 s
         assert booted > 60 and arrivals[booted - 1] > t_connect + 1.5, (booted, run.log.tail())
         # and in lockstep, one HIL_SENSOR per actuator message. Gaps on the wall clock (PX4's poll timeout is
-        # 1 s) are the latency benchmark's: single gaps of 1.3 s were seen here on an overloaded machine
+        # 1 s) are benchmarks/px4_speed.py's: single gaps of 1.3 s were seen here on an overloaded machine
         assert np.median(gaps) < 0.05, (np.median(gaps), run.log.tail())
         assert any("renderer and bridge warm" in line for line in run.log.lines())
