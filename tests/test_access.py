@@ -211,6 +211,38 @@ def test_tls_round_trip_with_a_self_signed_certificate(world: World, certificate
         server_ssl_context(cert, None)
 
 
+def test_a_tls_client_gets_nothing_after_the_handshake_before_it_asks(
+    world: World, certificate: tuple[str, str]
+):
+    """No TLS 1.3 session ticket follows the handshake: a ticket read by websockets' sync client's
+    reader thread while its main thread writes the upgrade request hung about one connection in 400
+    under load (see ``server_ssl_context``). A raw TLS 1.3 client sees its socket stay quiet until it
+    sends its request, then gets the 101 at once."""
+    import base64
+    import os
+    import selectors
+    import socket
+
+    cert, key = certificate
+    with ApiServer(CommandPath(world), port=0, token=TOKEN, ssl_context=server_ssl_context(cert, key)) as s:
+        client = ssl.create_default_context(cafile=cert)
+        client.minimum_version = ssl.TLSVersion.TLSv1_3
+        with client.wrap_socket(socket.create_connection(("127.0.0.1", s.port), timeout=5.0),
+                                server_hostname="127.0.0.1") as tls:  # fmt: skip
+            assert tls.version() == "TLSv1.3"
+            poll = selectors.DefaultSelector()
+            poll.register(tls, selectors.EVENT_READ)
+            assert poll.select(0.5) == [], "the server sent something (a session ticket) unasked"
+            ws_key = base64.b64encode(os.urandom(16)).decode()
+            tls.sendall(
+                f"GET /?token={TOKEN} HTTP/1.1\r\nHost: 127.0.0.1:{s.port}\r\nUpgrade: websocket\r\n"
+                f"Connection: Upgrade\r\nSec-WebSocket-Key: {ws_key}\r\n"
+                "Sec-WebSocket-Version: 13\r\n\r\n".encode()
+            )
+            assert poll.select(5.0), "no reply to the upgrade request"
+            assert tls.recv(65536).startswith(b"HTTP/1.1 101")
+
+
 def test_the_ui_over_tls_relays_to_an_api_over_tls(world: World, certificate: tuple[str, str]):
     """One certificate for both: the UI serves https:// and wss://, and reaches the wss:// API trusting
     that certificate (``access.tls_cert`` doubles as the CA of its own links)."""

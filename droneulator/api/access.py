@@ -84,13 +84,22 @@ def without_token(url: str) -> str:
 
 
 def server_ssl_context(cert: str | None, key: str | None) -> ssl.SSLContext | None:
-    """A TLS server context from PEM ``cert`` (chain) and ``key``; None when neither is given."""
+    """A TLS server context from PEM ``cert`` (chain) and ``key``; None when neither is given.
+
+    It sends no TLS 1.3 session tickets. A ticket arrives after the handshake, so a client that reads
+    in one thread while it writes its first request in another (websockets' sync client, ours) has
+    OpenSSL process it in ``SSL_read`` during an ``SSL_write`` on the same connection, which OpenSSL
+    does not support: about one handshake in 400 with two cores busy hung until its timeout (or
+    failed with an internal SSL error). Without tickets nothing but the server's replies reaches the
+    client; the cost is no session resumption, a full handshake per connection.
+    """
     if cert is None and key is None:
         return None
     if cert is None or key is None:
         raise ValueError("TLS needs both access.tls_cert and access.tls_key")
     ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
     ctx.minimum_version = ssl.TLSVersion.TLSv1_2
+    ctx.num_tickets = 0
     ctx.load_cert_chain(cert, key)
     return ctx
 
