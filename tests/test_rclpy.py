@@ -630,15 +630,18 @@ def test_rclpy_reads_what_the_simulator_meant(capture: Capture, ros: Ros) -> Non
         np.testing.assert_allclose([wv.x, wv.y, wv.z], st["velocity"], atol=1e-12)
         np.testing.assert_allclose([rate.x, rate.y, rate.z], st["angular_velocity"], atol=1e-12)
     assert max(np.hypot(*capture.states[t]["velocity"][:2]) for t in common) > 0.3  # it was flying
-    # the battery as the API state has it at the same stamp: flying, it draws current (negative in the msg)
+    # the battery as the API state has it at the same stamp: flying, it draws current (negative in the
+    # msg); only the reset's own instant, before any step, draws none (the first state on a loaded machine)
     battery = {stamp_ns(m.header.stamp): m for m in msgs[battery_state_topic(capture.cfg.bridge.namespace)]}
     both = sorted(set(battery) & set(capture.states))
     assert len(both) > 10
     for t in both:
         m, b = battery[t], capture.states[t]["battery"]
         assert m.header.frame_id == "base_link" and m.voltage == pytest.approx(b["voltage"], rel=1e-6)
-        assert m.current == pytest.approx(-b["current"], rel=1e-6) and m.current < 0.0
+        assert m.current == pytest.approx(-b["current"], rel=1e-6, abs=1e-12)
         assert m.percentage == pytest.approx(b["soc"], rel=1e-6) and len(m.cell_voltage) == b["cells"]
+    idle = [t for t in both if battery[t].current == 0.0]
+    assert idle in ([], both[:1]) and all(battery[t].current < 0.0 for t in both[len(idle) :])
 
     want = {(parent, child): (p, q) for parent, child, p, q in static_transforms(capture.cfg.render.cameras)}
     assert msgs["/tf_static"]

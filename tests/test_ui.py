@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -17,6 +18,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -294,6 +296,72 @@ def test_ui_beyond_loopback_asks_for_the_token_and_connects_with_it() -> None:
                 "document.getElementById('conn').textContent.includes('simulator unreachable')", timeout=20000
             )
             assert not page.is_visible("#token-dialog")
+            assert not errors, errors
+            browser.close()
+    finally:
+        proc.terminate()
+        assert proc.wait(15) == 0
+
+
+@needs_chromium
+def test_a_late_refusal_of_an_older_token_reconnects_with_the_newer_one() -> None:
+    """The UI server's refusal of a wrong token can reach the page after the user entered the right one
+    (seen on a loaded machine: the page's set-up was refused first, the user typed the right token, then
+    the connection's refusal came). The page then connects with the token it holds instead of asking
+    again. The late refusal is made here by holding the UI server's reply to the wrong token's
+    connection (Playwright's WebSocket route) until the right token is in."""
+    port = free_port()
+    dead = free_port()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "droneulator.cli", "ui", "--host", "0.0.0.0", "--port", str(port),
+         "--url", f"ws://127.0.0.1:{dead}", "--zenoh", f"tcp/127.0.0.1:{dead}"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )  # fmt: skip
+    held: list[tuple[Any, ...]] = []
+    routes: list[Any] = []
+
+    def hold(ws: Any) -> None:
+        server = ws.connect_to_server()
+        server.on_message(lambda m: held.append(("message", m)))
+        server.on_close(lambda code, reason: held.append(("close", code, reason)))
+        routes.append(ws)
+
+    try:
+        assert proc.stdout is not None
+        token = proc.stdout.readline().split()[2]
+        assert proc.stdout.readline().strip() == f"UI: http://0.0.0.0:{port}"
+        with playwright.sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
+            page = browser.new_page()
+            errors: list[str] = []
+            page.on("pageerror", lambda e: errors.append(str(e)))
+            page.route_web_socket(re.compile(r".*/ws\?token=wrong-token.*"), hold)
+            page.goto(f"http://127.0.0.1:{port}/#fly")
+            page.wait_for_selector("#token-dialog[open]", timeout=20000)
+            page.fill("#token-input", "wrong-token-wrong-token")
+            page.click("#token-submit")
+            # the set-up's request with the wrong token is refused (HTTP 401); the connection's refusal
+            # is held
+            page.wait_for_selector("#token-dialog[open] #token-why:has-text('refused')", timeout=20000)
+            deadline = time.monotonic() + 20.0
+            while not any(h[0] == "close" for h in held):
+                assert time.monotonic() < deadline, "the wrong token's connection was not refused"
+                page.wait_for_timeout(50)
+            assert len(routes) == 1 and held[-1][1] == 1008
+            page.fill("#token-input", token)
+            page.click("#token-submit")
+            for h in held:  # now the refusal of the wrong token arrives
+                if h[0] == "message":
+                    routes[0].send(h[1])
+                else:
+                    routes[0].close(code=h[1], reason=h[2])
+            page.wait_for_function(
+                "document.getElementById('conn').textContent.includes('simulator unreachable')", timeout=20000
+            )
+            assert not page.is_visible("#token-dialog")
+            assert page.evaluate("sessionStorage.getItem('droneulator.token')") == token
             assert not errors, errors
             browser.close()
     finally:

@@ -582,10 +582,17 @@ function onUiMessage(msg) {
 
 // The UI server asks for its access token (docs/security.md): a small prompt; the token is kept in the
 // tab's sessionStorage, then whatever was refused (the connection, the page's set-up) tries again.
+// `used` is the token the refused attempt carried (null: none). A refusal that answers an older token
+// than the one stored now (its reply came after the user entered another) tries again at once.
 const tokenRetries = [];
-function askForToken(refused, retry) {
+function askForToken(used, retry) {
+  const stored = sessionStorage.getItem(TOKEN_KEY);
+  if (stored !== null && stored !== used) {
+    retry();
+    return;
+  }
   setConnection("access token needed", false);
-  $("token-why").textContent = refused
+  $("token-why").textContent = used !== null
     ? "That access token was refused. Enter the one printed where the simulator was started."
     : "This simulator asks for its access token (printed where it was started).";
   tokenRetries.push(retry);
@@ -621,9 +628,10 @@ const cams = new CameraViews($("cameras"), { depth_max_m: 20, legend: [] });
 ui.cameras = cams;
 
 async function init() {
+  const used = sessionStorage.getItem(TOKEN_KEY);
   const res = await fetch(withToken("/api/config"));
   if (res.status === 401) {
-    askForToken(sessionStorage.getItem(TOKEN_KEY) !== null, () => init().catch(startFailed));
+    askForToken(used, () => init().catch(startFailed));
     return;
   }
   ui.config = await res.json();

@@ -46,7 +46,7 @@ export class Connection {
       this.ws = null;
       if (e.code === UNAUTHORIZED) {
         // ask for the token (again, if the one stored was refused); it is stored, then connect with it
-        this.handlers.onUnauthorized(token !== null, () => this.open());
+        this.handlers.onUnauthorized(token, () => this.open());
         return;
       }
       this.handlers.onClose();
