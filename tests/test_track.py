@@ -229,8 +229,10 @@ def test_position_commands_over_zenoh_fly_droneulator_run_and_the_camera_pose_is
 
             t0 = now_ns()
             sent: list[int] = []  # the odometry stamp each setpoint was computed for
+            walls: list[float] = []  # and when (wall clock) it was sent
             while (tau := ((t_send := now_ns()) - t0) / 1e9) < 3.5:  # 100 Hz on the sim clock (realtime)
                 sent.append(t_send)
+                walls.append(time.monotonic())
                 x, v, a = straight(tau)
                 pub.put(bytes(M.serialize(M.position_command(
                     0, "world", start + [x, 0.0, 0.0], [v, 0.0, 0.0], [a, 0.0, 0.0], 0.0, 0.0))))
@@ -260,14 +262,25 @@ def test_position_commands_over_zenoh_fly_droneulator_run_and_the_camera_pose_is
                 for m in odom
                 if not np.any((gap_end > _stamp(m) - 200_000_000) & (gap_start < _stamp(m)))
             ]
-            errors = [
-                np.linalg.norm(
-                    np.array([m.pose.pose.position.x, m.pose.pose.position.y, m.pose.pose.position.z])
-                    - (start + [straight((_stamp(m) - t0) / 1e9)[0], 0.0, 0.0])
-                )
-                for m in odom
-            ]
-            assert len(errors) > 150 and max(errors) < 0.06, (len(errors), max(errors))
+            # nor this test's loop: a setpoint computed from stale odometry (this process starved on a
+            # loaded machine) reaches the vehicle late and holds it back by that lag, so each sample is
+            # compared with the reference up to the largest lag of the 0.2 s of setpoints before it
+            # behind, plus 50 ms of transport (quiet: 1 to 2 frames). The lag is how much further the
+            # wall clock had gone than the odometry's stamp when a setpoint left, against the least seen
+            # (the run is paced to real time)
+            ahead = np.array(walls) - sends / 1e9
+            lag = ahead - ahead.min()
+
+            def error(m: object) -> float:
+                t, p = _stamp(m), m.pose.pose.position  # type: ignore[attr-defined]
+                at = np.array([p.x, p.y, p.z]) - start
+                window = (sends > t - 200_000_000) & (sends <= t)
+                worst = float(lag[window].max()) if window.any() else 0.0
+                refs = [straight((t - t0) / 1e9 - d)[0] for d in np.linspace(0.0, worst + 0.05, 31)]
+                return min(float(np.linalg.norm(at - [x, 0.0, 0.0])) for x in refs)
+
+            errors = [error(m) for m in odom]
+            assert len(errors) > 150 and max(errors) < 0.06, (len(errors), max(errors), float(lag.max()))
             # holding (a setpoint delivered late on a loaded machine tracks again, then times out again)
             deadline = time.monotonic() + 3
             while client.state()["mode"] != "hold":
