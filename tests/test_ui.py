@@ -222,6 +222,18 @@ def test_ui_without_a_simulator_says_so() -> None:
         assert proc.wait(15) == 0  # SIGTERM ends it cleanly, even while a preview renders
 
 
+def ui_beyond_loopback(port: int, dead: int) -> subprocess.Popen[str]:
+    """``droneulator ui --host 0.0.0.0`` on ``port``, its API and Zenoh at ``dead`` (nothing there);
+    its first lines (the token, the URL) are on its stdout."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "droneulator.cli", "ui", "--host", "0.0.0.0", "--port", str(port),
+         "--url", f"ws://127.0.0.1:{dead}", "--zenoh", f"tcp/127.0.0.1:{dead}"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )  # fmt: skip
+
+
 @needs_chromium
 def test_ui_beyond_loopback_asks_for_the_token_and_connects_with_it() -> None:
     """``droneulator ui --host 0.0.0.0``: a token is generated and printed once; an /api/ route without
@@ -236,13 +248,7 @@ def test_ui_beyond_loopback_asks_for_the_token_and_connects_with_it() -> None:
 
     port = free_port()
     dead = free_port()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "droneulator.cli", "ui", "--host", "0.0.0.0", "--port", str(port),
-         "--url", f"ws://127.0.0.1:{dead}", "--zenoh", f"tcp/127.0.0.1:{dead}"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )  # fmt: skip
+    proc = ui_beyond_loopback(port, dead)
     try:
         assert proc.stdout is not None
         line = proc.stdout.readline().strip()
@@ -312,13 +318,7 @@ def test_a_late_refusal_of_an_older_token_reconnects_with_the_newer_one() -> Non
     connection (Playwright's WebSocket route) until the right token is in."""
     port = free_port()
     dead = free_port()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "droneulator.cli", "ui", "--host", "0.0.0.0", "--port", str(port),
-         "--url", f"ws://127.0.0.1:{dead}", "--zenoh", f"tcp/127.0.0.1:{dead}"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )  # fmt: skip
+    proc = ui_beyond_loopback(port, dead)
     held: list[tuple[Any, ...]] = []
     routes: list[Any] = []
 
