@@ -123,6 +123,41 @@ def test_teacher_velocity_actions_round_trip_through_the_actuator():
     np.testing.assert_array_equal(act.actions([[99.0, -99.0]]), [[1.0, -1.0]])  # clipped to the space
 
 
+def test_the_teacher_gives_way_to_a_neighbour_on_a_collision_course_only():
+    from droneulator.workflows.rl.distil import PathTeacher
+
+    cfg = env_config()
+    teacher = PathTeacher(cfg)
+    base = np.zeros(35, dtype=np.float32)
+    base[:32] = 1.0  # nothing ahead, heading straight at the steering target
+    reach, speed = cfg.rl.neighbour_range, 4.0
+
+    def block(x: float, y: float, vx: float, vy: float, seen: float = 1.0) -> np.ndarray:
+        return np.array([seen, x / reach, y / reach, vx / speed, vy / speed], dtype=np.float32)
+
+    cases = {
+        "alone": block(0, 0, 0, 0, seen=0.0),
+        "head on": block(1.5, 0.0, -3.0, 0.0),  # 1.5 m ahead, closing at 3 m/s
+        "from the right": block(1.2, -1.2, -1.5, 1.5),  # ahead right, coming across
+        "from the left": block(1.2, 1.2, -1.5, -1.5),
+        "behind": block(-1.5, 0.0, 3.0, 0.0),  # closing from behind: its to give way
+        "passing clear": block(1.5, 2.5, -3.0, 0.0),  # 2.5 m abeam at closest
+    }
+    obs = np.stack([np.concatenate([base, b]) for b in cases.values()])
+    forward, yaw_rate = teacher(obs)
+    got = {name: (forward[i], yaw_rate[i]) for i, name in enumerate(cases)}
+    alone_forward, alone_turn = got["alone"]
+    assert alone_forward == pytest.approx(2.0) and alone_turn == pytest.approx(0.0)
+    for name in ("behind", "passing clear"):
+        assert got[name] == pytest.approx(got["alone"]), name
+    for name, turn in (("head on", -1), ("from the left", -1), ("from the right", 1)):
+        assert got[name][0] < 0.8 * alone_forward, name  # slows down
+        assert np.sign(got[name][1]) == turn, name  # and turns away: right unless it comes from the right
+    assert teacher(base[None])[0] == pytest.approx(alone_forward)  # the single-agent observation
+    with pytest.raises(ValueError, match="35 or 40 entries"):
+        teacher(np.zeros((1, 38), dtype=np.float32))
+
+
 def test_sac_from_demonstrations_fills_the_buffer_with_the_teachers_actions(tmp_path):
     from stable_baselines3.common.callbacks import BaseCallback
 
@@ -146,10 +181,10 @@ def test_sac_from_demonstrations_fills_the_buffer_with_the_teachers_actions(tmp_
         assert not cloned[76] and cloned[80]
         buf = model.replay_buffer
         teacher, act = PathTeacher(cfg), Actuator(cfg, 1)
-        obs, actions = buf.observations[:20].reshape(-1, 35), buf.actions[:20].reshape(-1, 2)
+        obs, actions = buf.observations[:20].reshape(-1, 40), buf.actions[:20].reshape(-1, 2)
         np.testing.assert_allclose(actions, teacher_actions(teacher, act, obs), atol=1e-6)
         later = buf.actions[20:30].reshape(-1, 2)  # the actor's, once the teacher handed over
-        wanted = teacher_actions(teacher, act, buf.observations[20:30].reshape(-1, 35))
+        wanted = teacher_actions(teacher, act, buf.observations[20:30].reshape(-1, 40))
         assert not np.allclose(later, wanted, atol=1e-3)
         assert model.bc_loss is not None and np.isfinite(model.bc_loss)
     finally:
@@ -189,7 +224,7 @@ def _teacher_gap(anchor: float) -> tuple[float, float | None]:
         model = cls("MlpPolicy", venv, seed=0, device="cpu", learning_starts=20, batch_size=32, n_steps=1,
                     gradient_steps=4, learning_rate=3e-3)  # fmt: skip
         model.learn(total_timesteps=100 * 4)
-        obs = model.replay_buffer.observations[:100].reshape(-1, 35)
+        obs = model.replay_buffer.observations[:100].reshape(-1, 40)
         own, _ = model.predict(obs, deterministic=True)
         wanted = teacher_actions(PathTeacher(cfg), Actuator(cfg, 1), obs)
         return float(((own - wanted) ** 2).sum(axis=1).mean()), model.anchor_loss

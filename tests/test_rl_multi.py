@@ -166,7 +166,7 @@ def test_each_world_of_the_vector_form_flies_as_that_world_alone():
     many = VineyardMultiVectorEnv(3, 2, **kw)
     alone = [VineyardMultiVectorEnv(1, 2, **kw) for _ in range(3)]
     try:
-        assert many.num_envs == 6 and many.observation_space.shape == (6, 35)
+        assert many.num_envs == 6 and many.observation_space.shape == (6, 40)
         actions = np.random.default_rng(4).uniform(-1, 1, (70, 6, 2)).astype(np.float32)
         a = _rollout(many, 11, actions)
         assert a["terminated"].any() or a["truncated"].any()
@@ -255,6 +255,7 @@ def test_the_vector_forms_bad_input_is_a_clear_error_and_it_keeps_working():
         ({"episodes": "team"}, "episodes"),
         ({"autoreset_mode": "Disabled"}, "autoreset_mode must be"),
         ({"min_spacing": -1.0}, "min_spacing"),
+        ({"neighbour_range": -1.0}, "neighbour_range"),
         ({"config": load_config(overrides=["randomize.enabled=true"])}, "randomisation"),
     ):
         with pytest.raises(ValueError, match=match):
@@ -272,7 +273,7 @@ def test_the_vector_forms_bad_input_is_a_clear_error_and_it_keeps_working():
         with pytest.raises(ValueError, match="unknown agents"):
             env.reset(options={"tasks": {"uav9": FACING["uav0"]}})
         obs, *_ = env.step(np.zeros((4, 2)))
-        assert obs.shape == (4, 35) and np.isfinite(obs).all()
+        assert obs.shape == (4, 40) and np.isfinite(obs).all()
     finally:
         env.close()
 
@@ -294,5 +295,117 @@ def test_a_shared_policy_trains_on_worlds_of_two_agents_and_is_judged_by_world(t
         assert 0 <= k <= 3 and not env.live.reshape(3, 2).any(axis=1).all()
     finally:
         env.close()
+    from droneulator.workflows.rl.evaluate import evaluate
+
+    with pytest.raises(ValueError, match="observes 40 entries, one agent's task gives 35.*--agents 2"):
+        evaluate(tmp_path / "model.zip", episodes=1, out=tmp_path / "eval")
     with pytest.raises(ValueError, match="agents"):
         train(None, tmp_path, steps=10, n_envs=2, agents=2, vec="dummy")
+
+
+def _heading_frame(
+    states: np.ndarray, positions: np.ndarray, me: int, other: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``other``'s horizontal offset (of ``positions``, the observation's instant) and velocity relative
+    to ``me`` in ``me``'s heading frame, through SciPy's rotations (not the env's quaternion formula)."""
+    from scipy.spatial.transform import Rotation
+
+    yaw = Rotation.from_quat(states[me, 6:10]).as_euler("ZYX")[0]
+    turn = Rotation.from_euler("z", -yaw)
+    offset = turn.apply(positions[other] - positions[me])[:2]
+    velocity = turn.apply(states[other, 3:6] - states[me, 3:6])[:2]
+    return offset, velocity
+
+
+def test_each_agent_observes_its_nearest_neighbour_within_range_in_its_heading_frame():
+    from droneulator.workflows.rl.multi import NEIGHBOUR_SPEED
+
+    # uav0 in the middle alley facing +x, uav1 one alley to its left (y = 3) facing -x: 3 m apart
+    side = {"uav0": {"start": (0.0, 0.0, 0.0), "goal": (12.0, 0.0)},
+            "uav1": {"start": (0.0, 3.0, math.pi), "goal": (-12.0, 3.0)}}  # fmt: skip
+    env = VineyardMultiVectorEnv(1, 2)
+    try:
+        assert env.single_observation_space.shape == (40,)
+        assert env.single_observation_space.low[35] == 0.0 and env.single_observation_space.low[36] == -1.0
+        obs, _ = env.reset(options={"tasks": side})
+        # each sees the other 3 m to its left (uav1 faces the other way: uav0 is on its left too)
+        np.testing.assert_allclose(obs[:, 35:38], [[1.0, 0.0, 0.75], [1.0, 0.0, 0.75]], atol=1e-3)
+        for _ in range(20):  # 1.25 m/s each: closing at 2.5, inside the block's 4 m/s
+            obs, *_, info = env.step(np.array([[0.3, 0.0], [0.3, 0.0]], dtype=np.float32))
+        states = env.world.states[0]  # a physics step past the camera instant: flying straight and level
+        for me, other in ((0, 1), (1, 0)):
+            offset, velocity = _heading_frame(states, info["position"], me, other)
+            assert obs[me, 35] == 1.0 and np.hypot(*offset) < 4.0
+            np.testing.assert_allclose(obs[me, 36:38], offset / 4.0, atol=2e-3)
+            # the velocity a physics step later, still accelerating: within 4 cm/s
+            np.testing.assert_allclose(obs[me, 38:40], velocity / NEIGHBOUR_SPEED, atol=0.01)
+            assert velocity[0] < -1.0 and abs(velocity[1]) < 0.1  # flying past each other, both forward
+        # head on 8 m apart: beyond the 4 m range, nothing observed
+        obs, _ = env.reset(options={"tasks": FACING})
+        np.testing.assert_array_equal(obs[:, 35:], 0.0)
+    finally:
+        env.close()
+    depth_alone = VineyardMultiVectorEnv(1, 2, neighbour_range=0.0)
+    try:
+        obs, _ = depth_alone.reset(options={"tasks": side})
+        assert obs.shape == (2, 35) and depth_alone.single_observation_space.shape == (35,)
+    finally:
+        depth_alone.close()
+
+
+def test_the_teacher_gives_way_where_on_depth_alone_the_two_agents_touch():
+    """Three team episodes in which the path teacher's two agents meet at a row end and touch when it
+    flies on depth alone, and reach their goals when it gives way to the neighbour it observes."""
+    from droneulator.workflows.rl.distil import PathTeacher
+    from droneulator.workflows.rl.env import env_config
+
+    seeds = [1_000_015, 1_000_025, 1_000_043]
+    outcomes = {}
+    for reach in (0.0, 4.0):
+        cfg = env_config(neighbour_range=reach)
+        env = VineyardMultiVectorEnv(3, 2, cfg, episodes="world")
+        try:
+            teacher = PathTeacher(cfg)
+            obs, _ = env.reset(seed=seeds)
+            first = np.full(6, "", dtype=object)
+            while (first == "").any():
+                forward, yaw_rate = teacher(obs)
+                obs, _, terminated, truncated, info = env.step(
+                    env.actuator.actions(np.column_stack([forward, yaw_rate]))
+                )
+                ended = (terminated | truncated) & (first == "")
+                first[ended] = info["termination"][ended]
+            outcomes[reach] = list(first)
+        finally:
+            env.close()
+    assert outcomes[0.0] == ["collision"] * 6
+    assert outcomes[4.0] == ["goal"] * 6
+
+
+def test_training_worlds_can_send_agents_against_each_other_and_held_out_worlds_never_do():
+    from droneulator.config import load_config
+    from droneulator.workflows.rl.train import held_out_env
+
+    cfg = load_config(overrides=["rl.encounters=1.0"])
+    meeting = VineyardMultiVectorEnv(6, 2, cfg)
+    plain = held_out_env(cfg, 6, "raycast", agents=2)
+    try:
+        assert (meeting.encounters, plain.encounters) == (1.0, 0.0)
+        for env in (meeting, plain):
+            env.reset(seed=40)
+        met = 0
+        for w in range(6):
+            first, second = meeting.tasks[2 * w], meeting.tasks[2 * w + 1]
+            # the second agent starts beside the first one's goal and aims beside its start
+            met += math.dist(second.start[:2], first.goal) <= math.sqrt(2) + 1e-9 and (
+                math.dist(second.goal, first.start[:2]) <= math.sqrt(2) + 1e-9
+            )
+            a, b = plain.tasks[2 * w], plain.tasks[2 * w + 1]
+            near = math.dist(b.start[:2], a.goal), math.dist(b.goal, a.start[:2])
+            assert max(near) > math.sqrt(2)
+        assert met >= 5  # a draw that finds no free, reachable pair falls back to a plain task
+    finally:
+        meeting.close()
+        plain.close()
+    with pytest.raises(ValueError, match="rl.encounters"):
+        load_config(overrides=["rl.encounters=1.5"])

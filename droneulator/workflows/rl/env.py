@@ -344,6 +344,28 @@ class NavTask:
                     return start, wrap_angle(yaw), goal, field
         raise RuntimeError("could not sample a start and goal: check the rl.* sampling settings")
 
+    def meeting_task(
+        self, rng: np.random.Generator, position: np.ndarray, goal: np.ndarray, spread: float = 1.0
+    ) -> tuple[np.ndarray, float, np.ndarray, DistanceField] | None:
+        """A task against another vehicle at ``position`` bound for ``goal``: start within ``spread`` m of
+        ``goal``, goal within ``spread`` m of ``position`` (free, reachable, a path length in
+        :meth:`sample_task`'s range), so that the two fly one route in opposite directions; None if no
+        draw of 30 is one."""
+        for _ in range(30):
+            start = np.asarray(goal, dtype=float)[:2] + rng.uniform(-spread, spread, 2)
+            aim = np.asarray(position, dtype=float)[:2] + rng.uniform(-spread, spread, 2)
+            if not (self.grid.is_free(start) and self.grid.is_free(aim)):
+                continue
+            field = DistanceField(self.grid, aim)
+            if not field.is_reachable(start):
+                continue
+            if self.rl.min_separation <= field.distance(start) <= self.rl.max_path_length:
+                carrot = field.lookahead(start, self.rl.lookahead)
+                yaw = math.atan2(carrot[1] - start[1], carrot[0] - start[0])
+                yaw += rng.normal(0.0, math.radians(self.rl.start_yaw_std_deg))
+                return start, wrap_angle(yaw), aim, field
+        return None
+
     def given_task(self, task: dict[str, Any]) -> tuple[np.ndarray, float, np.ndarray, DistanceField]:
         """The task of ``{"start": (x, y, yaw), "goal": (x, y)}`` in :meth:`sample_task`'s form."""
         if not ("start" in task and "goal" in task):

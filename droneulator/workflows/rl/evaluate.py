@@ -27,7 +27,7 @@ import numpy as np
 
 from droneulator.config import SimConfig, load_config
 from droneulator.workflows.rl.astar import occupancy_from_scene
-from droneulator.workflows.rl.env import VineyardNavEnv
+from droneulator.workflows.rl.env import VineyardNavEnv, obs_size
 from droneulator.workflows.rl.heldout import EVAL_EPISODES, EVAL_SEED, interval_record
 
 #: the commands panel overlays this moving mean (s) on the per-step commands
@@ -326,6 +326,14 @@ def evaluate(
     policy = (PPO if trained_algorithm(model) in ("ppo", "distil") else SAC).load(
         model, device="cpu", custom_objects={"replay_buffer_class": None}
     )
+    wanted, flown = policy.observation_space.shape, (obs_size(cfg.rl.action),)
+    if wanted != flown:
+        agents = _run_summary(model).get("agents", 1)
+        raise ValueError(
+            f"the policy in {model} observes {wanted[0]} entries, one agent's task gives {flown[0]}"
+            + (f" (it was trained with --agents {agents} and observes its nearest neighbour, which one agent "
+               "does not have: benchmarks/multi.py --train judges teams)" if agents > 1 else "")
+        )  # fmt: skip
     env = VineyardNavEnv(config=cfg, mode=mode, url=url, zenoh=zenoh)
     t0 = time.perf_counter()
     try:

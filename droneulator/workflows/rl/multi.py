@@ -5,7 +5,10 @@ rules, observation and action spaces, reward and termination through the task ke
 own start, goal and time limit). The N agents of a world share it: they see each other in their depth,
 feel each other's rotor wakes, and two whose bodies touch both collide (each episode ends with
 ``rl.collision_penalty``, ``collided_with`` naming the other). Starts and goals are drawn apart: no two
-closer than ``min_spacing``.
+closer than ``min_spacing``. With two agents or more (and ``rl.neighbour_range`` > 0) each agent also
+observes the nearest other live agent of its world within ``rl.neighbour_range``: the observation ends in
+:data:`NEIGHBOUR_SIZE` entries (:func:`neighbour_block`), as a swarm's position broadcast gives them,
+since a 90 degree strip sees an agent crossing its path at a row end too late to give way.
 
 Two faces of one environment:
 
@@ -53,8 +56,41 @@ from droneulator.world.world import NS, World
 
 NAME = "droneulator_vineyard_nav_v0"
 EPISODES = ("agent", "world")
+#: the neighbour block's entries: seen (1, else all 0), its forward and leftward offset over
+#: ``rl.neighbour_range``, and its velocity relative to the agent's (forward, leftward) over
+#: :data:`NEIGHBOUR_SPEED`, each clipped to [-1, 1]
+NEIGHBOUR_SIZE = 5
+NEIGHBOUR_SPEED = 4.0
 
 Info = dict[str, Any]
+
+
+def neighbour_block(states: np.ndarray, live: np.ndarray, reach: float) -> np.ndarray:
+    """Each agent's neighbour block (``(W * N, NEIGHBOUR_SIZE)`` float32) for ``states`` ``(W, N, state)``
+    and ``live`` ``(W * N,)``: the nearest other live agent of its world within ``reach`` m (horizontal
+    distance), in the agent's heading frame (x forward, y left; the yaw of its attitude)."""
+    W, N = states.shape[:2]
+    p, v, q = states[..., 0:2], states[..., 3:5], states[..., 6:10]
+    yaw = np.arctan2(
+        2 * (q[..., 3] * q[..., 2] + q[..., 0] * q[..., 1]), 1 - 2 * (q[..., 1] ** 2 + q[..., 2] ** 2)
+    )
+    d = np.linalg.norm(p[:, None, :, :] - p[:, :, None, :], axis=-1)  # (W, me, other)
+    alive = live.reshape(W, N)
+    d = np.where(alive[:, None, :] & ~np.eye(N, dtype=bool)[None], d, np.inf)
+    other = d.argmin(axis=2)
+    seen = np.take_along_axis(d, other[..., None], axis=2)[..., 0] <= reach
+    dp = np.take_along_axis(p, other[..., None], axis=1) - p
+    dv = np.take_along_axis(v, other[..., None], axis=1) - v
+    c, s = np.cos(yaw), np.sin(yaw)
+    out = np.zeros((W, N, NEIGHBOUR_SIZE), dtype=np.float32)
+    out[..., 0] = 1.0
+    out[..., 1] = (c * dp[..., 0] + s * dp[..., 1]) / reach
+    out[..., 2] = (c * dp[..., 1] - s * dp[..., 0]) / reach
+    out[..., 3] = (c * dv[..., 0] + s * dv[..., 1]) / NEIGHBOUR_SPEED
+    out[..., 4] = (c * dv[..., 1] - s * dv[..., 0]) / NEIGHBOUR_SPEED
+    out = np.clip(out, -1.0, 1.0)
+    out[~seen] = 0.0
+    return out.reshape(W * N, NEIGHBOUR_SIZE)
 
 
 class VineyardMultiVectorEnv(ThreadedVectorEnv):
@@ -108,6 +144,8 @@ class VineyardMultiVectorEnv(ThreadedVectorEnv):
         self.config = cfg
         self.episodes = episodes
         self.min_spacing = float(min_spacing)
+        #: the share of drawn tasks sent against another agent (``rl.encounters``: training only)
+        self.encounters = cfg.rl.encounters
         self._threads = threads
         self.num_worlds = W = int(num_worlds)
         self.num_agents = N = int(num_agents)
@@ -119,7 +157,15 @@ class VineyardMultiVectorEnv(ThreadedVectorEnv):
         self.tasks = [NavTask(cfg, self.scene) for _ in range(R)]
         self.grid = self.tasks[0].grid
         task = self.tasks[0]
-        self.single_observation_space = task.observation_space
+        #: the observation's columns: the depth strip, the task's tail, the neighbour block (if any)
+        self._tail_end = task.observation_space.shape[0]
+        self.neighbours = N > 1 and cfg.rl.neighbour_range > 0.0
+        if self.neighbours:
+            space = task.observation_space
+            low = np.concatenate([space.low, [0.0], -np.ones(NEIGHBOUR_SIZE - 1)]).astype(np.float32)
+            self.single_observation_space = gym.spaces.Box(low, np.ones_like(low), dtype=np.float32)
+        else:
+            self.single_observation_space = task.observation_space
         self.single_action_space = task.action_space
         self.observation_space = batch_space(self.single_observation_space, R)
         self.action_space = batch_space(self.single_action_space, R)
@@ -147,7 +193,8 @@ class VineyardMultiVectorEnv(ThreadedVectorEnv):
 
     def _sample(self, rows: np.ndarray, given: dict[str, Any]) -> list[tuple[Any, ...]]:
         """A task for each of ``rows`` (in order), apart from the tasks of the other live agents of its
-        world (their current position and goal) and from those sampled before it."""
+        world (their current position and goal) and from those sampled before it; with ``rl.encounters``,
+        that share of them against one of those (:meth:`~.env.NavTask.meeting_task`)."""
         N = self.num_agents
         flat = self.world.states.reshape(self.num_envs, -1)
         picked: dict[int, tuple[Any, ...]] = {}
@@ -163,7 +210,14 @@ class VineyardMultiVectorEnv(ThreadedVectorEnv):
                     taken.append((picked[o][0], picked[o][2]))
                 elif o != r and self.live[o] and o not in rows:
                     taken.append((flat[o, STATE.x][:2], self.tasks[o].goal))
-            picked[int(r)] = self.tasks[r].sample_task(self._rngs[w], taken, self.min_spacing)
+            rng = self._rngs[w]
+            if taken and self.encounters > 0.0 and rng.random() < self.encounters:
+                position, goal = taken[int(rng.integers(len(taken)))]
+                task = self.tasks[r].meeting_task(rng, position, goal)
+                if task is not None:
+                    picked[int(r)] = task
+                    continue
+            picked[int(r)] = self.tasks[r].sample_task(rng, taken, self.min_spacing)
         return [picked[int(r)] for r in rows]
 
     def _start(self, rows: np.ndarray, given: dict[str, Any], whole_worlds: bool) -> None:
@@ -194,17 +248,25 @@ class VineyardMultiVectorEnv(ThreadedVectorEnv):
         mask = np.zeros(self.num_envs, dtype=bool)
         mask[rows] = True
         self.rows.step(mask, self._flat(states), ~mask, self.grid, self.scene, advance=False)
-        self._obs[rows, STRIP_SAMPLES:] = self.rows.tail[rows]
+        self._obs[rows, STRIP_SAMPLES : self._tail_end] = self.rows.tail[rows]
         self.actuator.begin(rows, yaw)
 
     def _flat(self, states: np.ndarray) -> np.ndarray:
         return states.reshape(self.num_envs, -1)
 
-    def _strips(self, rows: np.ndarray, states: np.ndarray) -> None:
-        """The depth strips of ``rows`` at ``states`` (worlds, agents, state) into ``_obs``: each agent sees
-        the other agents of its world that are in it."""
+    def _see(self, rows: np.ndarray, states: np.ndarray) -> None:
+        """The depth strips and neighbour blocks of ``rows`` at ``states`` (worlds, agents, state) into
+        ``_obs``."""
         if len(rows) == 0:
             return
+        self._strips(rows, states)
+        if self.neighbours:
+            block = neighbour_block(states, self.live, self.config.rl.neighbour_range)
+            self._obs[rows, self._tail_end :] = block[rows]
+
+    def _strips(self, rows: np.ndarray, states: np.ndarray) -> None:
+        """The depth strips of ``rows`` at ``states`` into ``_obs``: each agent sees the other agents of its
+        world that are in it."""
         N, clip = self.num_agents, self.config.rl.depth_clip
         flat = self._flat(states)
         if self.depth == "render":
@@ -279,7 +341,7 @@ class VineyardMultiVectorEnv(ThreadedVectorEnv):
         self.rows.reason[:] = 0
         rows = np.arange(self.num_envs)
         self._start(rows, given, whole_worlds=True)
-        self._strips(rows, self.world.states)
+        self._see(rows, self.world.states)
         self._done[:] = False
         none = np.zeros(self.num_envs, dtype=bool)
         infos = self._infos(self.world.states, ~none, none, none)
@@ -317,8 +379,8 @@ class VineyardMultiVectorEnv(ThreadedVectorEnv):
         self.rows.step(moving, cam, hit, self.grid, self.scene, advance=True)
         self.rows.step(restarting, cam, ~restarting, self.grid, self.scene, advance=False)
         seen = moving | restarting
-        self._obs[seen, STRIP_SAMPLES:] = self.rows.tail[seen]
-        self._strips(np.flatnonzero(seen), cams)
+        self._obs[seen, STRIP_SAMPLES : self._tail_end] = self.rows.tail[seen]
+        self._see(np.flatnonzero(seen), cams)
         rewards = np.where(moving, self.rows.reward, 0.0)
         reason = np.where(moving, self.rows.reason, 0)
         truncated = reason == REASONS.index("time_limit")
@@ -369,7 +431,7 @@ class VineyardMultiVectorEnv(ThreadedVectorEnv):
         mask = np.zeros(self.num_envs, dtype=bool)
         mask[rows] = True
         if observe:
-            self._strips(rows, self.world.states)
+            self._see(rows, self.world.states)
         return mask
 
     def close_extras(self, **kwargs: Any) -> None:
@@ -404,7 +466,8 @@ class VineyardNavParallelEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
         #: each agent's task (start, goal, the rules)
         self.tasks = dict(zip(self.possible_agents, self.core.tasks, strict=True))
         task = self.core.tasks[0]
-        self.observation_spaces = {name: task.observation_space for name in self.possible_agents}
+        space = self.core.single_observation_space
+        self.observation_spaces = {name: space for name in self.possible_agents}
         self.action_spaces = {name: task.action_space for name in self.possible_agents}
 
     def observation_space(self, agent: str) -> gym.spaces.Box:

@@ -228,7 +228,7 @@ def held_out_env(cfg: SimConfig, episodes: int, depth: str, agents: int = 1) -> 
     if agents > 1:
         from droneulator.workflows.rl.multi import VineyardMultiVectorEnv
 
-        return VineyardMultiVectorEnv(episodes, agents, cfg, depth, episodes="world")
+        return VineyardMultiVectorEnv(episodes, agents, cfg, depth, episodes="world", encounters=0.0)
     from droneulator.workflows.rl.vector import VineyardNavVectorEnv
 
     return VineyardNavVectorEnv(episodes, cfg, depth)
