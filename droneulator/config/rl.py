@@ -62,7 +62,7 @@ class RLConfig:
     time_limit_base_s: float = 10.0
     min_average_speed: float = 0.75
     #: with several agents per world (``--agents``): each agent observes the nearest other agent of its
-    #: world within this range (m), its position and velocity relative to its own in its body frame, as
+    #: world within this range (m), its position and velocity relative to its own in its heading frame, as
     #: a swarm's position broadcast gives them (the depth strip sees crossing traffic too late); 0: depth
     #: alone
     neighbour_range: float = 4.0
