@@ -92,6 +92,12 @@ def yaw_of(q: np.ndarray) -> float:
     return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
 
 
+def yaws_of(q: np.ndarray) -> np.ndarray:
+    """:func:`yaw_of` of every unit quaternion along the last axis of ``q`` (``(..., 4)``: state rows)."""
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
 def quat_slerp(q0: np.ndarray, q1: np.ndarray, f: float) -> np.ndarray:
     """Spherical linear interpolation from ``q0`` (``f = 0``) to ``q1`` (``f = 1``) along the shorter arc."""
     key = Rotation.from_quat(np.stack([quat_normalize(q0), quat_normalize(q1)]))

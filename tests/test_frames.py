@@ -147,6 +147,9 @@ def test_yaw_of_matches_scipy_and_ignores_scale_and_rejects_zero():
         assert math.isclose(F.yaw_of(3.7 * q), expected, abs_tol=1e-12)
     with pytest.raises(ValueError, match="not all zero"):
         F.yaw_of(np.zeros(4))
+    unit = np.array([q / np.linalg.norm(q) for q in QUATS])
+    batched = F.yaws_of(unit.reshape(-1, 1, 4))[:, 0]  # the state rows' form, any leading axes
+    np.testing.assert_allclose(batched, [F.yaw_of(q) for q in QUATS], atol=1e-12)
 
 
 def test_slerp_interpolates_on_the_shorter_arc():

@@ -44,7 +44,7 @@ from gymnasium.vector.utils import batch_space
 from pettingzoo import ParallelEnv
 
 from droneulator.config import SimConfig, fleet
-from droneulator.frames import transforms_from_poses
+from droneulator.frames import transforms_from_poses, yaws_of
 from droneulator.render.pipeline import CameraPipeline
 from droneulator.state import STATE
 from droneulator.workflows.rl.backend import CAMERA_NAME, Kinematics
@@ -71,9 +71,7 @@ def neighbour_block(states: np.ndarray, live: np.ndarray, reach: float) -> np.nd
     distance), in the agent's heading frame (x forward, y left; the yaw of its attitude)."""
     W, N = states.shape[:2]
     p, v, q = states[..., 0:2], states[..., 3:5], states[..., 6:10]
-    yaw = np.arctan2(
-        2 * (q[..., 3] * q[..., 2] + q[..., 0] * q[..., 1]), 1 - 2 * (q[..., 1] ** 2 + q[..., 2] ** 2)
-    )
+    yaw = yaws_of(q)
     d = np.linalg.norm(p[:, None, :, :] - p[:, :, None, :], axis=-1)  # (W, me, other)
     alive = live.reshape(W, N)
     d = np.where(alive[:, None, :] & ~np.eye(N, dtype=bool)[None], d, np.inf)
@@ -302,8 +300,7 @@ class VineyardMultiVectorEnv(ThreadedVectorEnv):
         episodes="world", ``world_over``: its world's episode ended at this step, and ``world_success``:
         every agent of it reached its goal)."""
         flat = self._flat(states)
-        q = flat[:, 6:10]
-        yaw = np.arctan2(2 * (q[:, 3] * q[:, 2] + q[:, 0] * q[:, 1]), 1 - 2 * (q[:, 1] ** 2 + q[:, 2] ** 2))
+        yaw = yaws_of(flat[:, 6:10])
         w, a = self._where(np.arange(self.num_envs))
         info = {
             "t": np.repeat(self.world.frame_t_ns() / NS, self.num_agents),

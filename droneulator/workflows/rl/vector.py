@@ -39,7 +39,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from droneulator.config import SimConfig
-from droneulator.frames import transforms_from_poses
+from droneulator.frames import transforms_from_poses, yaws_of
 from droneulator.render.pipeline import CameraPipeline, Spheres
 from droneulator.scenes import get_scene
 from droneulator.state import STATE
@@ -276,8 +276,7 @@ class VineyardNavVectorEnv(ThreadedVectorEnv):
 
     def _infos(self, rows: np.ndarray, t: np.ndarray, mask: np.ndarray) -> dict[str, Any]:
         """The single env's info keys as arrays (Gymnasium's vector form, every env present)."""
-        q = rows[:, 6:10]
-        yaw = np.arctan2(2 * (q[:, 3] * q[:, 2] + q[:, 0] * q[:, 1]), 1 - 2 * (q[:, 1] ** 2 + q[:, 2] ** 2))
+        yaw = yaws_of(rows[:, 6:10])
         task = self.rows
         termination = np.array([REASONS[r] for r in task.reason], dtype=object)
         info = {
