@@ -140,7 +140,7 @@ def test_the_teacher_gives_way_to_a_neighbour_on_a_collision_course_only():
         "head on": block(1.5, 0.0, -3.0, 0.0),  # 1.5 m ahead, closing at 3 m/s
         "from the right": block(1.2, -1.2, -1.5, 1.5),  # ahead right, coming across
         "from the left": block(1.2, 1.2, -1.5, -1.5),
-        "behind": block(-1.5, 0.0, 3.0, 0.0),  # closing from behind: its to give way
+        "behind": block(-1.5, 0.0, 3.0, 0.0),  # closing from behind: the one behind gives way
         "passing clear": block(1.5, 2.5, -3.0, 0.0),  # 2.5 m abeam at closest
     }
     obs = np.stack([np.concatenate([base, b]) for b in cases.values()])
