@@ -288,17 +288,32 @@ def test_a_shared_policy_trains_on_worlds_of_two_agents_and_is_judged_by_world(t
     assert summary["hyperparameters"]["gradient_steps"] == 4  # one update per agent transition
     from stable_baselines3 import SAC
 
+    from droneulator.workflows.rl.evaluate import evaluate
+    from droneulator.workflows.rl.heldout import EVAL_SEED
+
+    seeds = [EVAL_SEED, EVAL_SEED + 1, EVAL_SEED + 2]
     policy = SAC.load(tmp_path / "model.zip", device="cpu", custom_objects={"replay_buffer_class": None})
     env = held_out_env(env_config(), 3, "raycast", agents=2)
     try:
-        k = held_out_successes(policy, env, [5, 6, 7])
+        k = held_out_successes(policy, env, seeds)
         assert 0 <= k <= 3 and not env.live.reshape(3, 2).any(axis=1).all()
+        names = env.agent_names
     finally:
         env.close()
-    from droneulator.workflows.rl.evaluate import evaluate
-
-    with pytest.raises(ValueError, match="observes 40 entries, one agent's task gives 35.*--agents 2"):
-        evaluate(tmp_path / "model.zip", episodes=1, out=tmp_path / "eval")
+    # ``evaluate`` judges the team model by team episodes: the same count as the stop check's (by world),
+    # from each agent's own ending here, with every agent's flight and a map of them
+    summary = evaluate(tmp_path / "model.zip", episodes=3, out=tmp_path / "eval")
+    assert summary["agents"] == 2 and summary["seeds"] == seeds and summary["successes"] == k
+    for e in summary["per_episode"]:
+        assert len(e["agents"]) == 2 and e["success"] == all(a["termination"] == "goal" for a in e["agents"])
+        for name, a in zip(names, e["agents"], strict=True):
+            assert a["termination"] in ("goal", "collision", "out_of_bounds", "time_limit") and a["steps"] > 0
+            if "collided_with" in a:  # only the other agent, and only by colliding
+                assert a["collided_with"] in set(names) - {name} and a["termination"] == "collision"
+    assert sum(summary["terminations"].values()) == 6
+    assert (tmp_path / "eval" / "trajectories.png").stat().st_size > 10_000
+    with pytest.raises(ValueError, match="team policy.*drop --url"):
+        evaluate(tmp_path / "model.zip", episodes=1, out=tmp_path / "eval", mode="remote", url="ws://x:1")
     with pytest.raises(ValueError, match="agents"):
         train(None, tmp_path, steps=10, n_envs=2, agents=2, vec="dummy")
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 from droneulator.cli.common import add_rl_config_args
 from droneulator.runtime import preflight
@@ -17,7 +18,8 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         description="Roll the policy out (deterministic actions) on seeds used neither in training nor by "
         "its stop check (both read from train_summary.json; an overlap is refused) and write "
         "evaluation.json (the success rate with its 95 % Wilson interval), trajectories.png and "
-        "training_curves.png (from the run's monitor.csv).",
+        "training_curves.png (from the run's monitor.csv). A team policy (train --agents N) flies one world "
+        "of N agents per seed; a success is every agent at its goal without touching anything.",
     )
     p.add_argument("model", help="model .zip written by `droneulator train`, or its run folder")
     p.add_argument(
@@ -62,10 +64,13 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         deterministic=not args.stochastic,
     )
     for i, e in enumerate(summary["per_episode"]):
-        print(
-            f"episode {i} (seed {e['seed']}): {e['termination']:13s} {e['sim_time_s']:6.1f} s "
-            f"return {e['return']:7.1f}  path {e['shortest_path_m']:5.1f} m  flown {e['flown_m']:5.1f} m"
-        )
+        head = f"episode {i} (seed {e['seed']}):"
+        if "agents" not in e:
+            print(f"{head} {_flight(e)}")
+            continue
+        print(f"{head} {'every agent at its goal' if e['success'] else 'failed'}")
+        for k, a in enumerate(e["agents"]):
+            print(f"  agent {k}: {_flight(a)}")
     where = Path(summary["figures"]["trajectories"]).parent
     if summary["warning"]:
         print(f"note: {summary['warning']}")
@@ -73,3 +78,12 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     seeds = f"seeds {summary['seeds'][0]}-{summary['seeds'][-1]}"
     print(f"success rate {rate} ({seeds}); evaluation.json and figures: {where}")
     return 0
+
+
+def _flight(e: dict[str, Any]) -> str:
+    """One agent's episode on a line: how it ended, its time, return and path against the shortest."""
+    touched = f" (touched {e['collided_with']})" if e.get("collided_with") else ""
+    return (
+        f"{e['termination']:13s} {e['sim_time_s']:6.1f} s return {e['return']:7.1f}  "
+        f"path {e['shortest_path_m']:5.1f} m  flown {e['flown_m']:5.1f} m{touched}"
+    )

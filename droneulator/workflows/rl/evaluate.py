@@ -11,7 +11,9 @@ draw from those seeds' generators) and from the stop check's
 (:data:`~droneulator.workflows.rl.heldout.CHECK_SEED` on): an overlap with either, as
 ``train_summary.json`` records them, is refused (summaries older than ``check_seeds`` give training seeds
 only). The success rate comes with its 95 % Wilson interval. Actions are deterministic (the policy's
-mean).
+mean). A team policy (``train --agents N``) is judged by team episodes: one world of N agents per seed, a
+success every agent at its goal without touching anything (the stop check's measure), drawn one colour
+per agent.
 """
 
 from __future__ import annotations
@@ -50,6 +52,8 @@ class Rollout:
     clearance: list[float] = field(default_factory=list)
     ret: float = 0.0
     termination: str | None = None
+    #: the agent it touched (team episodes; "" for none)
+    collided_with: str = ""
 
     def summary(self) -> dict[str, Any]:
         xy = np.array(self.xy)
@@ -69,6 +73,7 @@ class Rollout:
             "path_ratio": flown / self.initial_distance if self.initial_distance > 0 else math.nan,
             "mean_speed_mps": flown / duration if duration > 0 else 0.0,
             "min_clearance_m": float(min(self.clearance)) if self.clearance else math.nan,
+            **({"collided_with": self.collided_with} if self.collided_with else {}),
         }
 
 
@@ -152,6 +157,56 @@ def rollout(env: VineyardNavEnv, policy: Any, seed: int, deterministic: bool = T
             return ro
 
 
+def plot_team_trajectories(
+    scene: Any, grid: Any, cfg: SimConfig, teams: list[list[Rollout]], png: Path
+) -> None:
+    """Team episodes over the occupancy map, the failed ones drawn boldly over the successful ones (thin,
+    faint, unlabelled): each agent's path in its own colour (agent 0 blue, 1 orange, ...), o start, * goal
+    (gold when reached); for a failed team also its A* paths dashed, x where an agent touched the scene or
+    left its bounds, a red ring where it touched another agent, a square at the time limit, and each start
+    labelled world/agent."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(11, 8))
+    _draw_map(ax, scene, grid, cfg.rl.altitude)
+    failed = [not all(ro.termination == "goal" for ro in team) for team in teams]
+    for bold in (False, True):  # the failures last, on top
+        for w, team in enumerate(teams):
+            if failed[w] != bold:
+                continue
+            for a, ro in enumerate(team):
+                colour, xy = f"C{a % 10}", np.array(ro.xy)
+                reached = ro.termination == "goal"
+                faint = 1.0 if bold else 0.4
+                ax.plot(xy[:, 0], xy[:, 1], color=colour, lw=2.0 if bold else 0.8, alpha=faint)
+                ax.plot(*ro.start[:2], "o", color=colour, ms=6 if bold else 3, mec="k", alpha=faint)
+                star = "gold" if reached else colour
+                ax.plot(*ro.goal, "*", color=star, ms=12 if bold else 6, mec="k", alpha=faint)
+                if not bold:
+                    continue
+                if len(ro.path):
+                    ax.plot(ro.path[:, 0], ro.path[:, 1], "--", color=colour, lw=0.8)
+                ax.annotate(f"{w}/{a}", ro.start[:2], textcoords="offset points", xytext=(4, 4), fontsize=8)
+                if ro.collided_with:
+                    ax.plot(*xy[-1], "o", ms=14, mfc="none", mec="red", mew=2)
+                elif ro.termination == "time_limit":
+                    ax.plot(*xy[-1], "s", color="orange", markersize=7, markeredgecolor="k")
+                elif not reached:
+                    ax.plot(*xy[-1], "x", color="red", markersize=10, mew=2.5)
+    agents = len(teams[0]) if teams else 0
+    ax.set_title(
+        f"team evaluation: {len(teams) - sum(failed)}/{len(teams)} worlds with all {agents} agents at their "
+        "goals (failed teams bold, labelled world/agent)\ncolour: agent; o start, * goal (gold: reached), "
+        "-- A* path, x touched the scene or left it, red ring: touched another agent, square: time limit",
+        fontsize=10,
+    )
+    fig.savefig(png, dpi=120, bbox_inches="tight")
+    plt.close(fig)
+
+
 def plot_training_curves(run_dir: Path, png: Path, window: int = 20) -> bool:
     """Episode return, length and success rate against environment steps from ``monitor.csv``
     (raw episodes and a ``window``-episode moving mean). False if the run has no monitor log."""
@@ -201,6 +256,23 @@ def moving_mean(values: np.ndarray, n: int) -> np.ndarray:
     return np.convolve(values, kernel, "same") / np.convolve(np.ones(len(values)), kernel, "same")
 
 
+def _draw_map(ax: Any, scene: Any, grid: Any, altitude: float) -> None:
+    """The occupancy map on ``ax``: vine rows at flight altitude (green), the inflated margin (grey)."""
+    from matplotlib.colors import ListedColormap
+
+    solid = occupancy_from_scene(scene, altitude, 0.0, grid.resolution)
+    layer = np.where(~solid.free, 2, np.where(~grid.free, 1, 0)).T
+    x0, x1, y0, y1 = grid.extent()
+    r = grid.resolution / 2
+    cmap = ListedColormap(["white", "#d9d9d9", "#2e7d32"])
+    ax.imshow(layer, origin="lower", extent=(x0 - r, x1 + r, y0 - r, y1 + r), cmap=cmap, vmin=0, vmax=2)
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+
+
 def plot_trajectories(env: VineyardNavEnv, rollouts: list[Rollout], png: Path) -> None:
     """Rollouts over the occupancy map (vine rows at flight altitude, inflated margin lighter), each
     coloured by time, with the commands along them against time: every step in grey and their moving
@@ -210,12 +282,9 @@ def plot_trajectories(env: VineyardNavEnv, rollouts: list[Rollout], png: Path) -
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.collections import LineCollection
-    from matplotlib.colors import ListedColormap, Normalize
+    from matplotlib.colors import Normalize
 
     grid = env.grid
-    solid = occupancy_from_scene(env.scene, env.rl.altitude, 0.0, grid.resolution)
-    layer = np.where(~solid.free, 2, np.where(~grid.free, 1, 0)).T
-    cmap_map = ListedColormap(["white", "#d9d9d9", "#2e7d32"])
     t_max = max((ro.t[-1] - ro.t[0] for ro in rollouts), default=1.0) or 1.0
     smooth = max(1, round(SMOOTH_S * env.config.render.camera_hz))
     norm = Normalize(0.0, t_max)
@@ -226,9 +295,7 @@ def plot_trajectories(env: VineyardNavEnv, rollouts: list[Rollout], png: Path) -
     ax = fig.add_subplot(gs[:, 0])
     ax_v = fig.add_subplot(gs[0, 1])
     ax_w = fig.add_subplot(gs[1, 1], sharex=ax_v)
-    x0, x1, y0, y1 = grid.extent()
-    r = grid.resolution / 2
-    ax.imshow(layer, origin="lower", extent=(x0 - r, x1 + r, y0 - r, y1 + r), cmap=cmap_map, vmin=0, vmax=2)
+    _draw_map(ax, env.scene, grid, env.rl.altitude)
     for k, ro in enumerate(rollouts):
         t = np.array(ro.t) - ro.t[0]
         xy = np.array(ro.xy)
@@ -257,11 +324,6 @@ def plot_trajectories(env: VineyardNavEnv, rollouts: list[Rollout], png: Path) -
                 )
                 cl.set_array(t[2:])
                 axis.add_collection(cl)
-    ax.set_xlim(x0, x1)
-    ax.set_ylim(y0, y1)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
     n_ok = sum(ro.termination == "goal" for ro in rollouts)
     ax.set_title(
         f"evaluation: {n_ok}/{len(rollouts)} reached the goal\n"
@@ -302,7 +364,10 @@ def evaluate(
     ``model.zip``) on seeds ``seed .. seed + episodes - 1``; returns (and writes) the summary, its
     success rate with the 95 % Wilson interval (``success_interval_95``). Seeds the run trained on or
     its stop check flew are refused. ``logs`` is the training run folder for the curves (default: the
-    model's)."""
+    model's). A team policy (``train --agents N``, as ``train_summary.json`` says) flies one team episode
+    per seed, all at once, in the held-out multi-agent env its stop check used (its training depth): a
+    success is every agent at its goal without touching anything; ``per_episode`` then lists each world's
+    agents."""
     from stable_baselines3 import PPO, SAC
 
     model = resolve_model(model)
@@ -326,29 +391,38 @@ def evaluate(
     policy = (PPO if trained_algorithm(model) in ("ppo", "distil") else SAC).load(
         model, device="cpu", custom_objects={"replay_buffer_class": None}
     )
-    wanted, flown = policy.observation_space.shape, (obs_size(cfg.rl.action),)
-    if wanted != flown:
-        agents = _run_summary(model).get("agents", 1)
-        raise ValueError(
-            f"the policy in {model} observes {wanted[0]} entries, one agent's task gives {flown[0]}"
-            + (f" (it was trained with --agents {agents} and observes its nearest neighbour, which one agent "
-               "does not have: benchmarks/multi.py --train judges teams)" if agents > 1 else "")
-        )  # fmt: skip
-    env = VineyardNavEnv(config=cfg, mode=mode, url=url, zenoh=zenoh)
-    t0 = time.perf_counter()
-    try:
-        rollouts = [rollout(env, policy, s, deterministic) for s in seeds]
-        wall = time.perf_counter() - t0
-        plot_trajectories(env, rollouts, out / "trajectories.png")
-    finally:
-        env.close()
+    run = _run_summary(model)
+    agents = int(run.get("agents", 1))
+    if agents > 1:
+        if mode != "local":
+            raise ValueError(f"a team policy (--agents {agents}) is evaluated in this process: drop --url")
+        depth = str(run.get("depth", "raycast"))
+        teams, wall = _fly_teams(policy, cfg, seeds, agents, depth, deterministic, out)
+        rollouts = [ro for team in teams for ro in team]
+        per_episode = [_team_summary(team) for team in teams]
+    else:
+        wanted, flown = policy.observation_space.shape, (obs_size(cfg.rl.action),)
+        if wanted != flown:
+            raise ValueError(
+                f"the policy in {model} observes {wanted[0]} entries, one agent's task gives {flown[0]}"
+            )
+        env = VineyardNavEnv(config=cfg, mode=mode, url=url, zenoh=zenoh)
+        t0 = time.perf_counter()
+        try:
+            rollouts = [rollout(env, policy, s, deterministic) for s in seeds]
+            wall = time.perf_counter() - t0
+            plot_trajectories(env, rollouts, out / "trajectories.png")
+        finally:
+            env.close()
+        per_episode = [ro.summary() for ro in rollouts]
     curves = plot_training_curves(Path(logs) if logs else model.parent, out / "training_curves.png")
-    per_episode = [ro.summary() for ro in rollouts]
     n_ok = sum(e["success"] for e in per_episode)
-    ok = [e for e in per_episode if e["success"]]
+    flights = [ro.summary() for ro in rollouts]  # every agent's (one per episode without a team)
+    ok = [e for e in flights if e["success"]]
     summary = {
         "model": str(model),
         "mode": mode,
+        "agents": agents,
         "episodes": episodes,
         "seeds": seeds,
         "training_seeds": training_seeds(model),
@@ -356,12 +430,12 @@ def evaluate(
         "warning": _legacy_warning(model, seeds),
         "deterministic": deterministic,
         **interval_record(n_ok, episodes),
-        "terminations": {r: sum(e["termination"] == r for e in per_episode) for r in _reasons(per_episode)},
-        "mean_return": float(np.mean([e["return"] for e in per_episode])) if per_episode else 0.0,
+        "terminations": {r: sum(e["termination"] == r for e in flights) for r in _reasons(flights)},
+        "mean_return": float(np.mean([e["return"] for e in flights])) if flights else 0.0,
         "mean_time_to_goal_s": float(np.mean([e["sim_time_s"] for e in ok])) if ok else None,
         "mean_speed_mps": float(np.mean([e["mean_speed_mps"] for e in ok])) if ok else None,
         "mean_path_ratio": float(np.mean([e["path_ratio"] for e in ok])) if ok else None,
-        "min_clearance_m": float(min(e["min_clearance_m"] for e in per_episode)) if per_episode else None,
+        "min_clearance_m": float(min(e["min_clearance_m"] for e in flights)) if flights else None,
         "wall_s": wall,
         "figures": {
             "trajectories": str(out / "trajectories.png"),
@@ -371,6 +445,71 @@ def evaluate(
     }
     (out / "evaluation.json").write_text(json.dumps(summary, indent=2))
     return summary
+
+
+def _fly_teams(
+    policy: Any, cfg: SimConfig, seeds: list[int], agents: int, depth: str, deterministic: bool, out: Path
+) -> tuple[list[list[Rollout]], float]:
+    """One team episode per seed, all at once: the held-out multi-agent env of ``len(seeds)`` worlds of
+    ``agents`` (the stop check's, :func:`~droneulator.workflows.rl.train.held_out_env`: no meeting tasks,
+    a world's episode ends when its last agent's does). Returns each world's agents' rollouts and the
+    wall time; draws ``trajectories.png`` in ``out``."""
+    from droneulator.workflows.rl.train import held_out_env
+
+    env = held_out_env(cfg, len(seeds), depth, agents)
+    try:
+        wanted, flown = policy.observation_space.shape, env.single_observation_space.shape
+        if wanted != flown:
+            raise ValueError(f"the policy observes {wanted[0]} entries, a team of {agents} gives {flown[0]}")
+        t0 = time.perf_counter()
+        obs, info = env.reset(seed=seeds)
+        teams = []
+        for w, s in enumerate(seeds):
+            team = []
+            for task in env.tasks[w * agents : (w + 1) * agents]:
+                _, path = env.grid.shortest_path(task.start[:2], task.goal)
+                team.append(Rollout(s, task.start.copy(), task.goal.copy(), task.initial_distance, path))
+            teams.append(team)
+        flat = [ro for team in teams for ro in team]
+        col, radius = env.scene.collision, cfg.vehicle.collision_radius
+        live = np.ones(len(flat), dtype=bool)
+
+        def record(rows: np.ndarray) -> None:
+            for r in rows:
+                ro, p = flat[r], np.asarray(info["position"][r], dtype=float)
+                ro.t.append(float(info["t"][r]))
+                ro.xy.append(p[:2].copy())
+                ro.clearance.append(col.distance(p) - radius)
+
+        record(np.arange(len(flat)))
+        while live.any():
+            action, _ = policy.predict(obs, deterministic=deterministic)
+            obs, reward, terminated, truncated, info = env.step(action)
+            rows = np.flatnonzero(live)
+            record(rows)
+            for r in rows:
+                flat[r].ret += float(reward[r])
+                if terminated[r] or truncated[r]:
+                    flat[r].termination = str(info["termination"][r])
+                    flat[r].collided_with = str(info["collided_with"][r])
+                    live[r] = False
+        wall = time.perf_counter() - t0
+        plot_team_trajectories(env.scene, env.grid, cfg, teams, out / "trajectories.png")
+    finally:
+        env.close()
+    return teams, wall
+
+
+def _team_summary(team: list[Rollout]) -> dict[str, Any]:
+    """A team episode: a success when every agent reached its goal (none touched anything), and each agent's
+    flight."""
+    flights = [ro.summary() for ro in team]
+    return {
+        "seed": team[0].seed,
+        "success": all(e["success"] for e in flights),
+        "sim_time_s": max(e["sim_time_s"] for e in flights),
+        "agents": flights,
+    }
 
 
 def _reasons(per_episode: list[dict[str, Any]]) -> list[str]:
