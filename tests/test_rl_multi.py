@@ -424,3 +424,36 @@ def test_training_worlds_can_send_agents_against_each_other_and_held_out_worlds_
         plain.close()
     with pytest.raises(ValueError, match="rl.encounters"):
         load_config(overrides=["rl.encounters=1.5"])
+
+
+def test_a_sac_team_trains_with_the_team_recipe_unless_its_flags_say_otherwise(tmp_path, capsys):
+    """``train --agents 2`` (SAC) defaults to the recipe that met the team target (docs/rl.md): the giving-way
+    teacher's demonstrations, cloning and the anchor, and training tasks where agents meet; a flag or a
+    ``--set`` given wins, and what was chosen is said and recorded in the run."""
+    import json
+
+    from droneulator.cli import main
+    from droneulator.cli.train import TEAM_ENCOUNTERS, TEAM_RECIPE, team_defaults
+    from droneulator.config import load_config
+
+    cfg, hyper = team_defaults(load_config(), {}, [])
+    assert hyper == TEAM_RECIPE and cfg.rl.encounters == TEAM_ENCOUNTERS
+    said = capsys.readouterr().out
+    assert "--demonstrations 20000 --bc-steps 5000 --anchor 10 and rl.encounters=0.5" in said
+    plain = ["rl.encounters=0"]
+    cfg, hyper = team_defaults(load_config(overrides=plain), {"demonstrations": 0}, plain)
+    assert hyper == {"demonstrations": 0} and cfg.rl.encounters == 0.0
+    assert capsys.readouterr().out == ""  # nothing chosen, nothing said
+    _, hyper = team_defaults(load_config(), {"demonstration_anchor": 2.0}, None)
+    assert hyper == {**TEAM_RECIPE, "demonstration_anchor": 2.0}
+
+    out = tmp_path / "team"  # through the command: the run records the choice
+    argv = ["train", "--num-envs", "2", "--agents", "2", "--steps", "200", "--demonstrations", "150",
+            "--bc-steps", "20", "--learning-starts", "100", "--no-progress", "--out", str(out)]  # fmt: skip
+    assert main(argv) == 0
+    assert "rl.encounters=0.5" in capsys.readouterr().out
+    summary = json.loads((out / "train_summary.json").read_text())
+    assert summary["agents"] == 2 and summary["hyperparameters"]["demonstrations"] == 150
+    assert summary["hyperparameters"]["demonstration_bc_steps"] == 20
+    assert summary["hyperparameters"]["demonstration_anchor"] == 0.0  # --demonstrations given: the flags rule
+    assert json.loads((out / "config.json").read_text())["rl"]["encounters"] == TEAM_ENCOUNTERS

@@ -14,6 +14,17 @@ from droneulator.workflows.rl.heldout import CHECK_EPISODES, CHECK_SEED
 
 #: steps between ``--stop-at`` checks by default, per algorithm
 CHECK_EVERY = {"sac": 10_000, "ppo": 100_000, "distil": 50_000}
+#: a SAC team's defaults (``--agents`` > 1 without ``--demonstrations``): the recipe that trained teams of
+#: two to 45-47 of 50 held-out team episodes in 107-172 s for three seeds (docs/rl.md): the path teacher
+#: (which gives way) flies the first steps, the actor is cloned on them and anchored to it after
+TEAM_RECIPE = {"demonstrations": 20_000, "demonstration_bc_steps": 5_000, "demonstration_anchor": 10.0}
+#: and the share of its training tasks that send an agent against the other's route (``rl.encounters``)
+TEAM_ENCOUNTERS = 0.5
+#: the team recipe's flags, as said
+TEAM_FLAGS = (
+    f"--demonstrations {TEAM_RECIPE['demonstrations']} --bc-steps {TEAM_RECIPE['demonstration_bc_steps']} "
+    f"--anchor {TEAM_RECIPE['demonstration_anchor']:g}"
+)
 
 
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -59,7 +70,9 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="N",
         help="agents sharing each of the --num-envs worlds (default 1): they see, downwash and hit each "
         "other and train one shared policy; a held-out episode is a world's, a success all of its agents "
-        "at their goals, none touching",
+        "at their goals, none touching. A SAC team trains with the team recipe (docs/rl.md): "
+        f"{TEAM_FLAGS} unless --demonstrations is given, and rl.encounters={TEAM_ENCOUNTERS} unless --set "
+        "names it (--demonstrations 0 --set rl.encounters=0: plain SAC on plain tasks)",
     )
     p.add_argument(
         "--depth",
@@ -177,6 +190,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         raise ValueError(f"--agents must be at least 1, and more than one need --num-envs, got {args.agents}")
     algo = args.algo or "sac"
     overrides = _sac_overrides(args, algo)
+    if args.agents > 1 and algo == "sac":
+        cfg, overrides = team_defaults(cfg, overrides, args.overrides)
     summary = train(
         cfg,
         Path(args.out),
@@ -202,6 +217,29 @@ def cmd_train(args: argparse.Namespace) -> int:
     if args.stop_at is not None:
         _print_checks(summary, args.stop_at)
     return 0
+
+
+def team_defaults(
+    cfg: SimConfig, overrides: dict[str, Any], sets: list[str] | None
+) -> tuple[SimConfig, dict[str, Any]]:
+    """A SAC team's config and hyperparameters: :data:`TEAM_RECIPE` where ``overrides`` (the flags) give no
+    ``demonstrations``, and ``rl.encounters`` :data:`TEAM_ENCOUNTERS` where no ``--set`` (``sets``) names it
+    and the config leaves it at 0; says what it chose."""
+    chosen = []
+    if "demonstrations" not in overrides:
+        overrides = {**TEAM_RECIPE, **overrides}  # --bc-steps or --anchor given alone still count
+        o = overrides
+        chosen.append(
+            f"--demonstrations {o['demonstrations']} --bc-steps {o['demonstration_bc_steps']} "
+            f"--anchor {o['demonstration_anchor']:g}"
+        )
+    named = any(s.split("=", 1)[0].strip() == "rl.encounters" for s in sets or [])
+    if not named and cfg.rl.encounters == 0.0:  # neither a --set nor a --config file chose a share
+        cfg.rl.encounters = TEAM_ENCOUNTERS
+        chosen.append(f"rl.encounters={TEAM_ENCOUNTERS}")
+    if chosen:
+        print(f"a team of SAC agents: {' and '.join(chosen)} (the team recipe, docs/rl.md)")
+    return cfg, overrides
 
 
 def _print_checks(summary: dict[str, Any], stop_at: float) -> None:
