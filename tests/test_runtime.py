@@ -519,25 +519,28 @@ def test_lockstep_loses_no_image_to_a_slow_subscriber():
     assert wall >= 0.9 * 60 * 0.04  # the clock waited for the subscriber (60 frames, 40 ms each)
 
 
-@pytest.mark.alone
-def test_sigterm_stops_everything_within_its_grace_period():
-    from droneulator.runtime.supervisor import STOP_GRACE_S
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
 
+
+def test_sigterm_stops_everything_and_kills_a_child_that_ignores_it_after_the_grace_period():
+    """SIGTERM to ``droneulator run`` stops its three processes; one that cannot act on SIGTERM (here the
+    render server, stopped with SIGSTOP) is killed once the grace period is over, so the run ends anyway
+    (a supervisor that waited for it without the grace would never exit). Judged by what ends, not how
+    fast: the run's own exit is waited for up to a minute."""
     r = Run("default")
     try:
         kids = r.children()
         assert set(kids) == {"dynamics_server", "render_server", "bridge"}
-        t0 = time.monotonic()
+        os.kill(kids["render_server"], signal.SIGSTOP)
         r.proc.send_signal(signal.SIGTERM)
-        r.proc.wait(10)
-        # the children get STOP_GRACE_S before SIGKILL; then the supervisor's own interpreter exits, which
-        # took 2.2 s beyond the grace on a machine with both cores kept busy (a supervisor that waited
-        # for a child without the grace would take the wait's 10 s)
-        assert time.monotonic() - t0 < STOP_GRACE_S + 4.0
-        time.sleep(0.2)
-        for pid in kids.values():
-            with pytest.raises(ProcessLookupError):
-                os.kill(pid, 0)
+        r.proc.wait(60)
+        assert r.proc.returncode == 0
+        r.wait_for(lambda: not any(_alive(pid) for pid in kids.values()), 10, "every child to be gone")
     finally:
         r.close()
 
