@@ -1,4 +1,5 @@
-"""One log line per burst of a repeating message, for whatever can repeat at a physics step's rate.
+"""One log line per burst of a repeating message, for whatever can repeat at a physics step's rate; and
+whole lines on the terminal from many threads (:func:`say`).
 
 A PX4 sending garbage 250 times a second, or a ROS topic streaming commands the simulator refuses,
 must not flood the log; but the first occurrence is worth a full line, and how many followed is worth
@@ -9,11 +10,24 @@ from __future__ import annotations
 
 import logging
 import math
+import sys
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TextIO
+
+_SAYING = threading.Lock()
+
+
+def say(text: str, file: TextIO | None = None) -> None:
+    """Print ``text`` as a whole line (one write of the text and its newline, then a flush, under one lock):
+    ``print`` writes the two apart, so a line another thread printed meanwhile ran into it (``[dynamics] ...
+    connection openUI: http://...`` when a run's relayed output met its ``UI:`` line)."""
+    out = sys.stdout if file is None else file
+    with _SAYING:
+        out.write(text + "\n")
+        out.flush()
 
 
 @dataclass

@@ -90,3 +90,42 @@ def test_a_run_serves_its_api_and_topics_on_the_chosen_ports_and_stops_cleanly(t
     assert ps("-g", str(run.pid)) == []
     assert "bridge ready" in (tmp_path / "run.log").read_text()
     assert "bridge ready" in run.log.tail(200)
+
+
+def test_lines_said_by_many_threads_at_once_reach_a_pipe_whole_and_in_order():
+    """A run's stdout carries its children's relayed output (one thread each) beside its own lines (``UI:``,
+    the demo's telemetry); ``print`` writes a line and its newline apart, and a run's ``UI:`` line was seen
+    glued to a relayed one. :func:`~droneulator.logs.say` keeps every line whole, each thread's in order."""
+    import io
+    import re
+
+    from droneulator.logs import say
+
+    r, w = os.pipe()
+    # stdout as ``python -u`` or PYTHONUNBUFFERED (CI's) makes it: every write a system call, which lets
+    # another thread in between a line and its newline (with ``print`` here, about 100 of 8,000 lines broke)
+    out = io.TextIOWrapper(os.fdopen(w, "wb", buffering=0), encoding="utf-8", write_through=True)
+    received: list[str] = []
+
+    def read() -> None:
+        with os.fdopen(r, encoding="utf-8") as f:
+            received.extend(f.read().splitlines())
+
+    def talk(k: int) -> None:
+        for i in range(2000):
+            say(f"[thread {k}] line {i} " + "x" * (i % 97), out)
+
+    reader = threading.Thread(target=read)
+    reader.start()
+    talkers = [threading.Thread(target=talk, args=(k,)) for k in range(4)]
+    for t in talkers:
+        t.start()
+    for t in talkers:
+        t.join()
+    out.close()
+    reader.join(10)
+    assert len(received) == 8000
+    for k in range(4):
+        mine = [line for line in received if line.startswith(f"[thread {k}] ")]
+        assert mine == [f"[thread {k}] line {i} " + "x" * (i % 97) for i in range(2000)]
+    assert all(re.fullmatch(r"\[thread \d\] line \d+ x*", line) for line in received)

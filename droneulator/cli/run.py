@@ -19,6 +19,7 @@ from droneulator.cli.common import (
     report_recording,
 )
 from droneulator.config import SimConfig
+from droneulator.logs import say
 from droneulator.runtime import preflight
 from droneulator.runtime.preflight import StartupError
 
@@ -241,5 +242,5 @@ def _start_ui(cfg: SimConfig, sup: Supervisor) -> UIServer:
         raise StartupError(
             f"cannot start the UI on {cfg.ui.host}:{cfg.ui.port}: {exc.strerror or exc}"
         ) from None
-    print(f"UI: {url}", flush=True)
+    say(f"UI: {url}")
     return server

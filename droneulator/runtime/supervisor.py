@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from droneulator.config import SimConfig, to_dict
+from droneulator.logs import say
 from droneulator.runtime.ipc import ENV_ADDRESS, ENV_AUTHKEY, ENV_CONFIG, ENV_RING, ENV_ZENOH, FrameRing
 from droneulator.runtime.spawn import child_command
 
@@ -108,7 +109,7 @@ class Supervisor:
                 if child.name == "dynamics" and self._held is not None:
                     self._held.append(line)
                 elif self.echo:
-                    print(f"[{child.name}] {line}", flush=True)
+                    say(f"[{child.name}] {line}")
 
     def start(self, on_hub_ready: Callable[[], None] | None = None) -> None:
         """Start the dynamics server, then (once it listens) the render server and the bridge.
@@ -141,7 +142,7 @@ class Supervisor:
             held, self._held = self._held or [], None
             if self.echo:
                 for line in held:
-                    print(f"[dynamics] {line}", flush=True)
+                    say(f"[dynamics] {line}")
 
     def _start_failure(self, child: Child, proc: subprocess.Popen) -> str:
         """One line for a dynamics server that exited while starting: its exit status and last line."""

@@ -14,6 +14,7 @@ from PIL import Image
 from droneulator.api.client import DroneulatorClient
 from droneulator.config import SimConfig
 from droneulator.imaging import depth_to_rgb, segmentation_to_rgb
+from droneulator.logs import say
 from droneulator.ros.topics import (
     TYPES,
     decode_compressed,
@@ -103,27 +104,26 @@ def _fly(cfg: SimConfig, out: Path, stop: threading.Event) -> None:
                 return
             client.request(leg.op, **leg.args)
             state = client.state()  # replies are ordered: this already reflects the command
-            print(f"[{state['t']:6.2f}s] {leg.label}", flush=True)
+            say(f"[{state['t']:6.2f}s] {leg.label}")
             end = state["t"] + (leg.until if isinstance(leg.until, float) else 60.0)
             while not stop.is_set() and state["t"] < end and state["mode"] not in (leg.until, "collided"):
                 msg = client.next_message(timeout=5.0)
                 if msg is None:
                     continue
                 if msg["type"] == "event":
-                    print(f"[{msg['event']['t']:6.2f}s] event {msg['event']['type']}", flush=True)
+                    say(f"[{msg['event']['t']:6.2f}s] event {msg['event']['type']}")
                     continue
                 state = msg["state"]
                 if state["t"] >= next_log:
-                    print(telemetry_line(state), flush=True)
+                    say(telemetry_line(state))
                     next_log = state["t"] + 1.0
         wall = time.monotonic() - wall0
         sim_s = state["t"] - t_start
         time.sleep(0.5)  # let the last frames arrive
-        print(
+        say(
             f"demo finished: {sim_s:.1f} s simulated in {wall:.1f} s wall "
             f"(real-time factor {sim_s / wall:.2f}), "
-            f"{saver.received} RGB frames received over Zenoh, {saver.saved} frame sets saved to {out}",
-            flush=True,
+            f"{saver.received} RGB frames received over Zenoh, {saver.saved} frame sets saved to {out}"
         )
     finally:
         client.close()
