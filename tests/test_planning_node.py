@@ -133,7 +133,15 @@ def test_two_plan_nodes_fly_round_the_tree_and_each_other_and_refuse_an_occupied
             m for m in seen + list(client.messages(timeout=0.5))
             if m.get("type") == "event" and m["event"].get("type") in ("collision", "impact")
         ]  # fmt: skip
-        assert not collisions, collisions[:3]
+        if collisions:  # what was touched, where, and how the planners kept up (one such run in five)
+            first = collisions[0]["event"]
+            near = {name: [(t, p, round(float(sdf(np.array([p]))[0]), 2)) for t, p in track.items()
+                           if abs(t - first["t"]) < 0.5][::5] for name, track in tracks.items()}  # fmt: skip
+            stats = {name: {"plans": n.plans, "stale": n.stale_plans, "failures": n.failures,
+                            "off_track": n.off_track, "slowest_plan_s": max(n.cycle_s, default=0.0)}
+                     for name, n in nodes.items()}  # fmt: skip
+            pytest.fail(f"collisions {[m['event'] for m in collisions[:3]]}; tracks round the first (t, "
+                        f"position, SDF) {near}; planners {stats}\n{run.log.tail(20)}")
         both = sorted(set(tracks["uav0"]) & set(tracks["uav1"]))
         gap = np.linalg.norm([np.subtract(tracks["uav0"][t], tracks["uav1"][t]) for t in both], axis=1)
         assert len(both) > 100 and gap.min() > 2 * cfg.vehicle.collision_radius, gap.min()
