@@ -298,3 +298,23 @@ def test_only_the_world_calls_the_physics_kernel() -> None:
     steps = {"step_to_frame", "run_period_serial", "run_period_parallel", "end_period"}
     steps |= {f".{name}" for name in steps}
     assert {m for m in _callers(steps) if m != "world/step.py"} == {"world/world.py"}
+
+
+def test_no_parallel_loop_passes_its_bare_index_to_a_compiled_function() -> None:
+    """Numba types a ``prange`` index int64, then uint64 once the loop is parallelised, and compiles a
+    function given the bare index once for each: the row kernels, the ray tracer and PatchMatch's plane cost
+    compiled twice (about 4 s of the vector env's 53 s of cold compiling, measured); the loops pass
+    ``np.int64(index)``."""
+    bare = []
+    for f in PACKAGE.rglob("*.py"):
+        for loop in ast.walk(ast.parse(f.read_text())):
+            if not (isinstance(loop, ast.For) and isinstance(loop.target, ast.Name)):
+                continue
+            if not (isinstance(loop.iter, ast.Call) and ast.unparse(loop.iter.func).endswith("prange")):
+                continue
+            for call in (n for stmt in loop.body for n in ast.walk(stmt) if isinstance(n, ast.Call)):
+                if ast.unparse(call.func) == "np.int64":
+                    continue
+                if any(isinstance(a, ast.Name) and a.id == loop.target.id for a in call.args):
+                    bare.append(f"{f.relative_to(PACKAGE)}:{call.lineno} {ast.unparse(call.func)}")
+    assert not bare, bare

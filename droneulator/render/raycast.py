@@ -564,8 +564,8 @@ def _trace_parts(
     took 12.3 ms with threads of the caster's own, 6.0 ms on the pool)."""
     for part in numba.prange(parts):
         _trace(
-            part, parts, row_pose, row_v, width, R, C, K, near, far, node, node_int, levels, tri, tri_int,
-            geo, pyr, offsets, size, share, depth, hit,
+            np.int64(part), parts, row_pose, row_v, width, R, C, K, near, far, node, node_int, levels, tri,
+            tri_int, geo, pyr, offsets, size, share, depth, hit,
         )  # fmt: skip
 
 

@@ -469,7 +469,7 @@ def _parallel(*args):  # noqa: ANN002, ANN202 - step_parcels's arguments, passed
     chunks = args[_LEDGER].shape[0]
     per = (args[_COUNT] + chunks - 1) // chunks
     for c in numba.prange(chunks):
-        _chunk(c, per, *args)
+        _chunk(np.int64(c), per, *args)
 
 
 #: below this many parcels a step runs on one thread (waking the others costs more than it saves)

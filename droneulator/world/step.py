@@ -204,12 +204,13 @@ def run_period_parallel(go, begin, t_to, t_ns, states, cmds, active, substep, P,
     if begin:
         _begin_worlds(go, states, wind, period_start, out)
         for k in numba.prange(W * N):
-            _begin_row(k, go, states, mode, flats, cmds, vref, dt, lim, gains, R, dead)
+            _begin_row(np.int64(k), go, states, mode, flats, cmds, vref, dt, lim, gains, R, dead)
     hits = 0
     for k in numba.prange(W * N):
-        hits += _segment_row(k, go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs, wood,
-                             off, shapes, origins, res, variant, radius, model, eff, dead, out, hit, hit_t,
-                             hit_kind, work, R)  # fmt: skip
+        # the index cast: a prange index is typed int64, then uint64, and each would compile the row apart
+        hits += _segment_row(np.int64(k), go, t_to, t_ns, states, cmds, active, substep, P, G, D, pidx, sdfs,
+                             wood, off, shapes, origins, res, variant, radius, model, eff, dead, out, hit,
+                             hit_t, hit_kind, work, R)  # fmt: skip
     _advance_clocks(go, t_to, t_ns)
     return hits
 

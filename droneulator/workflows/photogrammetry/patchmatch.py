@@ -257,7 +257,8 @@ def _patchmatch_pass(
     (relative depth ``depth_step``, normal ``normal_step``, plus a fresh random depth and normal)."""
     h, w = depth.shape
     S = srcs.shape[0]
-    for r in numba.prange(h):
+    for i in numba.prange(h):
+        r = np.int64(i)  # one compiled _plane_cost (tests/test_structure.py)
         scratch = np.empty(S)
         patch = np.empty((2 * radius + 3, 2 * radius + 3))
         cst = np.empty((offsets.shape[0], S))
@@ -353,7 +354,8 @@ def _initial_cost(
 ) -> None:
     """The cost of every masked pixel's starting plane."""
     h, w = depth.shape
-    for r in numba.prange(h):
+    for i in numba.prange(h):
+        r = np.int64(i)  # one compiled _plane_cost (tests/test_structure.py)
         scratch = np.empty(srcs.shape[0])
         patch = np.empty((2 * radius + 3, 2 * radius + 3))
         cst = np.empty((offsets.shape[0], srcs.shape[0]))
