@@ -10,12 +10,13 @@ trained for teams of two.
    2,500,000, two agents per world, a success both at their goals and no collision) succeed, or at the
    cap (default 600 s); the final policy then flies the 50 evaluation team episodes (seeds from
    1,000,000, never used to decide when to stop), with the 95 % Wilson interval. One run per seed.
-   ``--encounters``: ``rl.encounters`` of the training worlds (the share of tasks sent against the other
-   agent); the held-out worlds always draw plainly.
+   It trains as ``droneulator train --agents 2`` does: the team recipe (``--demonstrations 20000
+   --bc-steps 5000 --anchor 10``, ``--encounters 0.5``: ``rl.encounters`` of the training worlds, the
+   share of tasks sent against the other agent) unless the flags say otherwise (``--demonstrations 0
+   --encounters 0``: plain SAC on plain tasks); the held-out worlds always draw plainly.
 
 Reproduce: ``python benchmarks/multi.py`` (about 3 min), ``--train`` adds up to 11 min per seed; the
-figure that meets the 90 % target: ``--sizes --train --seeds 0 1 2 --demonstrations 20000 --bc-steps 5000
---anchor 10 --encounters 0.5`` (2 to 3 min per seed, docs/rl.md).
+figure that meets the 90 % target: ``--sizes --train --seeds 0 1 2`` (2 to 3 min per seed, docs/rl.md).
 """
 
 from __future__ import annotations
@@ -33,6 +34,8 @@ from typing import Any
 
 import numpy as np
 from _common import write
+
+from droneulator.cli.train import TEAM_ENCOUNTERS, TEAM_FLAGS, TEAM_RECIPE
 
 #: the train command's flag for each SAC demonstration setting
 FLAGS = {
@@ -160,12 +163,13 @@ def main() -> None:
     ap.add_argument("--check-every", type=int, default=10_000, help="SAC steps between checks")
     ap.add_argument("--cap", type=float, default=600.0, help="training time cap per seed (s, default 600)")
     ap.add_argument("--stop-at", type=float, default=0.9, help="check share that ends training (default 0.9)")
-    ap.add_argument("--demonstrations", type=int, default=None, help="teacher warm-up steps (SAC's default)")
+    ap.add_argument("--demonstrations", type=int, default=None,
+                    help=f"teacher warm-up steps (default: the team recipe's, {TEAM_FLAGS})")  # fmt: skip
     ap.add_argument("--bc-steps", type=int, default=None, help="actor cloning steps after them")
     ap.add_argument("--anchor", type=float, default=None, help="pull to the teacher after them")
-    ap.add_argument("--encounters", type=float, default=0.0,
+    ap.add_argument("--encounters", type=float, default=TEAM_ENCOUNTERS,
                     help="rl.encounters of the training worlds: the share of tasks sent against the other "
-                    "agent (default 0)")  # fmt: skip
+                    f"agent (default {TEAM_ENCOUNTERS}, the team recipe's)")  # fmt: skip
     ap.add_argument("--out", default="out/multi-bench", help="training runs folder")
     ap.add_argument("--json", default=None, help="output path (default benchmarks/results/multi.json)")
     ap.add_argument(
@@ -209,6 +213,8 @@ def main() -> None:
         "demonstration_anchor": args.anchor,
     }
     demo = {k: v for k, v in given.items() if v is not None}
+    if "demonstrations" not in demo:  # as the train command: the recipe, flags given alone on top
+        demo = {**TEAM_RECIPE, **demo}
     if args.train:
         from droneulator.workflows.rl.heldout import rate_text
 
