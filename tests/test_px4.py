@@ -111,6 +111,12 @@ def px4_in_the_air(served: Served, position: Any) -> Peer:
     return peer
 
 
+#: how long a stand-in waits for the simulator's answer before it calls the lockstep stalled: PX4 itself
+#: waits for ever (its simulator_mavlink logs a poll timeout each second without data), and a minute tells
+#: a lost answer from a machine too loaded to give one within 5 s (one suite run in nine, with a core busy)
+STALL_S = 60.0
+
+
 class Peer:
     """Plays PX4: connects as the TCP client, sends HIL_ACTUATOR_CONTROLS, reads the sensor stream."""
 
@@ -157,8 +163,8 @@ class Peer:
         for m in self.rx.parse_buffer(data) or []:
             self.inbox.append(m)
 
-    def next(self, kind: str = "HIL_SENSOR", timeout: float = 5.0) -> list[Any]:
-        """Messages up to and including the next ``kind``."""
+    def next(self, kind: str = "HIL_SENSOR", timeout: float = STALL_S) -> list[Any]:
+        """Messages up to and including the next ``kind`` (TimeoutError after ``timeout`` s without it)."""
         out: list[Any] = []
         end = time.monotonic() + timeout
         while True:

@@ -660,15 +660,20 @@ def test_ardupilot_drives_the_clock_and_websocket_flight_is_refused():
 
 
 def _stall_report(log: list[str], root: int) -> str:
-    """What a run whose PX4 stand-in got no sensor data for 5 s was doing: the state and CPU seconds of
-    every process under ``root`` (the run), the machine's load and the run's last 40 log lines."""
-    out = subprocess.run(["ps", "-o", "pid=,stat=,time=,pcpu=,args=", "--ppid", str(root)],
+    """What a run whose PX4 stand-in got no sensor data for :data:`STALL_S` was doing: every process under
+    ``root`` (the run) with its state, CPU time and command line, what used the machine's CPUs in the
+    last second (``top``), the load and the run's last 40 log lines (the dynamics server's say where its
+    frames in flight are)."""
+    out = subprocess.run(["ps", "-o", "pid=,stat=,time=,args=", "--ppid", str(root)],
                          capture_output=True, text=True).stdout  # fmt: skip
-    procs = [" ".join(line.split()[:5])[:120] for line in out.splitlines()]
+    procs = [line.strip()[:200] for line in out.splitlines()]
+    top = subprocess.run(["top", "-b", "-c", "-n", "2", "-d", "1", "-w", "200", "-o", "%CPU"],
+                         capture_output=True, text=True).stdout.split("\ntop - ")[-1]  # fmt: skip
+    busiest = top.splitlines()[6:14]  # the second sample's header and its eight busiest processes
     with open("/proc/loadavg") as f:
         load = f.read().strip()
-    head = "processes (pid, state, cpu time, %cpu, command):"
-    return "\n".join([head, *procs, f"load: {load}", *log[-40:]])
+    head = "processes of the run (pid, state, cpu time, command):"
+    return "\n".join([head, *procs, "busiest in the last second:", *busiest, f"load: {load}", *log[-40:]])
 
 
 def _steps_until(peer: Any, c: Any, u: Any, armed: bool, mode: str, limit: int = 4000) -> int:
@@ -686,7 +691,7 @@ def test_px4_lost_mid_air_is_landed_and_a_restarted_px4_gets_the_rotors_only_on_
     and it gets the rotors once the vehicle is down. The lost PX4's vehicle is landed by the
     simulator (``px4.on_loss`` land); a second client never takes a live link; every change arrives
     as an event, in order."""
-    from test_px4 import Peer
+    from test_px4 import STALL_S, Peer
 
     from droneulator.px4.mixing import MotorMap
     from droneulator.vehicles.params import get_params
@@ -783,8 +788,8 @@ def test_px4_lost_mid_air_is_landed_and_a_restarted_px4_gets_the_rotors_only_on_
         assert events[6]["reason"] == "PX4 closed the connection"
         assert any("refused a PX4 connection" in line for line in r.log)
         assert any("PX4 has the rotors" in line for line in r.log)
-    except TimeoutError as exc:  # a PX4 stand-in got no sensor data for 5 s (two suite runs in eight)
-        raise AssertionError(f"no sensor data for 5 s\n{_stall_report(r.log, r.proc.pid)}") from exc
+    except TimeoutError as exc:  # a PX4 stand-in got no sensor data for STALL_S: the lockstep lost an answer
+        raise AssertionError(f"no sensor data for {STALL_S:g} s\n{_stall_report(r.log, r.proc.pid)}") from exc
     finally:
         listener.close()
         r.close()
@@ -803,7 +808,7 @@ def test_a_fresh_run_sends_px4_its_sensor_data_without_a_boot_stall():
     data's own time: the peer sends no actuator message until 1.5 s of it has come (about 1.5 s of wall
     time on a quiet machine; a starved simulator takes longer, a link that waited for PX4 never gets
     there)."""
-    from test_px4 import Peer
+    from test_px4 import STALL_S, Peer
 
     port = free_port()
     with launch_run(load_config(), ["--px4", "--set", f"px4.base_port={port}"]) as run:
@@ -834,13 +839,13 @@ def test_a_fresh_run_sends_px4_its_sensor_data_without_a_boot_stall():
             booted = len(arrivals)
             for _ in range(500):  # PX4 is up: one lockstep step per actuator message
                 peer.actuators([0.0] * 4, armed=False)
-                for m in peer.next(timeout=5.0):
+                for m in peer.next():
                     if m.get_type() == "HIL_SENSOR":
                         arrivals.append(time.monotonic())
             peer.close()
-        except TimeoutError as exc:  # no sensor data for 5 s in lockstep (once in eight suite runs)
+        except TimeoutError as exc:  # no sensor data for STALL_S in lockstep: an answer lost
             report = _stall_report(run.log.lines(), run.proc.pid)
-            raise AssertionError(f"no sensor data for 5 s after {len(arrivals)}\n{report}") from exc
+            raise AssertionError(f"no sensor data for {STALL_S:g} s after {len(arrivals)}\n{report}") from exc
         finally:
             gc.enable()
         gaps = np.diff(arrivals)

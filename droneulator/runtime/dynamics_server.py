@@ -347,10 +347,13 @@ class DynamicsServer:
                 self._poll(wait)
             if time.monotonic() > report:
                 report = time.monotonic() + 5.0
+                drawing = sum(stage == "render" for stage, _, _ in self.in_flight.values())
                 log.info(
-                    "t=%.2f s sim, %d frames in flight, %d dropped",
+                    "t=%.2f s sim, %d frames in flight (%d at the renderer, %d at the bridge), %d dropped",
                     self.world.t,
                     len(self.in_flight),
+                    drawing,
+                    len(self.in_flight) - drawing,
                     self.dropped_frames,
                 )
 
