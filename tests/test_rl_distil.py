@@ -6,6 +6,7 @@ path teacher's velocity actions (which round-trip through the actuator) and trai
 from __future__ import annotations
 
 import json
+from typing import Any
 
 import numpy as np
 import pytest
@@ -158,6 +159,14 @@ def test_the_teacher_gives_way_to_a_neighbour_on_a_collision_course_only():
         teacher(np.zeros((1, 38), dtype=np.float32))
 
 
+def _quiet(model: Any) -> None:
+    """A logger that writes nothing: left to itself, SB3's ``learn`` makes an empty ``SB3-<time>`` folder in
+    the temporary directory each call (``droneulator train`` sets its own, writing to the run's folder)."""
+    from stable_baselines3.common.logger import Logger
+
+    model.set_logger(Logger(None, []))
+
+
 def test_sac_from_demonstrations_fills_the_buffer_with_the_teachers_actions(tmp_path):
     from stable_baselines3.common.callbacks import BaseCallback
 
@@ -169,6 +178,7 @@ def test_sac_from_demonstrations_fills_the_buffer_with_the_teachers_actions(tmp_
     try:
         cls = demonstrated_sac(cfg, steps=80, noise=0.0, bc_steps=5, seed=0)
         model = cls("MlpPolicy", venv, seed=0, device="cpu", learning_starts=40, batch_size=16, n_steps=1)
+        _quiet(model)
         cloned: dict[int, bool] = {}
 
         class Watch(BaseCallback):
@@ -223,6 +233,7 @@ def _teacher_gap(anchor: float) -> tuple[float, float | None]:
         cls = demonstrated_sac(cfg, steps=40 * 4, noise=0.0, bc_steps=0, seed=0, anchor=anchor)
         model = cls("MlpPolicy", venv, seed=0, device="cpu", learning_starts=20, batch_size=32, n_steps=1,
                     gradient_steps=4, learning_rate=3e-3)  # fmt: skip
+        _quiet(model)
         model.learn(total_timesteps=100 * 4)
         obs = model.replay_buffer.observations[:100].reshape(-1, 40)
         own, _ = model.predict(obs, deterministic=True)
