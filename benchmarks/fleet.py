@@ -6,7 +6,9 @@ every vehicle flies straight on at 0.3 m/s (velocity mode, over the API) and a Z
 every image of every vehicle (lockstep: the clock waits for it, nothing is skipped). Measured over
 ``--seconds`` of wall time after a warm-up: sim seconds per wall second (the real-time factor), camera
 frames delivered per wall second, and each process's CPU use (CPU seconds per wall second, from /proc),
-against N = 1 in the same run. The single-vehicle run is today's ``droneulator run``.
+against N = 1 in the same run. The single-vehicle run is today's ``droneulator run``. With
+``--encode-threads 1 0`` each N runs twice, the bridge encoding its images in one thread and then in
+its default pool (one thread per CPU, up to 8), for the ratio between them.
 """
 
 from __future__ import annotations
@@ -32,9 +34,12 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / CLK_TCK
 
 
-
-def measure(n: int, scene: str, seconds: float, warmup: float) -> dict[str, Any]:
+def measure(
+    n: int, scene: str, seconds: float, warmup: float, encode_threads: int = 0, frame_slots: int = 3
+) -> dict[str, Any]:
     cfg = load_config(scene=scene)
+    cfg.bridge.encode_threads = encode_threads
+    cfg.runtime.frame_slots = frame_slots
     if n > 1:
         cfg.vehicles = fleet(n)
     run = launch_run(cfg)
@@ -78,6 +83,8 @@ def measure(n: int, scene: str, seconds: float, warmup: float) -> dict[str, Any]
     wall = w1 - w0
     return {
         "vehicles": n,
+        "encode_threads": encode_threads or min(8, os.cpu_count() or 1),
+        "frame_slots": frame_slots,
         "sim_seconds": t1 - t0,
         "wall_seconds": wall,
         "real_time_factor": (t1 - t0) / wall,
@@ -94,22 +101,49 @@ def main() -> None:
     ap.add_argument("--scene", default="orchard", help="scene (default orchard)")
     ap.add_argument("--seconds", type=float, default=15.0, help="wall seconds measured per size (default 15)")
     ap.add_argument("--warmup", type=float, default=3.0, help="wall seconds before measuring (default 3)")
+    ap.add_argument(
+        "--encode-threads",
+        type=int,
+        nargs="+",
+        default=[0],
+        help="bridge.encode_threads settings, each size measured with each in turn (default 0: one per CPU, "
+        "up to 8; '1 0' compares one encoding thread with the default)",
+    )
+    ap.add_argument(
+        "--frame-slots",
+        type=int,
+        nargs="+",
+        default=[3],
+        help="runtime.frame_slots settings (frames in flight + 1), each measured in turn (default 3)",
+    )
     ap.add_argument("--json", default=None, help="output path (default benchmarks/results/fleet.json)")
     args = ap.parse_args()
     rows = []
     for n in args.vehicles:
-        row = measure(n, args.scene, args.seconds, args.warmup)
-        rows.append(row)
-        cpu = ", ".join(f"{k} {v:.2f}" for k, v in row["cpu_per_process"].items())
-        print(
-            f"N={n}: RTF {row['real_time_factor']:.2f}, "
-            f"{row['camera_frames_per_wall_s']:.1f} camera frames/s, CPU s/s: {cpu}",
-            flush=True,
-        )
-    base = next((r for r in rows if r["vehicles"] == 1), rows[0])
+        for threads, slots in ((t, s) for t in args.encode_threads for s in args.frame_slots):
+            row = measure(n, args.scene, args.seconds, args.warmup, threads, slots)
+            rows.append(row)
+            cpu = ", ".join(f"{k} {v:.2f}" for k, v in row["cpu_per_process"].items())
+            print(
+                f"N={n}, {row['encode_threads']} encoding threads, {slots} frame slots: "
+                f"RTF {row['real_time_factor']:.2f}, "
+                f"{row['camera_frames_per_wall_s']:.1f} camera frames/s, CPU s/s: {cpu}",
+                flush=True,
+            )
+
+    def setting(r: dict[str, Any]) -> tuple[int, int]:
+        return r["encode_threads"], r["frame_slots"]
+
     for r in rows:
+        same = [b for b in rows if setting(b) == setting(r)]
+        base = next((b for b in same if b["vehicles"] == 1), same[0])
         r["rtf_vs_one_vehicle"] = r["real_time_factor"] / base["real_time_factor"]
         r["frames_vs_one_vehicle"] = r["camera_frames_per_wall_s"] / base["camera_frames_per_wall_s"]
+        one = next((b for b in rows if b["vehicles"] == r["vehicles"] and setting(b) == (1, 3)), None)
+        if one is not None:  # against one encoding thread and 3 frame slots (the default before 2026-11-30)
+            r["frames_vs_one_encoding_thread"] = (
+                r["camera_frames_per_wall_s"] / one["camera_frames_per_wall_s"]
+            )
     rig = "front 640x480, 30 Hz, shadows on"
     write("fleet", {"scene": args.scene, "camera": rig, "runs": rows}, args.json)
 

@@ -77,9 +77,10 @@ def rss_bytes() -> int:
     return 0
 
 
-def batched_throughput(n_envs: int, steps: int) -> dict[str, Any]:
+def batched_throughput(n_envs: int, steps: int, depth: str = "raycast") -> dict[str, Any]:
     """Steps per second of the vector env at ``n_envs`` with random actions, the memory per env, and the
-    share of time in resets (task sampling: the goal's distance field) (run in a fresh process)."""
+    share of time in resets (task sampling: the goal's distance field) (run in a fresh process); its
+    depth from ``depth`` (``"raycast"``, or ``"render"``: the OpenGL renderer)."""
     import gymnasium as gym
 
     import droneulator.workflows.rl as rl
@@ -87,7 +88,7 @@ def batched_throughput(n_envs: int, steps: int) -> dict[str, Any]:
     warm = gym.make_vec(rl.ENV_ID, num_envs=1)  # imports, compiled code, the scene and its grid
     warm.reset(seed=0)
     base = rss_bytes()
-    venv = gym.make_vec(rl.ENV_ID, num_envs=n_envs)
+    venv = gym.make_vec(rl.ENV_ID, num_envs=n_envs, depth=depth)
     venv.reset(seed=0)
     per_env = (rss_bytes() - base) / n_envs
     warm.close()
@@ -115,6 +116,7 @@ def batched_throughput(n_envs: int, steps: int) -> dict[str, Any]:
     venv.close()
     return {
         "n_envs": n_envs,
+        "depth": depth,
         "steps": calls * n_envs,
         "wall_s": wall,
         "steps_per_s": calls * n_envs / wall,
@@ -210,6 +212,14 @@ def main() -> None:
     ap.add_argument("--out", default="out/rl-bench", help="training runs folder (default out/rl-bench)")
     ap.add_argument("--env-steps", type=int, default=20_000, help="steps per batched throughput figure")
     ap.add_argument("--sizes", type=int, nargs="+", default=[1, 16, 64, 256, 1024], help="batch sizes B")
+    ap.add_argument(
+        "--depth",
+        nargs="+",
+        choices=["raycast", "render"],
+        default=["raycast"],
+        help="the vector env's depth for the throughput figures: raycast (default), render (the OpenGL "
+        "renderer, a GPU where there is one), or both, each B measured with each",
+    )
     ap.add_argument("--num-envs", type=int, default=16, help="B for the SAC training runs (default 16)")
     ap.add_argument("--seeds", type=int, nargs="*", default=[0, 1, 2], help="training seeds (none: skip)")
     ap.add_argument("--check-every", type=int, default=10_000, help="SAC steps between success checks")
@@ -228,16 +238,18 @@ def main() -> None:
     res: dict[str, Any] = {}
     single = env_throughput(1, 600 if args.quick else 3000, "dummy")
     res["single_env"] = single
-    print(f"single env (today's): {single['steps_per_s']:8.0f} steps/s")
+    print(f"single env (today's): {single['steps_per_s']:8.0f} steps/s", flush=True)
     res["batched"] = []
-    for b in args.sizes:
-        r = in_subprocess("batched_throughput", b, args.env_steps)
+    for b, depth in ((b, d) for b in args.sizes for d in args.depth):
+        r = in_subprocess("batched_throughput", b, args.env_steps, depth)
         r["vs_single"] = r["steps_per_s"] / single["steps_per_s"]
         res["batched"].append(r)
         print(
-            f"batched B={b:5d}: {r['steps_per_s']:8.0f} steps/s ({r['vs_single']:5.1f}x the single env, "
+            f"batched B={b:5d}, depth by {depth:7s}: {r['steps_per_s']:8.0f} steps/s "
+            f"({r['vs_single']:5.1f}x the single env, "
             f"real-time factor {r['real_time_factor']:6.0f}), {r['rss_per_env_bytes'] / 1e6:5.2f} MB/env, "
-            f"resets {100 * r['reset_share']:4.1f} % of the time"
+            f"resets {100 * r['reset_share']:4.1f} % of the time",
+            flush=True,
         )
     out = Path(args.out)
     given = {

@@ -7,6 +7,7 @@ deserialiser; PX4 is played by ``tests/test_px4.Peer`` (pymavlink, booting like 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import socket
 import threading
@@ -396,6 +397,77 @@ def test_every_vehicles_topics_decode_with_their_frames_and_stamps(key_mode: str
         assert children == {"base_link"} and ("map", "odom") in statics
         assert len({n.tf for n in ns.values()}) == 2
     assert "/clock" in decoded
+
+
+def test_the_bridges_encoder_threads_publish_the_bytes_of_one_thread_in_stamp_order() -> None:
+    """``bridge.encode_threads`` encodes a frame set's images at once; what goes out must not change: the
+    same JPEG and PNG bytes as one thread, every topic's messages in the order of their stamps, and the
+    images decode to the rendered pixels."""
+    import cv2
+
+    cfg = two_vehicle_config()
+    with World(cfg) as world:
+        world.vehicle("uav1").place([*world.vehicle("uav1").state.position[:2], 1.5], 0.4, airborne=True)
+        shot = world.render()
+    sets = [  # three frame sets of the same pictures, 10 ms apart
+        {v: dataclasses.replace(st, stamp_ns=st.stamp_ns + k * 10_000_000) for v, st in shot.states.items()}
+        for k in range(3)
+    ]
+    got: dict[int, dict[str, list[bytes]]] = {}
+    for threads in (1, 4):
+        cfg.bridge.encode_threads = threads
+        ep = f"tcp/127.0.0.1:{free_port()}"
+        node = RosZenohNode(ZenohNodeConfig(mode="router", listen=(ep,), connect=()))
+        sub_cfg = zenoh.Config()
+        sub_cfg.insert_json5("mode", '"client"')
+        sub_cfg.insert_json5("connect/endpoints", f'["{ep}"]')
+        session = zenoh.open(sub_cfg)
+        payloads: dict[str, list[bytes]] = defaultdict(list)
+        lock, probed = threading.Lock(), threading.Event()
+
+        def on_sample(sample: zenoh.Sample, payloads=payloads, lock=lock, probed=probed) -> None:
+            key = str(sample.key_expr)
+            if key == "test_probe":
+                probed.set()
+            elif "@" not in key:
+                with lock:
+                    payloads[key].append(sample.payload.to_bytes())
+
+        sub = session.declare_subscriber("**", on_sample)
+        frames = FramePublisher(node, cfg, zenoh.CongestionControl.BLOCK)
+        try:
+            assert frames.encode_threads == threads
+            deadline = time.monotonic() + 10.0
+            while not probed.is_set() and time.monotonic() < deadline:
+                node.session.put("test_probe", b"")
+                probed.wait(0.1)
+            assert probed.is_set(), "the subscriber never heard the node"
+            for states in sets:
+                frames.publish(states, shot.cameras)
+            end = time.monotonic() + 20.0  # 2 vehicles x 7 camera keys, 3 messages each
+            while time.monotonic() < end and sum(map(len, payloads.values())) < 42:
+                time.sleep(0.05)
+        finally:
+            frames.close()
+            sub.undeclare()
+            session.close()
+            node.close()
+        got[threads] = dict(payloads)
+    counts = {k: len(p) for k, p in got[1].items()}
+    assert len(counts) == 14 and set(counts.values()) == {3}, counts
+    assert got[4] == got[1]  # byte for byte, message for message, in the same order
+    for key, msgs in got[4].items():
+        topic, typename = _type_of(key, "ros2dds")
+        decoded = [TS.deserialize_cdr(m, typename or _ros2dds_type(topic)) for m in msgs]
+        stamps = [d.header.stamp.sec * 10**9 + d.header.stamp.nanosec for d in decoded]
+        vehicle = "uav0" if "uav0" in key else "uav1"
+        assert stamps == [states[vehicle].stamp_ns for states in sets], key
+        im = shot.cameras[vehicle]["front"]
+        if key.endswith("color/image_raw/compressed"):
+            rgb = cv2.cvtColor(cv2.imdecode(decoded[0].data, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+            assert np.abs(rgb.astype(float) - im.rgb.astype(float)).mean() < 3.0
+        elif key.endswith("segmentation/image_raw/compressed"):
+            np.testing.assert_array_equal(cv2.imdecode(decoded[0].data, cv2.IMREAD_UNCHANGED), im.seg)
 
 
 def _ros2dds_type(topic: str) -> str:

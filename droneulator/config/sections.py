@@ -410,6 +410,9 @@ class BridgeConfig:
     #: or "namespace", each on /<namespace>/<vehicle>/tf with unprefixed frames (Nav2's multi-robot launch)
     fleet_tf: str = "prefix"
     jpeg_quality: int = 90
+    #: threads encoding a frame set's JPEG and PNG images at once in the bridge (Pillow's encoders let go
+    #: of the GIL): 0 is one per CPU up to 8, 1 encodes them one after the other in the publishing thread
+    encode_threads: int = 0
     #: append "stream stamp_ns wall_ns" here per message (latency benchmark): odometry at the end of the
     #: physics step that produced it, images at the bridge's publish call
     latency_log: str = ""
@@ -430,6 +433,10 @@ class BridgeConfig:
             raise ValueError("bridge.mode=client needs a router to connect to: set bridge.connect")
         if not 1 <= self.jpeg_quality <= 100:
             raise ValueError("bridge.jpeg_quality must lie in [1, 100]")
+        if not 0 <= self.encode_threads <= 64:
+            raise ValueError(
+                f"bridge.encode_threads must lie in [0, 64] (0: one per CPU), got {self.encode_threads}"
+            )
         if bool(self.tls_cert) != bool(self.tls_key):
             raise ValueError("bridge.tls_cert and bridge.tls_key go together: give both or neither")
         if self.tls_mtls and not (self.tls_ca and self.tls_cert):

@@ -20,7 +20,9 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping
+import os
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
@@ -311,6 +313,10 @@ class FramePublisher:
     optical frame in ``odom`` (``geometry_msgs/PoseStamped`` on ``<cam>/pose``, what EGO-Planner's
     grid map takes with ``pose_type`` 1), for every vehicle, all stamped with the same instant.
 
+    A frame set's JPEG and PNG images are encoded at once by ``bridge.encode_threads`` threads (Pillow lets
+    go of the GIL while it encodes) while this thread publishes them in the order of one thread: on a GPU,
+    where frames are cheap, one thread encoding them was what held a fleet back (docs/architecture.md).
+
     ``congestion_control`` is the Zenoh policy for the images: ``BLOCK`` in lockstep (nothing a
     subscriber asked for is lost; the simulation clock waits for the slowest one), ``DROP`` in real
     time (a slow subscriber never holds the simulation back).
@@ -323,6 +329,10 @@ class FramePublisher:
         congestion_control: zenoh.CongestionControl,
     ) -> None:
         self.jpeg_quality = cfg.bridge.jpeg_quality
+        #: threads encoding images (``bridge.encode_threads``; 0: one per CPU, up to 8)
+        self.encode_threads = cfg.bridge.encode_threads or min(8, os.cpu_count() or 1)
+        threads = self.encode_threads
+        self._encoder = ThreadPoolExecutor(threads, thread_name_prefix="encode") if threads > 1 else None
         policy = congestion_control
         #: vehicle -> [(camera, optical frame id, odom frame id, K, mount, publishers)]
         self.cams: dict[str, list[tuple[CameraConfig, str, str, np.ndarray, np.ndarray, dict[str, Any]]]] = {}
@@ -350,6 +360,16 @@ class FramePublisher:
 
         ``mark(stream, stamp_ns)``, if given, is called just before each image is encoded (latency logs).
         """
+        encoded: dict[tuple[str, str], tuple[Future[bytes], Future[bytes]]] = {}
+        for vehicle, st in states.items():  # every image of the set goes to the encoders first
+            for cam, *_ in self.cams[vehicle]:
+                im = images[vehicle][cam.name]
+                if mark is not None:
+                    mark("rgb", st.stamp_ns)
+                encoded[vehicle, cam.name] = (
+                    self._encode(encode_jpeg, im.rgb, self.jpeg_quality),
+                    self._encode(encode_png, im.seg),
+                )
         for vehicle, st in states.items():
             t = st.stamp_ns
             T_world_body = transform_from_pose(st.position, st.quaternion)
@@ -360,15 +380,25 @@ class FramePublisher:
                     pubs[key].publish(info, t)
                 cam_p, cam_q = pose_from_transform(T_world_optical(T_world_body, mount))
                 pubs["pose"].publish(M.serialize(M.pose_stamped(t, odom_frame, cam_p, cam_q)), t)
-                if mark is not None:
-                    mark("rgb", t)
-                jpeg = encode_jpeg(im.rgb, self.jpeg_quality)
+                jpeg, png = (f.result() for f in encoded[vehicle, cam.name])
                 pubs["rgb"].publish(M.serialize(M.compressed_image(t, frame_id, "jpeg", jpeg)), t)
                 if mark is not None:
                     mark("depth", t)
                 pubs["depth"].publish(M.serialize(M.image(t, frame_id, im.depth)), t)
-                png = encode_png(im.seg)
                 pubs["seg"].publish(M.serialize(M.compressed_image(t, frame_id, "png", png)), t)
+
+    def _encode(self, fn: Callable[..., bytes], *args: Any) -> Future[bytes]:
+        """``fn(*args)`` on an encoder thread, or here and now with one thread."""
+        if self._encoder is not None:
+            return self._encoder.submit(fn, *args)
+        done: Future[bytes] = Future()
+        done.set_result(fn(*args))
+        return done
+
+    def close(self) -> None:
+        """Stop the encoder threads (after the frame set in hand)."""
+        if self._encoder is not None:
+            self._encoder.shutdown()
 
 
 #: mavros_msgs/AttitudeTarget's type_mask bits for the orientation and the thrust

@@ -95,6 +95,7 @@ class Bridge:
                     return
 
     def close(self) -> None:
+        self.frames.close()
         if self._latency is not None:
             self._latency.close()
 
