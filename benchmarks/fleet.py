@@ -23,6 +23,7 @@ import zenoh
 from _common import children, write
 
 from droneulator.config import fleet, load_config
+from droneulator.ros.publishers import encode_threads as bridge_encode_threads
 from droneulator.runtime.launch import launch_run
 
 CLK_TCK = os.sysconf("SC_CLK_TCK")
@@ -83,7 +84,7 @@ def measure(
     wall = w1 - w0
     return {
         "vehicles": n,
-        "encode_threads": encode_threads or min(8, os.cpu_count() or 1),
+        "encode_threads": bridge_encode_threads(encode_threads),
         "frame_slots": frame_slots,
         "sim_seconds": t1 - t0,
         "wall_seconds": wall,

@@ -55,6 +55,7 @@ def test_toml_file(tmp_path):
         "render.camera_trigger=sometimes",
         "runtime.max_speed=0",
         "capture.state_hz=1",
+        "bridge.encode_threads=-1",
     ],
 )
 def test_bad_overrides_raise(override):

@@ -308,6 +308,13 @@ class StatePublisher:
             self._static_pubs[topic].publish(M.serialize(M.tf_message(tfs)), stamp_ns)
 
 
+def encode_threads(setting: int) -> int:
+    """The bridge's encoder threads for ``bridge.encode_threads``: the setting, or for 0 one per CPU this
+    process may run on, up to 8."""
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return setting or min(8, cpus)
+
+
 class FramePublisher:
     """Every camera's JPEG colour, 32FC1 depth, PNG segmentation, their camera_info, and the pose of its
     optical frame in ``odom`` (``geometry_msgs/PoseStamped`` on ``<cam>/pose``, what EGO-Planner's
@@ -330,8 +337,7 @@ class FramePublisher:
     ) -> None:
         self.jpeg_quality = cfg.bridge.jpeg_quality
         #: threads encoding images (``bridge.encode_threads``; 0: one per CPU, up to 8)
-        self.encode_threads = cfg.bridge.encode_threads or min(8, os.cpu_count() or 1)
-        threads = self.encode_threads
+        self.encode_threads = threads = encode_threads(cfg.bridge.encode_threads)
         self._encoder = ThreadPoolExecutor(threads, thread_name_prefix="encode") if threads > 1 else None
         policy = congestion_control
         #: vehicle -> [(camera, optical frame id, odom frame id, K, mount, publishers)]
@@ -358,7 +364,8 @@ class FramePublisher:
         """Publish one frame set: every vehicle's (``states`` by name) cameras (``images[vehicle][camera]``),
         every image stamped with its vehicle's ``stamp_ns`` and its optical frame id.
 
-        ``mark(stream, stamp_ns)``, if given, is called just before each image is encoded (latency logs).
+        ``mark(stream, stamp_ns)``, if given, is called as each colour image goes to the encoders and
+        before each depth image is published (latency logs).
         """
         encoded: dict[tuple[str, str], tuple[Future[bytes], Future[bytes]]] = {}
         for vehicle, st in states.items():  # every image of the set goes to the encoders first
