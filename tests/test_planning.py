@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import time
 from pathlib import Path
 
 import numpy as np
@@ -482,3 +483,44 @@ def test_tracking_margin_grows_the_obstacles_by_the_measured_error_bounded_and_n
     assert cfg.obstacle_inflation == pytest.approx(cfg.inflation + 0.3)
     assert m.is_occupied(probe) and not m.is_occupied(below_ceiling)
     assert not m.is_occupied(np.array([cfg.obstacle_inflation + 0.15, 0.0, 1.5]))
+
+
+def test_the_planners_compiled_kernels_let_other_threads_run_while_they_work() -> None:
+    """The plan node's trajectory server and its Zenoh callbacks are Python threads beside the planning
+    thread; a compiled kernel that held the GIL for a whole map rebuild, A* or L-BFGS would stop the
+    commands for that long (the vehicle falling behind its reference on a starved machine). Here a thread
+    ticking every millisecond must tick many times during one long map rebuild on another thread (holding
+    the GIL, a kernel lets at most a tick or two slip in at its ends)."""
+    import threading
+
+    from droneulator.workflows.planning.mapping import _rebuild_inflation, sphere_offsets
+
+    rng = np.random.default_rng(0)
+    logodds = np.where(rng.random((160, 160, 80)) < 0.2, 2.0, -1.0)  # about 0.3 s a rebuild here
+    count = np.zeros(logodds.shape, dtype=np.int32)
+    offsets = sphere_offsets(4.0)
+    _rebuild_inflation(logodds[:8], count[:8], 0.5, offsets)  # compiled before the measured call
+    ticks = [0]
+    during: list[int] = []
+    done = threading.Event()
+
+    def tick() -> None:
+        while not done.is_set():
+            ticks[0] += 1
+            time.sleep(0.001)
+
+    def rebuild() -> None:
+        before = ticks[0]
+        _rebuild_inflation(logodds, count, 0.5, offsets)
+        during.append(ticks[0] - before)
+
+    ticker = threading.Thread(target=tick)
+    ticker.start()
+    try:
+        worker = threading.Thread(target=rebuild)
+        worker.start()
+        worker.join()
+    finally:
+        done.set()
+        ticker.join()
+    assert during[0] >= 10, during

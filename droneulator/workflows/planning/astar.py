@@ -8,7 +8,7 @@ import numba
 import numpy as np
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _push(heap_f: np.ndarray, heap_n: np.ndarray, size: int, f: float, node: int) -> int:
     i = size
     heap_f[i] = f
@@ -23,7 +23,7 @@ def _push(heap_f: np.ndarray, heap_n: np.ndarray, size: int, f: float, node: int
     return size + 1
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _pop(heap_f: np.ndarray, heap_n: np.ndarray, size: int) -> tuple[int, int]:
     node = heap_n[0]
     size -= 1
@@ -44,7 +44,7 @@ def _pop(heap_f: np.ndarray, heap_n: np.ndarray, size: int) -> tuple[int, int]:
     return node, size
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _astar(blocked: np.ndarray, start: np.ndarray, goal: np.ndarray, lo: np.ndarray, hi: np.ndarray,
            max_expansions: int, weight: float) -> np.ndarray:  # fmt: skip
     """A* restricted to the index box [lo, hi) of ``blocked``: work arrays are the box's size only."""

@@ -125,7 +125,7 @@ class Pairs:
         return np.array(idx, dtype=np.int64), p, v
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def compiled_cost(x: np.ndarray, head: np.ndarray, tail: np.ndarray, dt: float, pidx: np.ndarray,
                   P: np.ndarray, V: np.ndarray, safety: float, max_vel: float, max_acc: float,
                   ws: float, wc: float, wf: float) -> tuple[float, np.ndarray]:  # fmt: skip
@@ -182,7 +182,7 @@ def compiled_cost(x: np.ndarray, head: np.ndarray, tail: np.ndarray, dt: float, 
     return f, G[nh : nh + m].copy().reshape(-1)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _lbfgs(x: np.ndarray, head: np.ndarray, tail: np.ndarray, dt: float, pidx: np.ndarray, P: np.ndarray,
            V: np.ndarray, safety: float, max_vel: float, max_acc: float, ws: float, wc: float, wf: float,
            iters: int, ftol: float) -> tuple[np.ndarray, int]:  # fmt: skip

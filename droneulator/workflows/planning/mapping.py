@@ -21,7 +21,7 @@ from droneulator import frames
 from droneulator.workflows.planning.config import PlannerConfig, logit
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _inflate(count: np.ndarray, i: int, j: int, k: int, offsets: np.ndarray, delta: int) -> None:
     nx, ny, nz = count.shape
     for n in range(offsets.shape[0]):
@@ -30,7 +30,7 @@ def _inflate(count: np.ndarray, i: int, j: int, k: int, offsets: np.ndarray, del
             count[a, b, c] += delta
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _update(
     logodds: np.ndarray,
     count: np.ndarray,
@@ -146,7 +146,7 @@ def _update(
     return updates
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _rebuild_inflation(logodds: np.ndarray, count: np.ndarray, l_occ: float, offsets: np.ndarray) -> None:
     count[:] = 0
     nx, ny, nz = logodds.shape
