@@ -414,6 +414,49 @@ def test_free_runs_until_the_first_actuator_message_then_waits_for_each(sim, mon
     served.close()
 
 
+def test_a_link_behind_the_wall_clock_still_reads_the_first_lockstep_answer(sim, monkeypatch):
+    """A simulator that falls behind real time while PX4 boots (a loaded machine: the dynamics server's
+    loop serves the link between waits for frames) has a free-running step due at every serve; the link
+    must still read PX4's socket, or PX4's first lockstep answer is never seen and the clock runs on
+    through it (a suite run with a core busy: 0.67 s of sim time in 0.5 s after the answer)."""
+    monkeypatch.setattr("droneulator.px4.link.BOOT_GRACE_S", BOOT_GRACE)
+    sim.reset()
+    link = PX4Link(sim, px4_cfg(speed_factor=1.0))
+    link.start()
+    stop = threading.Event()
+
+    def serve() -> None:  # a serve without waiting every 20 ms: five times slower than the 4 ms steps
+        while not stop.is_set():
+            link.serve_once(0.0)
+            time.sleep(0.02)
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    peer = Peer(link.port)
+    try:
+        peer.hello()
+        peer.next()  # the first batch; the link free-runs once the boot grace is over, behind real time
+        wait_until(lambda: sim.t_ns >= 5 * sim.control_period_ns, 10)
+        assert not link.lockstep
+        peer.actuators([0.0] * 4, armed=False)
+        wait_until(lambda: link.lockstep, 10)
+        # the answer (to an older batch: PX4 catching up) steps once, then time waits for the next one
+        started = link.lockstep_started_ns
+        assert started is not None
+        after: list[Any] = []
+        end = time.monotonic() + 10
+        while not after and time.monotonic() < end:
+            after = [m for m in by_type(peer.drain(0.1), "HIL_SENSOR") if m.time_usec * 1000 > started]
+        assert len(after) == 1
+        t_held = sim.t_ns
+        assert not by_type(peer.drain(0.3), "HIL_SENSOR") and sim.t_ns == t_held
+    finally:
+        stop.set()
+        thread.join(5.0)
+        peer.close()
+        link.close()
+
+
 def test_px4_without_lockstep_free_runs_on_its_latest_outputs(sim, caplog, monkeypatch):
     # free-running starts when the boot grace ends, outputs or not: a second for the peer's first output
     # (the hover is set up after the first batch, and a hover with no output yet falls)

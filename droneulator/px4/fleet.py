@@ -90,6 +90,11 @@ def serve_links(
     has come), as Gazebo's lockstep waits for every instance; links without an autopilot do not hold
     the clock. Returns the step's result, or None when nothing stepped within ``timeout``. ``lock`` is
     held around every access to the world.
+
+    The sockets are read (without waiting) before a step that is already due: a simulator behind the wall
+    clock (a loaded machine) has a free-running step due at every call, and stepping at once would never
+    read the autopilot's first lockstep answer (the clock ran on through one in a suite run with a core
+    busy; ``tests/test_px4.py``).
     """
     for link in links:
         if not link.listening:
@@ -103,14 +108,14 @@ def serve_links(
         connected = [link for link in links if link.connected]
         waits = [link.time_to_step() for link in connected]
         due = max(waits) if waits and all(w is not None for w in waits) else None  # type: ignore[type-var]
-        if due is not None and due <= 0.0:
+        if due is not None and due <= 0.0 and polled:
             return step_links(connected, guard)
         now = time.monotonic()
         if polled and now >= deadline:
             return None
         wait = max(0.0, deadline - now)
         if due is not None:
-            wait = min(wait, due)
+            wait = min(wait, max(0.0, due))
         _poll_links(links, wait, guard)
         polled = True
 
