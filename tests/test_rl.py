@@ -68,6 +68,49 @@ def test_astar_and_distance_field_on_a_known_grid():
     walled[3, :] = False
     g2 = OccupancyGrid(walled, np.zeros(2), 1.0)
     assert math.isinf(g2.shortest_path(np.zeros(2), np.array([5.0, 5.0]))[0])
+    # its field from (0, 0): the far side (never reached) reads 10 m beyond the farthest reached node,
+    # (2, 5) at 3 + 2 sqrt 2; a wall node reads its nearest free node's value plus the metre to it
+    f2 = g2.distance_field(np.zeros(2))
+    far = 3 + 2 * math.sqrt(2)
+    assert f2.reachable[:3].all() and not f2.reachable[3:].any()
+    assert f2.values[:3].max() == pytest.approx(far) and f2.values[2, 5] == pytest.approx(far)
+    np.testing.assert_allclose(f2.values[4:], far + 10.0)
+    for j in range(6):
+        assert f2.values[3, j] in (pytest.approx(f2.values[2, j] + 1.0), pytest.approx(far + 11.0))
+    assert not f2.is_reachable(np.array([5.0, 5.0])) and f2.is_reachable(np.array([2.0, 5.0]))
+
+
+def test_learning_envs_fly_rl_substeps_and_stay_on_the_finer_flight():
+    """At the velocity level the learning envs integrate with 4 RK4 sub-steps a control period (the
+    levels below keep ``vehicle.substeps``): random commands fly within a micrometre of 100 sub-steps."""
+    from droneulator.config import SimConfig
+    from droneulator.config.rl import VELOCITY_SUBSTEPS
+    from droneulator.workflows.rl.multi import VineyardMultiVectorEnv
+
+    assert env_config().vehicle.substeps == VELOCITY_SUBSTEPS == 4
+    assert env_config(env_config()).vehicle.substeps == 4  # applying it twice changes nothing
+    assert env_config(action="ctbr").vehicle.substeps == SimConfig().vehicle.substeps == 10
+    assert env_config(substeps=7).vehicle.substeps == 7
+    assert "vehicle.substeps=4" in runtime_overrides(env_config())  # the remote backend flies the same
+    for bad in (0, -1, 2.5, True, "4"):
+        with pytest.raises(ValueError, match="rl.substeps"):
+            env_config(substeps=bad)
+
+    def positions(substeps: int) -> np.ndarray:
+        env = VineyardMultiVectorEnv(4, 1, substeps=substeps)
+        assert env.world.config.vehicle.substeps == substeps
+        env.reset(seed=3)
+        rng = np.random.default_rng(1)
+        out = []
+        for _ in range(60):  # 2 s
+            out.append(env.step(rng.uniform(-1, 1, (4, 2)).astype(np.float32))[4]["position"])
+        env.close()
+        return np.array(out)
+
+    coarse, fine = positions(4), positions(100)
+    err = np.abs(coarse - fine).max()
+    assert 0.0 < err < 1e-6, err
+    assert np.linalg.norm(np.diff(fine, axis=0), axis=2).sum(axis=0).min() > 0.3  # each flew a path
 
 
 def test_depth_strip_normalisation():

@@ -82,6 +82,7 @@ def env_config(config: SimConfig | None = None, **rl_overrides: Any) -> SimConfi
     cfg.scene = SCENE
     if rl_overrides:
         cfg.rl = dataclasses.replace(cfg.rl, **rl_overrides)
+    cfg.vehicle.substeps = cfg.rl.substeps_for(cfg.vehicle.substeps)
     cfg.render.cameras = [rl_camera(cfg.rl)]
     cfg.render.shadows = False
     cfg.render.camera_trigger = "rate"
@@ -112,7 +113,9 @@ def runtime_overrides(cfg: SimConfig) -> list[str]:
         f'[{{"name": "{cam.name}", "width": {cam.width}, "height": {cam.height}, '
         f'"hfov_deg": {cam.hfov_deg}, "far": {cam.far}{model}}}]'
     )
-    return [f"render.cameras={spec}", "render.shadows=false", "render.camera_trigger=rate"]
+    substeps = cfg.rl.substeps_for(cfg.vehicle.substeps)
+    return [f"render.cameras={spec}", "render.shadows=false", "render.camera_trigger=rate",
+            f"vehicle.substeps={substeps}"]  # fmt: skip
 
 
 def depth_strip(depth: np.ndarray, clip: float, samples: int = STRIP_SAMPLES) -> np.ndarray:
