@@ -204,7 +204,8 @@ def rl_part(args: argparse.Namespace) -> dict[str, Any]:
     conditions = {"ideal": [], "field": FIELD}
     table: dict[str, dict[str, int]] = {}
     for name in policies:
-        policy = SAC.load(out / name / "model.zip", device="cpu")
+        fresh_buffer = {"replay_buffer_class": None}  # evaluation never samples it: let SAC choose again
+        policy = SAC.load(out / name / "model.zip", device="cpu", custom_objects=fresh_buffer)
         table[name] = {}
         for cond, overrides in conditions.items():
             env = VineyardNavVectorEnv(len(seeds), load_config(overrides=overrides))

@@ -163,7 +163,12 @@ def train_to_target(
                     overrides=demo or None)  # fmt: skip
     from stable_baselines3 import PPO, SAC
 
-    policy = (PPO if algo == "ppo" else SAC).load(out / "model.zip", device="cpu")
+    # SB3 lets SAC choose its replay buffer again (evaluation never samples it) instead of warning that
+    # the saved n-step buffer class overrides n_steps
+    if algo == "ppo":
+        policy = PPO.load(out / "model.zip", device="cpu")
+    else:
+        policy = SAC.load(out / "model.zip", device="cpu", custom_objects={"replay_buffer_class": None})
     seeds = list(range(EVAL_SEED, EVAL_SEED + EVAL_EPISODES))
     assert not set(seeds) & set(summary["check_seeds"])
     env = VineyardNavVectorEnv(len(seeds))
