@@ -75,9 +75,10 @@ def rl_camera(rl: RLConfig) -> CameraConfig:
 def env_config(config: SimConfig | None = None, **rl_overrides: Any) -> SimConfig:
     """A copy of ``config`` set up for the environment: vineyard scene, the RL camera only, at its rate
     (one frame a step, never triggered), no shadows (depth is unaffected), ``rl`` fields replaced by
-    ``rl_overrides``. The scene's seed and vegetation stay the config's (applying this twice changes
-    nothing): with domain randomisation of the scene the environment flies in :func:`scene_variants` of
-    it."""
+    ``rl_overrides``, ``vehicle.substeps`` set to ``rl.substeps``'s (resolved at this level: a config made
+    here keeps it, so change ``rl.action`` before calling this, not on its result). The scene's seed and
+    vegetation stay the config's (applying this twice changes nothing): with domain randomisation of the
+    scene the environment flies in :func:`scene_variants` of it."""
     cfg = copy.deepcopy(config) if config is not None else load_config()
     cfg.scene = SCENE
     if rl_overrides:
