@@ -170,12 +170,17 @@ def test_sensor_topics_read_the_vehicle_at_rest(run):
     c = run.client
     st = c.state()
     assert st["mode"] == "idle" and np.linalg.norm(st["velocity"]) < 1e-3
-    run.wait_for(lambda: len(run.msgs["droneulator/imu"]) >= 150, 60, "150 IMU messages")
+    run.wait_for(lambda: min(len(run.msgs[k]) for k in ("droneulator/imu", "droneulator/odom")) >= 150, 60,
+                 "150 IMU and odometry messages")  # fmt: skip
     with run.lock:
         msgs = {k: [m for _, m in v] for k, v in run.msgs.items()}
     odom = {stamp_ns(m): m for m in msgs["droneulator/odom"]}
-    imu = [m for m in msgs["droneulator/imu"] if stamp_ns(m) in odom]
-    assert len(imu) >= 0.9 * len(msgs["droneulator/imu"])  # one IMU sample per state, at its stamp
+    # the subscriber's routes to the topics open one by one (a quiet run once matched only 221 of 293 IMU
+    # samples, most likely its odometry heard from later on): judge the states since its odometry began
+    first = min(odom)
+    heard = [m for m in msgs["droneulator/imu"] if stamp_ns(m) >= first]
+    imu = [m for m in heard if stamp_ns(m) in odom]
+    assert len(heard) >= 100 and len(imu) >= 0.9 * len(heard)  # one IMU sample per state, at its stamp
     q = odom[stamp_ns(imu[-1])].pose.pose.orientation
     R = quat_to_matrix(np.array([q.x, q.y, q.z, q.w]))  # base_link -> odom (ENU)
     accel = np.array([[v.x, v.y, v.z] for v in (m.linear_acceleration for m in imu)])
@@ -209,7 +214,7 @@ def test_sensor_topics_read_the_vehicle_at_rest(run):
         assert f.position_covariance[::4].tolist() == pytest.approx([0.02**2, 0.02**2, 0.03**2])
         # the fix describes the state gps_delay_s (10 ms) before it was sent with a state (the first fix
         # of the run, with no state that old, its own)
-        assert stamp_ns(f) + 10_000_000 in odom or stamp_ns(f) == 0
+        assert stamp_ns(f) + 10_000_000 in odom or stamp_ns(f) == 0 or stamp_ns(f) + 10_000_000 < first
         east, north, up = geodetic_to_enu(f.latitude, f.longitude, f.altitude, lat, lon, alt)
         assert abs(east) < 0.15 and abs(north) < 0.15 and abs(up) < 0.2
     assert len(fixes) >= 5
