@@ -10,8 +10,9 @@ extras="."
 [[ "${1:-}" == "--dev" ]] && extras=".[dev,colmap,rl,ros,ray]"
 
 debs=(python3 python3-venv python3-dev libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri)
-# --dev: the browser UI's tests drive Debian's Chromium with Playwright (tests/test_ui.py)
-[[ "${1:-}" == "--dev" ]] && debs+=(chromium)
+# --dev: the browser UI's tests drive Debian's Chromium with Playwright (tests/test_ui.py); the TLS tests
+# make their certificates with the openssl CLI (tests/test_access.py, tests/test_zenoh_security.py)
+[[ "${1:-}" == "--dev" ]] && debs+=(chromium openssl)
 missing=()
 for d in "${debs[@]}"; do
     dpkg-query -W -f='${Status}' "$d" 2>/dev/null | grep -q "install ok installed" || missing+=("$d")

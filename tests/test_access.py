@@ -180,8 +180,7 @@ def test_the_ui_serves_a_tab_with_the_token_and_relays_to_an_api_that_asks_for_i
 @pytest.fixture(scope="module")
 def certificate(tmp_path_factory: pytest.TempPathFactory) -> tuple[str, str]:
     """A self-signed certificate for localhost and 127.0.0.1, and its key (PEM), from the openssl CLI."""
-    if shutil.which("openssl") is None:
-        pytest.skip("the openssl CLI is not installed")
+    assert shutil.which("openssl"), "the openssl CLI is missing: bash scripts/setup.sh --dev installs it"
     d = tmp_path_factory.mktemp("tls")
     cert, key = d / "cert.pem", d / "key.pem"
     subprocess.run(
