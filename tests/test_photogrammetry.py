@@ -11,6 +11,7 @@ import hashlib
 import itertools
 import json
 import math
+import threading
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -20,7 +21,9 @@ import pytest
 from tqdm import tqdm
 
 from droneulator import frames as F
-from droneulator.config import load_config
+from droneulator.api import ApiServer, DroneulatorClient
+from droneulator.commands import CommandPath
+from droneulator.config import CaptureConfig, load_config
 from droneulator.ros import messages
 from droneulator.ros.topics import TYPES, topic_names, vehicle_topics
 from droneulator.ros.zenoh_node import RosZenohNode, ZenohNodeConfig
@@ -37,6 +40,7 @@ from droneulator.workflows.photogrammetry.colmap_model import (
     write_text_model,
 )
 from droneulator.workflows.photogrammetry.dataset import CaptureDataset, DatasetMismatchError, plan_settings
+from droneulator.workflows.photogrammetry.fly import Flyer
 from droneulator.workflows.photogrammetry.plan import (
     arc_waypoints,
     axis_clearance,
@@ -49,6 +53,7 @@ from droneulator.workflows.photogrammetry.plan import (
     segment_errors,
 )
 from droneulator.workflows.photogrammetry.record import TfBuffer, TopicRecorder
+from droneulator.world import World
 
 W, H = 320, 240
 K = intrinsics(
@@ -353,6 +358,55 @@ def test_a_view_takes_the_first_frame_whose_segmentation_and_depth_arrived_too()
         assert frame.stamp == 5 * second
         with pytest.raises(TimeoutError, match="segmentation and depth after 7000000000 ns"):
             recorder.view_after(7 * second, timeout=0.2)
+
+
+def test_the_flyer_plans_from_odometry_no_older_than_the_simulator_clock():
+    """On a loaded machine the odometry over Zenoh can lag the WebSocket event that a takeoff ended (CI: a
+    two-vehicle resume planned its first transit at the altitude of a sample still from the ground, 0 m, and
+    the simulator refused the goto): the flyer's position now is the first odometry stamped at or after the
+    simulator's clock as the API reads it. A real World behind a real WebSocket server, a real Zenoh
+    session, messages decoded by rosbags."""
+    names = {**vehicle_topics("droneulator"), **topic_names("droneulator", "front")}
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    world = World(scene="default", render=False)
+    world.step(50)
+    now = world.stamp_ns
+    try:
+        with (
+            ApiServer(CommandPath(world), port=0) as server,
+            DroneulatorClient(server.url, timeout=10.0) as client,
+            RosZenohNode(ZenohNodeConfig(listen=(endpoint,), connect=())) as sim,
+            RosZenohNode(ZenohNodeConfig(listen=(), connect=(endpoint,))) as consumer,
+        ):
+            recorder = TopicRecorder(
+                consumer, {k: names[k] for k in ("odom", "tf", "tf_static", "rgb", "seg", "depth", "info_rgb")}
+            )
+            pub = sim.publisher(names["odom"], TYPES["odom"])
+            deadline = time.monotonic() + 10
+            while not pub.matching:
+                assert time.monotonic() < deadline, "the recorder's odometry subscription never matched"
+                time.sleep(0.02)
+
+            def odom(stamp: int, z: float) -> None:
+                msg = messages.odometry(
+                    stamp, "odom", "base_link", [1.0, 2.0, z], [0, 0, 0, 1], [0] * 3, [0] * 3
+                )
+                pub.publish(messages.serialize(msg))
+
+            odom(now - 20_000_000, 0.0)  # from the ground, before the takeoff the API already reported
+            assert recorder.latest_odom(timeout=10.0).position[2] == 0.0
+            flyer = Flyer(client, recorder, CaptureConfig(), (0.0, 0.0, 0.0))
+            late = threading.Timer(0.3, odom, (now, 2.5))  # the airborne sample, heard later
+            late.start()
+            t = time.monotonic()
+            current = flyer.current()
+            late.join()
+            assert current.stamp == now and current.position[2] == 2.5
+            assert time.monotonic() - t >= 0.25  # it waited for the sample rather than taking the old one
+            odom(now + 10_000_000, 2.6)
+            assert flyer.current().stamp == now  # a sample at the clock's instant is current enough
+    finally:
+        world.close()
 
 
 def test_the_tree_comes_from_scene_info_landmarks_and_sets_the_capture_camera():

@@ -102,6 +102,14 @@ class Flyer:
                 who = event.get("vehicles") or event.get("vehicle") or "the vehicle"
                 raise CollisionError(f"{who} collided at {event.get('position')}")
 
+    def current(self) -> OdomSample:
+        """The vehicle's odometry now: the first sample stamped at or after the simulator's clock as the
+        API reads it. The odometry comes over Zenoh and the API's replies and events over the WebSocket;
+        on a loaded machine the topic can lag the event that a takeoff ended, and the latest sample heard
+        is then still one from the ground."""
+        now = int(self.client.state(vehicle=self.vehicle)["stamp_ns"])
+        return self.topics.odom_after(now - 1, timeout=self.cap.leg_timeout_s)[0]
+
     def _in_tolerance(self, s: OdomSample, goal: np.ndarray, yaw: float) -> bool:
         c = self.cap
         return (
@@ -121,7 +129,7 @@ class Flyer:
         """Fly one min-snap leg to ``goal``; returns its tracking statistics and the settle stamp (ns): when
         the odometry has stayed within the settle tolerances for ``settle_time_s``, or, ``accept_after_s``
         after the leg's reference ended without that (wind), when it is within the acceptance radius."""
-        start = self.commanded if self.commanded is not None else self.topics.latest_odom().position
+        start = self.commanded if self.commanded is not None else self.current().position
         reply = self.client.goto(goal.tolist(), yaw=yaw, speed=self.cap.speed, vehicle=self.vehicle)
         t0 = int(reply["stamp_ns"])  # the ROS clock, which the odometry stamps use
         accept_from = t0 + seconds_to_ns(float(reply["duration"]) + self.cap.accept_after_s)
@@ -178,7 +186,7 @@ class Flyer:
         altitude first, then in to the ring and up or down, so that vehicles standing side by side move
         apart before any of them closes in on the ring; the circle is flown in the longest chords that stay
         outside the ring (``capture.max_leg_deg`` at least)."""
-        cur = self.topics.latest_odom().position
+        cur = self.current().position
         az = math.atan2(cur[1] - self.center[1], cur[0] - self.center[0])
         tol = self.cap.settle_position_m
         pts: list[np.ndarray] = []
