@@ -378,9 +378,8 @@ def test_the_flyer_plans_from_odometry_no_older_than_the_simulator_clock():
             RosZenohNode(ZenohNodeConfig(listen=(endpoint,), connect=())) as sim,
             RosZenohNode(ZenohNodeConfig(listen=(), connect=(endpoint,))) as consumer,
         ):
-            recorder = TopicRecorder(
-                consumer, {k: names[k] for k in ("odom", "tf", "tf_static", "rgb", "seg", "depth", "info_rgb")}
-            )
+            keys = ("odom", "tf", "tf_static", "rgb", "seg", "depth", "info_rgb")
+            recorder = TopicRecorder(consumer, {k: names[k] for k in keys})
             pub = sim.publisher(names["odom"], TYPES["odom"])
             deadline = time.monotonic() + 10
             while not pub.matching:
