@@ -84,7 +84,9 @@ def test_two_plan_nodes_fly_round_the_tree_and_each_other_and_refuse_an_occupied
             _wait(lambda: node.failures > n, 20, f"the goal {goal} was never answered")
             assert why in node.last_failure, node.last_failure
 
-        _wait(lambda: all(n.map_s for n in nodes.values()), 120, f"no depth image\n{run.log.tail()}")
+        inputs = lambda: {k: n.inputs() for k, n in nodes.items()}  # noqa: E731
+        _wait(lambda: all(n.map_s for n in nodes.values()), 120,
+              lambda: f"no depth image integrated; inputs {inputs()}\n{run.log.tail()}")
         start, other = (np.array(client.state(name)["position"]) for name in goals)
         # far outside the 20 m local map: refused, nothing commanded
         refused([0.0, 40.0, 2.0], "outside the local map")
@@ -138,7 +140,9 @@ def test_two_plan_nodes_fly_round_the_tree_and_each_other_and_refuse_an_occupied
             near = {name: [(t, p, round(float(sdf(np.array([p]))[0]), 2)) for t, p in track.items()
                            if abs(t - first["t"]) < 0.5][::5] for name, track in tracks.items()}  # fmt: skip
             stats = {name: {"plans": n.plans, "stale": n.stale_plans, "failures": n.failures,
-                            "off_track": n.off_track, "slowest_plan_s": max(n.cycle_s, default=0.0)}
+                            "off_track": n.off_track, "slowest_plan_s": max(n.cycle_s, default=0.0),
+                            "map_lag_s_p50_p95_max": np.percentile(n.map_lag_s, [50, 95, 100]).round(2),
+                            "plans_made_t_closest_sdf_at": [_closest(t, plan, sdf) for t, plan in n.history]}
                      for name, n in nodes.items()}  # fmt: skip
             pytest.fail(f"collisions {[m['event'] for m in collisions[:3]]}; tracks round the first (t, "
                         f"position, SDF) {near}; planners {stats}\n{run.log.tail(20)}")
@@ -305,6 +309,14 @@ def scripted_node(vehicle: PlannedVehicle | None = None) -> Iterator[tuple[Scrip
         sim.close()
 
 
+def _closest(t_ns: int, plan: Any, sdf: Any) -> tuple[float, float, list[float]]:
+    """A plan made at sim time ``t_ns``: (that time, its closest approach to the scene's true geometry,
+    where)."""
+    p = plan.position(plan.sample(0.02))
+    d = sdf(p)
+    return round(t_ns / 1e9, 2), round(float(d.min()), 2), p[int(np.argmin(d))].round(2).tolist()
+
+
 def _wait(cond, timeout: float, what) -> None:
     """Poll ``cond`` until it holds; else fail with ``what`` (a string, or a function for one made then)."""
     deadline = time.monotonic() + timeout
@@ -330,6 +342,14 @@ def test_a_fleet_vehicles_plan_node_plans_from_the_world_frame_velocity_and_stop
         assert first.header.frame_id == "uav1/odom"
         gaps = np.diff(stamps)
         assert np.all(gaps >= 10_000_000) and np.mean(gaps == 10_000_000) > 0.9, "one per 10 ms of sim time"
+        # what it reports of its inputs, of how far its map runs behind the clock and of its plans
+        ins = node.inputs()
+        assert ins["camera_info"] and ins["poses"] >= 1 and ins["depth_integrated"] >= 1, ins
+        assert ins["clock"] > 0 and ins["depth"] > 0 and ins["odom"] > 0, ins
+        # (against the newest /clock heard, which may come after the depth image of its own stamp)
+        assert node.map_lag_s and min(node.map_lag_s) > -0.1 and max(node.map_lag_s) < 5, node.map_lag_s
+        t_plan, plan = node.history[-1]
+        assert t_plan <= sim.t_ns and np.linalg.norm(plan.position(plan.duration) - [0.0, 4.0, 2.0]) < 1e-6
 
         sim.depth_on = False
         off_ns = sim.last_depth_ns
@@ -341,6 +361,7 @@ def test_a_fleet_vehicles_plan_node_plans_from_the_world_frame_velocity_and_stop
         assert off_ns + 0.95e9 <= last <= off_ns + 1.05e9, (last - off_ns) / 1e9
         time.sleep(0.3)
         assert len(sim.cmds) == n, "still commanding without depth"
+        assert node.inputs()["depth"] == sim.last_depth_ns / 1e9  # the newest depth it heard: the last sent
         sim.depth_on = True
         _wait(lambda: len(sim.cmds) > n, 10, "commands did not resume with depth")
 

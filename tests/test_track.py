@@ -248,7 +248,12 @@ def test_position_commands_over_zenoh_fly_droneulator_run_and_the_camera_pose_is
             ev = client.wait_for_event("track_timeout", timeout=10)
             while ev["t"] < last_setpoint:
                 ev = client.wait_for_event("track_timeout", timeout=10)
-            assert 0.5 <= ev["t"] - last_setpoint <= 0.65
+            # it came 0.5 s (to a control step) after the last setpoint reached the vehicle, and that was
+            # the last one sent: it cannot have reached the vehicle before the odometry it answered (when it
+            # reached it is delivery, which a loaded machine delays; run 79 saw 0.2 s)
+            age = ev["age"]
+            assert 0.5 < age <= 0.5 + 2 / cfg.vehicle.control_hz, age
+            assert ev["t"] - age >= last_setpoint - 1e-6, (ev["t"], age, last_setpoint)
             with lock:
                 odom = [m for m in got["odom"] if t0 + 0.5e9 <= _stamp(m) <= t_last]
             # judge the tracking, not this test's sender: a sample counts only where the setpoints of the

@@ -29,7 +29,7 @@ import logging
 import math
 import threading
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -202,6 +202,12 @@ class PlanNode:
         self.last_failure = ""
         self.cycle_s: list[float] = []
         self.map_s: list[float] = []
+        #: sim seconds from each integrated depth image's stamp to the newest /clock heard once it was
+        #: integrated: how far the map runs behind the simulation, which does not wait for this node (a
+        #: little below 0 when the image came before the /clock of its own stamp)
+        self.map_lag_s: list[float] = []
+        #: the latest plans served, (sim time in ns, B-spline), newest last
+        self.history: deque[tuple[int, BSpline]] = deque(maxlen=50)
         self._pub = self.node.publisher(self.topics["position_cmd"], TYPES["position_cmd"])
         t = self.topics
         self.node.subscribe(t["clock"], TYPES["clock"], self._on_clock)
@@ -291,7 +297,19 @@ class PlanNode:
             "tracking": self.tracking.stats(),
             "plan_s": list(self.cycle_s),
             "map_update_s": list(self.map_s),
+            "map_lag_s": list(self.map_lag_s),
         }
+
+    def inputs(self) -> dict[str, Any]:
+        """What has arrived so far: the clock and odometry stamps, whether the depth intrinsics came,
+        how many camera poses are held and the newest depth image's stamp (sim s; None: not yet); for
+        telling a missing topic from a slow one."""
+        sec = lambda ns: None if ns is None else ns_to_seconds(ns)  # noqa: E731
+        with self._lock:
+            return {"clock": sec(self._now_ns), "odom": sec(None if self._odom is None else self._odom[0]),
+                    "camera_info": self._K is not None, "poses": len(self._poses),
+                    "newest_pose": sec(next(reversed(self._poses), None)), "depth": sec(self._last_depth_ns),
+                    "depth_integrated": len(self.map_s)}  # fmt: skip
 
     def close(self) -> None:
         """Stop both threads and close the Zenoh session."""
@@ -310,16 +328,16 @@ class PlanNode:
         self.close()
 
     # ------------------------------------------------------------------ planning thread
-    def _take_depth(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """The newest depth frame with its camera pose (same stamp) and K, or None."""
+    def _take_depth(self) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray] | None, int]:
+        """The newest depth frame with its camera pose (same stamp) and K, or None; and its stamp."""
         if self._depth is None or self._K is None:
-            return None
+            return None, 0
         stamp, depth = self._depth
         T = self._poses.get(stamp)
         if T is None:
-            return None
+            return None, stamp
         self._depth = None
-        return depth, T, self._K
+        return (depth, T, self._K), stamp
 
     def _plan_loop(self) -> None:
         last_plan_ns: int | None = None
@@ -329,7 +347,7 @@ class PlanNode:
                 self._wake.wait(timeout=0.05)
                 if self._stop:
                     return
-                frame = self._take_depth()
+                frame, frame_stamp = self._take_depth()
                 goal, new_goal = self._goal, self._new_goal
                 self._new_goal = False
                 odom, now = self._odom, self._now_ns
@@ -338,18 +356,21 @@ class PlanNode:
                 log.warning("no /clock from %s after 5 s: is `droneulator run` up there?", self.cfg.zenoh)
                 warned = True
             if frame is not None:
-                t_map = time.perf_counter()
+                t_map, integrated = time.perf_counter(), False
                 try:
                     updates = self.planner.update_map(*frame)
                 except ValueError as exc:
                     log.error("depth frame skipped: %s", exc)
                 else:
                     self.map_s.append(time.perf_counter() - t_map)
+                    integrated = True
                     if len(self.map_s) == 1:
                         log.info("first depth image integrated (%d voxel updates)", updates)
                 with self._lock:  # the state the plan starts from is the one after the map update
                     odom, now = self._odom, self._now_ns
                     traj, t0 = self._traj, self._traj_t0_ns
+                if integrated and now is not None:
+                    self.map_lag_s.append(ns_to_seconds(now - frame_stamp))
             odom = self._flown_state(odom)
             if goal is None or odom is None or now is None or self.reached.is_set():
                 continue
@@ -459,6 +480,7 @@ class PlanNode:
             self._failing = False
             self.plans += 1
             self._traj, self._traj_t0_ns, self._hold = plan, now, None
+            self.history.append((now, plan))
             self._traj_goal = goal if np.array_equal(target, goal) else None
             self._traj_id += 1
         log.debug("plan %d: %.2f s to %s in %.0f ms", self.plans, plan.duration, target.round(2),
