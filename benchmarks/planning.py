@@ -198,12 +198,15 @@ def _pct(values: list[float], q: float) -> float:
 
 
 def _planner(endpoint: str, ns: str, bounds: list[float], stats: Path, log: Path,
-             margin: float, px4: bool, tracking_margin_max: float | None) -> subprocess.Popen:  # fmt: skip
+             margin: float, px4: bool, tracking_margin_max: float | None,
+             yaw_lookahead: float | None = None) -> subprocess.Popen:  # fmt: skip
     cmd = [sys.executable, "-m", "droneulator.cli", "plan", "--zenoh", endpoint, "--namespace", ns,
            "--bounds", *map(str, bounds), "--ceiling", str(CEILING), "--floor", str(FLOOR),
            "--margin", str(margin), "--stats", str(stats), "-v"] + ["--px4"] * px4  # fmt: skip
     if tracking_margin_max is not None:
         cmd += ["--tracking-margin-max", str(tracking_margin_max)]
+    if yaw_lookahead is not None:
+        cmd += ["--yaw-lookahead", str(yaw_lookahead)]
     out = open(log, "w")  # noqa: SIM115 (closed with the process by the OS)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     return subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env)
@@ -261,7 +264,7 @@ def _fly(run, client, goal_pub, goal: np.ndarray, bounds: list[float], workdir: 
          args: argparse.Namespace, index: int, px4: PX4 | None) -> dict:  # fmt: skip
     stats, log = workdir / f"plan_{index}.json", workdir / f"plan_{index}.log"
     proc = _planner(run.zenoh_endpoint, run.config.bridge.namespace, bounds, stats, log, args.margin,
-                    px4 is not None, args.tracking_margin_max)  # fmt: skip
+                    px4 is not None, args.tracking_margin_max, args.yaw_lookahead)  # fmt: skip
     try:
         _wait_for_line(log, "first depth image integrated", proc, 120)
         for _ in client.messages(timeout=0.0):  # what queued up meanwhile: the previous flight's landing
@@ -410,6 +413,8 @@ def main() -> None:
     ap.add_argument("--margin", type=float, default=MARGIN, help="planner inflation margin (m)")
     ap.add_argument("--tracking-margin-max", type=float, default=None, metavar="M",
                     help="the planner's --tracking-margin-max (default: the planner's; 0: off)")  # fmt: skip
+    ap.add_argument("--yaw-lookahead", type=float, default=None, metavar="S",
+                    help="the planner's --yaw-lookahead (default: the planner's; 0: along the velocity)")
     ap.add_argument("--logs", default=None, help="keep the simulator's and the planner's logs and stats here")
     ap.add_argument("--output", default=None, help="JSON path (default benchmarks/results/planning.json)")
     ap.add_argument("--px4", default=None, metavar="BUILD|scripted",

@@ -275,6 +275,26 @@ def test_planner_reports_why_it_fails(wall) -> None:
     assert fresh.needs_replan(traj)
 
 
+def test_the_heading_looks_ahead_along_the_curve_as_egos_trajectory_server() -> None:
+    """EGO-Planner's traj_server faces the point ``time_forward`` (1 s) ahead: on a left bend that leads
+    the tangent into the bend; near the end it faces the end point; with 0 s it is the tangent; within
+    0.1 m (hovering) the fallback."""
+    ang = np.linspace(0.0, np.pi / 2, 30)
+    curve = BSpline(np.stack([3 * np.sin(ang), 3 - 3 * np.cos(ang), np.full(30, 2.0)], axis=1), 0.2)
+    for t in (0.5, 2.0, 3.5):
+        v = curve.velocity(t)
+        tangent = np.arctan2(v[1], v[0])
+        d = curve.position(t + 1.0) - curve.position(t)
+        assert curve.yaw(t) == pytest.approx(np.arctan2(d[1], d[0]))
+        assert curve.yaw(t) > tangent + np.radians(3)  # into the bend
+        assert curve.yaw(t, ahead=0.0) == pytest.approx(tangent)
+    t = curve.duration - 0.4
+    d = curve.position(curve.duration) - curve.position(t)
+    assert curve.yaw(t) == pytest.approx(np.arctan2(d[1], d[0]))
+    hover = BSpline(np.tile([1.0, 2.0, 2.0], (8, 1)), 0.2)
+    assert hover.yaw(0.3, fallback=0.7) == 0.7 and hover.yaw(0.3, fallback=0.7, ahead=0.0) == 0.7
+
+
 def test_compiled_lbfgs_reaches_scipys_optimum() -> None:
     """The planner's compiled L-BFGS against SciPy's L-BFGS-B (an independent implementation) on the
     same cost: same optimum, i.e. the same cost value and control points to within millimetres."""

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import json
 import socket
+import subprocess
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -115,6 +117,16 @@ def test_plan_takes_the_vehicle_and_its_px4_instance_from_the_config_or_the_run(
     assert _px4_instance(parse(["plan", "--px4"]), vehicle) == 0
     with pytest.raises(StartupError, match=f"--vehicle uav1: the run's API at {nobody} does not answer"):
         resolve_vehicle(parse(["plan", "--url", nobody, "--vehicle", "uav1"]))
+
+
+def test_plan_refuses_a_negative_yaw_lookahead_with_a_clear_error() -> None:
+    """`droneulator plan --yaw-lookahead -1`: exit status 2 and a line that names the setting, before any
+    connection is made."""
+    with pytest.raises(ValueError, match="yaw_lookahead_s must be >= 0"):
+        PlanNodeConfig(yaw_lookahead_s=-1.0)
+    out = subprocess.run([sys.executable, "-m", "droneulator.cli", "plan", "--namespace", "sim",
+                          "--yaw-lookahead", "-1"], capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert out.returncode == 2 and "yaw_lookahead_s must be >= 0" in out.stderr, (out.returncode, out.stderr)
 
 
 # --------------------------------------------------------------------------- PX4 instance k's offboard link

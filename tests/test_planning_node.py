@@ -175,7 +175,7 @@ def test_plan_px4_plans_checks_arrival_and_tracking_on_px4s_own_estimate():
     cfg.vehicle.control_hz, cfg.vehicle.params = 250.0, "px4_quadx"
     bias_ned = np.array([0.0, 0.15, 0.0])  # east
     cfg.px4.gps_bias_m = tuple(bias_ned)
-    planner = PlannerConfig(ceiling=4.0, floor=1.5, inflation_margin=0.6)  # the benchmark's
+    planner = PlannerConfig(ceiling=4.0, floor=1.5, inflation_margin=0.4)  # the benchmark's
     col = get_scene("planning", 0).collision
     with contextlib.ExitStack() as stack:
         run = stack.enter_context(launch_run(cfg))
@@ -364,6 +364,29 @@ def test_a_fleet_vehicles_plan_node_plans_from_the_world_frame_velocity_and_stop
         assert node.inputs()["depth"] == sim.last_depth_ns / 1e9  # the newest depth it heard: the last sent
         sim.depth_on = True
         _wait(lambda: len(sim.cmds) > n, 10, "commands did not resume with depth")
+
+
+def test_a_planning_thread_that_fails_stops_the_commands_instead_of_flying_its_last_plan_blind():
+    """A map update raising an unexpected error ends the planning thread: the node says so (``error``,
+    a log line) and sends nothing more, so the simulator's track timeout holds the vehicle, rather than
+    serving the last plan with nothing checking it against new depth images."""
+    with scripted_node() as (sim, node):
+        sim.send_goal([0.0, 4.0, 2.0])
+        _wait(lambda: len(sim.cmds) >= 20, 20, lambda: f"no commands; last failure {node.last_failure!r}")
+
+        def broken(*_args):
+            raise RuntimeError("a bug in the map update")
+
+        node.planner.update_map = broken
+        _wait(lambda: node.error is not None, 10, "the planning thread did not stop")
+        assert isinstance(node.error, RuntimeError) and "a bug" in node.stats()["error"]
+        time.sleep(0.2)  # a command being sent as the thread failed
+        with sim.lock:
+            n = len(sim.cmds)
+        t_end = sim.t_ns + 1_000_000_000
+        _wait(lambda: sim.t_ns >= t_end, 30, "the scripted clock stalled")
+        with sim.lock:
+            assert len(sim.cmds) == n, "still commanding after the planning thread failed"
 
 
 def test_a_vehicle_that_stays_behind_its_reference_is_planned_for_from_its_odometry():

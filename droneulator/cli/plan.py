@@ -89,6 +89,14 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="FILE",
         help="on exit, write plan/map-update times and counters as JSON",
     )
+    p.add_argument(
+        "--yaw-lookahead",
+        type=float,
+        default=None,
+        metavar="S",
+        help="face the trajectory this many sim seconds ahead (EGO's traj_server time_forward; 0: along "
+        "the velocity; default: PlanNodeConfig.yaw_lookahead_s, 1 s)",
+    )
     p.add_argument("-v", "--verbose", action="store_true", help="log every plan (debug level)")
     p.add_argument(
         "--px4",
@@ -236,6 +244,7 @@ def cmd_plan(args: argparse.Namespace) -> int:
             bounds=bounds,
             vehicle=vehicle,
             tracking_margin_max=args.tracking_margin_max,
+            **({} if args.yaw_lookahead is None else {"yaw_lookahead_s": args.yaw_lookahead}),
         )
     except ValueError as exc:
         raise StartupError(str(exc), preflight.USAGE) from None

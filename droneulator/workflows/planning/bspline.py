@@ -62,10 +62,16 @@ class BSpline:
     def acceleration(self, t: float | np.ndarray) -> np.ndarray:
         return self._eval(t, 2)
 
-    def yaw(self, t: float, fallback: float = 0.0) -> float:
-        """Heading along the horizontal velocity; ``fallback`` when nearly hovering."""
-        v = self.velocity(t)
-        return float(math.atan2(v[1], v[0])) if math.hypot(v[0], v[1]) > 0.1 else fallback
+    def yaw(self, t: float, fallback: float = 0.0, ahead: float = 1.0) -> float:
+        """Heading towards where the curve will be ``ahead`` seconds on (its end if sooner), as EGO-Planner's
+        trajectory server (``time_forward``): on a bend the camera looks into it, at what the vehicle is
+        about to pass, rather than along the tangent (``ahead`` 0: along the velocity). ``fallback`` when
+        that point is within 0.1 m (or the speed under 0.1 m/s)."""
+        if ahead > 0:
+            d = self.position(min(t + ahead, self.duration)) - self.position(min(t, self.duration))
+        else:
+            d = self.velocity(t)
+        return float(math.atan2(d[1], d[0])) if math.hypot(d[0], d[1]) > 0.1 else fallback
 
     def sample(self, step: float = 0.02) -> np.ndarray:
         """Times 0..duration every ``step`` (duration included)."""

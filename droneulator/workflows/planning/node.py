@@ -105,6 +105,9 @@ class PlanNodeConfig:
     stop_margin_s: float = 1.0
     #: largest yaw rate the trajectory server commands (rad/s), like EGO's traj_server
     max_yaw_rate: float = math.pi / 2
+    #: the camera faces the point of the trajectory this far ahead (sim seconds; EGO's traj_server
+    #: ``time_forward``), so on a bend it looks at what the vehicle is about to pass
+    yaw_lookahead_s: float = 1.0
     #: a plan that took longer than this (sim time; the planner runs on the wall clock beside the
     #: simulation) is dropped and made again: its start state lies that far in the past
     max_plan_lag_s: float = 0.3
@@ -131,6 +134,9 @@ class PlanNodeConfig:
             raise ValueError("replan_period_s, depth_timeout_s and goal_tolerance must be positive")
         if self.max_yaw_rate <= 0:
             raise ValueError("max_yaw_rate must be positive")
+        if not self.yaw_lookahead_s >= 0:
+            raise ValueError(f"yaw_lookahead_s must be >= 0 (0: along the velocity), got "
+                             f"{self.yaw_lookahead_s}")  # fmt: skip
         if self.max_plan_lag_s <= 0 or self.max_tracking_error <= 0:
             raise ValueError("max_plan_lag_s and max_tracking_error must be positive")
         if self.tracking_margin_max < 0:
@@ -192,6 +198,8 @@ class PlanNode:
         self._yaw: float | None = None
         self._last_cmd_ns: int | None = None
         self._holding_for_depth = False
+        #: what ended the planning thread (an exception), None while it runs: nothing is commanded then
+        self.error: BaseException | None = None
         #: counters for tests and logs
         self.plans = 0
         self.failures = 0
@@ -217,7 +225,7 @@ class PlanNode:
         self.node.subscribe(t["depth"], TYPES["depth"], self._on_depth)
         self.node.subscribe(t["goal"], GOAL_TYPE, self._on_goal)
         self._threads = [
-            threading.Thread(target=self._plan_loop, name="plan", daemon=True),
+            threading.Thread(target=self._plan_thread, name="plan", daemon=True),
             threading.Thread(target=self._server_loop, name="traj_server", daemon=True),
         ]
         for th in self._threads:
@@ -294,6 +302,7 @@ class PlanNode:
             "off_track": self.off_track,
             "commands": self.commands,
             "last_failure": self.last_failure,
+            "error": None if self.error is None else repr(self.error),
             "tracking": self.tracking.stats(),
             "plan_s": list(self.cycle_s),
             "map_update_s": list(self.map_s),
@@ -338,6 +347,16 @@ class PlanNode:
             return None, stamp
         self._depth = None
         return (depth, T, self._K), stamp
+
+    def _plan_thread(self) -> None:
+        """The planning loop; if it fails, the commands stop (the simulator's ``track_timeout`` then holds
+        the vehicle) instead of the last plan being flown with nothing checking it against the map."""
+        try:
+            self._plan_loop()
+        except BaseException as exc:
+            log.exception("the planning thread failed: no more commands, the vehicle holds")
+            with self._lock:
+                self.error = exc
 
     def _plan_loop(self) -> None:
         last_plan_ns: int | None = None
@@ -535,6 +554,8 @@ class PlanNode:
 
     def _command(self, now: int) -> Any:
         """The PositionCommand for sim time ``now``, or None when nothing should be sent (lock held)."""
+        if self.error is not None:
+            return None
         stale = self._last_depth_ns is None or now - self._last_depth_ns > self.cfg.depth_timeout_s * 1e9
         if stale and (self._traj is not None or self._hold is not None):
             if not self._holding_for_depth:
@@ -556,7 +577,7 @@ class PlanNode:
         if yaw_prev is None:
             flown = self._flown_state(self._odom)
             yaw_prev = frames.yaw_of(flown[2]) if flown else 0.0
-        want = self._traj.yaw(t, yaw_prev) if self._traj is not None else yaw_prev
+        want = self._traj.yaw(t, yaw_prev, self.cfg.yaw_lookahead_s) if self._traj is not None else yaw_prev
         dt = COMMAND_PERIOD_NS / 1e9
         step = float(np.clip(frames.wrap_angle(want - yaw_prev), -self.cfg.max_yaw_rate * dt,
                              self.cfg.max_yaw_rate * dt))  # fmt: skip
