@@ -142,7 +142,7 @@ def test_two_plan_nodes_fly_round_the_tree_and_each_other_and_refuse_an_occupied
             stats = {name: {"plans": n.plans, "stale": n.stale_plans, "failures": n.failures,
                             "off_track": n.off_track, "slowest_plan_s": max(n.cycle_s, default=0.0),
                             "map_lag_s_p50_p95_max": np.percentile(n.map_lag_s, [50, 95, 100]).round(2),
-                            "plans_made_t_closest_sdf_at": [_closest(t, plan, sdf) for t, plan in n.history]}
+                            "plans_t_closest_sdf_at": [_closest(t, plan, sdf) for t, plan in list(n.history)]}
                      for name, n in nodes.items()}  # fmt: skip
             pytest.fail(f"collisions {[m['event'] for m in collisions[:3]]}; tracks round the first (t, "
                         f"position, SDF) {near}; planners {stats}\n{run.log.tail(20)}")
