@@ -175,7 +175,7 @@ def test_plan_px4_plans_checks_arrival_and_tracking_on_px4s_own_estimate():
     cfg.vehicle.control_hz, cfg.vehicle.params = 250.0, "px4_quadx"
     bias_ned = np.array([0.0, 0.15, 0.0])  # east
     cfg.px4.gps_bias_m = tuple(bias_ned)
-    planner = PlannerConfig(ceiling=4.0, floor=1.5, inflation_margin=0.4)  # the benchmark's
+    planner = PlannerConfig(ceiling=4.0, floor=1.5, inflation_margin=0.6)  # the benchmark's
     col = get_scene("planning", 0).collision
     with contextlib.ExitStack() as stack:
         run = stack.enter_context(launch_run(cfg))
