@@ -30,6 +30,8 @@ import numpy as np
 from droneulator.px4.transport import pack_next
 
 MAGIC_16, MAGIC_32 = 18458, 29569
+#: wall seconds SIM_JSON waits for a reply before it sends its frame again
+REPEAT_S = 1.0
 
 #: SIM_JSON.h's keytable: (section, key, type, required), in its order
 KEYTABLE: tuple[tuple[str, str, str, bool], ...] = (
@@ -144,6 +146,8 @@ class ScriptedArduPilot:
         self.inbox = RecvBuffer()
         self.last: dict[str, Any] | None = None
         self.pwm = [1000] * 4
+        #: frames sent again by the last :meth:`step` while it waited
+        self.repeats_sent = 0
 
     @property
     def address(self) -> tuple[str, int]:
@@ -175,12 +179,21 @@ class ScriptedArduPilot:
         return None
 
     def step(self, pwm: Any = None, timeout: float = 5.0) -> dict[str, Any]:
-        """Send the next frame and wait for its reply, as ArduPilot's lockstep does."""
+        """Send the next frame and wait for its reply, as ArduPilot's lockstep does: while no reply comes,
+        the same frame is sent again every :data:`REPEAT_S` (``JSON::recv_fdm`` sends the servos again
+        each time its wait for a sensor packet ends empty), up to ``timeout`` in all."""
         self.send_frame(pwm)
-        got = self.receive(timeout)
-        if got is None:
-            raise TimeoutError(f"no reply to frame {self.frame_counter}")
-        return got
+        end = time.monotonic() + timeout
+        self.repeats_sent = 0
+        while (left := end - time.monotonic()) > 0:
+            got = self.receive(min(REPEAT_S, left))
+            if got is not None:
+                return got
+            if end - time.monotonic() > 0:
+                self.send_frame()
+                self.repeats_sent += 1
+        n = self.repeats_sent
+        raise TimeoutError(f"no reply to frame {self.frame_counter} in {timeout} s ({n} repeats sent)")
 
     def quiet(self, timeout: float = 0.3) -> bool:
         """True when nothing arrives within ``timeout``."""

@@ -673,6 +673,8 @@ def test_ardupilot_drives_the_clock_and_websocket_flight_is_refused():
         peer.close()  # ArduPilot goes away mid-flight: after 2 s of silence the simulator lands the vehicle
         r.wait_for(lambda: c.state()["mode"] == "land", 15, "the vehicle to land after ArduPilot left")
         c.goto([1.0, 1.0, 2.0])
+    except TimeoutError as e:  # the scripted ArduCopter got no reply: what the simulator was doing
+        raise AssertionError(f"{e}\n" + "\n".join(r.log[-40:])) from e
     finally:
         gc.enable()
         r.close()
