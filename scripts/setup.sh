@@ -34,4 +34,6 @@ if [[ "$extras" == *rl* ]]; then
     .venv/bin/python -m pip install -q "torch==2.13.0"
 fi
 .venv/bin/python -m pip install -q -e "$extras"
+# the numba kernels compiled into their cache now rather than in the first run (droneulator compile --help)
+.venv/bin/droneulator compile
 echo "setup: ready ($(.venv/bin/python --version), $(.venv/bin/droneulator --help >/dev/null && echo droneulator OK))"

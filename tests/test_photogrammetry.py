@@ -762,7 +762,9 @@ def test_a_12_view_ring_keeps_its_points_with_two_view_tracks(tmp_path: Path):
         cfg.capture, {"landmarks": {k: v.tolist() for k, v in scene.landmarks.items()}}
     )
     assert capture(cfg, out, progress=False)["complete"]
-    opts = ReconstructOptions(max_features=4096, dense=False, score=False)
+    # each view matched with its 4 nearest (60 degrees either side), not all 11: the rule under test
+    # reads the views' spacing, and the pairs further apart took half the time for a third of the points
+    opts = ReconstructOptions(max_features=4096, dense=False, score=False, spatial_neighbors=4)
     report = reconstruct(out, opts, log=lambda line: None)
     rules = report["sparse_filter"]["rules"]
     assert rules["min_track_length"] == 2 and 29.0 < rules["view_spacing_deg"] < 31.0
@@ -770,7 +772,8 @@ def test_a_12_view_ring_keeps_its_points_with_two_view_tracks(tmp_path: Path):
     assert report["sparse_filter"]["removed_points"]["short_track"] == 0
     kept = pycolmap.Reconstruction(out / "sparse")
     three = sum(p.track.length() >= 3 for p in kept.points3D.values())
-    # 262 points kept, 9 of them in three views or more (measured): what the three-view rule would keep
+    # 162 and 175 points kept in two runs, 8 and 10 of them in three views or more (measured): what the
+    # three-view rule would keep
     assert report["sparse_points"] == kept.num_points3D() > 100 and three < 0.2 * report["sparse_points"]
     assert report["mean_reprojection_error_px"] < 1.0
     assert "views 29." in (out / "report.md").read_text() or "views 30." in (out / "report.md").read_text()

@@ -87,7 +87,7 @@ LAYERS: dict[str, int] = {
     "api": 5, "ros": 5, "px4": 5, "ardupilot": 5, "recording": 5,
     "runtime": 6, "ui": 6,
     "workflows": 7,
-    "cli": 8, "": 8,
+    "cli": 8, "warmup": 8, "": 8,
 }  # fmt: skip
 
 

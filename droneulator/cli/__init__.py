@@ -14,6 +14,7 @@ import sys
 
 from droneulator.cli import (
     capture,
+    compile,
     config,
     demo,
     evaluate,
@@ -38,7 +39,7 @@ from droneulator.runtime.spawn import CHILD_COMMAND, frozen, run_child
 #: the subcommands, in the order ``droneulator --help`` lists them
 COMMANDS = (
     scenes, snapshot, demo, run, ui, record, replay,
-    capture, reconstruct, score, sweep, train, evaluate, plan, spray, config,
+    capture, reconstruct, score, sweep, train, evaluate, plan, spray, config, compile,
 )  # fmt: skip
 
 
