@@ -10,10 +10,11 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "compile",
         help="compile the simulator's kernels ahead of use (scripts/setup.sh runs it)",
-        description="Compile the physics, ray-cast, learning-task and planner kernels into numba's on-disk "
-        "cache, so the first run, training or test does not wait for them (a minute or two of CPU on a "
-        "fresh install; a later process loads them in about a second). Parts whose optional extra is "
-        "not installed are skipped. Editing a kernel's source makes it compile again on its next use.",
+        description="Compile the physics, ray-cast, learning-task, planner, spray and dense-stereo kernels "
+        "into numba's on-disk cache, so the first run, training or test does not wait for them (a minute "
+        "or two of CPU on a fresh install; a later process loads them in about a second). Parts whose "
+        "optional extra is not installed are skipped. Editing a kernel's source makes it compile again on "
+        "its next use.",
     )
     p.add_argument("--jobs", type=int, default=2, help="parts compiled at once, one process each (default 2)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
