@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import json
 import os
 import sys
 import tempfile
@@ -47,6 +48,21 @@ def pytest_configure(config: pytest.Config) -> None:
     """Name this test run once (pytest-xdist's workers inherit the name): its bundle build is shared."""
     if not _is_xdist_worker(config):
         os.environ["DRONEULATOR_TEST_RUN"] = uuid.uuid4().hex
+        _log_session("start")
+
+
+def _log_session(event: str, bundle: Path | None = None) -> None:
+    """The run's start and end on the timeline (``_log_timeline``), from the process that owns the run; at
+    the end, when the bundle was built in the background, its build's start and end too."""
+    path = os.environ.get("DRONEULATOR_TEST_TIMELINE")
+    if not path:
+        return
+    lines = [{"worker": "session", "event": event, "time": time.time()}]
+    if bundle is not None and (bundle / "rc").exists():  # the build's pid file is written at its start
+        start, end = (bundle / "pid").stat().st_mtime, (bundle / "rc").stat().st_mtime
+        lines.append({"worker": "bundle build", "test": "scripts/package.sh", "start": start, "end": end})
+    with open(path, "a") as log:
+        log.writelines(json.dumps(line) + "\n" for line in lines)
 
 
 def _lock_base() -> Path:
@@ -80,11 +96,27 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
     """Under pytest-xdist, a test marked ``alone`` (a check of wall-clock timing: pacing, rate limits,
     a link's gaps) runs, set-up and tear-down included, while the other worker runs nothing; the rest
     share the two cores. In one process there is nothing to wait for."""
+    start = time.time()
     if not _is_xdist_worker(item.config):
         yield
+    else:
+        with _machine_share(item.get_closest_marker("alone") is not None):
+            yield
+    _log_timeline(item, start)
+
+
+def _log_timeline(item: pytest.Item, start: float) -> None:
+    """With ``DRONEULATOR_TEST_TIMELINE=FILE``, append one JSON line a test (worker, test, start, end,
+    wall-clock seconds since the epoch, waiting for the machine share included): where the two workers
+    idle or wait on each other, ``python scripts/test_timeline.py FILE`` draws it."""
+    path = os.environ.get("DRONEULATOR_TEST_TIMELINE")
+    if not path:
         return
-    with _machine_share(item.get_closest_marker("alone") is not None):
-        yield
+    worker = getattr(item.config, "workerinput", {}).get("workerid", "main")
+    line = json.dumps({"worker": worker, "test": item.nodeid, "start": start, "end": time.time(),
+                       "alone": item.get_closest_marker("alone") is not None})  # fmt: skip
+    with open(path, "a") as log:  # one short append a test: whole lines from both workers
+        log.write(line + "\n")
 
 
 def pytest_collection_modifyitems(
@@ -113,7 +145,9 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     global _exit_status
     _exit_status = int(exitstatus)
     if not _is_xdist_worker(session.config):
-        from test_bundle import stop_build  # the run's owner stops and removes its bundle build, if any
+        from test_bundle import build_root, stop_build  # the run's owner stops and removes its bundle build
+
+        _log_session("end", build_root())
 
         stop_build()
         for suffix in (".turnstile", ".share"):
