@@ -21,9 +21,11 @@ import time
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 import zenoh
+from xdist.scheduler import LoadFileScheduling
 
 _open = zenoh.open
 _sessions: list[zenoh.Session] = []
@@ -92,16 +94,38 @@ def _machine_share(alone: bool) -> Iterator[None]:
 
 
 @pytest.hookimpl(hookwrapper=True)
+def _is_alone(item: pytest.Item | None) -> bool:
+    return item is not None and item.get_closest_marker("alone") is not None
+
+
+#: the machine held alone past a test because the next test on this worker is ``alone`` too
+_held: list[contextlib.ExitStack] = []
+
+
+@pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
     """Under pytest-xdist, a test marked ``alone`` (a check of wall-clock timing: pacing, rate limits,
     a link's gaps) runs, set-up and tear-down included, while the other worker runs nothing; the rest
-    share the two cores. In one process there is nothing to wait for."""
+    share the two cores. The ``alone`` tests run one after another on one worker (``_AloneFirst``), which
+    holds the machine from the first to the last of them: the other worker's current test is waited for
+    once, not once each. In one process there is nothing to wait for."""
     start = time.time()
     if not _is_xdist_worker(item.config):
         yield
+        _log_timeline(item, start)
+        return
+    if _held:
+        share = _held.pop()  # held alone since the test before
     else:
-        with _machine_share(item.get_closest_marker("alone") is not None):
-            yield
+        share = contextlib.ExitStack()
+        share.enter_context(_machine_share(_is_alone(item)))
+    try:
+        yield
+    finally:
+        if _is_alone(item) and _is_alone(nextitem):
+            _held.append(share)
+        else:
+            share.close()
     _log_timeline(item, start)
 
 
@@ -124,8 +148,36 @@ def pytest_collection_modifyitems(
 ) -> None:
     """The bundle's test file runs last (the rest keep their order; with pytest-xdist's ``--dist loadfile
     --no-loadscope-reorder`` the files go out in this order): the bundle's build, started in the
-    background when the tests are collected, then overlaps every other test instead of being waited for."""
-    items.sort(key=lambda item: item.path.name == "test_bundle.py")
+    background when the tests are collected, then overlaps every other test instead of being waited for.
+
+    Under pytest-xdist the ``alone`` tests come first, and each worker writes their ids for the
+    controller's scheduler (``_AloneFirst``), which sends them to one worker as the first unit of work."""
+    worker = _is_xdist_worker(config)
+    items.sort(key=lambda item: (item.path.name == "test_bundle.py", not (worker and _is_alone(item))))
+    if worker:
+        alone = Path(f"{_lock_base()}.alone")
+        part = alone.with_name(f"{alone.name}.{os.getpid()}")
+        part.write_text(json.dumps([item.nodeid for item in items if _is_alone(item)]))
+        part.replace(alone)  # both workers write the same list, each whole
+
+
+class _AloneFirst(LoadFileScheduling):
+    """pytest-xdist's ``--dist loadfile`` (a file's tests on one worker, the files in collection order),
+    except that the ``alone`` tests make one unit of their own, first: one worker runs them back to back
+    at the start while the other waits once (``pytest_runtest_protocol``), instead of each of them
+    waiting for whatever long test the other worker had started (up to 40 s each, seen in a timeline)."""
+
+    _alone: frozenset[str] | None = None
+
+    def _split_scope(self, nodeid: str) -> str:
+        if self._alone is None:  # the workers wrote it when they collected, before any scheduling
+            path = Path(f"{_lock_base()}.alone")
+            self._alone = frozenset(json.loads(path.read_text())) if path.exists() else frozenset()
+        return "alone" if nodeid in self._alone else super()._split_scope(nodeid)
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> LoadFileScheduling | None:
+    return _AloneFirst(config, log) if config.getvalue("dist") == "loadfile" else None
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
@@ -150,7 +202,7 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
         _log_session("end", build_root())
 
         stop_build()
-        for suffix in (".turnstile", ".share"):
+        for suffix in (".turnstile", ".share", ".alone"):
             Path(f"{_lock_base()}{suffix}").unlink(missing_ok=True)
     left = [s for s in _sessions if not s.is_closed()]
     for s in left:
@@ -160,11 +212,18 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:
+    start = time.time()
     deadline = time.monotonic() + 10.0
-    for t in threading.enumerate():
-        if t is not threading.main_thread() and not t.daemon:
-            t.join(max(0.0, deadline - time.monotonic()))
+    waited = [t for t in threading.enumerate() if t is not threading.main_thread() and not t.daemon]
+    for t in waited:
+        t.join(max(0.0, deadline - time.monotonic()))
     stuck = [t.name for t in threading.enumerate() if t is not threading.main_thread() and not t.daemon]
+    if path := os.environ.get("DRONEULATOR_TEST_TIMELINE"):
+        worker = getattr(config, "workerinput", {}).get("workerid", "main")
+        line = {"worker": worker, "test": f"(end: joined {[t.name for t in waited]})", "start": start,
+                "end": time.time(), "alone": False}  # fmt: skip
+        with open(path, "a") as log:
+            log.write(json.dumps(line) + "\n")
     if stuck:
         print(f"\nconftest: non-daemon threads still running after the suite: {stuck}", file=sys.stderr)
         sys.stderr.flush()

@@ -295,12 +295,14 @@ def test_a_flooding_client_is_rate_limited_and_does_not_slow_another(world: Worl
         DroneulatorClient(local(s), timeout=5.0, token=TOKEN) as other,
     ):
         replies: list[dict[str, Any]] = []
+        arrived: list[float] = []  # when each reply came
         sent = 0
 
         def read_replies() -> None:
             with contextlib.suppress(TimeoutError):
                 while True:
                     replies.append(json.loads(flooder.recv(timeout=2.0)))
+                    arrived.append(time.monotonic())
 
         reader = threading.Thread(target=read_replies)
         reader.start()
@@ -318,14 +320,17 @@ def test_a_flooding_client_is_rate_limited_and_does_not_slow_another(world: Worl
                 assert other.ping()["pong"]
                 assert other.state()["mode"]
                 latencies.append(time.perf_counter() - t1)
-        elapsed = time.monotonic() - t0
         reader.join(30.0)
         assert not reader.is_alive()
         served = [r for r in replies if r["ok"]]
         limited = [r for r in replies if not r["ok"]]
         assert {r["error"]["code"] for r in limited} == {"rate_limited"}
         assert sorted(r["id"] for r in replies) == list(range(sent))  # every message answered, by id
-        assert burst <= len(served) <= burst + rate * elapsed + 1
+        # the bucket refills for as long as the server works through the backlog, past the flood's end when
+        # it lags (101 served of a bound of 99 with the flood's own duration, in a freshly started worker):
+        # the last served request was taken before its reply came
+        serving = max(t for t, r in zip(arrived, replies, strict=True) if r["ok"]) - t0
+        assert burst <= len(served) <= burst + rate * serving + 1
         assert sent > 10 * len(served)
         # the other client, under its own limit, had every request served, promptly: judged on the median,
         # as a flood that starved it would slow most of its requests (one pause of 0.59 s was seen with a
