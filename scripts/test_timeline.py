@@ -61,6 +61,17 @@ def summary(tests: list[dict], events: dict[str, float]) -> str:
     return "\n".join(out)
 
 
+def file_durations(tests: list[dict]) -> dict[str, float]:
+    """Each test file's time (its name: seconds, to 0.1 s), from its tests that are not ``alone`` (those
+    run first as a unit of their own; a test that began while they ran counts from their end: it waited)."""
+    alone_end = max((t["end"] for t in tests if t.get("alone")), default=float("-inf"))
+    files: dict[str, float] = defaultdict(float)
+    for t in tests:
+        if "::" in t["test"] and not t.get("alone"):
+            files[t["test"].split("::")[0].rsplit("/", 1)[-1]] += t["end"] - max(t["start"], alone_end)
+    return {name: round(s, 1) for name, s in files.items()}
+
+
 def plot(tests: list[dict], events: dict[str, float], png: Path) -> None:
     import matplotlib
 
@@ -93,11 +104,19 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("timeline", type=Path, help="the JSON-lines file DRONEULATOR_TEST_TIMELINE named")
     parser.add_argument("--plot", type=Path, metavar="PNG", help="also draw the workers' timelines to PNG")
+    parser.add_argument(
+        "--durations", type=Path, metavar="JSON",
+        help="also write each test file's seconds (its alone tests left out) for tests/durations.json, the "
+        "order in which the suite hands its files to pytest-xdist's workers (tests/conftest.py)",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     if not args.timeline.is_file():
         parser.error(f"{args.timeline}: no such file")
     tests, events = load(args.timeline)
     print(summary(tests, events))
+    if args.durations:
+        args.durations.write_text(json.dumps(file_durations(tests), indent=1, sort_keys=True) + "\n")
+        print(f"durations: {args.durations}")
     if args.plot:
         plot(tests, events, args.plot)
         print(f"plot: {args.plot}")

@@ -143,22 +143,29 @@ def _log_timeline(item: pytest.Item, start: float) -> None:
         log.write(line + "\n")
 
 
+#: each test file's time in a quiet full run on two cores (seconds; ``scripts/test_timeline.py
+#: --durations``): the order in which pytest-xdist hands the files out. A file not listed counts 5 s.
+DURATIONS = Path(__file__).with_name("durations.json")
+
+
 def pytest_collection_modifyitems(
     session: pytest.Session, config: pytest.Config, items: list[pytest.Item]
 ) -> None:
-    """The bundle's test file runs last (the rest keep their order; with pytest-xdist's ``--dist loadfile
-    --no-loadscope-reorder`` the files go out in this order): the bundle's build, started in the
-    background when the tests are collected, then overlaps every other test instead of being waited for.
-
-    Under pytest-xdist the ``alone`` tests come first, and each worker writes their ids for the
-    controller's scheduler (``_AloneFirst``), which sends them to one worker as the first unit of work."""
-    worker = _is_xdist_worker(config)
-    items.sort(key=lambda item: (item.path.name == "test_bundle.py", not (worker and _is_alone(item))))
-    if worker:
-        alone = Path(f"{_lock_base()}.alone")
-        part = alone.with_name(f"{alone.name}.{os.getpid()}")
-        part.write_text(json.dumps([item.nodeid for item in items if _is_alone(item)]))
-        part.replace(alone)  # both workers write the same list, each whole
+    """Under pytest-xdist the ``alone`` tests come first, then the files longest first (``DURATIONS``;
+    a file's tests keep their order): with ``--dist loadfile --no-loadscope-reorder`` the files go out in
+    this order, so the two workers end together instead of one waiting out the other's last long file
+    (60 s seen with the files in name order). The bundle's file is one of the longer ones: its build,
+    started in the background when the tests are collected, is done long before it comes up. Each worker
+    writes the ``alone`` tests' ids for the controller's scheduler (``_AloneFirst``), which sends them to
+    one worker as the first unit of work. In one process the order stays as collected."""
+    if not _is_xdist_worker(config):
+        return
+    weight = json.loads(DURATIONS.read_text())
+    items.sort(key=lambda item: (not _is_alone(item), -weight.get(item.path.name, 5.0)))
+    alone = Path(f"{_lock_base()}.alone")
+    part = alone.with_name(f"{alone.name}.{os.getpid()}")
+    part.write_text(json.dumps([item.nodeid for item in items if _is_alone(item)]))
+    part.replace(alone)  # both workers write the same list, each whole
 
 
 class _AloneFirst(LoadFileScheduling):
