@@ -387,7 +387,7 @@ class PlanNode:
                         log.info("first depth image integrated (%d voxel updates)", updates)
                 with self._lock:  # the state the plan starts from is the one after the map update
                     odom, now = self._odom, self._now_ns
-                    traj, t0 = self._traj, self._traj_t0_ns
+                    traj, t0, hold = self._traj, self._traj_t0_ns, self._hold
                 if integrated and now is not None:
                     self.map_lag_s.append(ns_to_seconds(now - frame_stamp))
             odom = self._flown_state(odom)
@@ -410,11 +410,10 @@ class PlanNode:
             ended = traj is not None and t_rel >= traj.duration and not new_goal
             if ended and self._traj_goal is goal:
                 # the final leg is flown: wait at its end point for the odometry to converge
-                if np.linalg.norm(odom[1] - goal) <= self.cfg.goal_tolerance:
-                    source = "odometry" if self._autopilot is None else "the autopilot's estimate"
-                    log.info("goal %s reached (%s %s)", goal.round(3), source, odom[1].round(3))
-                    self.reached.set()
+                self._arrive(goal, odom[1])
                 continue
+            if traj is None and hold is not None and not new_goal and self._arrive(goal, odom[1]):
+                continue  # stopped by a failed replan, but at the goal: that is arriving too
             if due and traj is not None and not new_goal and self._traj_goal is goal:
                 due = False  # the final leg is replanned only when it meets an obstacle, as EGO near the goal
             # a leg towards an intermediate (horizon) goal that has ended is continued at once
@@ -424,6 +423,16 @@ class PlanNode:
                 continue  # after a failed plan, retry at most every RETRY_PERIOD_NS, not in a busy loop
             self._replan(goal, odom, now, traj, t_rel, new_goal)
             last_plan_ns = now
+
+    def _arrive(self, goal: np.ndarray, position: np.ndarray) -> bool:
+        """Count the goal as reached if ``position`` (the odometry, or the autopilot's estimate) is within
+        ``goal_tolerance`` of it."""
+        if np.linalg.norm(position - goal) > self.cfg.goal_tolerance:
+            return False
+        source = "odometry" if self._autopilot is None else "the autopilot's estimate"
+        log.info("goal %s reached (%s %s)", goal.round(3), source, position.round(3))
+        self.reached.set()
+        return True
 
     def _track(self, off: float, now: int) -> None:
         """Take the tracking error ``off`` (at most one sample per TRACK_PERIOD_NS of sim time) and widen
