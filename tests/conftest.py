@@ -93,7 +93,6 @@ def _machine_share(alone: bool) -> Iterator[None]:
                 fcntl.flock(turnstile, fcntl.LOCK_UN)
 
 
-@pytest.hookimpl(hookwrapper=True)
 def _is_alone(item: pytest.Item | None) -> bool:
     return item is not None and item.get_closest_marker("alone") is not None
 
@@ -138,7 +137,7 @@ def _log_timeline(item: pytest.Item, start: float) -> None:
         return
     worker = getattr(item.config, "workerinput", {}).get("workerid", "main")
     line = json.dumps({"worker": worker, "test": item.nodeid, "start": start, "end": time.time(),
-                       "alone": item.get_closest_marker("alone") is not None})  # fmt: skip
+                       "alone": _is_alone(item)})  # fmt: skip
     with open(path, "a") as log:  # one short append a test: whole lines from both workers
         log.write(line + "\n")
 
