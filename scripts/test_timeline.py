@@ -54,7 +54,7 @@ def summary(tests: list[dict], events: dict[str, float]) -> str:
         )
     files: dict[str, float] = defaultdict(float)
     for t in tests:
-        if t["worker"].startswith("gw") or t["worker"] == "main":
+        if "::" in t["test"]:
             files[t["test"].split("::")[0]] += t["end"] - t["start"]
     out.append("files by time (s):")
     out += [f"  {s:7.1f}  {f}" for f, s in sorted(files.items(), key=lambda kv: -kv[1])[:15]]
