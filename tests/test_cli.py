@@ -327,7 +327,8 @@ def test_malformed_tcp_endpoint(endpoint: str) -> None:
 def test_zenoh_config_file_endpoints_are_checked(tmp_path: Path, taken_port: int) -> None:
     conf = tmp_path / "zenoh.json5"
     conf.write_text(json.dumps({"mode": "peer", "listen": {"endpoints": [f"tcp/127.0.0.1:{taken_port}"]}}))
-    cfg = load_config(None, ["bridge.listen=[]", f"bridge.zenoh_config={conf}"])
+    # the API on any free port: the default 8765 may be another test's, which made this check fail on it
+    cfg = load_config(None, ["bridge.listen=[]", f"bridge.zenoh_config={conf}", "runtime.api_port=0"])
     with pytest.raises(StartupError, match=f"Zenoh port {taken_port}.*already in use"):
         preflight.check_ports(preflight.run_ports(cfg))
     bad = tmp_path / "bad.json5"
