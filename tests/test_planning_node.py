@@ -434,7 +434,7 @@ def test_a_plan_that_took_too_long_in_sim_time_is_dropped_and_made_again():
 def test_a_vehicle_stopped_by_a_failed_replan_at_its_goal_has_arrived():
     """Every replan after the first fails with an obstacle close ahead, so the node stops on its final
     leg and holds; the (scripted, still) vehicle is within the goal tolerance already: that counts as
-    arriving. Seen with PX4 on a loaded machine: stopped 0.1 m short of the goal, it waited for ever."""
+    arriving. Seen with PX4 on a loaded machine: stopped at the goal itself, it waited for ever."""
     with scripted_node() as (sim, node):
         plan, made = node.planner.plan, []
 
