@@ -17,6 +17,7 @@ import os
 import shlex
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import tarfile
@@ -236,6 +237,11 @@ def test_demo_runs_from_the_bundle_in_a_clean_environment(bundle, tmp_path):
     started = time.monotonic()
     # a 320x240 camera without shadows: the same processes, kernels and streams, a quarter of llvmpipe's work
     small = ['render.cameras=[{"name": "front", "width": 320, "height": 240}]', "render.shadows=false"]
+    # the API on a port that is free now and Zenoh on any: the defaults (8765, 7448) may be another test's
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        api_port = probe.getsockname()[1]
+    ports = ["--api-port", str(api_port), "--set", 'bridge.listen=["tcp/127.0.0.1:0"]']
     proc = subprocess.Popen(
         [
             str(bundle),
@@ -249,6 +255,7 @@ def test_demo_runs_from_the_bundle_in_a_clean_environment(bundle, tmp_path):
             small[0],
             "--set",
             small[1],
+            *ports,
         ],
         env=clean_env(home),
         cwd=tmp_path,
