@@ -123,6 +123,12 @@ def taken_port() -> Iterator[int]:
 
 
 # --------------------------------------------------------------------------- ports (droneulator run)
+def test_a_demo_on_any_api_port_is_refused(tmp_path: Path) -> None:
+    """``run --demo`` flies through the API, so it must know the port: 0 (any free one) is refused."""
+    out = droneulator("run", "--demo", "--out", str(tmp_path / "demo"), *FREE_PORTS)
+    assert_one_line_error(out, 2, "--demo", "--api-port N")
+
+
 def test_run_api_port_taken(taken_port: int) -> None:
     out = droneulator("run", *FREE_PORTS, "--api-port", str(taken_port))
     line = assert_one_line_error(

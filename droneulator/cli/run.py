@@ -144,6 +144,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     preflight.check_run(cfg)
     if args.demo:
         preflight.check_output_dir(args.out)
+        if cfg.runtime.api_port == 0:
+            raise StartupError(
+                "--demo flies through the API on a port it must know: give --api-port N", preflight.USAGE
+            )
     if args.record:
         check_bag_output(args.record, "--record", args.max_bag_size, args.max_bag_duration)
     elif args.max_bag_size or args.max_bag_duration:
@@ -179,7 +183,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         from droneulator.workflows.demo_client import run_demo_client
 
         threading.Thread(
-            target=run_demo_client, args=(cfg, Path(args.out), sup.stop_requested), daemon=True
+            target=run_demo_client,
+            args=(cfg, Path(args.out), sup.stop_requested, sup.zenoh_endpoint),
+            daemon=True,
         ).start()
     try:
         code = sup.wait(args.duration)

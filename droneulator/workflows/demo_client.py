@@ -76,21 +76,32 @@ def _connect(cfg: SimConfig, stop: threading.Event, timeout: float = 60.0) -> Dr
             time.sleep(0.2)
 
 
-def run_demo_client(cfg: SimConfig, out: Path, stop: threading.Event) -> None:
-    """Fly the mission, then ask the supervisor to stop (``stop.set()``)."""
+def run_demo_client(
+    cfg: SimConfig, out: Path, stop: threading.Event, hub_endpoint: str | None = None
+) -> None:
+    """Fly the mission, then ask the supervisor to stop (``stop.set()``). The frames come through
+    ``hub_endpoint``, the run's private Zenoh endpoint (its bridge's and recorder's), whatever ports
+    ``bridge.listen`` names (a port 0 included); without it, or when the simulator is a client of the
+    user's router (``bridge.mode`` ``client``), through the bridge's own endpoints."""
     try:
-        _fly(cfg, out, stop)
+        _fly(cfg, out, stop, hub_endpoint)
     finally:
         stop.set()
 
 
-def _fly(cfg: SimConfig, out: Path, stop: threading.Event) -> None:
+def _fly(cfg: SimConfig, out: Path, stop: threading.Event, hub_endpoint: str | None) -> None:
     out.mkdir(parents=True, exist_ok=True)
     client = _connect(cfg, stop)
     cam = cfg.render.cameras[0].name
     saver = FrameSaver(out)
     names = topic_names(cfg.bridge.namespace, cam)
-    node = RosZenohNode.from_config(cfg.bridge, listen=(), connect=tuple(cfg.bridge.listen))
+    if hub_endpoint and cfg.bridge.mode != "client":
+        node = RosZenohNode.from_config(
+            cfg.bridge, mode="client", listen=(), connect=(hub_endpoint,), config_file=None,
+            tls_ca="", tls_cert="", tls_key="", tls_mtls=False,
+        )  # fmt: skip
+    else:
+        node = RosZenohNode.from_config(cfg.bridge, listen=(), connect=tuple(cfg.bridge.listen))
     for kind in ("rgb", "depth", "seg"):
         node.subscribe(names[kind], TYPES[kind], lambda m, k=kind: saver.on(k, m))
     client.subscribe(["state", "events"], rate_hz=10.0)
