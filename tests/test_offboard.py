@@ -40,7 +40,7 @@ class FakePX4:
     14540+N, HEARTBEATs as MAV_AUTOPILOT_PX4 with its custom mode, LOCAL_POSITION_NED (30 Hz) and
     ATTITUDE (its estimate, ``local_ned`` and ``yaw_ned``), acks commands (results per command, accepted by
     default; OFFBOARD only while setpoints stream, as PX4 does), answers REQUEST_MESSAGE for
-    GPS_GLOBAL_ORIGIN and records what it gets. ``silent`` stops its heartbeats and acks, not its estimate;
+    GPS_GLOBAL_ORIGIN and records what it gets. ``silent`` stops everything it sends (a lost link);
     ``local_ned`` None: no position estimate yet (no LOCAL_POSITION_NED until it is set)."""
 
     def __init__(self, port: int, origin_geodetic: tuple[float, float, float] | None = HOME, sysid: int = 1,
@@ -76,7 +76,7 @@ class FakePX4:
                 self.conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_PX4, base,
                                              self.custom_mode, mavlink.MAV_STATE_STANDBY)  # fmt: skip
                 next_hb = now + 1.0 / self.hb_hz
-            if now >= next_pos:
+            if now >= next_pos and not self.silent.is_set():
                 # the heading first: a link that takes the position as it comes has the heading with it
                 self.conn.mav.attitude_send(0, 0.0, 0.0, self.yaw_ned, 0.0, 0.0, 0.0)
                 if self.local_ned is not None:
@@ -347,7 +347,7 @@ def test_an_airborne_armed_px4_is_switched_to_offboard_without_arming_again(px4_
 def test_unanswered_command_is_retried_then_reported(px4_pair):
     link, peer = px4_pair
     wait_until(lambda: link.origin_enu is not None)
-    peer.silent.set()  # no heartbeats and no acks from now on
+    peer.silent.set()  # nothing from now on
     link.setpoint(0.0, np.array([0.0, 0.0, 2.0]), np.zeros(3), np.zeros(3), 0.0, 0.0)
     wait_until(lambda: link.error is not None, timeout=5, what="the error")
     assert link.error == "PX4 refused mode OFFBOARD: no COMMAND_ACK"
@@ -365,7 +365,22 @@ def test_px4_going_silent_is_reported_and_its_return_too(px4_pair, caplog):
     peer.silent.clear()
     wait_until(lambda: link.connected, timeout=3, what="the link to come back")
     # logged just after the link is marked connected again (a loaded machine ran the check in between)
-    wait_until(lambda: "PX4 heartbeat is back" in caplog.text, timeout=3, what="the return reported")
+    wait_until(lambda: "PX4 is back" in caplog.text, timeout=3, what="the return reported")
+
+
+@pytest.mark.parametrize("px4_pair", [{"peer": {"hb_hz": 0.25}}], indirect=True)
+def test_px4_in_a_slow_lockstep_is_not_lost_between_its_heartbeats(px4_pair, caplog):
+    """PX4 in lockstep sends its 1 Hz HEARTBEAT on simulated time: a simulation at a quarter of real time
+    sends one every 4 s of wall time, while its 30 Hz position still flows. Here heartbeats come 4 s
+    apart against a 1 s link timeout: the link stays up, and nothing is reported lost."""
+    link, _ = px4_pair
+    caplog.set_level(logging.INFO, logger="droneulator.plan.offboard")
+    wait_until(lambda: link.connected)
+    until = time.monotonic() + 3.0
+    while time.monotonic() < until:
+        assert link.connected, caplog.text
+        time.sleep(0.05)
+    assert "offboard link lost" not in caplog.text
 
 
 def test_no_px4_and_no_origin_are_reported():

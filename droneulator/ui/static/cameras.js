@@ -27,6 +27,7 @@ export class CameraViews {
     this.count = 0;
     this.errors = 0; // images that could not be decoded
     this.burstTimer = 0; // while set, the paint waits for the rest of a burst
+    this.burstWaitMs = config.burst_wait_ms ?? BURST_WAIT_MS; // the longest wait for a burst's next image
     this.vehicle = null; // whose images are shown (null: any)
     this.label = null; // the vehicle's name in the captions (a fleet), or null
     window.addEventListener("resize", () => this.tiles.forEach((t) => fit(t)));
@@ -107,7 +108,7 @@ export class CameraViews {
   holdBurst() {
     if (this.burstTimer) clearTimeout(this.burstTimer);
     else painter.expect();
-    this.burstTimer = setTimeout(() => this.releaseBurst(), BURST_WAIT_MS);
+    this.burstTimer = setTimeout(() => this.releaseBurst(), this.burstWaitMs);
   }
 
   releaseBurst() {

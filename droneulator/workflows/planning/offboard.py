@@ -151,7 +151,9 @@ class OffboardConfig:
     identity: Literal["onboard", "gcs"] = "onboard"
     #: wait this long (wall) for PX4's first HEARTBEAT, then report that none came
     connect_timeout_s: float = 30.0
-    #: no PX4 HEARTBEAT for this long: the link is reported lost
+    #: nothing from PX4 for this long (wall): the link is reported lost. Any message of PX4's counts, not
+    #: only its 1 Hz HEARTBEAT: in lockstep PX4 streams on simulated time, so below a third of real time
+    #: its heartbeats come more than 3 s apart while its 30 Hz position still flows
     link_timeout_s: float = 3.0
     #: stream setpoints this long before asking for OFFBOARD
     prestream_s: float = 1.0
@@ -247,7 +249,7 @@ class OffboardLink:
         self._send_lock = threading.Lock()
         self._stop = threading.Event()
         self._peer: tuple[str, int] | None = self.announce_to
-        self._last_hb: float | None = None
+        self._last_heard: float | None = None
         self._lost = False
         self.sysid: int | None = None
         self.compid: int | None = None
@@ -318,9 +320,9 @@ class OffboardLink:
     # ------------------------------------------------------------------ public
     @property
     def connected(self) -> bool:
-        """PX4's HEARTBEAT arrived within ``link_timeout_s``."""
+        """PX4 was heard (its first HEARTBEAT, then any message) within ``link_timeout_s``."""
         with self._lock:
-            return self._last_hb is not None and not self._lost
+            return self._last_heard is not None and not self._lost
 
     @property
     def mode(self) -> str:
@@ -448,9 +450,8 @@ class OffboardLink:
                 if first:
                     self.sysid, self.compid = src, msg.get_srcComponent()
                 self._peer = addr
-                self._last_hb = time.monotonic()
-                back = self._lost
-                self._lost = False
+                self._last_heard = time.monotonic()
+                back, self._lost = self._lost, False
                 old_mode = self.custom_mode
                 self.custom_mode = msg.custom_mode
                 if (msg.custom_mode >> 16) & 0xFF == PX4_MAIN_MODE_OFFBOARD:
@@ -466,12 +467,18 @@ class OffboardLink:
                     self.mode,
                 )
             elif back:
-                log.info("PX4 heartbeat is back (mode %s)", self.mode)
+                log.info("PX4 is back (mode %s)", self.mode)
             if old_mode != msg.custom_mode and self.engaged.is_set() and not first:
                 log.info("PX4 mode %s -> %s", px4_mode_name(old_mode), self.mode)
         elif self.sysid is None or msg.get_srcSystem() != self.sysid:
             return
-        elif kind == "COMMAND_ACK":
+        else:
+            with self._lock:
+                self._last_heard = time.monotonic()
+                back, self._lost = self._lost, False
+            if back:
+                log.info("PX4 is back (mode %s)", self.mode)
+        if kind == "COMMAND_ACK":
             with self._lock:
                 self._acks[msg.command] = msg.result
                 self._lock.notify_all()
@@ -566,10 +573,10 @@ class OffboardLink:
         while not self._stop.is_set():
             now = time.monotonic()
             with self._lock:
-                sysid, last_hb = self.sysid, self._last_hb
+                sysid, last_heard = self.sysid, self._last_heard
                 streaming, holding = self._streaming, self._holding
                 sample = self._hold if holding else self._sample
-                if last_hb is not None and not self._lost and now - last_hb > self.cfg.link_timeout_s:
+                if last_heard is not None and not self._lost and now - last_heard > self.cfg.link_timeout_s:
                     self._lost = True
                     lost_now = True
                 else:
@@ -674,6 +681,7 @@ class OffboardLink:
         while not self._want.wait(0.1):
             if self._stop.is_set():
                 return
+
         def fresh() -> bool:
             return self._local is not None and time.monotonic() - self._local[0] < c.link_timeout_s
 
