@@ -130,7 +130,13 @@ def _fly(cfg: SimConfig, out: Path, stop: threading.Event, hub_endpoint: str | N
                     next_log = state["t"] + 1.0
         wall = time.monotonic() - wall0
         sim_s = state["t"] - t_start
-        time.sleep(0.5)  # let the last frames arrive
+        # let the last frames arrive, and say the events that come meanwhile: states and events are two
+        # streams, so the state of the mode that ends the mission can come before the event that said so
+        drain_until = time.monotonic() + 0.5
+        while (left := drain_until - time.monotonic()) > 0:
+            msg = client.next_message(timeout=left)
+            if msg is not None and msg["type"] == "event":
+                say(f"[{msg['event']['t']:6.2f}s] event {msg['event']['type']}")
         say(
             f"demo finished: {sim_s:.1f} s simulated in {wall:.1f} s wall "
             f"(real-time factor {sim_s / wall:.2f}), "
