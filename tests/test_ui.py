@@ -410,8 +410,8 @@ def test_rgb_view_shows_a_changing_image(stack: Stack) -> None:
     stack.wait(lambda: client.state()["mode"] == "hold", 30, "the climb to end")
 
 
-#: in a page of the UI's origin: a fresh CameraViews fed three JPEGs 40 ms apart, each header's ``more``
-#: from ``mores``; the paint that showed each image
+#: in a page of the UI's origin: a fresh CameraViews fed three JPEGs, each header's ``more`` from ``mores``,
+#: 40 ms apart or (``stepwise``) each once the one before is painted; the paint that showed each image
 BURST = """async ([mores, stepwise]) => {
   const { CameraViews } = await import("/static/cameras.js");
   const until = async (done) => {
