@@ -61,7 +61,18 @@ def test_a_reset_or_a_restart_paces_from_there() -> None:
     assert steps[0][0] == 1.0 and steps[-1][1] == pytest.approx(1.0, abs=DT)
     pacer.restart(50.0, 10.0)  # the clock's owner (PX4) gave it back: no catching up the time it had it
     assert pacer.ahead(50.0, 10.0) == 0.0 and pacer.ahead(50.0 + DT, 10.0) == pytest.approx(DT)
-    assert pacer.ahead(50.0, 12.0) == pytest.approx(-2.0)  # unbounded catch-up, as --realtime has
+    assert pacer.ahead(50.0 + DT, 12.0) == pytest.approx(DT - 2.0)  # unbounded catch-up, as --realtime has
+
+
+def test_a_reset_to_the_time_the_run_started_at_paces_from_there() -> None:
+    """A run from t = 0 reset to t = 0 (the API's reset): sim time went back, though not below where the
+    pacing started. Found in a full run: the pacer saw no step back and ran the 3 s it believed it was
+    behind unpaced, 3.6 s of sim time in 0.2 s of wall time, under a test streaming setpoints in real time."""
+    pacer = Pacer(1.0)
+    steps = run(pacer, 0.0, 0.0, 3.0)
+    assert steps[-1][1] == pytest.approx(3.0, abs=DT)
+    steps = run(pacer, 0.0, 3.0, 4.0)
+    assert steps[-1][1] == pytest.approx(1.0, abs=DT) and len(steps) == pytest.approx(100, abs=1)
 
 
 def test_bad_rates_are_refused() -> None:

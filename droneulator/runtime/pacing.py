@@ -25,17 +25,19 @@ class Pacer:
         self.catch_up_s = catch_up_s
         self.wall0: float | None = None
         self.sim0 = 0.0
+        self._last = -math.inf  # the latest sim time asked about: a reset is a step back from it
 
     def restart(self, sim_t: float, now: float) -> None:
         """Pace from here: sim time ``sim_t`` at wall time ``now`` (a reset, or the clock's owner changed)."""
-        self.wall0, self.sim0 = now, sim_t
+        self.wall0, self.sim0, self._last = now, sim_t, sim_t
 
     def ahead(self, sim_t: float, now: float) -> float:
         """How far (wall s) sim time ``sim_t`` is ahead of the pace at wall time ``now``: the time to wait
         before the next step, when positive. Restarts the pacing first when sim time went back (a reset)
         or fell further behind than ``catch_up_s``."""
-        if self.wall0 is None or sim_t < self.sim0:
+        if self.wall0 is None or sim_t < self._last:
             self.restart(sim_t, now)
+        self._last = sim_t
         ahead = (sim_t - self.sim0) / self.rate - (now - self.wall0)
         if ahead < -self.catch_up_s:
             self.restart(sim_t, now)
