@@ -187,6 +187,12 @@ def _stamp(msg) -> int:
     return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
 
 
+def _at(odom, position: np.ndarray) -> bool:
+    """Whether an odometry message is within 1 mm of ``position`` (a reset's, before anything moved it)."""
+    p = odom.pose.pose.position
+    return bool(np.linalg.norm([p.x - position[0], p.y - position[1], p.z - position[2]]) < 1e-3)
+
+
 @pytest.mark.slow
 def test_position_commands_over_zenoh_fly_droneulator_run_and_the_camera_pose_is_the_tf_chain():
     cfg = load_config(scene="tree_inspection")
@@ -216,77 +222,90 @@ def test_position_commands_over_zenoh_fly_droneulator_run_and_the_camera_pose_is
         pub = session.declare_publisher(names["position_cmd"].lstrip("/"))
         try:
             start = np.array([0.0, -8.0, 2.0])
-            client.reset(position=start.tolist(), yaw=0.0)
             client.subscribe(["events"])
-            deadline = time.monotonic() + 30
-            while not all(got[k] for k in keys):
-                assert time.monotonic() < deadline, f"topics missing: {[k for k in keys if not got[k]]}"
-                time.sleep(0.05)
 
             def now_ns() -> int:
                 with lock:
                     return _stamp(got["odom"][-1])
 
-            t0 = now_ns()
-            sent: list[int] = []  # the odometry stamp each setpoint was computed for
-            walls: list[float] = []  # and when (wall clock) it was sent
-            while (tau := ((t_send := now_ns()) - t0) / 1e9) < 3.5:  # 100 Hz on the sim clock (realtime)
-                sent.append(t_send)
-                walls.append(time.monotonic())
-                x, v, a = straight(tau)
-                pub.put(bytes(M.serialize(M.position_command(
-                    0, "world", start + [x, 0.0, 0.0], [v, 0.0, 0.0], [a, 0.0, 0.0], 0.0, 0.0))))
-                time.sleep(0.01)
-            t_last = now_ns()
-            st = client.state()
-            episode_offset_ns = st["stamp_ns"] - round(st["t"] * 1e9)  # ROS stamp of episode t = 0
-            # the last setpoint was computed for the odometry stamp sent[-1] and reached the vehicle no sooner
-            # (t_last, read after the stream, may be a frame or two later)
-            last_setpoint = (sent[-1] - episode_offset_ns) / 1e9
-            # the timeout after the stream ends (a stall of this test's sender on a loaded machine may
-            # have raised one while it streamed: the vehicle held, then tracked the next setpoint)
-            ev = client.wait_for_event("track_timeout", timeout=10)
-            while ev["t"] < last_setpoint:
+            def fly() -> tuple[list[float], int, float]:
+                """Reset to ``start`` and stream the line at 100 Hz of sim time (the run is paced to real
+                time); wait for the track timeout after it. Returns the tracking errors judged, the
+                stamp of the last odometry read, and this test's largest sender lag."""
+                client.reset(position=start.tolist(), yaw=0.0)
+                with lock:  # this flight's messages only (/tf_static is sent once)
+                    for k in keys:
+                        if k != "tf_static":
+                            got[k].clear()
+                deadline = time.monotonic() + 30
+                while not (all(got[k] for k in keys) and _at(got["odom"][-1], start)):
+                    assert time.monotonic() < deadline, f"topics missing: {[k for k in keys if not got[k]]}"
+                    time.sleep(0.05)
+                t0 = now_ns()
+                sent: list[int] = []  # the odometry stamp each setpoint was computed for
+                walls: list[float] = []  # and when (wall clock) it was sent
+                while (tau := ((t_send := now_ns()) - t0) / 1e9) < 3.5:
+                    sent.append(t_send)
+                    walls.append(time.monotonic())
+                    x, v, a = straight(tau)
+                    pub.put(bytes(M.serialize(M.position_command(
+                        0, "world", start + [x, 0.0, 0.0], [v, 0.0, 0.0], [a, 0.0, 0.0], 0.0, 0.0))))
+                    time.sleep(0.01)
+                t_last = now_ns()
+                st = client.state()
+                episode_offset_ns = st["stamp_ns"] - round(st["t"] * 1e9)  # ROS stamp of episode t = 0
+                # the last setpoint was computed for the odometry stamp sent[-1] and reached the vehicle no
+                # sooner (t_last, read after the stream, may be a frame or two later)
+                last_setpoint = (sent[-1] - episode_offset_ns) / 1e9
+                # the timeout after the stream ends (a stall of this test's sender on a loaded machine may
+                # have raised one while it streamed: the vehicle held, then tracked the next setpoint)
                 ev = client.wait_for_event("track_timeout", timeout=10)
-            # it came 0.5 s (to a control step) after the last setpoint reached the vehicle, and that was
-            # the last one sent: it cannot have reached the vehicle before the odometry it answered (when it
-            # reached it is delivery, which a loaded machine delays; run 79 saw 0.2 s)
-            age = ev["age"]
-            assert 0.5 < age <= 0.5 + 2 / cfg.vehicle.control_hz, age
-            assert ev["t"] - age >= last_setpoint - 1e-6, (ev["t"], age, last_setpoint)
-            with lock:
-                odom = [m for m in got["odom"] if t0 + 0.5e9 <= _stamp(m) <= t_last]
-            # judge the tracking, not this test's sender: a sample counts only where the setpoints of the
-            # 0.2 s before it came without a gap over 50 ms (a sender stalled on a loaded machine leaves the
-            # vehicle on an old setpoint while the reference moves on: a full suite run saw 0.18 m)
-            sends = np.array(sent)
-            stalled = np.diff(sends) > 50_000_000
-            gap_start, gap_end = sends[:-1][stalled], sends[1:][stalled]
-            odom = [
-                m
-                for m in odom
-                if not np.any((gap_end > _stamp(m) - 200_000_000) & (gap_start < _stamp(m)))
-            ]
-            # nor this test's loop: a setpoint computed from stale odometry (this process starved on a
-            # loaded machine) reaches the vehicle late and holds it back by that lag, so each sample is
-            # compared with the reference up to the largest lag of the 0.2 s of setpoints before it
-            # behind, plus 50 ms of transport (quiet: 1 to 2 frames). The lag is how much further the
-            # wall clock had gone than the odometry's stamp when a setpoint left, against the least seen
-            # (the run is paced to real time)
-            ahead = np.array(walls) - sends / 1e9
-            lag = ahead - ahead.min()
+                while ev["t"] < last_setpoint:
+                    ev = client.wait_for_event("track_timeout", timeout=10)
+                # it came 0.5 s (to a control step) after the last setpoint reached the vehicle, and that
+                # was the last one sent: it cannot have reached the vehicle before the odometry it answered
+                # (when it reached it is delivery, which a loaded machine delays; run 79 saw 0.2 s)
+                age = ev["age"]
+                assert 0.5 < age <= 0.5 + 2 / cfg.vehicle.control_hz, age
+                assert ev["t"] - age >= last_setpoint - 1e-6, (ev["t"], age, last_setpoint)
+                with lock:
+                    odom = [m for m in got["odom"] if t0 + 0.5e9 <= _stamp(m) <= t_last]
+                # judge the tracking, not this test's sender: a sample counts only where the setpoints
+                # came without a gap over 50 ms for 0.2 s before it, and for as long again as the gap
+                # after a gap (a sender stalled on a loaded machine leaves the vehicle on an old setpoint,
+                # or holding after a track timeout, while the reference moves on; it then catches up)
+                sends = np.array(sent)
+                stalled = np.diff(sends) > 50_000_000
+                gap_start, gap_end = sends[:-1][stalled], sends[1:][stalled]
+                settle = gap_end + 200_000_000 + (gap_end - gap_start)
+                odom = [m for m in odom if not np.any((settle > _stamp(m)) & (gap_start < _stamp(m)))]
+                # nor this test's loop: a setpoint computed from stale odometry (this process starved on a
+                # loaded machine) reaches the vehicle late and holds it back by that lag, so each sample
+                # is compared with the reference up to the largest lag of the 0.2 s of setpoints before
+                # it behind, plus 50 ms of transport (quiet: 1 to 2 frames). The lag is how much further
+                # the wall clock had gone than the odometry's stamp when a setpoint left, against the
+                # least seen (the run is paced to real time)
+                ahead = np.array(walls) - sends / 1e9
+                lag = ahead - ahead.min()
 
-            def error(m: object) -> float:
-                t, p = _stamp(m), m.pose.pose.position  # type: ignore[attr-defined]
-                at = np.array([p.x, p.y, p.z]) - start
-                window = (sends > t - 200_000_000) & (sends <= t)
-                worst = float(lag[window].max()) if window.any() else 0.0
-                refs = [straight((t - t0) / 1e9 - d)[0] for d in np.linspace(0.0, worst + 0.05, 31)]
-                return min(float(np.linalg.norm(at - [x, 0.0, 0.0])) for x in refs)
+                def error(m: object) -> float:
+                    t, p = _stamp(m), m.pose.pose.position  # type: ignore[attr-defined]
+                    at = np.array([p.x, p.y, p.z]) - start
+                    window = (sends > t - 200_000_000) & (sends <= t)
+                    worst = float(lag[window].max()) if window.any() else 0.0
+                    refs = [straight((t - t0) / 1e9 - d)[0] for d in np.linspace(0.0, worst + 0.05, 31)]
+                    return min(float(np.linalg.norm(at - [x, 0.0, 0.0])) for x in refs)
 
-            errors = [error(m) for m in odom]
-            assert len(errors) > 150 and max(errors) < 0.06, (len(errors), max(errors), float(lag.max()))
-            # holding (a setpoint delivered late on a loaded machine tracks again, then times out again)
+                return [error(m) for m in odom], t_last, float(lag.max())
+
+            # a sender starved so long that under half the samples can be judged flies again (seen in a
+            # full run with a core busy: a 1.7 s stall left 112)
+            for _ in range(3):
+                errors, t_last, worst_lag = fly()
+                if len(errors) > 150:
+                    break
+            assert len(errors) > 150 and max(errors) < 0.06, (len(errors), max(errors), worst_lag)
+            # holding where the line ends (after the track timeout above)
             deadline = time.monotonic() + 3
             while client.state()["mode"] != "hold":
                 assert time.monotonic() < deadline, client.state()["mode"]
