@@ -350,6 +350,9 @@ def _fly(run, client, goal_pub, goal: np.ndarray, bounds: list[float], workdir: 
         "tracking": planner.get("tracking"),
         "plans": planner.get("plans"),
         "plan_failures": planner.get("failures"),
+        # plans dropped as too late, and holds while the planning thread was stuck (both 0 when it keeps up)
+        "stale_plans": planner.get("stale_plans"),
+        "stalls": planner.get("stalls"),
         "plan_ms_median": _pct(plan_ms, 50),
         "plan_ms_p99": _pct(plan_ms, 99),
         "map_ms_median": _pct(map_ms, 50),
@@ -476,7 +479,8 @@ def main() -> None:
                       f"length={r['path_length_m']:.2f} error={r['goal_error_m']:.3f} "
                       f"clearance={r['min_clearance_m']:.2f} collisions={r['collisions']} "
                       f"plan median/p99={r['plan_ms_median']:.1f}/{r['plan_ms_p99']:.1f} ms "
-                      f"plans={r['plans']} failures={r['plan_failures']} rtf={r['rtf']:.2f} "
+                      f"plans={r['plans']} failures={r['plan_failures']} stale={r['stale_plans']} "
+                      f"stalls={r['stalls']} rtf={r['rtf']:.2f} "
                       f"tracking={r['tracking']}", flush=True)  # fmt: skip
                 if not r["reached"]:
                     print((Path(tmp) / f"plan_{k + 1}.log").read_text()[-3000:])

@@ -112,12 +112,12 @@ def test_two_plan_nodes_fly_round_the_tree_and_each_other_and_refuse_an_occupied
         deadline = time.monotonic() + 600
         while not all(n.reached.is_set() for n in nodes.values()):
             if sim_t - t_goal >= 60 or time.monotonic() >= deadline:
-                stats = {name: (n.plans, n.off_track, n.last_failure) for name, n in nodes.items()}
+                stats = {name: (n.plans, n.off_track, n.stalls, n.last_failure) for name, n in nodes.items()}
                 states = {name: client.state(name) for name in goals}
                 states = {name: (s["position"], s["mode"]) for name, s in states.items()}
                 events = [m["event"] for m in seen if m.get("type") == "event"]
                 pytest.fail(f"goals not reached after {sim_t - t_goal:.1f} s of sim time; plans, times off "
-                            f"track, last failure: {stats}; states {states}; events {events[:5]}")
+                            f"track, stalls, last failure: {stats}; states {states}; events {events[:5]}")
             msg = client.next_message(timeout=1.0)
             if msg is not None:
                 seen.append(msg)
@@ -140,7 +140,8 @@ def test_two_plan_nodes_fly_round_the_tree_and_each_other_and_refuse_an_occupied
             near = {name: [(t, p, round(float(sdf(np.array([p]))[0]), 2)) for t, p in track.items()
                            if abs(t - first["t"]) < 0.5][::5] for name, track in tracks.items()}  # fmt: skip
             stats = {name: {"plans": n.plans, "stale": n.stale_plans, "failures": n.failures,
-                            "off_track": n.off_track, "slowest_plan_s": max(n.cycle_s, default=0.0),
+                            "off_track": n.off_track, "stalls": n.stalls,
+                            "slowest_plan_s": max(n.cycle_s, default=0.0),
                             "map_lag_s_p50_p95_max": np.percentile(n.map_lag_s, [50, 95, 100]).round(2),
                             "plans_t_closest_sdf_at": [_closest(t, plan, sdf) for t, plan in list(n.history)]}
                      for name, n in nodes.items()}  # fmt: skip
@@ -448,3 +449,40 @@ def test_a_vehicle_stopped_by_a_failed_replan_at_its_goal_has_arrived():
         sim.send_goal([0.06, 0.0, 2.0])
         _wait(node.reached.is_set, 30, lambda: f"not reached: {node.failures} failed plans, {len(made)} made")
         assert len(made) >= 2 and node.failures >= 1 and node._traj is None  # it stopped, then arrived
+
+
+def test_a_plan_stuck_past_the_check_age_holds_the_vehicle_and_the_next_plan_starts_from_there():
+    """Seen in a full run on a loaded machine: one plan took 4.5 s of sim time while the node served its
+    old trajectory, unchecked against the new depth images, into a crown. Now, once the planning thread
+    has not looked at the plan for ``max_check_age_s`` of sim time, the server holds where the reference
+    is (zero velocity) until the thread is back; the stuck plan is dropped as stale and the next one
+    starts from the odometry, not from the reference that ran on."""
+    with scripted_node() as (sim, node):
+        plan, stuck = node.planner.plan, {}
+
+        def stuck_once(*args):
+            if node.plans >= 1 and not stuck:
+                stuck["from"] = sim.t_ns
+                while sim.t_ns < stuck["from"] + 3_000_000_000:  # 3 s of sim time, whatever the load
+                    time.sleep(0.01)
+                stuck["to"] = sim.t_ns
+            return plan(*args)
+
+        node.planner.plan = stuck_once
+        node.planner.needs_replan = lambda traj, t=0.0: True  # as if every depth image showed something new
+        node.cfg.max_tracking_error = math.inf  # the scripted vehicle stays put: no off-track replans
+        sim.send_goal([0.0, 6.0, 2.0])
+        _wait(lambda: "to" in stuck, 30, lambda: f"no second plan; last failure {node.last_failure!r}")
+        _wait(lambda: node.history[-1][0] > stuck["from"], 20, "no plan after the stuck one")
+        with sim.lock:
+            cmds = list(sim.cmds)
+        t0 = stuck["from"] + int((node.cfg.max_check_age_s + 0.05) * 1e9)
+        held = [m for m in cmds if t0 <= header_ns(m) <= stuck["to"]]
+        assert len(held) > 100, (len(held), (stuck["to"] - stuck["from"]) / 1e9)
+        p = np.array([[m.position.x, m.position.y, m.position.z] for m in held])
+        v = np.array([[m.velocity.x, m.velocity.y, m.velocity.z] for m in held])
+        assert np.ptp(p, axis=0).max() == 0.0 and not v.any(), "the old trajectory was served, unchecked"
+        assert np.linalg.norm(p[0] - sim.position) > 0.05  # it held where the reference had got to
+        assert node.stalls == 1 and node.stale_plans >= 1
+        after = next(plan for t, plan in node.history if t > stuck["from"])
+        assert np.linalg.norm(after.position(0.0) - sim.position) < 1e-6  # from the odometry

@@ -111,6 +111,12 @@ class PlanNodeConfig:
     #: a plan that took longer than this (sim time; the planner runs on the wall clock beside the
     #: simulation) is dropped and made again: its start state lies that far in the past
     max_plan_lag_s: float = 0.3
+    #: the trajectory is served only while the planning thread has looked at it within this much sim
+    #: time (between map updates, collision checks and plans); past it (one plan or map update stuck on a
+    #: loaded machine while the simulation runs on) the vehicle holds where its reference is, and the next
+    #: plan starts from the odometry there: as with ``depth_timeout_s``, nothing flies on unchecked for
+    #: longer. Must exceed ``max_plan_lag_s``, so a plan that is kept never stops the vehicle
+    max_check_age_s: float = 1.0
     #: the odometry further than this from the reference (a collision, a gust, a rejected command):
     #: the trajectory no longer describes the vehicle, so the next plan starts from the odometry
     #: (``math.inf``: never, e.g. when something other than these setpoints flies the vehicle)
@@ -139,6 +145,9 @@ class PlanNodeConfig:
                              f"{self.yaw_lookahead_s}")  # fmt: skip
         if self.max_plan_lag_s <= 0 or self.max_tracking_error <= 0:
             raise ValueError("max_plan_lag_s and max_tracking_error must be positive")
+        if not self.max_check_age_s > self.max_plan_lag_s:
+            raise ValueError(f"max_check_age_s ({self.max_check_age_s}) must exceed max_plan_lag_s "
+                             f"({self.max_plan_lag_s})")  # fmt: skip
         if self.tracking_margin_max < 0:
             raise ValueError("tracking_margin_max must be >= 0")
 
@@ -198,6 +207,8 @@ class PlanNode:
         self._yaw: float | None = None
         self._last_cmd_ns: int | None = None
         self._holding_for_depth = False
+        self._checked_ns: int | None = None  # sim time of the planning thread's latest look at the plan
+        self._stalled_at: np.ndarray | None = None  # where the server holds while that look is overdue
         #: what ended the planning thread (an exception), None while it runs: nothing is commanded then
         self.error: BaseException | None = None
         #: counters for tests and logs
@@ -205,6 +216,8 @@ class PlanNode:
         self.failures = 0
         self.stale_plans = 0
         self.off_track = 0
+        #: times the server held because the planning thread had not looked at the plan for too long
+        self.stalls = 0
         self.commands = 0
         self.reached = threading.Event()
         self.last_failure = ""
@@ -300,6 +313,7 @@ class PlanNode:
             "failures": self.failures,
             "stale_plans": self.stale_plans,
             "off_track": self.off_track,
+            "stalls": self.stalls,
             "commands": self.commands,
             "last_failure": self.last_failure,
             "error": None if self.error is None else repr(self.error),
@@ -370,7 +384,6 @@ class PlanNode:
                 goal, new_goal = self._goal, self._new_goal
                 self._new_goal = False
                 odom, now = self._odom, self._now_ns
-                traj, t0 = self._traj, self._traj_t0_ns
             if now is None and not warned and time.monotonic() - started > 5.0:
                 log.warning("no /clock from %s after 5 s: is `droneulator run` up there?", self.cfg.zenoh)
                 warned = True
@@ -387,9 +400,10 @@ class PlanNode:
                         log.info("first depth image integrated (%d voxel updates)", updates)
                 with self._lock:  # the state the plan starts from is the one after the map update
                     odom, now = self._odom, self._now_ns
-                    traj, t0, hold = self._traj, self._traj_t0_ns, self._hold
                 if integrated and now is not None:
                     self.map_lag_s.append(ns_to_seconds(now - frame_stamp))
+            with self._lock:
+                traj, t0, hold = self._look(now)
             odom = self._flown_state(odom)
             if goal is None or odom is None or now is None or self.reached.is_set():
                 continue
@@ -423,6 +437,17 @@ class PlanNode:
                 continue  # after a failed plan, retry at most every RETRY_PERIOD_NS, not in a busy loop
             self._replan(goal, odom, now, traj, t_rel, new_goal)
             last_plan_ns = now
+
+    def _look(self, now: int | None) -> tuple[BSpline | None, int, np.ndarray | None]:
+        """The planning thread takes the plan it serves at sim time ``now`` (lock held): it marks the plan
+        as looked at, and if the server held meanwhile it turns that hold into a stop, so the next plan
+        starts from the odometry there. Returns (trajectory, its start in ns, stop point)."""
+        if now is not None:
+            self._checked_ns = now
+        if self._stalled_at is not None:
+            log.info("the planning thread is back: planning from where the vehicle held")
+            self._traj, self._hold, self._stalled_at = None, self._stalled_at, None
+        return self._traj, self._traj_t0_ns, self._hold
 
     def _arrive(self, goal: np.ndarray, position: np.ndarray) -> bool:
         """Count the goal as reached if ``position`` (the odometry, or the autopilot's estimate) is within
@@ -575,7 +600,17 @@ class PlanNode:
         if self._holding_for_depth and not stale:
             log.info("depth images are back: commanding again")
             self._holding_for_depth = False
-        if self._traj is not None:
+        overdue = self._checked_ns is not None and now - self._checked_ns > self.cfg.max_check_age_s * 1e9
+        if self._traj is not None and overdue and self._stalled_at is None:
+            t = min(ns_to_seconds(now - self._traj_t0_ns), self._traj.duration)
+            self._stalled_at = self._traj.position(t)
+            self.stalls += 1
+            log.warning("the planning thread has not looked at the plan for %.2f s of sim time: holding at "
+                        "%s until it does", ns_to_seconds(now - self._checked_ns),
+                        self._stalled_at.round(2))  # fmt: skip
+        if self._stalled_at is not None:
+            p, v, a = self._stalled_at, np.zeros(3), np.zeros(3)
+        elif self._traj is not None:
             t = min(ns_to_seconds(now - self._traj_t0_ns), self._traj.duration)
             p, v, a = self._traj.position(t), self._traj.velocity(t), self._traj.acceleration(t)
         elif self._hold is not None:
@@ -586,7 +621,8 @@ class PlanNode:
         if yaw_prev is None:
             flown = self._flown_state(self._odom)
             yaw_prev = frames.yaw_of(flown[2]) if flown else 0.0
-        want = self._traj.yaw(t, yaw_prev, self.cfg.yaw_lookahead_s) if self._traj is not None else yaw_prev
+        flying = self._traj is not None and self._stalled_at is None
+        want = self._traj.yaw(t, yaw_prev, self.cfg.yaw_lookahead_s) if flying else yaw_prev
         dt = COMMAND_PERIOD_NS / 1e9
         step = float(np.clip(frames.wrap_angle(want - yaw_prev), -self.cfg.max_yaw_rate * dt,
                              self.cfg.max_yaw_rate * dt))  # fmt: skip
