@@ -13,6 +13,7 @@ import zenoh
 from rosbags.typesys import Stores, get_typestore
 
 from droneulator.commands import CommandPath, make_request
+from droneulator.commands import path as path_module
 from droneulator.config import load_config
 from droneulator.ros import messages as M
 from droneulator.ros.publishers import subscribe_commands
@@ -274,6 +275,39 @@ def test_commands_never_interleave_with_a_step():
     worker.join(5)
     assert done.is_set() and sim.vehicle().mode.value == "takeoff"
     sim.close()
+
+
+def test_a_command_goes_before_the_stepping_loops_next_step(monkeypatch):
+    """The stepping loop takes the lock again the moment it lets go. With a plain lock a waiting command
+    waited while it did so again and again (a takeoff asked at t = 0 of a lockstep run ran at t = 3.5 s);
+    on the loop's side of the simulation lock the loop lets every waiting command go first, so each of
+    these commands runs before the loop's second step after it asked."""
+    monkeypatch.setattr(path_module, "LOOP_YIELD_S", 60.0)  # judge the order, not the machine's speed
+    sim = World(scene="default", render=False)
+    path = CommandPath(sim)
+    steps, stop = [0], threading.Event()
+
+    def loop() -> None:
+        while not stop.is_set():
+            with path.lock.loop:
+                steps[0] += 1
+                sim.step()
+
+    stepper = threading.Thread(target=loop)
+    stepper.start()
+    try:
+        late = []
+        for _ in range(30):
+            asked = steps[0]
+            with path.lock:
+                late.append(steps[0] - asked)
+            time.sleep(0.002)
+        assert max(late) <= 1, late
+        assert path.execute(make_request("takeoff", {}))["ok"]
+    finally:
+        stop.set()
+        stepper.join(5)
+        sim.close()
 
 
 def test_a_sources_burst_of_rejections_goes_on_while_another_sources_interleave(caplog):

@@ -37,6 +37,7 @@ import socket
 import time
 from collections import deque
 from collections.abc import Callable, Collection
+from contextlib import AbstractContextManager
 from typing import TYPE_CHECKING, Any
 
 from droneulator.ardupilot.mixing import ArduCopterOctaQuadMotors, arducopter_motors
@@ -50,7 +51,6 @@ from droneulator.px4.handover import Handover, RotorHandover, on_ground, take_ov
 from droneulator.sensors import SensorSuite, Truth
 
 if TYPE_CHECKING:
-    import threading
 
     from droneulator.world.world import StepResult, World
 
@@ -231,7 +231,9 @@ class ArduPilotLink(RotorHandover):
         self._events.append(Event(kind, self.world.t, data, self.vehicle.name))
 
     # ------------------------------------------------------------------ the loop
-    def serve_once(self, timeout: float, lock: threading.Lock | None = None) -> StepResult | None:
+    def serve_once(
+        self, timeout: float, lock: AbstractContextManager[Any] | None = None
+    ) -> StepResult | None:
         """Read ArduPilot's packets for up to ``timeout`` s and step at most once (on a new frame);
         None when nothing stepped. ``lock`` is held around every access to the world."""
         return serve_links([self], timeout, lock)

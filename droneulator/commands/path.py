@@ -32,6 +32,61 @@ log = logging.getLogger("droneulator.commands")
 
 #: a rejection of the same (source, op, code) within this many seconds of the last one continues a burst
 BURST_GAP_S = 2.0
+#: the stepping loop lets waiting commands go first for at most this long (wall s) before it steps anyway
+LOOP_YIELD_S = 1.0
+
+
+class SimLock:
+    """The simulation lock, fair to commands.
+
+    The stepping loop takes it hundreds of times a second and a CPython lock is handed to no one in
+    particular when released: a command waiting for it waited while the loop took it again and again (a
+    takeoff asked at t = 0 of a lockstep run ran at t = 3.5 s; on a loaded machine the bundle's demo gave
+    up after 30 s). Commands take it with ``with lock:``; the stepping loop with ``with lock.loop:``,
+    which first lets every command already waiting have it.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._queue = threading.Condition(threading.Lock())
+        self._waiting = 0
+        #: the stepping loop's side of the lock (a context manager)
+        self.loop = _LoopSide(self)
+
+    def __enter__(self) -> SimLock:
+        with self._queue:
+            self._waiting += 1
+        try:
+            self._lock.acquire()
+        finally:
+            with self._queue:
+                self._waiting -= 1
+                if not self._waiting:
+                    self._queue.notify_all()
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self._lock.release()
+
+    def locked(self) -> bool:
+        return self._lock.locked()
+
+
+class _LoopSide:
+    """``with sim_lock.loop:``: the lock, once the commands waiting for it have had it."""
+
+    def __init__(self, owner: SimLock) -> None:
+        self._owner = owner
+
+    def __enter__(self) -> None:
+        o = self._owner
+        if o._waiting:
+            with o._queue:
+                o._queue.wait_for(lambda: not o._waiting, timeout=LOOP_YIELD_S)
+        o._lock.acquire()
+
+    def __exit__(self, *_exc: object) -> None:
+        self._owner._lock.release()
 
 
 class CommandPath:
@@ -42,7 +97,8 @@ class CommandPath:
 
     def __init__(self, sim: CommandedWorld, lock: AbstractContextManager[Any] | None = None) -> None:
         self.sim = sim
-        self.lock = lock if lock is not None else threading.Lock()
+        #: the simulation lock (a :class:`SimLock` unless given): commands hold it while they run
+        self.lock = lock if lock is not None else SimLock()
         #: vehicle name (None: every vehicle) -> (reason, the ops refused; None: every flight op)
         self._locks: dict[str | None, tuple[str, frozenset[str] | None]] = {}
         #: one line per burst of the same (source, op, code) rejection, then how many followed; a source's new

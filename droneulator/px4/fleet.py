@@ -16,9 +16,9 @@ from __future__ import annotations
 import contextlib
 import logging
 import select
-import threading
 import time
 from collections.abc import Collection
+from contextlib import AbstractContextManager
 from typing import TYPE_CHECKING, Any, ClassVar, Generic, Protocol, TypeVar
 
 from droneulator.sensors import Truth
@@ -81,7 +81,7 @@ class LockstepLink(Protocol):
 
 
 def serve_links(
-    links: Collection[Any], timeout: float, lock: threading.Lock | None = None
+    links: Collection[Any], timeout: float, lock: AbstractContextManager[Any] | None = None
 ) -> StepResult | None:
     """Serve every link (:class:`LockstepLink`, of any autopilot) for up to ``timeout`` s and step their
     (one) world at most once.
@@ -208,7 +208,9 @@ class AutopilotFleet(Generic[L]):
             for link in self.links
         )
 
-    def serve_once(self, timeout: float, lock: threading.Lock | None = None) -> StepResult | None:
+    def serve_once(
+        self, timeout: float, lock: AbstractContextManager[Any] | None = None
+    ) -> StepResult | None:
         """Serve every link once (at most ``timeout`` s): the step result when the world stepped."""
         return serve_links(self.links, timeout, lock)
 

@@ -32,6 +32,7 @@ import math
 import time
 from collections import deque
 from collections.abc import Callable, Collection
+from contextlib import AbstractContextManager
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -50,7 +51,6 @@ from droneulator.sensors.suite import PX4_SENSORS
 
 if TYPE_CHECKING:
     import socket
-    import threading
 
     from droneulator.world.world import StepResult, World
 
@@ -255,7 +255,9 @@ class PX4Link(RotorHandover):
         self._events.append(Event(kind, self.world.t, data, self.vehicle.name))
 
     # ------------------------------------------------------------------ the loop
-    def serve_once(self, timeout: float, lock: threading.Lock | None = None) -> StepResult | None:
+    def serve_once(
+        self, timeout: float, lock: AbstractContextManager[Any] | None = None
+    ) -> StepResult | None:
         """Accept PX4 and handle its messages for up to ``timeout`` s; step at most once.
 
         Returns the world's StepResult of the step taken (on a HIL_ACTUATOR_CONTROLS, or a free-running

@@ -36,6 +36,7 @@ from multiprocessing.connection import Connection, Listener, wait
 from typing import TYPE_CHECKING, Any
 
 from droneulator.commands import CommandPath
+from droneulator.commands.path import SimLock
 from droneulator.config import SimConfig, from_dict
 from droneulator.ros.publishers import subscribe_commands
 from droneulator.ros.zenoh_node import RosZenohNode
@@ -232,12 +233,13 @@ class DynamicsServer:
 
     # ------------------------------------------------------------------ stepping
     @property
-    def lock(self) -> threading.Lock:
-        """The simulation lock (the command path's): held for every physics step and every command."""
+    def lock(self) -> SimLock:
+        """The simulation lock (the command path's): held for every physics step and every command; the
+        stepping loop takes its ``loop`` side, which lets waiting commands go first."""
         return self.commands.lock  # type: ignore[return-value]
 
     def _step(self, realtime: bool) -> None:
-        with self.lock:
+        with self.lock.loop:
             res = self.world.step()
         self._after_step(res, realtime, time.time_ns())
 
@@ -245,7 +247,7 @@ class DynamicsServer:
         """Publish the states when due (:meth:`StatePublishing.due`; ROS odometry first: lowest latency,
         then the API, then the sensor topics), send camera instants to the render server, events to the
         API. ``stepped_wall_ns``: when the step that produced them ended."""
-        with self.lock:  # a command may reset the simulation between the step and here
+        with self.lock.loop:  # a command may reset the simulation between the step and here
             states = self.world.states_now()
             load = self.scene_sync.changed()
             due = self.publishing.due(states, res)
@@ -286,7 +288,7 @@ class DynamicsServer:
         connected = self.px4.connected
         ready = all(r in self.peers for r in ROLES) and lockstep_may_step(self.in_flight, self.window)
         res = (
-            self.px4.serve_once(0.002 if ready and connected else 0.0, self.lock)
+            self.px4.serve_once(0.002 if ready and connected else 0.0, self.lock.loop)
             if ready or not connected
             else None
         )
