@@ -27,6 +27,12 @@ from droneulator.ros.zenoh_node import RosZenohNode
 from droneulator.scenes import get_scene
 from droneulator.workflows.demo import plan_mission, telemetry_line
 
+#: how long a command may wait for its reply: the simulation lock is held while a kernel compiles, which
+#: a first run (the bundle's on a new machine) does on first use, for up to a minute on a loaded machine
+REQUEST_TIMEOUT_S = 180.0
+#: how long the demo waits for the clock's first step (the world's kernels compiling, cameras warming up)
+CLOCK_WAIT_S = 600.0
+
 
 class FrameSaver:
     """Saves one RGB/depth/segmentation set per ``every`` sim seconds, as received from the topics."""
@@ -69,7 +75,9 @@ def _connect(cfg: SimConfig, stop: threading.Event, timeout: float = 60.0) -> Dr
     deadline = time.monotonic() + timeout
     while True:
         try:
-            return DroneulatorClient(url, 30.0, token=access.token, cafile=access.tls_ca or access.tls_cert)
+            return DroneulatorClient(
+                url, REQUEST_TIMEOUT_S, token=access.token, cafile=access.tls_ca or access.tls_cert
+            )
         except OSError:
             if stop.is_set() or time.monotonic() > deadline:
                 raise
@@ -104,6 +112,11 @@ def _fly(cfg: SimConfig, out: Path, stop: threading.Event, hub_endpoint: str | N
         node = RosZenohNode.from_config(cfg.bridge, listen=(), connect=tuple(cfg.bridge.listen))
     for kind in ("rgb", "depth", "seg"):
         node.subscribe(names[kind], TYPES[kind], lambda m, k=kind: saver.on(k, m))
+    try:  # the state op does not wait for the simulation lock; commands do
+        client.wait_until(lambda s: s["t"] > 0.0, timeout=2.0)
+    except TimeoutError:
+        say("waiting for the simulation clock to start (a first run compiles its kernels: a minute or two)")
+        client.wait_until(lambda s: s["t"] > 0.0, timeout=CLOCK_WAIT_S)
     client.subscribe(["state", "events"], rate_hz=10.0)
     wall0 = time.monotonic()
     state: dict[str, Any] = client.state()
