@@ -51,7 +51,6 @@ from droneulator.px4.handover import Handover, RotorHandover, on_ground, take_ov
 from droneulator.sensors import SensorSuite, Truth
 
 if TYPE_CHECKING:
-
     from droneulator.world.world import StepResult, World
 
 log = logging.getLogger(__name__)

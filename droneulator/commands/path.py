@@ -68,9 +68,6 @@ class SimLock:
     def __exit__(self, *_exc: object) -> None:
         self._lock.release()
 
-    def locked(self) -> bool:
-        return self._lock.locked()
-
 
 class _LoopSide:
     """``with sim_lock.loop:``: the lock, once the commands waiting for it have had it."""
