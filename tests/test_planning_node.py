@@ -176,6 +176,9 @@ def test_plan_px4_plans_checks_arrival_and_tracking_on_px4s_own_estimate():
     cfg.vehicle.control_hz, cfg.vehicle.params = 250.0, "px4_quadx"
     bias_ned = np.array([0.0, 0.15, 0.0])  # east
     cfg.px4.gps_bias_m = tuple(bias_ned)
+    # the bias alone: the default GPS error wanders 3 cm (1-sigma) in height, and a single comparison
+    # of PX4's estimate with the truth failed on it by 5.7 cm (quiet run Q20)
+    cfg.px4.gps_noise_m = cfg.px4.gps_vertical_noise_m = 0.0
     planner = PlannerConfig(ceiling=4.0, floor=1.5, inflation_margin=0.6)  # the benchmark's
     col = get_scene("planning", 0).collision
     with contextlib.ExitStack() as stack:
@@ -217,8 +220,8 @@ def test_plan_px4_plans_checks_arrival_and_tracking_on_px4s_own_estimate():
         follow(node.reached.is_set, 25, "the goal")  # the issue's limit on a flight
         n_arrived = len(track)
         follow(lambda: len(track) > n_arrived + 100, 5, "2 s of hovering at the goal")  # 50 Hz states
-        truth = np.array(track[-1])
         est = link.estimate().position
+        truth = np.array(client.state()["position"])  # now, not the last state streamed (it may lag)
         assert np.linalg.norm(est - goal) <= 0.1, est  # arrived in PX4's frame, and stays
         bias_enu = frames.ned_to_enu(bias_ned)
         np.testing.assert_allclose(truth, est - bias_enu, atol=0.05)  # PX4 flies its estimate: truth + bias
