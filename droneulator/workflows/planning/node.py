@@ -9,10 +9,11 @@ One node plans for one vehicle (``PlanNodeConfig.vehicle``, :mod:`~droneulator.w
 in a world of several, ``<ns>`` is that vehicle's namespace (``droneulator/uav1``) and its frames are the
 vehicle's (``uav1/odom``); one node per vehicle, each mapping the others from its depth images.
 
-Two threads besides Zenoh's callbacks: the planning thread integrates the newest depth frame,
-(re)plans, and the trajectory server samples the current B-spline each time ``/clock`` has advanced
-10 ms (in lockstep the simulator waits only for its cameras, so sim time, not the wall clock, paces
-the commands). With no depth for 1 s of sim time it stops publishing, so the simulator's
+One thread besides Zenoh's callbacks: the planning thread integrates the newest depth frame and
+(re)plans. The trajectory server is the ``/clock`` callback: it samples the current B-spline each time
+the clock has advanced 10 ms, so every 10 ms tick the simulator sends gets its command however busy the
+machine is (in lockstep the simulator waits only for its cameras, so sim time, not the wall clock,
+paces the commands). With no depth for 1 s of sim time it stops publishing, so the simulator's
 ``track_timeout`` holds the vehicle.
 
 With an ``autopilot`` (``droneulator plan --px4``: PX4 in OFFBOARD through
@@ -237,20 +238,18 @@ class PlanNode:
         self.node.subscribe(t["pose"], TYPES["pose"], self._on_pose)
         self.node.subscribe(t["depth"], TYPES["depth"], self._on_depth)
         self.node.subscribe(t["goal"], GOAL_TYPE, self._on_goal)
-        self._threads = [
-            threading.Thread(target=self._plan_thread, name="plan", daemon=True),
-            threading.Thread(target=self._server_loop, name="traj_server", daemon=True),
-        ]
-        for th in self._threads:
-            th.start()
+        self._thread = threading.Thread(target=self._plan_thread, name="plan", daemon=True)
+        self._thread.start()
         log.info("planner for %s listening on %s (camera %s, goals on %s)", self.names.vehicle,
                  self.cfg.zenoh, cam, t["goal"])  # fmt: skip
 
     # ------------------------------------------------------------------ callbacks (Zenoh threads)
     def _on_clock(self, msg: Any) -> None:
+        now = stamp_to_ns(msg.clock)
         with self._wake:
-            self._now_ns = stamp_to_ns(msg.clock)
+            self._now_ns = now
             self._wake.notify_all()
+        self._serve(now)
 
     def _on_odom(self, msg: Any) -> None:
         p, o, v = msg.pose.pose.position, msg.pose.pose.orientation, msg.twist.twist.linear
@@ -335,12 +334,11 @@ class PlanNode:
                     "depth_integrated": len(self.map_s)}  # fmt: skip
 
     def close(self) -> None:
-        """Stop both threads and close the Zenoh session."""
+        """Stop the planning thread and the trajectory server, and close the Zenoh session."""
         with self._wake:
             self._stop = True
             self._wake.notify_all()
-        for th in self._threads:
-            th.join(timeout=5)
+        self._thread.join(timeout=5)
         self.node.close()
         self._blas_limit.restore_original_limits()
 
@@ -565,26 +563,23 @@ class PlanNode:
         return False
 
     # ------------------------------------------------------------------ trajectory server
-    def _server_loop(self) -> None:
-        while True:
-            with self._wake:
-                self._wake.wait(timeout=0.1)
-                if self._stop:
-                    return
-                now = self._now_ns
-                last = self._last_cmd_ns
-                if now is None or (last is not None and now - last < COMMAND_PERIOD_NS):
-                    continue
-                cmd = self._command(now)
-                if cmd is None:
-                    continue
-                self._last_cmd_ns = now
-                setpoint = self._setpoint
-            if self._autopilot is not None:
-                self._autopilot.setpoint(ns_to_seconds(now), *setpoint)
-            else:
-                self._pub.publish(messages.serialize(cmd), now)
+    def _serve(self, now: int) -> None:
+        """The trajectory server, on the ``/clock`` callback: the command for sim time ``now`` once the
+        clock has advanced COMMAND_PERIOD_NS since the last one."""
+        with self._lock:
+            last = self._last_cmd_ns
+            if self._stop or (last is not None and now - last < COMMAND_PERIOD_NS):
+                return
+            cmd = self._command(now)
+            if cmd is None:
+                return
+            self._last_cmd_ns = now
+            setpoint = self._setpoint
             self.commands += 1
+        if self._autopilot is not None:
+            self._autopilot.setpoint(ns_to_seconds(now), *setpoint)
+        else:
+            self._pub.publish(messages.serialize(cmd), now)
 
     def _command(self, now: int) -> Any:
         """The PositionCommand for sim time ``now``, or None when nothing should be sent (lock held)."""
