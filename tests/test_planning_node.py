@@ -370,6 +370,33 @@ def test_a_fleet_vehicles_plan_node_plans_from_the_world_frame_velocity_and_stop
         _wait(lambda: len(sim.cmds) > n, 10, "commands did not resume with depth")
 
 
+def test_closing_the_node_waits_for_the_command_in_flight_and_sends_none_after():
+    """The commands go out from the ``/clock`` callback, beside whoever closes the node: close() waits
+    for the one being sent before the session (and its publisher) goes, and none is sent after (seen
+    in a full run: a put racing the publisher's undeclare failed with zenoh's "Already borrowed")."""
+    with scripted_node() as (sim, node):
+        sim.send_goal([0.0, 4.0, 2.0])
+        _wait(lambda: len(sim.cmds) >= 20, 20, lambda: f"no commands; last failure {node.last_failure!r}")
+        calls: list[str] = []
+        publish, close_session = node._pub.publish, node.node.close
+
+        def slow_publish(*args):  # a put on a starved core: the callback is always inside one
+            calls.append("start")
+            time.sleep(0.03)
+            publish(*args)
+            calls.append("sent")
+
+        def closing() -> None:
+            calls.append("close")
+            close_session()
+
+        node._pub.publish, node.node.close = slow_publish, closing
+        _wait(lambda: "sent" in calls, 10, "no command through the slow publisher")
+        node.close()
+        time.sleep(0.2)
+        assert calls[-1] == "close" and calls.count("start") == calls.count("sent"), calls[-6:]
+
+
 def test_a_planning_thread_that_fails_stops_the_commands_instead_of_flying_its_last_plan_blind():
     """A map update raising an unexpected error ends the planning thread: the node says so (``error``,
     a log line) and sends nothing more, so the simulator's track timeout holds the vehicle, rather than

@@ -189,6 +189,9 @@ class PlanNode:
         self._lock = threading.Lock()
         self._wake = threading.Condition(self._lock)
         self._stop = False
+        #: held while a command goes out, so close() can wait for the one in flight before the publisher
+        #: goes (a put racing the undeclare fails in zenoh-python with "Already borrowed")
+        self._send_lock = threading.Lock()
         # inputs (guarded by _lock)
         self._now_ns: int | None = None
         self._odom: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None  # stamp, p, q, v_world
@@ -339,6 +342,8 @@ class PlanNode:
             self._stop = True
             self._wake.notify_all()
         self._thread.join(timeout=5)
+        with self._send_lock:  # the command in flight is out; none starts after this
+            pass
         self.node.close()
         self._blas_limit.restore_original_limits()
 
@@ -576,10 +581,13 @@ class PlanNode:
             self._last_cmd_ns = now
             setpoint = self._setpoint
             self.commands += 1
-        if self._autopilot is not None:
-            self._autopilot.setpoint(ns_to_seconds(now), *setpoint)
-        else:
-            self._pub.publish(messages.serialize(cmd), now)
+        with self._send_lock:
+            if self._stop:
+                return
+            if self._autopilot is not None:
+                self._autopilot.setpoint(ns_to_seconds(now), *setpoint)
+            else:
+                self._pub.publish(messages.serialize(cmd), now)
 
     def _command(self, now: int) -> Any:
         """The PositionCommand for sim time ``now``, or None when nothing should be sent (lock held)."""
