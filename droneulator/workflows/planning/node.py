@@ -580,7 +580,6 @@ class PlanNode:
                 return
             self._last_cmd_ns = now
             setpoint = self._setpoint
-            self.commands += 1
         with self._send_lock:
             if self._stop:
                 return
@@ -588,6 +587,7 @@ class PlanNode:
                 self._autopilot.setpoint(ns_to_seconds(now), *setpoint)
             else:
                 self._pub.publish(messages.serialize(cmd), now)
+            self.commands += 1
 
     def _command(self, now: int) -> Any:
         """The PositionCommand for sim time ``now``, or None when nothing should be sent (lock held)."""
